@@ -1,0 +1,7 @@
+"""``python -m dbml``."""
+
+import sys
+
+from dbml.cli import main
+
+sys.exit(main())

@@ -1,0 +1,224 @@
+"""The YAML config file, in the paper's parameter names, converted once into specs.
+
+::
+
+    dbm:
+      max_bandwidth_in_mbit: 11          # required, > 0 (1 Mbit = 10^6 bit)
+      max_bandwidth_utilization: 1.0     # optional, 0 < u <= 1, default 1
+      optimization_rate_in_seconds: 1.0  # optional, > 0, default 1
+      strategy: paper                    # optional: paper | static | fair | lp
+    channels:                            # at least one (optional where channels come live)
+      - topic: /r1/camera
+        frequency: {min: 1, max: 16}
+        message_size_in_bytes: 84000
+        priority: 0.0                    # optional, default 0
+    links:                               # optional, strategy lp only
+      - {name: r1-uplink, max_bandwidth_in_mbit: 6, channels: [/r1/camera]}
+
+Parsing is pure (text in, specs out); reading the file is the caller's business.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import yaml
+
+from dbml.core.allocation import Strategy
+from dbml.core.errors import ConfigError, SpecError
+from dbml.core.spec import ChannelSpec, LinkSpec, Problem
+
+__all__ = ["Config", "DbmSettings", "parse_config"]
+
+
+@dataclass(frozen=True, slots=True)
+class DbmSettings:
+    """The ``dbm:`` section: budget, optimisation period and strategy."""
+
+    max_bandwidth_mbit: float
+    utilization: float = 1.0
+    optimization_period_s: float = 1.0
+    strategy: Strategy = Strategy.PAPER
+
+
+@dataclass(frozen=True, slots=True)
+class Config:
+    """A whole config file: settings, channels and links."""
+
+    dbm: DbmSettings
+    channels: tuple[ChannelSpec, ...] = ()
+    links: tuple[LinkSpec, ...] = ()
+
+    def problem(self) -> Problem:
+        """The allocation problem this config describes (raises if it has no channels)."""
+        if not self.channels:
+            raise ConfigError("config: channels is empty; at least one channel is required")
+        return Problem(
+            channels=self.channels,
+            bandwidth_mbit=self.dbm.max_bandwidth_mbit,
+            utilization=self.dbm.utilization,
+            links=self.links,
+        )
+
+
+def _mapping(where: str, value: object, allowed: set[str], required: set[str]) -> dict[str, Any]:
+    if not isinstance(value, Mapping):
+        raise ConfigError(f"{where}: expected a mapping, got {value!r}")
+    for key in value:
+        if key not in allowed:
+            raise ConfigError(
+                f"{where}: unknown key {key!r} (allowed: {', '.join(sorted(allowed))})"
+            )
+    for key in sorted(required):
+        if key not in value:
+            raise ConfigError(f"{where}: missing required key {key!r}")
+    return dict(value)
+
+
+def _number(where: str, field: str, value: object) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise ConfigError(f"{where}: {field}={value!r} is not a finite number")
+    return float(value)
+
+
+def _dbm(value: object) -> DbmSettings:
+    where = "dbm"
+    data = _mapping(
+        where,
+        value,
+        {
+            "max_bandwidth_in_mbit",
+            "max_bandwidth_utilization",
+            "optimization_rate_in_seconds",
+            "strategy",
+        },
+        {"max_bandwidth_in_mbit"},
+    )
+    bandwidth = _number(where, "max_bandwidth_in_mbit", data["max_bandwidth_in_mbit"])
+    if bandwidth <= 0:
+        raise ConfigError(
+            f"{where}: max_bandwidth_in_mbit={data['max_bandwidth_in_mbit']!r} must be > 0"
+        )
+    utilization = _number(
+        where, "max_bandwidth_utilization", data.get("max_bandwidth_utilization", 1.0)
+    )
+    if not 0 < utilization <= 1:
+        raise ConfigError(
+            f"{where}: max_bandwidth_utilization={data['max_bandwidth_utilization']!r} "
+            "must be within (0, 1]"
+        )
+    period = _number(
+        where, "optimization_rate_in_seconds", data.get("optimization_rate_in_seconds", 1.0)
+    )
+    if period <= 0:
+        raise ConfigError(
+            f"{where}: optimization_rate_in_seconds={data['optimization_rate_in_seconds']!r} "
+            "must be > 0"
+        )
+    raw_strategy = data.get("strategy", Strategy.PAPER.value)
+    try:
+        strategy = Strategy(raw_strategy)
+    except ValueError:
+        names = " | ".join(s.value for s in Strategy)
+        raise ConfigError(f"{where}: strategy={raw_strategy!r} is not one of {names}") from None
+    return DbmSettings(bandwidth, utilization, period, strategy)
+
+
+def _channel(index: int, value: object) -> ChannelSpec:
+    where = f"channels[{index}]"
+    if isinstance(value, Mapping) and isinstance(value.get("topic"), str):
+        where = f"channels[{index}] {value['topic']!r}"
+    data = _mapping(
+        where,
+        value,
+        {"topic", "frequency", "message_size_in_bytes", "priority"},
+        {"topic", "frequency", "message_size_in_bytes"},
+    )
+    topic = data["topic"]
+    if not isinstance(topic, str) or not topic.startswith("/") or topic.strip() != topic:
+        raise ConfigError(f"{where}: topic={topic!r} must be a string starting with '/'")
+    frequency = _mapping(f"{where}: frequency", data["frequency"], {"min", "max"}, {"min", "max"})
+    fmin = _number(where, "frequency.min", frequency["min"])
+    fmax = _number(where, "frequency.max", frequency["max"])
+    size = _number(where, "message_size_in_bytes", data["message_size_in_bytes"])
+    priority = _number(where, "priority", data.get("priority", 0.0))
+    try:
+        return ChannelSpec(topic, fmin, fmax, size, priority)
+    except SpecError as err:
+        # ChannelSpec names the channel already; keep the config position in front.
+        raise ConfigError(f"channels[{index}] {err}") from None
+
+
+def _link(index: int, value: object) -> LinkSpec:
+    where = f"links[{index}]"
+    if isinstance(value, Mapping) and isinstance(value.get("name"), str):
+        where = f"links[{index}] {value['name']!r}"
+    data = _mapping(
+        where,
+        value,
+        {"name", "max_bandwidth_in_mbit", "channels"},
+        {"name", "max_bandwidth_in_mbit", "channels"},
+    )
+    topics = data["channels"]
+    if not isinstance(topics, list) or not all(isinstance(t, str) for t in topics):
+        raise ConfigError(f"{where}: channels={topics!r} must be a list of topics")
+    capacity = _number(where, "max_bandwidth_in_mbit", data["max_bandwidth_in_mbit"])
+    try:
+        return LinkSpec(str(data["name"]), capacity, tuple(topics))
+    except SpecError as err:
+        raise ConfigError(f"links[{index}] {err}") from None
+
+
+def parse_config(text: str, *, source: str = "<config>", require_channels: bool = True) -> Config:
+    """Parse and validate a config document; every error names the field and the value.
+
+    ``require_channels=False`` accepts a config with only the ``dbm:`` section, for an optimizer
+    whose channels are announced live by the publishers.
+    """
+    try:
+        document = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        at = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        reason = getattr(err, "problem", None) or type(err).__name__
+        raise ConfigError(f"{source}: invalid YAML{at}: {reason}") from None
+    top = _mapping(source, document, {"dbm", "channels", "links"}, {"dbm"})
+    dbm = _dbm(top["dbm"])
+    raw_channels = top.get("channels")
+    if raw_channels is None:
+        raw_channels = []
+    if not isinstance(raw_channels, list):
+        raise ConfigError(f"{source}: channels={raw_channels!r} must be a list")
+    if require_channels and not raw_channels:
+        raise ConfigError(
+            f"{source}: channels is missing or empty; at least one channel is required"
+        )
+    channels = tuple(_channel(i, c) for i, c in enumerate(raw_channels))
+    seen: set[str] = set()
+    for i, channel in enumerate(channels):
+        if channel.topic in seen:
+            raise ConfigError(f"channels[{i}] {channel.topic!r}: topic is declared twice")
+        seen.add(channel.topic)
+    raw_links = top.get("links") or []
+    if not isinstance(raw_links, list):
+        raise ConfigError(f"{source}: links={raw_links!r} must be a list")
+    links = tuple(_link(i, link) for i, link in enumerate(raw_links))
+    if links and dbm.strategy is not Strategy.LP:
+        raise ConfigError(
+            f"links[0] {links[0].name!r}: links need strategy 'lp', "
+            f"but dbm.strategy={dbm.strategy.value!r}"
+        )
+    names: set[str] = set()
+    for i, link in enumerate(links):
+        if link.name in names:
+            raise ConfigError(f"links[{i}] {link.name!r}: name is declared twice")
+        names.add(link.name)
+        for topic in link.topics:
+            if topic not in seen and channels:
+                raise ConfigError(
+                    f"links[{i}] {link.name!r}: channels lists unknown topic {topic!r}"
+                )
+    return Config(dbm=dbm, channels=channels, links=links)
