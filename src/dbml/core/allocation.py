@@ -310,7 +310,9 @@ def allocate(problem: Problem, *, strategy: Strategy | str = Strategy.PAPER) -> 
         floors, floor_name = (fmax - fmin) * normalized + fmin, "priority floors"
     lower, problem_message = _relax(w, fmin, floors, rows, floor_name)
 
-    if chosen is Strategy.PAPER or (chosen is Strategy.LP and not problem.links):
+    if np.all(lower < fmin):
+        rates = lower  # even the minimums do not fit: one common fraction, nothing left to share
+    elif chosen is Strategy.PAPER or (chosen is Strategy.LP and not problem.links):
         rates = _fill_ascending_size(w, lower, fmax, budget)
     elif chosen is Strategy.FAIR:
         rates = np.clip(_water_level(w, lower, fmax, budget), lower, fmax)

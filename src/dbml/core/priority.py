@@ -59,9 +59,7 @@ def linear_ramp(value: float, *, full_at: float, zero_at: float) -> float:
     if isinstance(value, bool) or not isinstance(value, int | float) or math.isnan(value):
         raise SpecError(f"value={value!r} is not a number")
     if not (math.isfinite(full_at) and math.isfinite(zero_at)) or full_at == zero_at:
-        raise SpecError(
-            f"ramp full_at={full_at!r}, zero_at={zero_at!r} must be distinct and finite"
-        )
+        raise SpecError(f"ramp full_at={full_at!r}, zero_at={zero_at!r} must differ and be finite")
     fraction = (zero_at - value) / (zero_at - full_at)
     return min(1.0, max(0.0, fraction))
 

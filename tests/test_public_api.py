@@ -1,0 +1,40 @@
+import importlib
+import pkgutil
+import re
+from pathlib import Path
+
+import pytest
+
+import dbml
+
+PACKAGES = ["dbml", "dbml.core", "dbml.sim"]
+
+
+@pytest.mark.parametrize("name", PACKAGES)
+def test_all_is_sorted_and_resolves(name: str) -> None:
+    module = importlib.import_module(name)
+    names = list(module.__all__)
+    assert names == sorted(names, key=lambda n: (not n.isupper(), n)) or names == sorted(names)
+    for item in names:
+        assert hasattr(module, item), item
+
+
+def test_every_module_declares_all() -> None:
+    for info in pkgutil.walk_packages(dbml.__path__, "dbml."):
+        if info.name.endswith("__main__"):
+            continue
+        module = importlib.import_module(info.name)
+        assert hasattr(module, "__all__"), info.name
+
+
+def test_py_typed_marker_ships() -> None:
+    assert (Path(dbml.__file__).parent / "py.typed").exists()
+
+
+def test_readme_library_example_runs(capsys: pytest.CaptureFixture[str]) -> None:
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    block = re.search(r"```python\n(.*?)```", readme, re.S)
+    assert block is not None
+    exec(compile(block.group(1), "README.md", "exec"), {})
+    out = capsys.readouterr().out
+    assert out.startswith("optimal {'/r1/camera': 12.369")
