@@ -133,8 +133,13 @@ class _Row:
     """A capacity constraint ``sum_{i in mask} w_i f_i <= cap`` (the budget, or one link)."""
 
     label: str
-    mask: BoolArray
+    mask: BoolArray | None  # None: every channel (the budget), without the cost of a mask
     cap_bytes_per_s: float
+
+    def used(self, w: FloatArray, rates: FloatArray) -> float:
+        if self.mask is None:
+            return float(w @ rates)
+        return float(w[self.mask] @ rates[self.mask])
 
 
 def _mbit(bytes_per_s: float) -> str:
@@ -143,14 +148,18 @@ def _mbit(bytes_per_s: float) -> str:
 
 def _relax(
     w: FloatArray, fmin: FloatArray, floors: FloatArray, rows: list[_Row], floor_name: str
-) -> tuple[FloatArray, str | None]:
-    """Lower bounds that fit every row: the floors, pulled back toward ``fmin`` if needed."""
-    need_floor = [float(w[r.mask] @ floors[r.mask]) for r in rows]
+) -> tuple[FloatArray, str | None, bool]:
+    """Lower bounds that fit every row: the floors, pulled back toward ``fmin`` if needed.
+
+    Returns the bounds, the infeasibility message (None if the floors fit) and whether even the
+    minimums had to be scaled down (then the bounds are the final rates).
+    """
+    need_floor = [r.used(w, floors) for r in rows]
     if all(
         need <= r.cap_bytes_per_s * (1 + _REL_TOL) for need, r in zip(need_floor, rows, strict=True)
     ):
-        return floors, None
-    need_min = [float(w[r.mask] @ fmin[r.mask]) for r in rows]
+        return floors, None, False
+    need_min = [r.used(w, fmin) for r in rows]
     short = [i for i, r in enumerate(rows) if need_min[i] > r.cap_bytes_per_s * (1 + _REL_TOL)]
     if short:
         fractions = [rows[i].cap_bytes_per_s / need_min[i] for i in short]
@@ -160,7 +169,7 @@ def _relax(
             f"minimum rates need {_mbit(need_min[worst])} but {rows[worst].label} allows "
             f"{_mbit(rows[worst].cap_bytes_per_s)}; every channel runs at {beta:.1%} of its minimum"
         )
-        return beta * fmin, message
+        return beta * fmin, message, True
     over = [i for i, r in enumerate(rows) if need_floor[i] > r.cap_bytes_per_s * (1 + _REL_TOL)]
     alphas = [(rows[i].cap_bytes_per_s - need_min[i]) / (need_floor[i] - need_min[i]) for i in over]
     worst = over[int(np.argmin(alphas))]
@@ -170,26 +179,30 @@ def _relax(
         f"{_mbit(rows[worst].cap_bytes_per_s)}; floors pulled back to {alpha:.1%} of their "
         f"height above the minimum rates"
     )
-    return fmin + alpha * (floors - fmin), message
+    return fmin + alpha * (floors - fmin), message, False
 
 
 def _fill_ascending_size(
-    w: FloatArray, lower: FloatArray, upper: FloatArray, budget: float
+    w: FloatArray,
+    lower: FloatArray,
+    upper: FloatArray,
+    budget: float,
+    order: npt.NDArray[np.intp],
 ) -> FloatArray:
-    """Raise channels from ``lower`` toward ``upper``, smallest message first, until ``budget``."""
+    """Raise channels from ``lower`` toward ``upper`` in ``order`` until ``budget`` is used."""
     rates = lower.copy()
     remaining = budget - float(w @ lower)
     if remaining <= 0.0:
         return rates
-    order = np.argsort(w, kind="stable")
-    headroom = (w * (upper - lower))[order]
-    cumulative = np.cumsum(headroom)
+    cumulative = np.cumsum((w * (upper - lower))[order])
+    if cumulative[-1] <= remaining:
+        return upper.copy()
     full = int(np.searchsorted(cumulative, remaining, side="right"))
-    rates[order[:full]] = upper[order[:full]]
-    if full < len(order):
-        i = order[full]
-        left = remaining - (float(cumulative[full - 1]) if full else 0.0)
-        rates[i] = min(upper[i], lower[i] + max(0.0, left) / w[i])
+    raised = order[:full]
+    rates[raised] = upper[raised]
+    i = order[full]
+    left = remaining - (float(cumulative[full - 1]) if full else 0.0)
+    rates[i] = min(upper[i], lower[i] + max(0.0, left) / w[i])
     return rates
 
 
@@ -231,20 +244,21 @@ def _enforce_rows(
     """Scale back what a solver's tolerance put above a row's capacity (never below ``lower``)."""
     rates = rates.copy()
     for row in rows:
-        used = float(w[row.mask] @ rates[row.mask])
+        used = row.used(w, rates)
         if used <= row.cap_bytes_per_s:
             continue
-        base = float(w[row.mask] @ lower[row.mask])
+        base = row.used(w, lower)
         extra = used - base
         scale = max(0.0, (row.cap_bytes_per_s - base) / extra) if extra > 0 else 0.0
-        rates[row.mask] = lower[row.mask] + (rates[row.mask] - lower[row.mask]) * scale
+        members = slice(None) if row.mask is None else row.mask
+        rates[members] = lower[members] + (rates[members] - lower[members]) * scale
     return rates
 
 
 def _solve_lp(w: FloatArray, lower: FloatArray, upper: FloatArray, rows: list[_Row]) -> FloatArray:
     """Two HiGHS solves: the most bytes, then the most messages among those (earlier first)."""
     n = len(w)
-    a_ub = np.stack([np.where(r.mask, w, 0.0) for r in rows])
+    a_ub = np.stack([w if r.mask is None else np.where(r.mask, w, 0.0) for r in rows])
     b_ub = np.array([r.cap_bytes_per_s for r in rows])
     bounds = list(zip(lower.tolist(), upper.tolist(), strict=True))
     first = linprog(-w, A_ub=a_ub, b_ub=b_ub, bounds=bounds, method="highs")
@@ -265,16 +279,17 @@ def _solve_lp(w: FloatArray, lower: FloatArray, upper: FloatArray, rows: list[_R
 
 
 def _rows(problem: Problem, strategy: Strategy) -> list[_Row]:
-    n = len(problem.channels)
-    rows = [_Row("the budget", np.ones(n, dtype=bool), problem.budget_bytes_per_s)]
-    if problem.links and strategy is not Strategy.LP:
+    rows = [_Row("the budget", None, problem.budget_bytes_per_s)]
+    if not problem.links:
+        return rows
+    if strategy is not Strategy.LP:
         raise SpecError(
             f"strategy={strategy.value!r} does not support links "
             f"(link {problem.links[0].name!r}); use strategy 'lp'"
         )
     index = {topic: i for i, topic in enumerate(problem.topics)}
     for link in problem.links:
-        mask = np.zeros(n, dtype=bool)
+        mask = np.zeros(len(problem.topics), dtype=bool)
         mask[[index[t] for t in link.topics]] = True
         cap = link.capacity_mbit * BYTES_PER_S_PER_MBIT * problem.utilization
         rows.append(_Row(f"link {link.name!r}", mask, cap))
@@ -295,7 +310,7 @@ def allocate(problem: Problem, *, strategy: Strategy | str = Strategy.PAPER) -> 
       second solve. Without links it returns exactly what ``paper`` returns.
     """
     try:
-        chosen = Strategy(strategy)
+        chosen = strategy if isinstance(strategy, Strategy) else Strategy(strategy)
     except ValueError:
         names = ", ".join(s.value for s in Strategy)
         raise SpecError(f"strategy={strategy!r} is not one of: {names}") from None
@@ -308,12 +323,12 @@ def allocate(problem: Problem, *, strategy: Strategy | str = Strategy.PAPER) -> 
         floors, floor_name = fmin, "minimum rates"
     else:
         floors, floor_name = (fmax - fmin) * normalized + fmin, "priority floors"
-    lower, problem_message = _relax(w, fmin, floors, rows, floor_name)
+    lower, problem_message, scaled_minimums = _relax(w, fmin, floors, rows, floor_name)
 
-    if np.all(lower < fmin):
+    if scaled_minimums:
         rates = lower  # even the minimums do not fit: one common fraction, nothing left to share
     elif chosen is Strategy.PAPER or (chosen is Strategy.LP and not problem.links):
-        rates = _fill_ascending_size(w, lower, fmax, budget)
+        rates = _fill_ascending_size(w, lower, fmax, budget, arrays.size_order)
     elif chosen is Strategy.FAIR:
         rates = np.clip(_water_level(w, lower, fmax, budget), lower, fmax)
     elif chosen is Strategy.STATIC:
@@ -335,9 +350,9 @@ def allocate(problem: Problem, *, strategy: Strategy | str = Strategy.PAPER) -> 
         budget_bytes_per_s=budget,
         link_bytes_per_s=problem.link_bytes_per_s,
         topics=problem.topics,
-        priority=_frozen(arrays.priority.copy()),
+        priority=arrays.priority,
         normalized_priority=_frozen(normalized),
-        floor_hz=_frozen(np.array(floors, dtype=float)),
-        rate_hz=_frozen(np.asarray(rates, dtype=float)),
-        size_bytes=_frozen(w.copy()),
+        floor_hz=floors if floors is fmin else _frozen(floors),
+        rate_hz=_frozen(rates if rates is not lower else rates.copy()),
+        size_bytes=w,
     )

@@ -86,9 +86,8 @@ def normalize_priorities(
     w = np.asarray(sizes_bytes, dtype=float)
     if p.shape != w.shape:
         raise SpecError(f"priorities shape {p.shape} does not match sizes shape {w.shape}")
-    weighted = p * w
-    total = float(weighted.sum())
+    total = float(p @ w)
     if total <= 0.0:
-        return np.zeros_like(weighted)
-    normalized: npt.NDArray[np.float64] = weighted / total
+        return np.zeros_like(w)
+    normalized: npt.NDArray[np.float64] = p * w / total
     return normalized

@@ -98,6 +98,15 @@ class _Arrays:
     min_rate_hz: FloatArray
     max_rate_hz: FloatArray
     priority: FloatArray
+    size_order: npt.NDArray[np.intp]
+    """Channels by ascending size, ties in declaration order: the tie-break's order. It depends
+    on sizes only, so it is computed once per problem rather than per allocation."""
+
+
+def _column(values: list[float]) -> FloatArray:
+    array = np.array(values, dtype=float)
+    array.flags.writeable = False
+    return array
 
 
 @dataclass(frozen=True, slots=True)
@@ -114,6 +123,7 @@ class Problem:
     utilization: float = 1.0
     links: tuple[LinkSpec, ...] = ()
     arrays: _Arrays = field(init=False, repr=False, compare=False)
+    topics: tuple[str, ...] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         channels = tuple(self.channels)
@@ -145,14 +155,19 @@ class Problem:
         object.__setattr__(self, "bandwidth_mbit", bandwidth)
         object.__setattr__(self, "utilization", utilization)
         object.__setattr__(self, "links", links)
+        sizes = _column([c.size_bytes for c in channels])
+        order = np.argsort(sizes, kind="stable")
+        order.flags.writeable = False
+        object.__setattr__(self, "topics", tuple(topics))
         object.__setattr__(
             self,
             "arrays",
             _Arrays(
-                size_bytes=np.fromiter((c.size_bytes for c in channels), float, len(channels)),
-                min_rate_hz=np.fromiter((c.min_rate_hz for c in channels), float, len(channels)),
-                max_rate_hz=np.fromiter((c.max_rate_hz for c in channels), float, len(channels)),
-                priority=np.fromiter((c.priority for c in channels), float, len(channels)),
+                size_bytes=sizes,
+                min_rate_hz=_column([c.min_rate_hz for c in channels]),
+                max_rate_hz=_column([c.max_rate_hz for c in channels]),
+                priority=_column([c.priority for c in channels]),
+                size_order=order,
             ),
         )
 
@@ -165,7 +180,3 @@ class Problem:
     def budget_bytes_per_s(self) -> float:
         """What the managed channels may use together."""
         return self.link_bytes_per_s * self.utilization
-
-    @property
-    def topics(self) -> tuple[str, ...]:
-        return tuple(channel.topic for channel in self.channels)
