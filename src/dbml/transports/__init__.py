@@ -1,0 +1,35 @@
+"""Transports: the middleware adapters behind one small interface, found by name."""
+
+from dbml.transports.base import (
+    GraphEntry,
+    GraphView,
+    Handle,
+    ParamStore,
+    ParamValue,
+    Publisher,
+    Role,
+    Sample,
+    Transport,
+    Variant,
+    check_topic,
+    resolve_host,
+)
+from dbml.transports.memory import ManualClock, MemoryNetwork, MemoryTransport
+
+__all__ = [
+    "GraphEntry",
+    "GraphView",
+    "Handle",
+    "ManualClock",
+    "MemoryNetwork",
+    "MemoryTransport",
+    "ParamStore",
+    "ParamValue",
+    "Publisher",
+    "Role",
+    "Sample",
+    "Transport",
+    "Variant",
+    "check_topic",
+    "resolve_host",
+]
