@@ -33,6 +33,7 @@ __all__ = [
     "Sample",
     "Transport",
     "Variant",
+    "check_param_value",
     "check_topic",
     "decode_param",
     "encode_param",
@@ -165,10 +166,15 @@ class Transport(Protocol):
     def close(self) -> None: ...
 
 
-def encode_param(value: ParamValue, stamp_ns: int, writer: str) -> bytes:
-    """Wire form of a parameter write: the value, when it was written and by whom."""
+def check_param_value(value: object) -> ParamValue:
     if value is not None and not isinstance(value, bool | int | float | str):
         raise TransportError(f"parameter value={value!r} must be a bool, number or string")
+    return value
+
+
+def encode_param(value: ParamValue, stamp_ns: int, writer: str) -> bytes:
+    """Wire form of a parameter write: the value, when it was written and by whom."""
+    check_param_value(value)
     return json.dumps({"v": value, "t": stamp_ns, "w": writer}).encode()
 
 

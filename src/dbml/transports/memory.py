@@ -22,6 +22,7 @@ from dbml.transports.base import (
     Role,
     Sample,
     Variant,
+    check_param_value,
     check_topic,
     resolve_host,
 )
@@ -128,6 +129,7 @@ class _MemoryParams:
         self._transport = transport
 
     def set(self, name: str, value: ParamValue) -> None:
+        check_param_value(value)
         network = self._transport.network
         with network.lock:
             network.params[name] = (value, network.next_stamp())

@@ -1,0 +1,35 @@
+"""Per-message metadata carried in the attachment: sequence number, send time and applied rate.
+
+24 bytes, fixed layout, so it costs nothing on the hot path and any receiver can measure loss
+(sequence gaps), one-way latency (send time, on hosts sharing a clock) and the rate in force.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+
+from dbml.core.errors import TransportError
+
+__all__ = ["MessageMeta"]
+
+_LAYOUT = struct.Struct("<Qqd")
+
+
+@dataclass(frozen=True, slots=True)
+class MessageMeta:
+    seq: int
+    sent_ns: int
+    """Wall-clock send time (``time.time_ns()``) on the publisher's host."""
+    rate_hz: float
+    """The rate the publisher applied to ``[topic]/optimized`` when it sent this message."""
+
+    def encode(self) -> bytes:
+        return _LAYOUT.pack(self.seq, self.sent_ns, self.rate_hz)
+
+    @classmethod
+    def decode(cls, data: bytes | None) -> MessageMeta:
+        if data is None or len(data) != _LAYOUT.size:
+            raise TransportError(f"attachment={data!r} is not dbml message metadata")
+        seq, sent_ns, rate_hz = _LAYOUT.unpack(data)
+        return cls(seq, sent_ns, rate_hz)

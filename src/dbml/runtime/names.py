@@ -1,0 +1,71 @@
+"""Parameter names: the paper's, so a user of the original finds them where they were."""
+
+from __future__ import annotations
+
+__all__ = [
+    "BANDWIDTH",
+    "ESTIMATE",
+    "PERIOD",
+    "STATUS",
+    "STATUS_MESSAGE",
+    "STRATEGY",
+    "UTILIZATION",
+    "applied",
+    "current_value",
+    "managed",
+    "max_rate",
+    "min_rate",
+    "priority",
+    "size",
+    "topic_of",
+]
+
+BANDWIDTH = "/dbm/max_bandwidth_in_mbit"
+UTILIZATION = "/dbm/max_bandwidth_utilization"
+PERIOD = "/dbm/optimization_rate_in_seconds"
+STRATEGY = "/dbm/strategy"
+STATUS = "/dbm/status"
+"""``optimal`` or ``infeasible``, written by the optimizer after every allocation."""
+STATUS_MESSAGE = "/dbm/status_message"
+ESTIMATE = "/dbm/estimated_bandwidth_in_mbit"
+"""The bandwidth estimator's current estimate, when one runs."""
+
+_CHANNEL = "/dbm/"
+
+
+def min_rate(topic: str) -> str:
+    return f"{topic}/dbm/frequency/min"
+
+
+def max_rate(topic: str) -> str:
+    return f"{topic}/dbm/frequency/max"
+
+
+def size(topic: str) -> str:
+    return f"{topic}/dbm/message_size_in_bytes"
+
+
+def priority(topic: str) -> str:
+    return f"{topic}/dbm/priority"
+
+
+def current_value(topic: str) -> str:
+    """The allocated rate, pushed by the optimizer to the publisher."""
+    return f"{topic}/dbm/frequency/current_value"
+
+
+def applied(topic: str) -> str:
+    """The rate the publisher is applying: its acknowledgement of ``current_value``."""
+    return f"{topic}/dbm/frequency/applied_value"
+
+
+def managed(topic: str) -> str:
+    return f"{topic}/dbm/managed"
+
+
+def topic_of(name: str) -> tuple[str, str] | None:
+    """Split ``/r1/camera/dbm/priority`` into ``('/r1/camera', 'priority')``; None if global."""
+    head, sep, tail = name.rpartition(_CHANNEL)
+    if not sep or not head:
+        return None
+    return head, tail

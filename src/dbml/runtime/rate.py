@@ -1,0 +1,74 @@
+"""Rate control: a limiter that drops what exceeds a rate, and a loop pacer (the paper's DBMRate).
+
+The limiter drops what exceeds the rate; the pacer sleeps to absolute deadlines, so a sensor loop
+runs at the rate without drift and does not even capture what would be dropped.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+__all__ = ["Rate", "RateLimiter"]
+
+
+class RateLimiter:
+    """``allow(now)`` is True when a message may go out at ``rate_hz``.
+
+    A message is due every period; a source faster than the rate gets exactly the rate on
+    average, and after a pause at most one extra message goes out early. A new rate applies
+    from the next message on.
+    """
+
+    def __init__(self, rate_hz: float) -> None:
+        self._period = 1.0 / rate_hz
+        self._due = -float("inf")
+
+    @property
+    def rate_hz(self) -> float:
+        return 1.0 / self._period
+
+    def set_rate(self, rate_hz: float) -> None:
+        self._period = 1.0 / rate_hz
+
+    def allow(self, now: float) -> bool:
+        if now < self._due:
+            return False
+        first = self._due == -float("inf")
+        self._due = now + self._period if first else max(self._due + self._period, now)
+        return True
+
+
+class Rate:
+    """``sleep()`` blocks until the next tick of a loop running at ``rate_hz()``.
+
+    ``rate_hz`` is read at every tick, so a new allocation applies from the next period on.
+    Falling behind by more than a period restarts the schedule instead of bursting to catch up.
+    """
+
+    def __init__(
+        self,
+        rate_hz: Callable[[], float],
+        *,
+        clock: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], None] = time.sleep,
+    ) -> None:
+        self._rate_hz = rate_hz
+        self._clock = clock
+        self._sleep = sleep
+        self._next: float | None = None
+
+    def sleep(self) -> None:
+        now = self._clock()
+        period = 1.0 / self._rate_hz()
+        if self._next is None:
+            self._next = now
+        self._next += period
+        if self._next < now - period:
+            self._next = now
+        delay = self._next - now
+        if delay > 0:
+            self._sleep(delay)
+
+    def reset(self) -> None:
+        self._next = None

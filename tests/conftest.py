@@ -1,0 +1,17 @@
+"""Shared test helpers: waiting on conditions (never bare sleeps)."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import pytest
+
+
+def wait_for(predicate: Callable[[], bool], *, timeout_s: float = 5.0, what: str = "") -> None:
+    """Poll ``predicate`` until it holds; fail the test with ``what`` after ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out after {timeout_s} s waiting for {what or predicate}")
+        time.sleep(0.005)

@@ -1,0 +1,182 @@
+"""One contract, every transport: each test runs against each registered transport.
+
+Tests wait on conditions, so the same assertions hold for synchronous (memory) and
+asynchronous (zenoh) delivery.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+
+import pytest
+
+from dbml.core.errors import TransportError
+from dbml.transports import MemoryNetwork, MemoryTransport, Role, Sample, Transport, Variant
+from dbml.transports.base import resolve_host
+from tests.conftest import wait_for
+
+Factory = Callable[[str], Transport]
+
+
+def memory_network() -> Iterator[Factory]:
+    network = MemoryNetwork()
+    made: list[Transport] = []
+
+    def make(host: str) -> Transport:
+        transport = MemoryTransport(network, host=host)
+        made.append(transport)
+        return transport
+
+    yield make
+    for transport in made:
+        transport.close()
+
+
+NETWORKS: dict[str, Callable[[], Iterator[Factory]]] = {"memory": memory_network}
+try:
+    from tests.transports.zenoh_network import zenoh_network
+except ImportError:  # pragma: no cover - the zenoh adapter registers itself when present
+    pass
+else:
+    NETWORKS["zenoh"] = zenoh_network
+
+
+@pytest.fixture(params=sorted(NETWORKS))
+def make(request: pytest.FixtureRequest) -> Iterator[Factory]:
+    yield from NETWORKS[request.param]()
+
+
+def test_publish_reaches_a_subscriber_on_another_host_with_attachment(make: Factory) -> None:
+    a, b = make("host-a"), make("host-b")
+    got: list[Sample] = []
+    b.subscribe("/r1/camera", got.append)
+    publisher = a.declare_publisher("/r1/camera")
+    wait_for(lambda: publisher.has_subscribers, what="publisher to see its subscriber")
+    publisher.put(b"\x00" * 84_000, b"meta")
+    wait_for(lambda: len(got) == 1, what="one sample")
+    assert got[0].topic == "/r1/camera"
+    assert got[0].payload == b"\x00" * 84_000
+    assert got[0].attachment == b"meta"
+
+
+def test_variants_are_separate_keys(make: Factory) -> None:
+    a, b = make("host-a"), make("host-b")
+    full: list[Sample] = []
+    optimized: list[Sample] = []
+    b.subscribe("/t", full.append, Variant.FULL)
+    b.subscribe("/t", optimized.append, Variant.OPTIMIZED)
+    pub_full = a.declare_publisher("/t", Variant.FULL)
+    pub_opt = a.declare_publisher("/t", Variant.OPTIMIZED)
+    wait_for(lambda: pub_full.has_subscribers and pub_opt.has_subscribers, what="matching")
+    pub_full.put(b"f")
+    pub_opt.put(b"o")
+    wait_for(lambda: len(full) == 1 and len(optimized) == 1, what="one sample on each variant")
+    assert full[0].payload == b"f"
+    assert optimized[0].payload == b"o"
+
+
+def test_has_subscribers_follows_the_subscription(make: Factory) -> None:
+    a, b = make("host-a"), make("host-b")
+    publisher = a.declare_publisher("/lonely")
+    assert not publisher.has_subscribers
+    handle = b.subscribe("/lonely", lambda _s: None)
+    wait_for(lambda: publisher.has_subscribers, what="a match")
+    handle.close()
+    wait_for(lambda: not publisher.has_subscribers, what="the match to go")
+
+
+def test_closed_subscription_receives_nothing(make: Factory) -> None:
+    a, b = make("host-a"), make("host-b")
+    got: list[Sample] = []
+    probe: list[Sample] = []
+    handle = b.subscribe("/t", got.append)
+    b.subscribe("/t", probe.append)
+    publisher = a.declare_publisher("/t")
+    wait_for(lambda: publisher.has_subscribers, what="matching")
+    handle.close()
+    publisher.put(b"x")
+    wait_for(lambda: len(probe) == 1, what="the probe to receive")
+    assert got == []
+
+
+def test_params_are_shared_and_watched(make: Factory) -> None:
+    a, b = make("host-a"), make("host-b")
+    seen: list[tuple[str, object]] = []
+    b.params.watch(lambda name, value: seen.append((name, value)))
+    a.params.set("/r1/camera/dbm/priority", 0.5)
+    wait_for(lambda: b.params.get("/r1/camera/dbm/priority") == 0.5, what="the value")
+    wait_for(lambda: ("/r1/camera/dbm/priority", 0.5) in seen, what="the notification")
+    b.params.set("/r1/camera/dbm/priority", 0.75)  # newest write wins everywhere
+    wait_for(lambda: a.params.get("/r1/camera/dbm/priority") == 0.75, what="the update")
+    a.params.set("/dbm/max_bandwidth_in_mbit", 11)
+    a.params.set("/dbm/strategy", "paper")
+    a.params.set("/r1/camera/dbm/managed", True)
+    wait_for(lambda: len(b.params.snapshot("/dbm/")) == 2, what="the /dbm/ snapshot")
+    assert b.params.snapshot("/dbm/") == {
+        "/dbm/max_bandwidth_in_mbit": 11,
+        "/dbm/strategy": "paper",
+    }
+    assert b.params.get("/r1/camera/dbm/managed") is True
+    assert b.params.get("/nope") is None
+
+
+def test_a_late_joiner_sees_existing_params(make: Factory) -> None:
+    a = make("host-a")
+    a.params.set("/r1/camera/dbm/frequency/min", 1.0)
+    late = make("host-late")
+    wait_for(lambda: late.params.get("/r1/camera/dbm/frequency/min") == 1.0, what="history")
+
+
+def test_graph_announce_withdraw_and_watch(make: Factory) -> None:
+    a, b = make("host-a"), make("host-b")
+    changes: list[int] = []
+    b.graph.watch(lambda: changes.append(1))
+    token = a.graph.announce(Role.SUBSCRIBER, "/r1/camera", Variant.OPTIMIZED)
+
+    def entries() -> set[tuple[Role, str, str, Variant]]:
+        return {(e.role, e.host, e.topic, e.variant) for e in b.graph.entries()}
+
+    wanted = (Role.SUBSCRIBER, "host-a", "/r1/camera", Variant.OPTIMIZED)
+    wait_for(lambda: wanted in entries(), what="the announcement")
+    wait_for(lambda: len(changes) >= 1, what="a graph notification")
+    token.close()
+    wait_for(lambda: wanted not in entries(), what="the withdrawal")
+
+
+def test_two_identical_declarations_are_two_entries(make: Factory) -> None:
+    a, b = make("host-a"), make("host-b")
+    first = a.graph.announce(Role.PUBLISHER, "/t", Variant.FULL)
+    a.graph.announce(Role.PUBLISHER, "/t", Variant.FULL)
+    wait_for(lambda: len(b.graph.entries()) == 2, what="two entries")
+    first.close()
+    wait_for(lambda: len(b.graph.entries()) == 1, what="one entry left")
+
+
+def test_closing_a_transport_withdraws_its_graph(make: Factory) -> None:
+    a, b = make("host-a"), make("host-b")
+    a.graph.announce(Role.PUBLISHER, "/t", Variant.FULL)
+    wait_for(lambda: len(b.graph.entries()) == 1, what="the entry")
+    a.close()
+    wait_for(lambda: len(b.graph.entries()) == 0, what="the entry to vanish")
+
+
+def test_host_identity(make: Factory, monkeypatch: pytest.MonkeyPatch) -> None:
+    assert make("robot-7").host == "robot-7"
+    monkeypatch.setenv("DBML_HOST", "from-env")
+    assert resolve_host() == "from-env"
+    assert resolve_host("explicit") == "explicit"
+    with pytest.raises(TransportError, match=r"host='a/b' must be letters"):
+        resolve_host("a/b")
+
+
+@pytest.mark.parametrize("topic", ["r1/camera", "/r1//camera", "/r1/*", "", "/a b"])
+def test_bad_topics_are_rejected(make: Factory, topic: str) -> None:
+    with pytest.raises(TransportError, match=r"topic=.* must look like '/robot/sensor'"):
+        make("host-a").declare_publisher(topic)
+
+
+def test_bad_param_values_are_rejected(make: Factory) -> None:
+    with pytest.raises(
+        TransportError, match=r"parameter value=\[1\] must be a bool, number or string"
+    ):
+        make("host-a").params.set("/x", [1])  # type: ignore[arg-type]
