@@ -26,7 +26,6 @@ __all__ = ["ManagedPublisher"]
 
 log = logging.getLogger("dbml.publisher")
 
-_META_BYTES = len(MessageMeta(0, 0, 0.0).encode())
 SIZE_CHANGE = 0.10
 """Relative change of message size that is worth telling the optimizer about."""
 
@@ -138,6 +137,8 @@ class ManagedPublisher:
     # -- publishing ---------------------------------------------------------------------------
 
     def _track_size(self, size: int) -> None:
+        # The serialised message, as sent; metadata and protocol headers are the overhead that
+        # /dbm/max_bandwidth_utilization < 1 reserves room for.
         known = self._size_bytes
         if known is None or abs(size - known) > SIZE_CHANGE * known:
             self._size_bytes = size
@@ -150,7 +151,7 @@ class ManagedPublisher:
         the throttling.
         """
         rate = self.current_rate_hz()
-        self._track_size(len(payload) + _META_BYTES)
+        self._track_size(len(payload))
         sent_ns = self._wall_clock_ns()
         if self._full.has_subscribers:
             self._full_seq += 1

@@ -1,0 +1,198 @@
+"""The optimizer node's rules, on the memory transport (deterministic, one round at a time)."""
+
+from __future__ import annotations
+
+import logging
+import threading
+
+import pytest
+
+from dbml.core import DbmSettings, LinkSpec, Status, Strategy
+from dbml.runtime import ManagedPublisher, ManagedSubscriber, OptimizerNode, names
+from dbml.transports import MemoryNetwork, MemoryTransport
+from tests.conftest import wait_for
+
+R1, R2 = "/r1/camera", "/r2/camera"
+SIZES = {R1: 84_000, R2: 21_000}
+
+
+class Fleet:
+    """Two robots, an operator host and an optimizer, as in the paper's section 4."""
+
+    def __init__(
+        self, *, mbit: float = 11.0, strategy: Strategy = Strategy.PAPER, **kw: object
+    ) -> None:
+        self.network = MemoryNetwork()
+        self.robots = {
+            topic: ManagedPublisher(
+                MemoryTransport(self.network, host=host), topic, min_rate_hz=1, max_rate_hz=16
+            )
+            for topic, host in ((R1, "r1"), (R2, "r2"))
+        }
+        for topic, publisher in self.robots.items():
+            publisher.publish(b"\0" * SIZES[topic])  # the first frame makes the size known
+        self.operator = MemoryTransport(self.network, host="operator")
+        self.optimizer = OptimizerNode(
+            MemoryTransport(self.network, host="operator"),
+            settings=DbmSettings(mbit, 1.0, 1.0, strategy),
+            **kw,  # type: ignore[arg-type]
+        )
+        self.writes: list[tuple[str, float]] = []
+        self.operator.params.watch(self._record)
+
+    def _record(self, name: str, value: object) -> None:
+        if name.endswith("/dbm/frequency/current_value") and isinstance(value, float):
+            self.writes.append((name.removesuffix("/dbm/frequency/current_value"), value))
+
+    def watch_remotely(self, topic: str) -> ManagedSubscriber:
+        return ManagedSubscriber(self.operator, topic, lambda s: None)
+
+    def priority(self, topic: str, value: float) -> None:
+        self.operator.params.set(names.priority(topic), value)
+
+    def rates(self) -> dict[str, float]:
+        return {t: p.current_rate_hz() for t, p in self.robots.items()}
+
+
+def test_remote_subscribers_make_channels_managed_and_get_table2_rates() -> None:
+    fleet = Fleet()
+    fleet.watch_remotely(R1)
+    fleet.watch_remotely(R2)
+    fleet.priority(R2, 10 / 17)  # step 1: R1 tc 20 s, R2 tc 10 s
+    result = fleet.optimizer.optimize()
+    assert result.status is Status.OPTIMAL
+    assert {c.topic for c in result.channels if c.managed} == {R1, R2}
+    rates = fleet.rates()
+    assert round(rates[R1], 2) == 12.37
+    assert rates[R2] == 16.0
+    assert fleet.operator.params.get(names.managed(R1)) is True
+    assert fleet.operator.params.get(names.STATUS) == "optimal"
+
+
+def test_unmanaged_channels_run_at_maximum() -> None:
+    fleet = Fleet()
+    ManagedSubscriber(MemoryTransport(fleet.network, host="r1"), R1, lambda s: None)  # local only
+    fleet.optimizer.optimize()
+    assert fleet.rates() == {R1: 16.0, R2: 16.0}
+    assert fleet.operator.params.get(names.managed(R1)) is False
+
+
+def test_a_channel_returns_to_maximum_when_its_last_remote_subscriber_leaves() -> None:
+    fleet = Fleet(mbit=5)
+    first, second = fleet.watch_remotely(R1), fleet.watch_remotely(R1)
+    fleet.watch_remotely(R2)
+    fleet.optimizer.optimize()
+    assert fleet.rates()[R1] < 16
+    first.close()
+    fleet.optimizer.optimize()
+    assert fleet.rates()[R1] < 16  # one remote subscriber is still there
+    second.close()
+    fleet.optimizer.optimize()
+    assert fleet.rates()[R1] == 16.0
+
+
+def test_decreases_are_applied_before_increases_and_the_budget_holds_throughout() -> None:
+    fleet = Fleet()
+    fleet.watch_remotely(R1)
+    fleet.watch_remotely(R2)
+    fleet.priority(R1, 1.0)  # step 7: R1 16 Hz, R2 1.48 Hz
+    fleet.optimizer.optimize()
+    fleet.writes.clear()
+    fleet.priority(R1, 0.0)
+    fleet.priority(R2, 1.0)  # step 10: R1 12.37 Hz, R2 16 Hz
+    fleet.optimizer.optimize()
+    assert [topic for topic, _ in fleet.writes] == [R1, R2]  # R1 goes down first
+    applied = {R1: 16.0, R2: 31_000 / 21_000}
+    for topic, rate in fleet.writes:
+        applied[topic] = rate
+        assert sum(applied[t] * SIZES[t] for t in applied) <= 1_375_000 * (1 + 1e-9)
+
+
+def test_infeasible_budget_is_reported_and_rates_still_fit(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    fleet = Fleet(mbit=0.5)
+    fleet.watch_remotely(R1)
+    fleet.watch_remotely(R2)
+    with caplog.at_level(logging.WARNING, logger="dbml.optimizer"):
+        result = fleet.optimizer.optimize()
+    assert result.status is Status.INFEASIBLE
+    assert fleet.operator.params.get(names.STATUS) == "infeasible"
+    message = fleet.operator.params.get(names.STATUS_MESSAGE)
+    assert isinstance(message, str)
+    assert message.startswith("minimum rates need 0.840 Mbit/s but the budget allows 0.500 Mbit/s")
+    assert "infeasible" in caplog.text
+    rates = fleet.rates()
+    assert sum(rates[t] * SIZES[t] for t in rates) <= 62_500 * (1 + 1e-9)
+
+
+def test_budget_changes_at_runtime() -> None:
+    fleet = Fleet()
+    fleet.watch_remotely(R1)
+    fleet.watch_remotely(R2)
+    fleet.operator.params.set(names.BANDWIDTH, 5.0)
+    fleet.optimizer.optimize()
+    rates = fleet.rates()
+    assert sum(rates[t] * SIZES[t] for t in rates) == pytest.approx(625_000)
+
+
+def test_a_channel_without_a_size_yet_stays_at_minimum() -> None:
+    fleet = Fleet()
+    silent = ManagedPublisher(
+        MemoryTransport(fleet.network, host="r3"), "/r3/lidar", min_rate_hz=2, max_rate_hz=10
+    )
+    fleet.watch_remotely("/r3/lidar")
+    fleet.optimizer.optimize()
+    assert silent.current_rate_hz() == 2.0
+
+
+def test_lp_honours_a_configured_uplink() -> None:
+    fleet = Fleet(strategy=Strategy.LP, links=[LinkSpec("r1-uplink", 4, (R1,))])
+    fleet.watch_remotely(R1)
+    fleet.watch_remotely(R2)
+    fleet.optimizer.optimize()
+    rates = fleet.rates()
+    assert rates[R1] * 84_000 <= 500_000 * (1 + 1e-9)
+    assert rates[R1] == pytest.approx(500_000 / 84_000)
+    assert rates[R2] == 16.0
+
+
+def test_a_dead_publisher_is_forgotten() -> None:
+    fleet = Fleet()
+    fleet.watch_remotely(R1)
+    fleet.robots[R1].close()
+    result = fleet.optimizer.optimize()
+    assert [c.topic for c in result.channels] == [R2]
+
+
+def test_reacts_at_once_to_a_priority_change_and_coalesces_bursts() -> None:
+    fleet = Fleet()
+    fleet.operator.params.set(names.PERIOD, 60.0)  # the period alone would never react in time
+    fleet.watch_remotely(R1)
+    fleet.watch_remotely(R2)
+    rounds: list[int] = []
+    original = fleet.optimizer.optimize
+
+    def counting() -> object:
+        rounds.append(1)
+        return original()
+
+    fleet.optimizer.optimize = counting  # type: ignore[method-assign]
+    fleet.optimizer.start()
+    try:
+        wait_for(lambda: len(rounds) >= 1, what="the first round")
+        wait_for(lambda: round(fleet.rates()[R1], 2) == 12.37, what="the initial allocation")
+        before = len(rounds)
+        done = threading.Event()
+
+        def burst() -> None:
+            for i in range(50):
+                fleet.priority(R1, (i + 1) / 50)
+            done.set()
+
+        burst()
+        wait_for(done.is_set)
+        wait_for(lambda: fleet.rates()[R1] == 16.0, timeout_s=2, what="R1 at 16 Hz")
+        assert len(rounds) - before < 50  # 50 changes, far fewer rounds
+    finally:
+        fleet.optimizer.stop()

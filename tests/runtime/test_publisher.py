@@ -1,0 +1,118 @@
+import logging
+
+import pytest
+
+from dbml.core.errors import SpecError
+from dbml.runtime import ManagedPublisher, MessageMeta, names
+from dbml.transports import ManualClock, MemoryNetwork, MemoryTransport, Sample, Variant
+
+
+@pytest.fixture
+def clock() -> ManualClock:
+    return ManualClock(100.0)
+
+
+@pytest.fixture
+def network() -> MemoryNetwork:
+    return MemoryNetwork()
+
+
+def robot(network: MemoryNetwork, clock: ManualClock, **kwargs: float) -> ManagedPublisher:
+    transport = MemoryTransport(network, host="r1", clock=clock)
+    options = {"min_rate_hz": 1.0, "max_rate_hz": 16.0}
+    options.update(kwargs)
+    return ManagedPublisher(transport, "/r1/camera", **options)
+
+
+def test_declares_its_parameters_and_starts_at_minimum(
+    network: MemoryNetwork, clock: ManualClock
+) -> None:
+    publisher = robot(network, clock, priority=0.25)
+    params = MemoryTransport(network, host="op").params
+    assert params.get(names.min_rate("/r1/camera")) == 1.0
+    assert params.get(names.max_rate("/r1/camera")) == 16.0
+    assert params.get(names.priority("/r1/camera")) == 0.25
+    assert publisher.current_rate_hz() == 1.0
+
+
+def test_keeps_a_priority_someone_already_set(network: MemoryNetwork, clock: ManualClock) -> None:
+    MemoryTransport(network, host="cli").params.set(names.priority("/r1/camera"), 0.9)
+    robot(network, clock)
+    assert MemoryTransport(network, host="op").params.get(names.priority("/r1/camera")) == 0.9
+
+
+def test_rejects_bad_bounds(network: MemoryNetwork, clock: ManualClock) -> None:
+    with pytest.raises(SpecError, match=r"frequency.min=30.0 exceeds frequency.max=16.0"):
+        robot(network, clock, min_rate_hz=30.0)
+
+
+def test_applies_and_acknowledges_pushed_rates(network: MemoryNetwork, clock: ManualClock) -> None:
+    publisher = robot(network, clock)
+    optimizer = MemoryTransport(network, host="op", clock=clock)
+    optimizer.params.set(names.current_value("/r1/camera"), 12.5)
+    assert publisher.current_rate_hz() == 12.5
+    assert optimizer.params.get(names.applied("/r1/camera")) == 12.5
+
+
+def test_throttles_the_optimized_copy_and_numbers_each_variant(
+    network: MemoryNetwork, clock: ManualClock
+) -> None:
+    publisher = robot(network, clock)
+    operator = MemoryTransport(network, host="op", clock=clock)
+    remote: list[Sample] = []
+    operator.subscribe("/r1/camera", remote.append, Variant.OPTIMIZED)
+    local: list[Sample] = []
+    MemoryTransport(network, host="r1", clock=clock).subscribe("/r1/camera", local.append)
+    for i in range(160):  # 10 s of a 16 Hz sensor, with the optimizer's push every second
+        if i % 16 == 0:
+            operator.params.set(names.current_value("/r1/camera"), 4.0)
+        publisher.publish(b"x" * 1000)
+        clock.advance(1 / 16)
+    assert len(local) == 160
+    assert abs(len(remote) - 40) <= 1
+    assert [MessageMeta.decode(s.attachment).seq for s in remote] == list(range(1, len(remote) + 1))
+    assert [MessageMeta.decode(s.attachment).seq for s in local] == list(range(1, 161))
+    assert MessageMeta.decode(remote[-1].attachment).rate_hz == 4.0
+
+
+def test_no_full_rate_copy_without_a_local_reader(
+    network: MemoryNetwork, clock: ManualClock
+) -> None:
+    publisher = robot(network, clock)
+    assert not publisher._full.has_subscribers  # nothing would be sent on [topic]
+    assert publisher.publish(b"x")
+
+
+def test_size_is_measured_and_updated_on_material_change(
+    network: MemoryNetwork, clock: ManualClock
+) -> None:
+    publisher = robot(network, clock)
+    observer = MemoryTransport(network, host="op", clock=clock)
+    writes: list[object] = []
+    observer.params.watch(lambda n, v: writes.append(v) if n == names.size("/r1/camera") else None)
+    assert observer.params.get(names.size("/r1/camera")) is None  # unknown before the first message
+    publisher.publish(b"x" * 84_000)
+    publisher.publish(b"x" * 88_000)  # +4.8 %: not worth a re-optimisation
+    publisher.publish(b"x" * 100_000)  # +19 %
+    assert writes == [84_000, 100_000]
+
+
+def test_failsafe_after_three_silent_periods_and_recovery(
+    network: MemoryNetwork, clock: ManualClock, caplog: pytest.LogCaptureFixture
+) -> None:
+    publisher = robot(network, clock)
+    optimizer = MemoryTransport(network, host="op", clock=clock)
+    optimizer.params.set(names.PERIOD, 0.5)
+    optimizer.params.set(names.current_value("/r1/camera"), 12.0)
+    clock.advance(1.4)
+    assert publisher.current_rate_hz() == 12.0
+    assert not publisher.failsafe
+    with caplog.at_level(logging.WARNING, logger="dbml.publisher"):
+        clock.advance(0.2)  # 1.6 s > 3 periods of 0.5 s
+        assert publisher.current_rate_hz() == 1.0
+        assert publisher.failsafe
+        assert "fail-safe" in caplog.text
+        optimizer.params.set(names.current_value("/r1/camera"), 9.0)  # an optimizer is back
+        assert publisher.current_rate_hz() == 9.0
+        assert not publisher.failsafe
+        assert "allocation heard again" in caplog.text

@@ -1,0 +1,70 @@
+import itertools
+
+import pytest
+
+from dbml.runtime import Rate, RateLimiter
+from dbml.transports import ManualClock
+
+
+def count_allowed(
+    limiter: RateLimiter, source_hz: float, seconds: float, start: float = 0.0
+) -> int:
+    ticks = round(seconds * source_hz)
+    return sum(limiter.allow(start + i / source_hz) for i in range(ticks))
+
+
+@pytest.mark.parametrize(
+    ("source_hz", "rate_hz"), [(16, 12.369), (16, 1.476), (100, 13.095), (30, 29)]
+)
+def test_a_faster_source_gets_exactly_the_rate_on_average(source_hz: float, rate_hz: float) -> None:
+    allowed = count_allowed(RateLimiter(rate_hz), source_hz, 100.0)
+    assert abs(allowed - rate_hz * 100) <= 1
+
+
+def test_a_slower_source_loses_nothing() -> None:
+    assert count_allowed(RateLimiter(16), 10, 10.0) == 100
+
+
+def test_a_decrease_applies_from_the_next_message_without_a_burst() -> None:
+    limiter = RateLimiter(16)
+    sent = [t / 100 for t in range(100) if limiter.allow(t / 100)]  # one second at 16 Hz
+    limiter.set_rate(2)
+    later = [1 + t / 100 for t in range(200) if limiter.allow(1 + t / 100)]
+    assert len(sent) == 16
+    assert len(later) <= 5  # 2 Hz over two seconds, plus at most the one already due
+    gaps = [b - a for a, b in itertools.pairwise(later)]
+    assert all(gap >= 0.5 - 1e-9 for gap in gaps)
+
+
+def test_rate_sleep_keeps_absolute_deadlines() -> None:
+    clock = ManualClock(10.0)
+    slept: list[float] = []
+
+    def sleep(seconds: float) -> None:
+        slept.append(seconds)
+        clock.advance(seconds)
+
+    rate_hz = [4.0]
+    rate = Rate(lambda: rate_hz[0], clock=clock, sleep=sleep)
+    ticks = []
+    for i in range(8):
+        clock.advance(0.05 if i % 2 else 0.1)  # loop work of varying length
+        rate.sleep()
+        ticks.append(clock())
+    assert ticks[0] == pytest.approx(10.35)  # first deadline: one period after the first call
+    gaps = [b - a for a, b in itertools.pairwise(ticks)]
+    assert gaps == pytest.approx([0.25] * 7)
+    rate_hz[0] = 2.0
+    rate.sleep()
+    assert clock() - ticks[-1] == pytest.approx(0.5)
+
+
+def test_rate_sleep_does_not_burst_after_falling_behind() -> None:
+    clock = ManualClock()
+    rate = Rate(lambda: 10.0, clock=clock, sleep=clock.advance)
+    rate.sleep()
+    clock.advance(5.0)  # the loop stalled for 50 periods
+    start = clock()
+    rate.sleep()
+    rate.sleep()
+    assert clock() - start >= 0.1 - 1e-9

@@ -1,0 +1,41 @@
+from dbml.runtime import ManagedPublisher, ManagedSubscriber
+from dbml.transports import MemoryNetwork, MemoryTransport, Role, Sample, Variant
+
+
+def test_local_publisher_means_full_rate_remote_means_optimized() -> None:
+    network = MemoryNetwork()
+    robot = MemoryTransport(network, host="r1")
+    ManagedPublisher(robot, "/r1/camera", min_rate_hz=1, max_rate_hz=16)
+    local = ManagedSubscriber(MemoryTransport(network, host="r1"), "/r1/camera", lambda s: None)
+    remote = ManagedSubscriber(MemoryTransport(network, host="op"), "/r1/camera", lambda s: None)
+    assert local.variant is Variant.FULL
+    assert remote.variant is Variant.OPTIMIZED
+    subs = {(e.host, e.variant) for e in robot.graph.entries() if e.role is Role.SUBSCRIBER}
+    assert subs == {("r1", Variant.FULL), ("op", Variant.OPTIMIZED)}
+
+
+def test_switches_when_the_publisher_moves() -> None:
+    network = MemoryNetwork()
+    got: list[Sample] = []
+    operator = MemoryTransport(network, host="op")
+    subscriber = ManagedSubscriber(operator, "/cam", got.append)
+    assert subscriber.variant is Variant.OPTIMIZED  # nobody publishes yet: the safe copy
+    on_op = ManagedPublisher(operator, "/cam", min_rate_hz=1, max_rate_hz=16)
+    assert subscriber.variant is Variant.FULL
+    on_op.close()
+    elsewhere = ManagedPublisher(
+        MemoryTransport(network, host="r9"), "/cam", min_rate_hz=1, max_rate_hz=16
+    )
+    assert subscriber.variant is Variant.OPTIMIZED
+    elsewhere.publish(b"frame")
+    assert [s.payload for s in got] == [b"frame"]
+    tokens = [e for e in operator.graph.entries() if e.role is Role.SUBSCRIBER]
+    assert [(t.host, t.variant) for t in tokens] == [("op", Variant.OPTIMIZED)]
+
+
+def test_close_withdraws_the_subscription() -> None:
+    network = MemoryNetwork()
+    operator = MemoryTransport(network, host="op")
+    subscriber = ManagedSubscriber(operator, "/cam", lambda s: None)
+    subscriber.close()
+    assert not [e for e in operator.graph.entries() if e.role is Role.SUBSCRIBER]
