@@ -35,6 +35,11 @@ def test_declares_its_parameters_and_starts_at_minimum(
     assert publisher.current_rate_hz() == 1.0
 
 
+def test_without_a_priority_declares_none(network: MemoryNetwork, clock: ManualClock) -> None:
+    robot(network, clock)
+    assert MemoryTransport(network, host="op").params.get(names.priority("/r1/camera")) is None
+
+
 def test_keeps_a_priority_someone_already_set(network: MemoryNetwork, clock: ManualClock) -> None:
     MemoryTransport(network, host="cli").params.set(names.priority("/r1/camera"), 0.9)
     robot(network, clock)

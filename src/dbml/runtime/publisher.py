@@ -80,8 +80,8 @@ class ManagedPublisher:
         self._handles: list[Handle] = [params.watch(self._on_param)]
         params.set(names.min_rate(topic), self.min_rate_hz)
         params.set(names.max_rate(topic), self.max_rate_hz)
-        if priority is not None or params.get(names.priority(topic)) is None:
-            params.set(names.priority(topic), 0.0 if priority is None else float(priority))
+        if priority is not None:  # otherwise keep what was set (the optimizer reads none as 0)
+            params.set(names.priority(topic), float(priority))
         self._full = transport.declare_publisher(topic, Variant.FULL)
         self._optimized = transport.declare_publisher(topic, Variant.OPTIMIZED)
         self._handles.append(transport.graph.announce(Role.PUBLISHER, topic, Variant.FULL))

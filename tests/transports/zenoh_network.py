@@ -1,0 +1,40 @@
+"""A zenoh 'network' for the contract suite: sessions on loopback, no flags, a private port."""
+
+from __future__ import annotations
+
+import socket
+from collections.abc import Iterator
+
+from dbml.transports.base import Transport
+from dbml.transports.zenoh import ZenohTransport
+from tests.conftest import wait_for
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port: int = sock.getsockname()[1]
+        return port
+
+
+def zenoh_network() -> Iterator[Factory]:
+    port = free_port()  # the no-flags rendezvous, private to this test
+    made: list[ZenohTransport] = []
+
+    def make(host: str) -> Transport:
+        transport = ZenohTransport(host=host, port=port)
+        if made:
+            assert transport.wait_for_peers(5.0), "no peer found on the loopback rendezvous"
+            peers = [t.node_id for t in made]
+            wait_for(lambda: all(t._peers.is_set() for t in made), what=f"peers {peers}")
+        made.append(transport)
+        return transport
+
+    yield make
+    for transport in made:
+        transport.close()
+
+
+from collections.abc import Callable  # noqa: E402
+
+Factory = Callable[[str], Transport]
