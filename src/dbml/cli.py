@@ -8,18 +8,28 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import math
 import sys
-from collections.abc import Sequence
+import threading
+from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any, NoReturn
 
 from rich.console import Console
 from rich.table import Table
 
+from dbml import nodes
 from dbml.configfile import load_config
 from dbml.core.allocation import Allocation, Status, Strategy, allocate
+from dbml.core.config import DbmSettings
 from dbml.core.errors import DbmlError
+from dbml.core.spec import LinkSpec
+from dbml.nodes import stop_on_signals
+from dbml.sim.demo import print_result, run_teleop_demo
 from dbml.sim.reproduce import RobotRow, reproduce_table2
+from dbml.transports.base import Transport
+from dbml.transports.registry import open_transport
 
 __all__ = ["main"]
 
@@ -159,6 +169,136 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
     return EXIT_OK if all_match else EXIT_MISMATCH
 
 
+def _transport_options(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("network (default: processes of this machine, no flags)")
+    group.add_argument(
+        "--host", help="this process's host identity (default: $DBML_HOST or hostname)"
+    )
+    group.add_argument(
+        "--connect",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="zenoh endpoint to connect to, e.g. tcp/192.168.1.2:7447 (repeatable)",
+    )
+    group.add_argument(
+        "--listen",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)",
+    )
+    group.add_argument("--zenoh-config", metavar="FILE", help="a zenoh JSON5 config file")
+
+
+def _open(args: argparse.Namespace) -> Transport:
+    return open_transport(
+        "zenoh",
+        host=args.host,
+        connect=args.connect,
+        listen=args.listen,
+        config_file=args.zenoh_config,
+    )
+
+
+def _setup_logging(verbose: bool = True) -> None:
+    logging.basicConfig(
+        level=logging.INFO if verbose else logging.WARNING,
+        format="%(asctime)s %(name)s: %(message)s",
+        datefmt="%H:%M:%S",
+        stream=sys.stderr,
+    )
+
+
+def _run_node(args: argparse.Namespace, body: Callable[[Transport, threading.Event], int]) -> int:
+    _setup_logging()
+    with stop_on_signals() as stop:
+        transport = _open(args)
+        try:
+            return body(transport, stop)
+        finally:
+            transport.close()
+
+
+def _cmd_optimizer(args: argparse.Namespace) -> int:
+    settings: DbmSettings | None = None
+    links: tuple[LinkSpec, ...] = ()
+    if args.config:
+        config = load_config(args.config, require_channels=False)
+        settings, links = config.dbm, config.links
+    return _run_node(
+        args,
+        lambda t, stop: nodes.run_optimizer(
+            t, settings=settings, links=links, stop=stop, duration_s=args.duration
+        ),
+    )
+
+
+def _cmd_publish(args: argparse.Namespace) -> int:
+    return _run_node(
+        args,
+        lambda t, stop: nodes.run_publisher(
+            t,
+            args.topic,
+            size_bytes=args.size_bytes,
+            min_rate_hz=args.min_hz,
+            max_rate_hz=args.max_hz,
+            priority=args.priority,
+            stop=stop,
+            duration_s=args.duration,
+        ),
+    )
+
+
+def _cmd_subscribe(args: argparse.Namespace) -> int:
+    return _run_node(
+        args,
+        lambda t, stop: nodes.run_subscriber(
+            t, args.topic, as_json=args.json, stop=stop, duration_s=args.duration
+        ),
+    )
+
+
+def _cmd_priority(args: argparse.Namespace) -> int:
+    return _run_node(args, lambda t, _stop: nodes.set_priority(t, args.topic, args.value))
+
+
+def _cmd_monitor(args: argparse.Namespace) -> int:
+    return _run_node(
+        args,
+        lambda t, stop: nodes.run_monitor(
+            t, as_json=args.json, stop=stop, duration_s=args.duration
+        ),
+    )
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    console = Console(stderr=args.json)
+    result = run_teleop_demo(
+        step_seconds=args.step_seconds,
+        transport=args.transport,
+        console=Console(stderr=True),
+        show_live=not args.json,
+        plot=Path(args.plot) if args.plot else None,
+    )
+    if args.json:
+        print(json.dumps(result.as_json()))
+    else:
+        print_result(result, console)
+        if args.plot:
+            console.print(f"plot written to {args.plot}")
+    if result.interrupted:
+        return EXIT_OK
+    return EXIT_OK if result.ok else EXIT_MISMATCH
+
+
+def _positive(text: str) -> float:
+    value = float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be > 0")
+    return value
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="dbml", description="Dynamic bandwidth management for multi-robot systems."
@@ -177,6 +317,49 @@ def _parser() -> argparse.ArgumentParser:
     reproduce_cmd.add_argument("table", choices=["table2"], help="which table")
     reproduce_cmd.add_argument("--json", action="store_true", help="one JSON object on stdout")
     reproduce_cmd.set_defaults(handler=_cmd_reproduce)
+
+    optimizer_cmd = commands.add_parser("optimizer", help="run the optimizer node")
+    optimizer_cmd.add_argument("--config", help="YAML config; its dbm: section is enough")
+    optimizer_cmd.add_argument("--duration", type=_positive, help="stop after S seconds")
+    _transport_options(optimizer_cmd)
+    optimizer_cmd.set_defaults(handler=_cmd_optimizer)
+
+    publish_cmd = commands.add_parser("publish", help="a managed publisher of synthetic payloads")
+    publish_cmd.add_argument("topic", help="e.g. /r1/camera")
+    publish_cmd.add_argument("--size-bytes", type=int, required=True, help="payload size")
+    publish_cmd.add_argument("--min-hz", type=_positive, required=True, help="minimum rate")
+    publish_cmd.add_argument("--max-hz", type=_positive, required=True, help="maximum rate")
+    publish_cmd.add_argument("--priority", type=float, help="raw priority in [0, 1]")
+    publish_cmd.add_argument("--duration", type=_positive, help="stop after S seconds")
+    _transport_options(publish_cmd)
+    publish_cmd.set_defaults(handler=_cmd_publish)
+
+    subscribe_cmd = commands.add_parser("subscribe", help="a managed subscriber that reports")
+    subscribe_cmd.add_argument("topic", help="e.g. /r1/camera")
+    subscribe_cmd.add_argument("--json", action="store_true", help="one JSON object per line")
+    subscribe_cmd.add_argument("--duration", type=_positive, help="stop after S seconds")
+    _transport_options(subscribe_cmd)
+    subscribe_cmd.set_defaults(handler=_cmd_subscribe)
+
+    priority_cmd = commands.add_parser("priority", help="set a channel's raw priority")
+    priority_cmd.add_argument("topic", help="e.g. /r1/camera")
+    priority_cmd.add_argument("value", type=float, help="raw priority in [0, 1]")
+    _transport_options(priority_cmd)
+    priority_cmd.set_defaults(handler=_cmd_priority)
+
+    monitor_cmd = commands.add_parser("monitor", help="a live view of every channel")
+    monitor_cmd.add_argument("--json", action="store_true", help="one JSON object per channel")
+    monitor_cmd.add_argument("--duration", type=_positive, help="stop after S seconds")
+    _transport_options(monitor_cmd)
+    monitor_cmd.set_defaults(handler=_cmd_monitor)
+
+    demo_cmd = commands.add_parser("demo", help="live scenarios")
+    demo_cmd.add_argument("scenario", choices=["teleop"], help="the paper's section 4")
+    demo_cmd.add_argument("--step-seconds", type=_positive, default=3.0, help="default 3")
+    demo_cmd.add_argument("--json", action="store_true", help="one JSON object on stdout")
+    demo_cmd.add_argument("--plot", metavar="FILE.png", help="write a PNG of rates and bandwidth")
+    demo_cmd.add_argument("--transport", choices=["zenoh", "memory"], default="zenoh")
+    demo_cmd.set_defaults(handler=_cmd_demo)
     return parser
 
 

@@ -60,9 +60,10 @@ class Rate:
 
     def sleep(self) -> None:
         now = self._clock()
-        period = 1.0 / self._rate_hz()
-        if self._next is None:
+        if self._next is None:  # the loop's first tick is now
             self._next = now
+            return
+        period = 1.0 / self._rate_hz()
         self._next += period
         if self._next < now - period:
             self._next = now

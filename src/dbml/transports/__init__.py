@@ -15,8 +15,10 @@ from dbml.transports.base import (
     resolve_host,
 )
 from dbml.transports.memory import ManualClock, MemoryNetwork, MemoryTransport
+from dbml.transports.registry import TRANSPORTS, open_transport
 
 __all__ = [
+    "TRANSPORTS",
     "GraphEntry",
     "GraphView",
     "Handle",
@@ -31,5 +33,6 @@ __all__ = [
     "Transport",
     "Variant",
     "check_topic",
+    "open_transport",
     "resolve_host",
 ]

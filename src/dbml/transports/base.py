@@ -149,9 +149,16 @@ class GraphView(Protocol):
 
 @runtime_checkable
 class Transport(Protocol):
-    host: str
-    params: ParamStore
-    graph: GraphView
+    @property
+    def host(self) -> str:
+        """This process's host identity."""
+        ...
+
+    @property
+    def params(self) -> ParamStore: ...
+
+    @property
+    def graph(self) -> GraphView: ...
 
     def declare_publisher(self, topic: str, variant: Variant = Variant.FULL) -> Publisher: ...
 

@@ -185,6 +185,7 @@ class _ZenohParams:
         self._lock = threading.Lock()
         self._values: dict[str, tuple[ParamValue, int, str]] = {}
         self.watchers = _Watchers()
+        self._replier = transport.node_id.encode()
 
     def _merge(self, name: str, value: ParamValue, stamp: int, writer: str) -> bool:
         with self._lock:
@@ -207,6 +208,11 @@ class _ZenohParams:
         with self._lock:
             entry = self._values.get(name)
         return None if entry is None else entry[0]
+
+    def stamp(self, name: str) -> tuple[int, str] | None:
+        with self._lock:
+            entry = self._values.get(name)
+        return None if entry is None else (entry[1], entry[2])
 
     def snapshot(self, prefix: str = "/") -> dict[str, ParamValue]:
         with self._lock:
@@ -242,7 +248,7 @@ class _ZenohParams:
         for name, (value, stamp, writer) in values:
             key = _PARAM + name
             if query.key_expr.intersects(zenoh.KeyExpr(key)):
-                query.reply(key, encode_param(value, stamp, writer))
+                query.reply(key, encode_param(value, stamp, writer), attachment=self._replier)
 
     def sync(self, timeout_s: float = 2.0) -> None:
         """Fetch every parameter the reachable sessions hold (newest wins)."""
@@ -388,6 +394,31 @@ class ZenohTransport:
             return False
         self.params.sync(timeout_s)
         return True
+
+    def confirm_param(self, name: str, *, timeout_s: float) -> bool:
+        """Whether another session holds our latest write of ``name`` (polled, bounded)."""
+        mine = self.params.stamp(name)
+        if mine is None:
+            return False
+        deadline = time.monotonic() + timeout_s
+        while (left := deadline - time.monotonic()) > 0:
+            replies = self.session.get(
+                _param_key(name),
+                target=zenoh.QueryTarget.ALL,
+                consolidation=zenoh.ConsolidationMode.NONE,
+                timeout=min(0.5, left),
+            )
+            for reply in replies:
+                sample = reply.ok
+                if sample is None or sample.attachment is None:
+                    continue
+                if sample.attachment.to_bytes() == self.node_id.encode():
+                    continue  # our own cache answering
+                _, stamp, writer = decode_param(sample.payload.to_bytes())
+                if (stamp, writer) == mine:
+                    return True
+            time.sleep(min(0.05, max(0.0, deadline - time.monotonic())))
+        return False
 
     def now(self) -> float:
         return time.monotonic()

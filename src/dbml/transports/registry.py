@@ -1,0 +1,38 @@
+"""Transports by name; middleware is imported only when its transport is opened."""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Sequence
+from pathlib import Path
+
+from dbml.core.errors import TransportError
+from dbml.transports.base import Transport
+from dbml.transports.memory import MemoryTransport
+
+__all__ = ["TRANSPORTS", "open_transport"]
+
+TRANSPORTS = ("zenoh", "memory")
+"""Registered names; the first is the default."""
+
+
+def open_transport(
+    name: str = "zenoh",
+    *,
+    host: str | None = None,
+    connect: Sequence[str] = (),
+    listen: Sequence[str] = (),
+    config_file: str | Path | None = None,
+) -> Transport:
+    """Open a transport by name. ``memory`` gives a private in-process network."""
+    if name == "memory":
+        if connect or listen or config_file:
+            raise TransportError("transport='memory' takes no endpoints or config file")
+        return MemoryTransport(host=host)
+    if name == "zenoh":
+        module = importlib.import_module("dbml.transports.zenoh")
+        transport: Transport = module.ZenohTransport(
+            host=host, connect=connect, listen=listen, config_file=config_file
+        )
+        return transport
+    raise TransportError(f"transport={name!r} is not one of: {', '.join(TRANSPORTS)}")
