@@ -14,7 +14,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 run: $(STAMP)
-	$(BIN)/dbml reproduce table2
+	$(BIN)/dbml demo teleop
 
 test: lint typecheck pytest
 

@@ -68,3 +68,18 @@ def test_rate_sleep_does_not_burst_after_falling_behind() -> None:
     rate.sleep()
     rate.sleep()
     assert clock() - start >= 0.1 - 1e-9
+
+
+def test_a_new_rate_applies_during_a_long_wait() -> None:
+    clock = ManualClock()
+    rate_hz = [1.0]
+
+    def sleep(seconds: float) -> None:
+        clock.advance(seconds)
+        if clock() >= 0.2:
+            rate_hz[0] = 16.0  # an allocation arrives 0.2 s into a 1 s period
+
+    rate = Rate(lambda: rate_hz[0], clock=clock, sleep=sleep)
+    rate.sleep()
+    rate.sleep()
+    assert clock() == pytest.approx(0.2, abs=0.06)  # not 1.0

@@ -225,8 +225,9 @@ class OptimizerNode:
         for channel in channels:
             if not channel.managed:
                 rates[channel.topic] = channel.max_rate_hz
+        self._report_managed(channels)
         self._push(rates)
-        self._report(channels, status, message)
+        self._report_status(status, message)
         result = Round(channels, rates, status, message, budget, allocation)
         self.last_round = result
         return result
@@ -255,7 +256,13 @@ class OptimizerNode:
                 late = sorted(t for t, r in decreases.items() if params.get(names.applied(t)) != r)
                 log.warning("no acknowledgement of a decrease from %s; raising others anyway", late)
 
-    def _report(self, channels: tuple[ChannelState, ...], status: Status, message: str) -> None:
+    def _report_managed(self, channels: tuple[ChannelState, ...]) -> None:
+        for channel in channels:
+            if self._managed.get(channel.topic) != channel.managed:
+                self._managed[channel.topic] = channel.managed
+                self._transport.params.set(names.managed(channel.topic), channel.managed)
+
+    def _report_status(self, status: Status, message: str) -> None:
         params = self._transport.params
         if self._status != (status.value, message):
             self._status = (status.value, message)
@@ -265,10 +272,6 @@ class OptimizerNode:
                 log.warning("infeasible: %s", message)
             else:
                 log.info("%s", message)
-        for channel in channels:
-            if self._managed.get(channel.topic) != channel.managed:
-                self._managed[channel.topic] = channel.managed
-                params.set(names.managed(channel.topic), channel.managed)
 
     # -- the loop -----------------------------------------------------------------------------
 

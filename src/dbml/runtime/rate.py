@@ -42,8 +42,9 @@ class RateLimiter:
 class Rate:
     """``sleep()`` blocks until the next tick of a loop running at ``rate_hz()``.
 
-    ``rate_hz`` is read at every tick, so a new allocation applies from the next period on.
-    Falling behind by more than a period restarts the schedule instead of bursting to catch up.
+    The deadline is one period after the previous tick, with the period of the rate in force
+    while waiting: a new allocation applies within ``poll_s``, even in the middle of a long
+    period. Falling behind by more than a period restarts the schedule instead of bursting.
     """
 
     def __init__(
@@ -52,24 +53,27 @@ class Rate:
         *,
         clock: Callable[[], float] = time.monotonic,
         sleep: Callable[[float], None] = time.sleep,
+        poll_s: float = 0.05,
     ) -> None:
         self._rate_hz = rate_hz
         self._clock = clock
         self._sleep = sleep
-        self._next: float | None = None
+        self._poll_s = poll_s
+        self._last: float | None = None
 
     def sleep(self) -> None:
         now = self._clock()
-        if self._next is None:  # the loop's first tick is now
-            self._next = now
+        if self._last is None:  # the loop's first tick is now
+            self._last = now
             return
-        period = 1.0 / self._rate_hz()
-        self._next += period
-        if self._next < now - period:
-            self._next = now
-        delay = self._next - now
-        if delay > 0:
-            self._sleep(delay)
+        while True:
+            period = 1.0 / self._rate_hz()
+            deadline = self._last + period
+            now = self._clock()
+            if now >= deadline:
+                break
+            self._sleep(min(deadline - now, self._poll_s))
+        self._last = deadline if now - deadline < period else now
 
     def reset(self) -> None:
-        self._next = None
+        self._last = None

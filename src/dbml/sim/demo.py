@@ -106,6 +106,11 @@ class _Processes:
         self.messages: queue.Queue[tuple[str, dict[str, Any] | None]] = queue.Queue()
         self.children: dict[str, subprocess.Popen[str]] = {}
         self.logs: dict[str, IO[str]] = {}
+        self.step_s = step_s
+
+    def spawn(self) -> None:
+        """Start every role; ``close()`` ends those already started if this is interrupted."""
+        step_s = self.step_s
         env = dict(os.environ, DBML_ZENOH_PORT=str(_free_port()))  # a mesh of its own
         for role in ROLES:
             log = tempfile.TemporaryFile("w+")  # noqa: SIM115 - closed in close()
@@ -209,7 +214,7 @@ class _Threads:
 
 def _live_view(progress: Progress, status: dict[str, Any] | None) -> Group:
     table = Table(title="dbml demo teleop — live", expand=False)
-    for name in ("robot", "allocated Hz", "received Hz (last s)", "Mbit/s"):
+    for name in ("robot", "allocated Hz", "received Hz", "Mbit/s"):
         table.add_column(name, justify="right")
     total = 0.0
     for robot in (status or {}).get("robots", []):
@@ -219,7 +224,7 @@ def _live_view(progress: Progress, status: dict[str, Any] | None) -> Group:
         table.add_row(
             robot["robot"],
             "-" if allocated is None else f"{allocated:.2f}",
-            f"{robot['measured_hz']:.0f}",
+            f"{robot['measured_hz']:.2f}",
             f"{mbit:.2f}",
         )
     table.caption = f"total {total:.2f} of {LINK_MBIT:g} Mbit/s"
@@ -266,7 +271,7 @@ def _plot(result: DemoResult, path: Path) -> None:
         allocated = [s["robots"][i]["allocated_hz"] for s in result.series]
         measured = [s["robots"][i]["measured_hz"] for s in result.series]
         rates.step(times, allocated, where="post", label=f"{camera.robot} allocated")
-        rates.plot(times, measured, ".", alpha=0.6, label=f"{camera.robot} received (1 s window)")
+        rates.plot(times, measured, ".", alpha=0.6, label=f"{camera.robot} received")
     rates.set_ylabel("rate (Hz)")
     rates.legend(loc="upper right", fontsize=8)
     total = [sum(r["bytes_per_s"] for r in s["robots"]) * 8 / 1e6 for s in result.series]
@@ -309,6 +314,7 @@ def run_teleop_demo(
     task = progress.add_task("demo", total=len(STEPS) * step_seconds, step=0)
     try:
         if isinstance(runner, _Processes):
+            runner.spawn()
             ready: set[str] = set()
             deadline = time.monotonic() + READY_TIMEOUT_S
             while ready != set(ROLES):

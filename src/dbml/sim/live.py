@@ -120,11 +120,6 @@ class Arrivals:
             ]
         return len(gaps) / sum(gaps) if gaps and sum(gaps) > 0 else None
 
-    def count_between(self, start: float, end: float) -> tuple[int, int]:
-        with self.lock:
-            picked = [n for t, n in zip(self.times, self.sizes, strict=True) if start <= t <= end]
-        return len(picked), sum(picked)
-
 
 def operator_role(
     transport: Transport, t0: float, step_s: float, stop: threading.Event, emit: Emit
@@ -167,13 +162,14 @@ def operator_role(
             robots_now: list[dict[str, Any]] = []
             status = {"type": "status", "t": now - t0, "step": step + 1, "robots": robots_now}
             for i, camera in enumerate(ROBOTS):
-                count, size = arrivals[i].count_between(now - 1.0, now)
+                # inter-arrival rate over the last two seconds: smoother than a count
+                rate = arrivals[i].rate_between(now - 2.0, now) or 0.0
                 robots_now.append(
                     {
                         "robot": camera.robot,
                         "allocated_hz": allocated(camera.topic),
-                        "measured_hz": float(count),
-                        "bytes_per_s": float(size),
+                        "measured_hz": rate,
+                        "bytes_per_s": rate * camera.size_bytes,
                     }
                 )
             emit(status)

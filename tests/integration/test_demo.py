@@ -1,0 +1,154 @@
+"""``dbml demo teleop`` end to end: four OS processes over zenoh, checked against Table 2."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from dbml.transports.zenoh import ZenohTransport
+from tests.conftest import wait_for
+
+pytestmark = pytest.mark.integration
+
+# Table 2 of the paper as printed, (R1 Hz, R2 Hz) per step.
+TABLE2_HZ = [
+    (12.37, 16),
+    (12.37, 16),
+    (16, 1.48),
+    (16, 1.48),
+    (16, 1.48),
+    (13, 13.48),
+    (16, 1.48),
+    (12.37, 16),
+    (12.37, 16),
+    (12.37, 16),
+]
+
+
+def children_of(pid: int) -> set[int]:
+    found: set[int] = set()
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        children = (task / "children").read_text().split()
+        found.update(int(c) for c in children)
+    return found
+
+
+def alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().split()[2]
+    except FileNotFoundError:
+        return False
+    return state != "Z"
+
+
+def test_demo_over_zenoh_matches_table2_and_measures_what_arrives(tmp_path: Path) -> None:
+    plot = tmp_path / "demo.png"
+    result = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "dbml",
+            "demo",
+            "teleop",
+            "--step-seconds",
+            "1.5",
+            "--json",
+            "--plot",
+            str(plot),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=180,
+        check=False,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    document = json.loads(result.stdout)
+    assert document["ok"] is True
+    steps = document["steps"]
+    assert [s["step"] for s in steps] == list(range(1, 11))
+    for step, expected in zip(steps, TABLE2_HZ, strict=True):
+        for robot, table2_hz in zip(step["robots"], expected, strict=True):
+            assert set(robot) >= {
+                "robot",
+                "topic",
+                "tc_s",
+                "priority",
+                "allocated_hz",
+                "measured_hz",
+            }
+            assert round(robot["allocated_hz"], 2) == table2_hz
+            tolerance = max(0.05 * robot["allocated_hz"], 0.3)
+            assert abs(robot["measured_hz"] - robot["allocated_hz"]) <= tolerance
+            assert robot["variant"] == "optimized"  # the operator is another host
+        assert step["total_mbit"] <= 11 * 1.05
+    assert steps[3]["robots"][1]["tc_s"] is None  # R2 stopped: tc = infinity
+    assert plot.stat().st_size > 10_000
+    assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_demo_over_memory_runs_in_one_process() -> None:
+    result = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "dbml",
+            "demo",
+            "teleop",
+            "--step-seconds",
+            "1",
+            "--json",
+            "--transport",
+            "memory",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert json.loads(result.stdout)["ok"] is True
+
+
+def demo_port(pid: int) -> int:
+    environ = Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
+    value = next(e for e in environ if e.startswith(b"DBML_ZENOH_PORT="))
+    return int(value.split(b"=", 1)[1])
+
+
+@pytest.mark.parametrize("when", ["starting", "running"])
+def test_ctrl_c_ends_the_demo_cleanly_and_leaves_no_process(when: str) -> None:
+    demo = subprocess.Popen(
+        [sys.executable, "-m", "dbml", "demo", "teleop", "--step-seconds", "3", "--json"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,  # its own process group, as a terminal's foreground job
+    )
+    try:
+        wait_for(lambda: len(children_of(demo.pid)) == 4, timeout_s=30, what="the 4 role processes")
+        roles = children_of(demo.pid)
+        if when == "running":
+            probe = ZenohTransport(host="probe", port=demo_port(next(iter(roles))))
+            try:
+                wait_for(
+                    lambda: probe.params.get("/r1/camera/dbm/frequency/current_value") is not None,
+                    timeout_s=30,
+                    what="allocations flowing",
+                )
+            finally:
+                probe.close()
+        os.killpg(demo.pid, signal.SIGINT)  # what Ctrl-C in a terminal sends
+        out, err = demo.communicate(timeout=30)
+        assert demo.returncode == 0, err[-3000:]
+        assert json.loads(out)["interrupted"] is True
+        wait_for(lambda: not any(alive(pid) for pid in roles), timeout_s=10, what="no role left")
+    finally:
+        if demo.poll() is None:
+            demo.kill()
+            demo.communicate(timeout=10)

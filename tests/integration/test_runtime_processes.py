@@ -1,0 +1,154 @@
+"""The runtime's rules with real processes over zenoh on loopback, driven by the CLI."""
+
+from __future__ import annotations
+
+import signal
+from pathlib import Path
+
+import pytest
+
+from dbml.runtime import names
+from tests.conftest import wait_for
+from tests.integration.procs import fleet
+
+pytestmark = pytest.mark.integration
+
+CAMERA = "/r1/camera"
+
+
+def config(tmp_path: Path, *, mbit: float, period_s: float = 1.0) -> str:
+    path = tmp_path / "dbm.yaml"
+    path.write_text(
+        f"dbm:\n  max_bandwidth_in_mbit: {mbit}\n  optimization_rate_in_seconds: {period_s}\n"
+    )
+    return str(path)
+
+
+def publisher(size: int = 84_000, *extra: str) -> list[str]:
+    args = ["publish", CAMERA, "--size-bytes", str(size), "--min-hz", "1", "--max-hz", "16"]
+    return [*args, "--host", "robot1", *extra]
+
+
+def allocated(f: object) -> float | None:
+    value = f.param(names.current_value(CAMERA))  # type: ignore[attr-defined]
+    return float(value) if isinstance(value, int | float) else None
+
+
+def test_local_subscriber_gets_full_rate_remote_gets_optimized() -> None:
+    with fleet() as f:
+        f.start(*publisher(1000))
+        local = f.start("subscribe", CAMERA, "--json", "--host", "robot1")
+        remote = f.start("subscribe", CAMERA, "--json", "--host", "operator")
+
+        def variant_of(proc: object) -> str | None:
+            for line in proc.json_lines(timeout_s=15):  # type: ignore[attr-defined]
+                if line["rate_hz"] > 0:
+                    return str(line["variant"])
+            return None
+
+        assert variant_of(local) == "full"
+        assert variant_of(remote) == "optimized"
+
+
+def test_unmanaged_runs_at_max_and_returns_to_max_when_the_remote_subscriber_leaves(
+    tmp_path: Path,
+) -> None:
+    with fleet() as f:
+        f.start("optimizer", "--config", config(tmp_path, mbit=2), "--host", "base")
+        f.start(*publisher())
+        f.start("subscribe", CAMERA, "--host", "robot1")  # a local reader does not manage it
+        wait_for(lambda: allocated(f) == 16.0, timeout_s=15, what="unmanaged at max (16 Hz)")
+        assert f.param(names.managed(CAMERA)) is False
+        remote = f.start("subscribe", CAMERA, "--host", "operator")
+        # 2 Mbit/s = 250,000 B/s over 84,000 B frames
+        wait_for(
+            lambda: allocated(f) == pytest.approx(250_000 / 84_000),
+            timeout_s=15,
+            what="managed at 2.98 Hz",
+        )
+        assert f.param(names.managed(CAMERA)) is True
+        remote.stop(signal.SIGTERM)
+        wait_for(lambda: allocated(f) == 16.0, timeout_s=10, what="back to max after it leaves")
+
+
+def test_priority_change_reacts_at_once_not_at_the_period(tmp_path: Path) -> None:
+    with fleet() as f:
+        f.start("optimizer", "--config", config(tmp_path, mbit=11, period_s=60), "--host", "base")
+        for robot, topic, size in (
+            ("robot1", "/r1/camera", 84_000),
+            ("robot2", "/r2/camera", 21_000),
+        ):
+            f.start(
+                "publish",
+                topic,
+                "--size-bytes",
+                str(size),
+                "--min-hz",
+                "1",
+                "--max-hz",
+                "16",
+                "--host",
+                robot,
+            )
+            f.start("subscribe", topic, "--host", "operator")
+        # priorities 0/0: Table 2 step 2, R1 12.37 Hz
+        wait_for(lambda: round(allocated(f) or 0, 2) == 12.37, timeout_s=20, what="12.37 Hz")
+        setter = f.start("priority", "/r1/camera", "0.8", "--host", "cli")
+        assert setter.popen.wait(timeout=30) == 0, setter.stderr()
+        # R1 at priority 0.8 (R2 0): floor 16 Hz. The period is 60 s: only an event explains it.
+        wait_for(lambda: allocated(f) == 16.0, timeout_s=5, what="the immediate reaction")
+
+
+def test_failsafe_without_optimizer_and_takeover_by_a_new_one(tmp_path: Path) -> None:
+    cfg = config(tmp_path, mbit=2, period_s=0.5)
+    with fleet() as f:
+        optimizer = f.start("optimizer", "--config", cfg, "--host", "base")
+        robot = f.start(*publisher())
+        f.start("subscribe", CAMERA, "--host", "operator")
+        wait_for(
+            lambda: allocated(f) == pytest.approx(250_000 / 84_000),
+            timeout_s=15,
+            what="the first allocation",
+        )
+        optimizer.stop(signal.SIGKILL)  # no clean goodbye
+        wait_for(
+            lambda: "fail-safe: minimum 1.000 Hz" in robot.stderr(),
+            timeout_s=10,
+            what="the publisher's fail-safe log line",
+        )
+        f.start("optimizer", "--config", cfg, "--host", "base2")
+        wait_for(
+            lambda: "allocation heard again" in robot.stderr(),
+            timeout_s=10,
+            what="the new optimizer taking over",
+        )
+
+
+def test_monitor_json_lists_every_channel(tmp_path: Path) -> None:
+    with fleet() as f:
+        f.start("optimizer", "--config", config(tmp_path, mbit=11), "--host", "base")
+        f.start(*publisher(21_000, "--priority", "0.5"))
+        f.start("subscribe", CAMERA, "--host", "operator")
+        wait_for(lambda: allocated(f) == 16.0, timeout_s=15, what="an allocation")
+        monitor = f.start("monitor", "--json", "--duration", "3", "--host", "viewer")
+        rows = [row for row in monitor.json_lines(timeout_s=20) if row["topic"] == CAMERA]
+        assert rows, monitor.stderr()
+        row = rows[-1]
+        assert set(row) == {
+            "topic",
+            "host",
+            "managed",
+            "priority",
+            "size_bytes",
+            "allocated_hz",
+            "share",
+            "status",
+        }
+        assert row["host"] == "robot1"
+        assert row["managed"] is True
+        assert row["priority"] == 0.5
+        assert row["size_bytes"] == 21_000
+        assert row["allocated_hz"] == 16.0
+        assert row["share"] == pytest.approx(16 * 21_000 / 1_375_000)
+        assert row["status"] == "optimal"
+        assert monitor.popen.wait(timeout=15) == 0
