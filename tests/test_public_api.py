@@ -7,7 +7,7 @@ import pytest
 
 import dbml
 
-PACKAGES = ["dbml", "dbml.core", "dbml.sim"]
+PACKAGES = ["dbml", "dbml.core", "dbml.runtime", "dbml.sim", "dbml.transports"]
 
 
 @pytest.mark.parametrize("name", PACKAGES)
@@ -31,10 +31,11 @@ def test_py_typed_marker_ships() -> None:
     assert (Path(dbml.__file__).parent / "py.typed").exists()
 
 
-def test_readme_library_example_runs(capsys: pytest.CaptureFixture[str]) -> None:
+def test_readme_python_examples_run(capsys: pytest.CaptureFixture[str]) -> None:
     readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
-    block = re.search(r"```python\n(.*?)```", readme, re.S)
-    assert block is not None
-    exec(compile(block.group(1), "README.md", "exec"), {})
-    out = capsys.readouterr().out
-    assert out.startswith("optimal {'/r1/camera': 12.369")
+    blocks = re.findall(r"```python\n(.*?)```", readme, re.S)
+    assert len(blocks) == 2
+    exec(compile(blocks[0], "README.md", "exec"), {})
+    assert capsys.readouterr().out.startswith("optimal {'/r1/camera': 12.369")
+    exec(compile(blocks[1], "README.md", "exec"), {})
+    assert capsys.readouterr().out == "5.95\n"
