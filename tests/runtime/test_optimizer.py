@@ -196,3 +196,19 @@ def test_reacts_at_once_to_a_priority_change_and_coalesces_bursts() -> None:
         assert len(rounds) - before < 50  # 50 changes, far fewer rounds
     finally:
         fleet.optimizer.stop()
+
+
+def test_a_restarted_optimizer_orders_changes_by_what_publishers_run() -> None:
+    fleet = Fleet()
+    fleet.watch_remotely(R1)
+    fleet.watch_remotely(R2)
+    fleet.priority(R2, 1.0)  # R1 12.37 Hz, R2 16 Hz
+    fleet.optimizer.optimize()
+    fleet.optimizer.stop()
+    successor = OptimizerNode(MemoryTransport(fleet.network, host="base2"))
+    fleet.priority(R2, 0.0)
+    fleet.priority(R1, 1.0)  # R1 16 Hz, R2 1.48 Hz
+    fleet.writes.clear()
+    successor.optimize()
+    # It has pushed nothing yet, but the publishers' acknowledgements say R2 must go down first.
+    assert [topic for topic, _ in fleet.writes] == [R2, R1]

@@ -234,10 +234,17 @@ class OptimizerNode:
 
     def _push(self, rates: dict[str, float]) -> None:
         params = self._transport.params
-        decreases = {t: r for t, r in rates.items() if r < self._pushed.get(t, float("inf"))}
+
+        def running(topic: str) -> float | None:
+            """What the publisher acknowledged running, else what we last pushed."""
+            applied = _number(params.get(names.applied(topic)))
+            return applied if applied is not None else self._pushed.get(topic)
+
+        before = {t: running(t) for t in rates}
+        decreases = {t: r for t, r in rates.items() if (b := before[t]) is None or r < b}
         for topic, rate in decreases.items():
             params.set(names.current_value(topic), rate)
-        if decreases and any(rates[t] > self._pushed.get(t, 0.0) for t in rates):
+        if decreases and any((b := before[t]) is not None and r > b for t, r in rates.items()):
             self._await_acks(decreases)
         for topic, rate in rates.items():
             if topic not in decreases:
