@@ -11,9 +11,11 @@ from dataclasses import dataclass
 
 from dbml.core.errors import TransportError
 
-__all__ = ["MessageMeta"]
+__all__ = ["MessageMeta", "pack_meta"]
 
 _LAYOUT = struct.Struct("<Qqd")
+pack_meta = _LAYOUT.pack
+"""``pack_meta(seq, sent_ns, rate_hz)``: the encoding without building an object (hot path)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -25,7 +27,7 @@ class MessageMeta:
     """The rate the publisher applied to ``[topic]/optimized`` when it sent this message."""
 
     def encode(self) -> bytes:
-        return _LAYOUT.pack(self.seq, self.sent_ns, self.rate_hz)
+        return pack_meta(self.seq, self.sent_ns, self.rate_hz)
 
     @classmethod
     def decode(cls, data: bytes | None) -> MessageMeta:

@@ -18,7 +18,7 @@ from collections.abc import Callable
 from dbml.core.errors import SpecError
 from dbml.core.spec import ChannelSpec
 from dbml.runtime import names
-from dbml.runtime.metadata import MessageMeta
+from dbml.runtime.metadata import pack_meta
 from dbml.runtime.rate import Rate, RateLimiter
 from dbml.transports.base import Handle, ParamValue, Role, Transport, Variant, check_topic
 
@@ -41,7 +41,9 @@ class ManagedPublisher:
     ``max_rate_hz``.
 
     ``publish(payload)`` drops what exceeds the rate; ``rate.sleep()`` paces a sensor loop so it
-    does not even capture what would be dropped.
+    does not even capture what would be dropped. Call ``publish`` from one thread; allocations
+    arrive on the transport's thread. The per-message path reads only cached values: the rate
+    in force and the fail-safe deadline are recomputed when an allocation or the period arrives.
     """
 
     def __init__(
@@ -64,14 +66,18 @@ class ManagedPublisher:
         self.min_rate_hz = float(min_rate_hz)
         self.max_rate_hz = float(max_rate_hz)
         self._transport = transport
+        self._now = transport.now
         self._failsafe_periods = failsafe_periods
         self._wall_clock_ns = wall_clock_ns
         self._lock = threading.Lock()
         self._full_seq = 0
         self._optimized_seq = 0
-        self._size_bytes: int | None = None
+        self._size_bytes = -1
         self._allocated_hz: float | None = None
+        self._rate_hz = self.min_rate_hz  # in force: the allocation, else the minimum
         self._last_heard = transport.now()
+        self._period_s = _number(transport.params.get(names.PERIOD)) or 1.0
+        self._deadline = self._last_heard + failsafe_periods * self._period_s
         self._failsafe = False
         self._limiter = RateLimiter(self.min_rate_hz)
         self.rate = Rate(self.current_rate_hz, clock=transport.now)
@@ -89,6 +95,13 @@ class ManagedPublisher:
     # -- allocation ---------------------------------------------------------------------------
 
     def _on_param(self, name: str, value: ParamValue) -> None:
+        if name == names.PERIOD:
+            period = _number(value)
+            if period is not None and period > 0:
+                with self._lock:
+                    self._period_s = period
+                    self._deadline = self._last_heard + self._failsafe_periods * period
+            return
         if name != names.current_value(self.topic):
             return
         rate = _number(value)
@@ -96,38 +109,38 @@ class ManagedPublisher:
             return
         with self._lock:
             self._last_heard = self._transport.now()
+            self._deadline = self._last_heard + self._failsafe_periods * self._period_s
             if self._failsafe:
                 log.warning("%s: allocation heard again; running at %.3f Hz", self.topic, rate)
                 self._failsafe = False
             changed = rate != self._allocated_hz
             self._allocated_hz = rate
+            self._rate_hz = rate
             self._limiter.set_rate(rate)
         if changed:
             self._transport.params.set(names.applied(self.topic), rate)
 
-    def _period_s(self) -> float:
-        period = _number(self._transport.params.get(names.PERIOD))
-        return period if period is not None and period > 0 else 1.0
+    def _enter_failsafe(self, now: float) -> None:
+        with self._lock:
+            if self._failsafe or now <= self._deadline:
+                return
+            self._failsafe = True
+            log.warning(
+                "%s: no allocation heard for %.1f s (%g periods); fail-safe: minimum %.3f Hz",
+                self.topic,
+                now - self._last_heard,
+                self._failsafe_periods,
+                self.min_rate_hz,
+            )
+            self._allocated_hz = None
+            self._rate_hz = self.min_rate_hz
+            self._limiter.set_rate(self.min_rate_hz)
 
     def current_rate_hz(self) -> float:
         """The rate in force: the allocation, or the minimum before one and in fail-safe."""
-        now = self._transport.now()
-        with self._lock:
-            silent = now - self._last_heard > self._failsafe_periods * self._period_s()
-            if silent and not self._failsafe:
-                self._failsafe = True
-                log.warning(
-                    "%s: no allocation heard for %.1f s (%g periods); fail-safe: minimum %.3f Hz",
-                    self.topic,
-                    now - self._last_heard,
-                    self._failsafe_periods,
-                    self.min_rate_hz,
-                )
-                self._limiter.set_rate(self.min_rate_hz)
-                self._allocated_hz = None
-            if self._failsafe or self._allocated_hz is None:
-                return self.min_rate_hz
-            return self._allocated_hz
+        if self._now() > self._deadline:
+            self._enter_failsafe(self._now())
+        return self._rate_hz
 
     @property
     def failsafe(self) -> bool:
@@ -140,7 +153,7 @@ class ManagedPublisher:
         # The serialised message, as sent; metadata and protocol headers are the overhead that
         # /dbm/max_bandwidth_utilization < 1 reserves room for.
         known = self._size_bytes
-        if known is None or abs(size - known) > SIZE_CHANGE * known:
+        if known < 0 or abs(size - known) > SIZE_CHANGE * known:
             self._size_bytes = size
             self._transport.params.set(names.size(self.topic), size)
 
@@ -150,16 +163,19 @@ class ManagedPublisher:
         Each variant numbers its own messages, so a receiver's sequence gaps are losses, never
         the throttling.
         """
-        rate = self.current_rate_hz()
-        self._track_size(len(payload))
+        now = self._now()
+        if now > self._deadline:
+            self._enter_failsafe(now)
+        if len(payload) != self._size_bytes:
+            self._track_size(len(payload))
         sent_ns = self._wall_clock_ns()
         if self._full.has_subscribers:
             self._full_seq += 1
-            self._full.put(payload, MessageMeta(self._full_seq, sent_ns, rate).encode())
-        if not self._limiter.allow(self._transport.now()):
+            self._full.put(payload, pack_meta(self._full_seq, sent_ns, self._rate_hz))
+        if not self._limiter.allow(now):
             return False
         self._optimized_seq += 1
-        self._optimized.put(payload, MessageMeta(self._optimized_seq, sent_ns, rate).encode())
+        self._optimized.put(payload, pack_meta(self._optimized_seq, sent_ns, self._rate_hz))
         return True
 
     def close(self) -> None:

@@ -201,7 +201,13 @@ class _ZenohParams:
         stamp = time.time_ns()
         writer = self._transport.node_id
         self._merge(name, value, stamp, writer)
-        self._transport.session.put(key, encode_param(value, stamp, writer))
+        # Control traffic: never dropped behind bulk data (which uses DROP), and sent ahead of it.
+        self._transport.session.put(
+            key,
+            encode_param(value, stamp, writer),
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            priority=zenoh.Priority.INTERACTIVE_HIGH,
+        )
         self.watchers.fire(name, value)
 
     def get(self, name: str) -> ParamValue:

@@ -1,0 +1,114 @@
+import io
+import json
+import subprocess
+import sys
+import threading
+
+import pytest
+
+from dbml.core import DbmSettings, SpecError
+from dbml.nodes import channel_rows, run_monitor, run_subscriber, set_priority
+from dbml.runtime import ManagedPublisher, ManagedSubscriber, OptimizerNode, names
+from dbml.transports import MemoryNetwork, MemoryTransport
+
+
+@pytest.mark.parametrize("value", [-0.1, 1.5, float("nan")])
+def test_priority_outside_0_1_is_rejected(value: float) -> None:
+    with pytest.raises(SpecError, match=r"priority=.* must be within \[0, 1\]"):
+        set_priority(MemoryTransport(), "/r1/camera", value)
+
+
+def test_priority_is_set() -> None:
+    network = MemoryNetwork()
+    set_priority(MemoryTransport(network, host="cli"), "/r1/camera", 0.7)
+    assert MemoryTransport(network, host="x").params.get(names.priority("/r1/camera")) == 0.7
+
+
+def test_monitor_rows_and_json() -> None:
+    network = MemoryNetwork()
+    camera = ManagedPublisher(
+        MemoryTransport(network, host="robot1"),
+        "/r1/camera",
+        min_rate_hz=1,
+        max_rate_hz=16,
+        priority=0.5,
+    )
+    idle = ManagedPublisher(
+        MemoryTransport(network, host="robot2"), "/r2/scan", min_rate_hz=1, max_rate_hz=10
+    )
+    camera.publish(bytes(84_000))
+    idle.publish(bytes(1000))
+    ManagedSubscriber(MemoryTransport(network, host="operator"), "/r1/camera", lambda s: None)
+    OptimizerNode(MemoryTransport(network, host="base"), settings=DbmSettings(11.0)).optimize()
+    rows = {row.topic: row for row in channel_rows(MemoryTransport(network, host="viewer"))}
+    assert rows["/r1/camera"].managed
+    assert rows["/r1/camera"].host == "robot1"
+    # the only managed channel: p' = 1, floor = max = 16 Hz
+    assert rows["/r1/camera"].allocated_hz == 16.0
+    assert rows["/r1/camera"].share == pytest.approx(16 * 84_000 / 1_375_000)
+    assert rows["/r1/camera"].status == "optimal"
+    assert not rows["/r2/scan"].managed
+    assert rows["/r2/scan"].allocated_hz == 10.0
+    assert rows["/r2/scan"].status == "unmanaged"
+    out = io.StringIO()
+    stop = threading.Event()
+    stop.set()  # one update, then stop
+    run_monitor(MemoryTransport(network, host="viewer"), as_json=True, stop=stop, out=out)
+    assert out.getvalue() == ""  # stopped before the first update
+    run_monitor(
+        MemoryTransport(network, host="viewer"),
+        as_json=True,
+        stop=threading.Event(),
+        duration_s=0.01,
+        interval_s=0.01,
+        out=out,
+    )
+    lines = [json.loads(line) for line in out.getvalue().splitlines()]
+    assert {line["topic"] for line in lines} == {"/r1/camera", "/r2/scan"}
+
+
+def test_subscriber_reports_variant_rate_and_bytes() -> None:
+    network = MemoryNetwork()
+    camera = ManagedPublisher(
+        MemoryTransport(network, host="robot1"), "/cam", min_rate_hz=100, max_rate_hz=100
+    )
+    out = io.StringIO()
+    stop = threading.Event()
+
+    def publish() -> None:
+        while not stop.is_set():
+            camera.publish(bytes(1000))
+            stop.wait(0.01)
+
+    thread = threading.Thread(target=publish)
+    thread.start()
+    try:
+        run_subscriber(
+            MemoryTransport(network, host="operator"),
+            "/cam",
+            as_json=True,
+            stop=threading.Event(),
+            duration_s=1.5,
+            out=out,
+        )
+    finally:
+        stop.set()
+        thread.join()
+    line = json.loads(out.getvalue().splitlines()[0])
+    assert set(line) == {"topic", "variant", "rate_hz", "bytes_per_s"}
+    assert line["variant"] == "optimized"
+    assert line["rate_hz"] > 10
+    assert line["bytes_per_s"] == pytest.approx(line["rate_hz"] * 1000)
+
+
+def test_cli_bad_priority_is_one_line_exit_2() -> None:
+    result = subprocess.run(
+        [sys.executable, "-m", "dbml", "priority", "/r1/camera", "3"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert result.returncode == 2
+    assert result.stderr.strip().endswith("priority=3.0 must be within [0, 1]")
+    assert result.stderr.count("\n") == 1
