@@ -30,7 +30,7 @@ from dbml.runtime.graph import is_managed, published_topics, publisher_hosts
 from dbml.runtime.optimizer import OptimizerNode
 from dbml.runtime.publisher import ManagedPublisher
 from dbml.runtime.subscriber import ManagedSubscriber
-from dbml.transports.base import ParamValue, Sample, Transport
+from dbml.transports.base import Sample, Transport, param_number
 
 __all__ = [
     "ChannelRow",
@@ -219,17 +219,13 @@ class ChannelRow:
         }
 
 
-def _number(value: ParamValue) -> float | None:
-    return float(value) if isinstance(value, int | float) and not isinstance(value, bool) else None
-
-
 def channel_rows(transport: Transport) -> list[ChannelRow]:
     """Every live channel as ``dbml monitor`` shows it; share is of the budget."""
     entries = transport.graph.entries()
     params = transport.params.snapshot()
-    bandwidth = _number(params.get(names.BANDWIDTH))
-    estimate = _number(params.get(names.ESTIMATE))
-    utilization = _number(params.get(names.UTILIZATION)) or 1.0
+    bandwidth = param_number(params.get(names.BANDWIDTH))
+    estimate = param_number(params.get(names.ESTIMATE))
+    utilization = param_number(params.get(names.UTILIZATION)) or 1.0
     budget = None
     if bandwidth is not None or estimate is not None:
         budget = (estimate or bandwidth or 0.0) * BYTES_PER_S_PER_MBIT * utilization
@@ -237,8 +233,8 @@ def channel_rows(transport: Transport) -> list[ChannelRow]:
     rows = []
     for topic in sorted(published_topics(entries)):
         managed = is_managed(entries, topic)
-        size = _number(params.get(names.size(topic)))
-        allocated = _number(params.get(names.current_value(topic)))
+        size = param_number(params.get(names.size(topic)))
+        allocated = param_number(params.get(names.current_value(topic)))
         share = None
         if managed and budget and size is not None and allocated is not None:
             share = allocated * size / budget
@@ -253,7 +249,7 @@ def channel_rows(transport: Transport) -> list[ChannelRow]:
                 topic=topic,
                 host=",".join(sorted(publisher_hosts(entries, topic))),
                 managed=managed,
-                priority=_number(params.get(names.priority(topic))) or 0.0,
+                priority=param_number(params.get(names.priority(topic))) or 0.0,
                 size_bytes=size,
                 allocated_hz=allocated,
                 share=share,
@@ -265,8 +261,8 @@ def channel_rows(transport: Transport) -> list[ChannelRow]:
 
 def _monitor_table(transport: Transport, rows: list[ChannelRow]) -> Table:
     params = transport.params
-    budget = _number(params.get(names.BANDWIDTH))
-    estimate = _number(params.get(names.ESTIMATE))
+    budget = param_number(params.get(names.BANDWIDTH))
+    estimate = param_number(params.get(names.ESTIMATE))
     title = "dbml monitor"
     if budget is not None:
         title += f" — budget {budget:g} Mbit/s"

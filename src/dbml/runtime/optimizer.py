@@ -25,7 +25,7 @@ from dbml.core.errors import DbmlError
 from dbml.core.spec import ChannelSpec, LinkSpec, Problem
 from dbml.runtime import names
 from dbml.runtime.graph import is_managed, published_topics, publisher_hosts
-from dbml.transports.base import Handle, ParamValue, Transport
+from dbml.transports.base import Handle, ParamValue, Transport, param_number
 
 __all__ = ["ChannelState", "OptimizerNode", "Round"]
 
@@ -33,12 +33,6 @@ log = logging.getLogger("dbml.optimizer")
 
 _TRIGGERS = frozenset({"frequency/min", "frequency/max", "message_size_in_bytes", "priority"})
 _GLOBAL_TRIGGERS = frozenset({names.BANDWIDTH, names.UTILIZATION, names.PERIOD, names.STRATEGY})
-
-
-def _number(value: ParamValue) -> float | None:
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        return None
-    return float(value)
 
 
 @dataclass(frozen=True, slots=True)
@@ -130,7 +124,7 @@ class OptimizerNode:
     # -- reading the world --------------------------------------------------------------------
 
     def period_s(self) -> float:
-        period = _number(self._transport.params.get(names.PERIOD))
+        period = param_number(self._transport.params.get(names.PERIOD))
         return period if period is not None and period > 0 else 1.0
 
     def strategy(self) -> Strategy:
@@ -146,7 +140,7 @@ class OptimizerNode:
             estimate = self._budget_override()
             if estimate is not None:
                 return estimate
-        value = _number(self._transport.params.get(names.BANDWIDTH))
+        value = param_number(self._transport.params.get(names.BANDWIDTH))
         return value if value is not None and value > 0 else None
 
     def channels(self) -> tuple[ChannelState, ...]:
@@ -154,12 +148,12 @@ class OptimizerNode:
         params = self._transport.params.snapshot()
         states = []
         for topic in sorted(published_topics(entries)):
-            low = _number(params.get(names.min_rate(topic)))
-            high = _number(params.get(names.max_rate(topic)))
+            low = param_number(params.get(names.min_rate(topic)))
+            high = param_number(params.get(names.max_rate(topic)))
             if low is None or high is None or not 0 < low <= high:
                 continue  # a publisher that has not declared valid bounds yet
-            size = _number(params.get(names.size(topic)))
-            priority = _number(params.get(names.priority(topic))) or 0.0
+            size = param_number(params.get(names.size(topic)))
+            priority = param_number(params.get(names.priority(topic))) or 0.0
             states.append(
                 ChannelState(
                     topic=topic,
@@ -204,7 +198,7 @@ class OptimizerNode:
                 for c in sized
             ),
             bandwidth_mbit=budget,
-            utilization=_number(self._transport.params.get(names.UTILIZATION)) or 1.0,
+            utilization=param_number(self._transport.params.get(names.UTILIZATION)) or 1.0,
             links=links,
         )
         allocation = allocate(problem, strategy=strategy)
@@ -237,7 +231,7 @@ class OptimizerNode:
 
         def running(topic: str) -> float | None:
             """What the publisher acknowledged running, else what we last pushed."""
-            applied = _number(params.get(names.applied(topic)))
+            applied = param_number(params.get(names.applied(topic)))
             return applied if applied is not None else self._pushed.get(topic)
 
         before = {t: running(t) for t in rates}

@@ -20,7 +20,15 @@ from dbml.core.spec import ChannelSpec
 from dbml.runtime import names
 from dbml.runtime.metadata import pack_meta
 from dbml.runtime.rate import Rate, RateLimiter
-from dbml.transports.base import Handle, ParamValue, Role, Transport, Variant, check_topic
+from dbml.transports.base import (
+    Handle,
+    ParamValue,
+    Role,
+    Transport,
+    Variant,
+    check_topic,
+    param_number,
+)
 
 __all__ = ["ManagedPublisher"]
 
@@ -28,12 +36,6 @@ log = logging.getLogger("dbml.publisher")
 
 SIZE_CHANGE = 0.10
 """Relative change of message size that is worth telling the optimizer about."""
-
-
-def _number(value: ParamValue) -> float | None:
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        return None
-    return float(value)
 
 
 class ManagedPublisher:
@@ -76,7 +78,7 @@ class ManagedPublisher:
         self._allocated_hz: float | None = None
         self._rate_hz = self.min_rate_hz  # in force: the allocation, else the minimum
         self._last_heard = transport.now()
-        self._period_s = _number(transport.params.get(names.PERIOD)) or 1.0
+        self._period_s = param_number(transport.params.get(names.PERIOD)) or 1.0
         self._deadline = self._last_heard + failsafe_periods * self._period_s
         self._failsafe = False
         self._limiter = RateLimiter(self.min_rate_hz)
@@ -96,7 +98,7 @@ class ManagedPublisher:
 
     def _on_param(self, name: str, value: ParamValue) -> None:
         if name == names.PERIOD:
-            period = _number(value)
+            period = param_number(value)
             if period is not None and period > 0:
                 with self._lock:
                     self._period_s = period
@@ -104,7 +106,7 @@ class ManagedPublisher:
             return
         if name != names.current_value(self.topic):
             return
-        rate = _number(value)
+        rate = param_number(value)
         if rate is None or rate <= 0:
             return
         with self._lock:

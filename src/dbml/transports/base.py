@@ -23,6 +23,7 @@ from typing import Protocol, TypeAlias, runtime_checkable
 from dbml.core.errors import TransportError
 
 __all__ = [
+    "Closer",
     "GraphEntry",
     "GraphView",
     "Handle",
@@ -37,6 +38,7 @@ __all__ = [
     "check_topic",
     "decode_param",
     "encode_param",
+    "param_number",
     "resolve_host",
 ]
 
@@ -171,6 +173,25 @@ class Transport(Protocol):
         ...
 
     def close(self) -> None: ...
+
+
+class Closer:
+    """A ``Handle`` that runs its action once, on the first ``close()``."""
+
+    def __init__(self, action: Callable[[], None]) -> None:
+        self._action: Callable[[], None] | None = action
+
+    def close(self) -> None:
+        action, self._action = self._action, None
+        if action is not None:
+            action()
+
+
+def param_number(value: ParamValue) -> float | None:
+    """A parameter as a number, or None when it is unset or not a number (booleans are not)."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    return float(value)
 
 
 def check_param_value(value: object) -> ParamValue:

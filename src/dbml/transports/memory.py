@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 
 from dbml.core.errors import TransportError
 from dbml.transports.base import (
+    Closer,
     GraphEntry,
     Handle,
     ParamValue,
@@ -49,16 +50,6 @@ class ManualClock:
 class _Callback:
     fn: Callable[..., None]
     closed: bool = False
-
-
-class _Closer:
-    def __init__(self, action: Callable[[], None]) -> None:
-        self._action: Callable[[], None] | None = action
-
-    def close(self) -> None:
-        action, self._action = self._action, None
-        if action is not None:
-            action()
 
 
 @dataclass
@@ -99,7 +90,7 @@ def _register(network: MemoryNetwork, where: list[_Callback], fn: Callable[..., 
             if callback in where:
                 where.remove(callback)
 
-    return _Closer(remove)
+    return Closer(remove)
 
 
 class _MemoryPublisher:
@@ -173,7 +164,7 @@ class _MemoryGraph:
             transport._tokens.discard(uid)
             network.fire(network.graph_watchers)
 
-        return _Closer(withdraw)
+        return Closer(withdraw)
 
     def entries(self) -> frozenset[GraphEntry]:
         with self._transport.network.lock:

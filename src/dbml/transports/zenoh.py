@@ -27,6 +27,7 @@ from typing import Any
 
 from dbml.core.errors import TransportError
 from dbml.transports.base import (
+    Closer,
     GraphEntry,
     Handle,
     ParamValue,
@@ -116,16 +117,6 @@ def _json_list(items: list[str]) -> str:
     return "[" + ", ".join(f'"{item}"' for item in items) + "]"
 
 
-class _Closer:
-    def __init__(self, action: Callable[[], None]) -> None:
-        self._action: Callable[[], None] | None = action
-
-    def close(self) -> None:
-        action, self._action = self._action, None
-        if action is not None:
-            action()
-
-
 class _Watchers:
     """Callbacks to notify, safe to add and remove from any thread."""
 
@@ -142,7 +133,7 @@ class _Watchers:
                 if fn in self._items:
                     self._items.remove(fn)
 
-        return _Closer(remove)
+        return Closer(remove)
 
     def fire(self, *args: object) -> None:
         with self._lock:
@@ -300,7 +291,7 @@ class _ZenohGraph:
                 token.undeclare()
             self.watchers.fire()
 
-        return _Closer(withdraw)
+        return Closer(withdraw)
 
     def entries(self) -> frozenset[GraphEntry]:
         with self._lock:
@@ -459,7 +450,7 @@ class ZenohTransport:
             with contextlib.suppress(zenoh.ZError):  # the session may be closed already
                 subscriber.undeclare()
 
-        return _Closer(undeclare)
+        return Closer(undeclare)
 
     def close(self) -> None:
         with self._lock:
