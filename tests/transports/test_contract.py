@@ -34,11 +34,12 @@ def memory_network() -> Iterator[Factory]:
 
 NETWORKS: dict[str, Callable[[], Iterator[Factory]]] = {"memory": memory_network}
 try:
-    from tests.transports.zenoh_network import zenoh_network
+    from tests.transports.zenoh_network import zenoh_endpoints_network, zenoh_network
 except ImportError:  # pragma: no cover - the zenoh adapter registers itself when present
     pass
 else:
     NETWORKS["zenoh"] = zenoh_network
+    NETWORKS["zenoh-endpoints"] = zenoh_endpoints_network
 
 
 @pytest.fixture(params=sorted(NETWORKS))

@@ -35,6 +35,31 @@ def zenoh_network() -> Iterator[Factory]:
         transport.close()
 
 
+def zenoh_endpoints_network() -> Iterator[Factory]:
+    """Explicit endpoints, as across machines: the first listens, the others connect to it."""
+    port = free_port()
+    made: list[ZenohTransport] = []
+
+    def make(host: str) -> Transport:
+        if not made:
+            transport = ZenohTransport(host=host, listen=[f"tcp/127.0.0.1:{port}"], port=0)
+        else:
+            transport = ZenohTransport(
+                host=host,
+                connect=[f"tcp/127.0.0.1:{port}"],
+                listen=["tcp/127.0.0.1:0"],
+                port=0,
+            )
+            assert transport.wait_for_peers(5.0), "no peer reached on the explicit endpoint"
+            wait_for(lambda: all(t._peers.is_set() for t in made), what="peers")
+        made.append(transport)
+        return transport
+
+    yield make
+    for transport in made:
+        transport.close()
+
+
 from collections.abc import Callable  # noqa: E402
 
 Factory = Callable[[str], Transport]

@@ -29,6 +29,7 @@ from dbml.nodes import stop_on_signals
 from dbml.runtime import names
 from dbml.runtime.metadata import MessageMeta
 from dbml.runtime.optimizer import OptimizerNode
+from dbml.runtime.priority import collision_priority_source
 from dbml.runtime.publisher import ManagedPublisher
 from dbml.runtime.subscriber import ManagedSubscriber
 from dbml.sim.teleop import LINK_MBIT, MAX_RATE_HZ, MIN_RATE_HZ, ROBOTS, STEPS
@@ -71,12 +72,14 @@ def robot_role(
         transport, camera.topic, min_rate_hz=MIN_RATE_HZ, max_rate_hz=MAX_RATE_HZ
     )
 
+    camera_priority = collision_priority_source(transport, camera.topic)
+
     def replay_events() -> None:
         for k, step in enumerate(STEPS):
             if not _wait_until(t0 + k * step_s, stop):
                 return
             event = step.events[index]
-            transport.params.set(names.priority(camera.topic), event.priority)
+            camera_priority.update(event.distance_m, event.speed_m_per_s)
 
     events = threading.Thread(target=replay_events, name=f"events-{camera.robot}", daemon=True)
     frame = bytes(camera.size_bytes)
