@@ -1,0 +1,289 @@
+"""Estimate a shared link's usable capacity from what the receivers get.
+
+The paper assumes the budget is known; real radio links are not. The estimator watches the
+frames that cross the link (receive time, size, sequence number and the sender's send time) and
+moves its estimate like a delay-based congestion controller:
+
+- **overuse**, the link carries less than is sent: queueing delay above ``overuse_delay_s`` and
+  rising, or above ``max_queue_delay_s``, or frames lost (sequence gaps). The estimate drops to
+  what the link delivered (``backoff`` of the receive rate) minus what drains the queue within
+  ``drain_s``.
+- **hold** while the queue drains or just after a decrease.
+- **increase** otherwise, if the link is actually used (receive rate at least ``probe_fraction``
+  of the estimate): slowly near the capacity last measured under overuse, fast away from it, and
+  never above the configured maximum.
+
+Queueing delay is the one-way delay minus its minimum over ``base_window_s``, per stream, so a
+constant clock offset between sender and receiver cancels; the trend is a least-squares slope of
+those delays. Pure: every time is an argument, so it runs in a simulation as in a node.
+"""
+
+from __future__ import annotations
+
+import enum
+import itertools
+import math
+from collections import deque
+from dataclasses import dataclass
+
+from dbml.core.errors import SpecError
+
+__all__ = ["Arrival", "BandwidthEstimator", "Estimate", "EstimatorSettings", "Phase"]
+
+_BITS_PER_BYTE_MBIT = 8e-6
+_TREND_FRAMES = 3
+_RATE_FRAMES = 4
+_SPARSE_WINDOWS = 4
+"""A slow stream's trend may reach this many windows back for its last few frames."""
+
+
+class Phase(enum.StrEnum):
+    INCREASE = "increase"
+    HOLD = "hold"
+    DECREASE = "decrease"
+
+
+@dataclass(frozen=True, slots=True)
+class Arrival:
+    """One frame received from a stream (one publisher's topic as one receiver gets it)."""
+
+    stream: str
+    seq: int
+    sent_s: float
+    """The sender's clock; it may differ from the receiver's by a constant offset."""
+    arrival_s: float
+    """The estimator's clock."""
+    size_bytes: int
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class EstimatorSettings:
+    window_s: float = 0.5
+    """Receive rate and delay trend are measured over this much recent time."""
+    base_window_s: float = 30.0
+    """A stream's base delay is its minimum one-way delay over this much time."""
+    overuse_delay_s: float = 0.04
+    """Queueing delay above this, while rising faster than ``overuse_trend``, is overuse."""
+    overuse_trend: float = 0.05
+    """Seconds of queueing delay gained per second."""
+    max_queue_delay_s: float = 0.15
+    """Queueing delay above this is overuse unless it is already falling."""
+    backoff: float = 0.95
+    drain_s: float = 1.0
+    response_s: float = 0.4
+    """After a decrease, how long the senders take to act on it (push, apply, first frame)."""
+    probe_fraction: float = 0.6
+    slow_increase_per_s: float = 0.05
+    fast_increase_per_s: float = 0.25
+    near_band: tuple[float, float] = (0.8, 1.1)
+    """Around the capacity last measured under overuse (as fractions), increase slowly."""
+    floor_fraction: float = 0.02
+    """The estimate never falls below this fraction of the maximum."""
+
+    def __post_init__(self) -> None:
+        for name in (
+            "window_s",
+            "base_window_s",
+            "overuse_delay_s",
+            "max_queue_delay_s",
+            "drain_s",
+            "response_s",
+            "slow_increase_per_s",
+            "fast_increase_per_s",
+        ):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise SpecError(f"estimator {name}={value!r} must be a positive number")
+        for name in ("backoff", "probe_fraction", "floor_fraction"):
+            value = getattr(self, name)
+            if not 0 < value <= 1:
+                raise SpecError(f"estimator {name}={value!r} must be in (0, 1]")
+
+
+@dataclass(frozen=True, slots=True)
+class Estimate:
+    """The estimator's state after an update."""
+
+    t_s: float
+    estimate_mbit: float
+    phase: Phase
+    received_mbit: float
+    """What arrived over the last window, in Mbit/s."""
+    queue_delay_s: float
+    delay_trend: float
+    """Seconds of queueing delay gained per second (negative while the queue drains)."""
+    lost: int
+    """Frames lost (sequence gaps) since the previous update."""
+
+
+class _Stream:
+    __slots__ = ("last_seq", "samples")
+
+    def __init__(self) -> None:
+        self.last_seq: int | None = None
+        self.samples: deque[tuple[float, float, int]] = deque()  # (arrival_s, delay_s, size)
+
+
+class BandwidthEstimator:
+    """Usable capacity of one shared link, in Mbit/s of payload, from receptions.
+
+    Feed every received frame to ``observe`` and call ``update`` periodically (every 50-200 ms);
+    the estimate starts at ``initial_mbit`` (the configured maximum by default).
+    """
+
+    def __init__(
+        self,
+        *,
+        max_mbit: float,
+        initial_mbit: float | None = None,
+        settings: EstimatorSettings | None = None,
+    ) -> None:
+        self.settings = settings or EstimatorSettings()
+        self._max_mbit = _check_max(max_mbit)
+        start = max_mbit if initial_mbit is None else initial_mbit
+        if not (math.isfinite(start) and start > 0):
+            raise SpecError(f"estimator initial_mbit={initial_mbit!r} must be a positive number")
+        self._estimate = min(start, self._max_mbit)
+        self._streams: dict[str, _Stream] = {}
+        self._lost = 0
+        self._last_update: float | None = None
+        self._last_decrease = -math.inf
+        self._frozen_until = -math.inf
+        self._capacity_mbit: float | None = None
+        self.last: Estimate | None = None
+
+    @property
+    def estimate_mbit(self) -> float:
+        return self._estimate
+
+    def observe(self, arrival: Arrival) -> None:
+        stream = self._streams.get(arrival.stream)
+        if stream is None:
+            stream = self._streams[arrival.stream] = _Stream()
+        last = stream.last_seq
+        if last is not None and arrival.seq > last + 1:
+            self._lost += arrival.seq - last - 1
+        if last is None or arrival.seq > last or arrival.seq == 0:
+            stream.last_seq = arrival.seq  # seq 0 again: the publisher restarted
+        stream.samples.append(
+            (arrival.arrival_s, arrival.arrival_s - arrival.sent_s, arrival.size_bytes)
+        )
+
+    def update(self, now_s: float, *, max_mbit: float | None = None) -> Estimate:
+        """Move the estimate by what arrived up to ``now_s``; ``max_mbit`` changes the cap."""
+        s = self.settings
+        if max_mbit is not None:
+            self._max_mbit = _check_max(max_mbit)
+        dt = 0.0 if self._last_update is None else max(0.0, now_s - self._last_update)
+        self._last_update = now_s
+        lost, self._lost = self._lost, 0
+
+        recent: list[tuple[float, float, int]] = []  # (arrival, queue delay, size), all streams
+        latest_queue: list[float] = []
+        points: list[tuple[float, float]] = []  # (arrival, queue delay minus the stream's mean)
+        for name in list(self._streams):
+            samples = self._streams[name].samples
+            while samples and samples[0][0] < now_s - s.base_window_s:
+                samples.popleft()
+            if not samples:
+                del self._streams[name]  # a stream that stopped; its seq restarts if it returns
+                continue
+            base = min(delay for _, delay, _ in samples)
+            queued = [(t, d - base, size) for t, d, size in samples]
+            recent.extend(queued)
+            latest_queue.append(queued[-1][1])
+            # the trend needs a few frames, also from a slow stream: the window or the last 3
+            mine = [q for q in queued if q[0] > now_s - s.window_s]
+            if len(mine) < _TREND_FRAMES:
+                horizon = now_s - _SPARSE_WINDOWS * s.window_s
+                mine = [q for q in queued[-_TREND_FRAMES:] if q[0] > horizon]
+            if len(mine) >= 2:
+                mean = sum(q for _, q, _ in mine) / len(mine)
+                points.extend((t, q - mean) for t, q, _ in mine)
+        recent.sort()
+        received = _receive_rate_mbit(recent, now_s, s.window_s)
+        window = [r for r in recent if r[0] > now_s - s.window_s]
+        pairs = recent[-len(window) - 1 :] if len(window) >= _RATE_FRAMES else recent[-5:]
+
+        # One FIFO bottleneck delays every stream alike; the least-delayed stream is the one
+        # least disturbed by its own base delay changing (a slower link, bigger frames).
+        queue = min(latest_queue) if latest_queue else 0.0
+        trend = _slope(points)
+
+        overuse = (
+            lost > 0
+            or (queue > s.overuse_delay_s and trend > s.overuse_trend)
+            or (queue > s.max_queue_delay_s and trend >= 0)
+        )
+        floor = s.floor_fraction * self._max_mbit
+        if overuse and now_s >= self._frozen_until:
+            # Frames still queued were sent before this decrease could act: one decrease, then
+            # wait until what is sent after it has had time to arrive.
+            capacity = _busy_rate_mbit(pairs, s.overuse_delay_s / 2) or received
+            if capacity > 0:
+                self._capacity_mbit = capacity
+                drain = queue * capacity / s.drain_s
+                target = max(s.backoff * capacity - drain, 0.5 * s.backoff * capacity)
+                self._estimate = min(self._estimate, target)
+                self._frozen_until = now_s + queue + s.response_s
+                self._last_decrease = now_s
+            phase = Phase.DECREASE
+        elif overuse or trend < -s.overuse_trend or now_s < self._frozen_until:
+            phase = Phase.HOLD  # the queue is still draining, or the decrease not yet seen
+        elif received >= s.probe_fraction * self._estimate:
+            low, high = s.near_band
+            near = self._capacity_mbit is not None and (
+                low * self._capacity_mbit <= self._estimate <= high * self._capacity_mbit
+            )
+            rate = s.slow_increase_per_s if near else s.fast_increase_per_s
+            self._estimate *= (1.0 + rate) ** dt
+            phase = Phase.INCREASE
+        else:
+            phase = Phase.HOLD  # the link is not used enough to tell whether more would fit
+        self._estimate = min(self._max_mbit, max(floor, self._estimate))
+        self.last = Estimate(now_s, self._estimate, phase, received, queue, trend, lost)
+        return self.last
+
+
+def _check_max(max_mbit: float) -> float:
+    if not (math.isfinite(max_mbit) and max_mbit > 0):
+        raise SpecError(f"estimator max_mbit={max_mbit!r} must be a positive number")
+    return max_mbit
+
+
+def _slope(points: list[tuple[float, float]]) -> float:
+    """Least-squares slope of y over t; 0 without enough spread."""
+    if len(points) < 3:
+        return 0.0
+    n = len(points)
+    mean_t = sum(t for t, _ in points) / n
+    mean_y = sum(y for _, y in points) / n
+    var = sum((t - mean_t) ** 2 for t, _ in points)
+    if var < 1e-6:
+        return 0.0
+    return sum((t - mean_t) * (y - mean_y) for t, y in points) / var
+
+
+def _busy_rate_mbit(ordered: list[tuple[float, float, int]], queued_s: float) -> float | None:
+    """Delivery rate while the link was busy: a frame that waited in the queue arrived as soon
+    as the one before it had, so its size over that gap is the link's rate (packet pairs)."""
+    size = gap = 0.0
+    for (t_prev, _, _), (t, queue, frame) in itertools.pairwise(ordered):
+        if queue > queued_s and t > t_prev:
+            size += frame
+            gap += t - t_prev
+    return size * _BITS_PER_BYTE_MBIT / gap if gap > 0 else None
+
+
+def _receive_rate_mbit(
+    ordered: list[tuple[float, float, int]], now_s: float, window_s: float
+) -> float:
+    """Mbit/s received over the window, or over the last few frames when they are sparse."""
+    start = now_s - window_s
+    inside = [r for r in ordered if r[0] > start]
+    if len(inside) < _RATE_FRAMES and len(ordered) > len(inside):
+        keep = min(_RATE_FRAMES, len(ordered) - 1)
+        inside = ordered[len(ordered) - keep :] if keep else []
+        start = ordered[len(ordered) - keep - 1][0]
+    span = now_s - start
+    return sum(size for *_, size in inside) * _BITS_PER_BYTE_MBIT / span if span > 0 else 0.0

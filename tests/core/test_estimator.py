@@ -1,0 +1,122 @@
+"""The bandwidth estimator, closed loop over a simulated bottleneck (tests/core/link_model.py)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from dbml.core.errors import SpecError
+from dbml.core.estimator import Arrival, BandwidthEstimator, EstimatorSettings, Phase
+from tests.core.link_model import WIRE_EFFICIENCY, simulate
+
+CAP_MBIT = 11.0 * 0.92
+
+
+def drop_and_rise(t: float) -> float:
+    return 11.0 if t < 20 or t >= 40 else 5.0
+
+
+def test_constant_link_is_used_without_queueing() -> None:
+    trace = simulate(BandwidthEstimator(max_mbit=CAP_MBIT), lambda _: 11.0, duration_s=20)
+    assert trace.estimate_at(20) == pytest.approx(CAP_MBIT)
+    assert trace.max_delay(2, 20) < 0.1  # an 84 KB frame alone takes 64 ms
+
+
+def test_drop_is_followed_within_three_seconds() -> None:
+    trace = simulate(BandwidthEstimator(max_mbit=CAP_MBIT), drop_and_rise, duration_s=40)
+    # from 3 s after the drop, frames arrive with little queueing (an 84 KB frame alone: 141 ms)
+    assert trace.p95_delay(23, 40) < 0.25
+    assert trace.max_delay(23, 40) < 0.3
+    assert trace.estimate_at(25) < 5.0 * WIRE_EFFICIENCY * 1.1
+    # and the link stays used
+    assert min(e.estimate_mbit for e in trace.estimates if e.t_s > 25) > 0.6 * 5.0
+
+
+def test_rise_is_found_within_ten_seconds() -> None:
+    trace = simulate(BandwidthEstimator(max_mbit=CAP_MBIT), drop_and_rise, duration_s=52)
+    assert trace.estimate_at(39.9) < 6.0
+    assert trace.estimate_at(50) >= 0.9 * 11.0
+
+
+def test_without_estimation_the_drop_builds_an_ever_growing_queue() -> None:
+    """The reference: the paper's constant budget on the same schedule."""
+    constant = simulate(None, drop_and_rise, duration_s=30, constant_mbit=CAP_MBIT)
+    assert constant.max_delay(28, 30) > 2.0
+
+
+@given(
+    offset_r1=st.floats(-1e4, 1e4, allow_nan=False),
+    offset_r2=st.floats(-1e4, 1e4, allow_nan=False),
+)
+@settings(max_examples=10, deadline=None)
+def test_clock_offsets_do_not_matter(offset_r1: float, offset_r2: float) -> None:
+    plain = simulate(BandwidthEstimator(max_mbit=CAP_MBIT), drop_and_rise, duration_s=26)
+    shifted = simulate(
+        BandwidthEstimator(max_mbit=CAP_MBIT),
+        drop_and_rise,
+        duration_s=26,
+        clock_offsets_s={"r1": offset_r1, "r2": offset_r2},
+    )
+    for a, b in zip(plain.estimates, shifted.estimates, strict=True):
+        assert a.phase == b.phase
+        assert a.estimate_mbit == pytest.approx(b.estimate_mbit, rel=1e-6)
+
+
+@given(link=st.floats(3.0, 30.0), cap=st.floats(1.0, 40.0))
+@settings(max_examples=20, deadline=None)
+def test_never_above_the_cap_and_converges_below_the_link(link: float, cap: float) -> None:
+    trace = simulate(BandwidthEstimator(max_mbit=cap), lambda _: link, duration_s=30)
+    assert all(e.estimate_mbit <= cap + 1e-9 for e in trace.estimates)
+    # once settled the queue stays short: the estimate tracks the link, not above it
+    two_frames_s = 2 * 84_000 * 8e-6 / (link * WIRE_EFFICIENCY)
+    assert trace.p95_delay(20, 30) < 0.15 + two_frames_s
+    # and the link is used: at least 60 % of it (or all the budget allows)
+    assert trace.estimate_at(30) >= min(cap, 0.6 * link * WIRE_EFFICIENCY)
+
+
+def test_losses_decrease_the_estimate() -> None:
+    estimator = BandwidthEstimator(max_mbit=10.0)
+    for i in range(10):
+        estimator.observe(Arrival("a", i, i * 0.05, i * 0.05 + 0.01, 50_000))
+    assert estimator.update(0.5).phase is Phase.INCREASE
+    estimator.observe(Arrival("a", 15, 0.55, 0.56, 50_000))  # 10..14 lost
+    estimate = estimator.update(0.6)
+    assert estimate.lost == 5
+    assert estimate.phase is Phase.DECREASE
+    assert estimate.estimate_mbit < 10.0
+
+
+def test_an_idle_link_is_not_probed() -> None:
+    """Receiving far less than the estimate says nothing about what more would fit."""
+    estimator = BandwidthEstimator(max_mbit=20.0, initial_mbit=5.0)
+    for i in range(20):
+        estimator.observe(Arrival("a", i, i * 0.1, i * 0.1 + 0.01, 1_000))
+        estimate = estimator.update(i * 0.1 + 0.02)
+    assert estimate.phase is Phase.HOLD
+    assert estimate.estimate_mbit == 5.0
+
+
+def test_a_publisher_restart_is_not_a_loss() -> None:
+    estimator = BandwidthEstimator(max_mbit=10.0)
+    estimator.observe(Arrival("a", 100, 0.0, 0.01, 1_000))
+    estimator.observe(Arrival("a", 0, 0.1, 0.11, 1_000))
+    estimator.observe(Arrival("a", 1, 0.2, 0.21, 1_000))
+    assert estimator.update(0.3).lost == 0
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [("window_s", 0.0), ("drain_s", math.nan), ("backoff", 1.5), ("probe_fraction", 0.0)],
+)
+def test_bad_settings_name_the_field(field: str, value: float) -> None:
+    with pytest.raises(SpecError, match=f"{field}={value!r}"):
+        EstimatorSettings(**{field: value})
+
+
+@pytest.mark.parametrize("value", [0.0, -1.0, math.inf])
+def test_bad_maximum_names_the_value(value: float) -> None:
+    with pytest.raises(SpecError, match=f"max_mbit={value!r}"):
+        BandwidthEstimator(max_mbit=value)
