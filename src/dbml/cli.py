@@ -229,7 +229,12 @@ def _cmd_optimizer(args: argparse.Namespace) -> int:
     return _run_node(
         args,
         lambda t, stop: nodes.run_optimizer(
-            t, settings=settings, links=links, stop=stop, duration_s=args.duration
+            t,
+            settings=settings,
+            links=links,
+            stop=stop,
+            duration_s=args.duration,
+            estimate=args.estimate,
         ),
     )
 
@@ -321,6 +326,11 @@ def _parser() -> argparse.ArgumentParser:
     optimizer_cmd = commands.add_parser("optimizer", help="run the optimizer node")
     optimizer_cmd.add_argument("--config", help="YAML config; its dbm: section is enough")
     optimizer_cmd.add_argument("--duration", type=_positive, help="stop after S seconds")
+    optimizer_cmd.add_argument(
+        "--estimate",
+        action="store_true",
+        help="estimate the usable bandwidth from what subscribers receive (at most the budget)",
+    )
     _transport_options(optimizer_cmd)
     optimizer_cmd.set_defaults(handler=_cmd_optimizer)
 

@@ -26,9 +26,11 @@ from dbml.core.config import DbmSettings
 from dbml.core.errors import SpecError
 from dbml.core.spec import BYTES_PER_S_PER_MBIT, LinkSpec
 from dbml.runtime import names
+from dbml.runtime.estimator import LinkEstimator
 from dbml.runtime.graph import is_managed, published_topics, publisher_hosts
 from dbml.runtime.optimizer import OptimizerNode
 from dbml.runtime.publisher import ManagedPublisher
+from dbml.runtime.reception import ReceptionReporter
 from dbml.runtime.subscriber import ManagedSubscriber
 from dbml.transports.base import Sample, Transport, param_number
 
@@ -80,11 +82,23 @@ def run_optimizer(
     links: tuple[LinkSpec, ...],
     stop: threading.Event,
     duration_s: float | None = None,
+    estimate: bool = False,
 ) -> int:
     _reach_peers(transport)
     if settings is None and transport.params.get(names.BANDWIDTH) is None:
         log.warning("no budget yet: waiting for %s (or pass --config)", names.BANDWIDTH)
-    node = OptimizerNode(transport, settings=settings, links=links).start()
+    estimator = LinkEstimator(transport) if estimate else None
+    node = OptimizerNode(
+        transport,
+        settings=settings,
+        links=links,
+        budget_mbit=None if estimator is None else estimator.budget_mbit,
+    )
+    if estimator is not None:
+        estimator.on_change = node.poke
+        estimator.start()
+        log.info("estimating the bandwidth from reception reports (at most the configured)")
+    node.start()
     log.info("optimizer running on host %s", transport.host)
     done = _until(stop, duration_s)
     try:
@@ -92,6 +106,8 @@ def run_optimizer(
             stop.wait(0.1)
     finally:
         node.stop()
+        if estimator is not None:
+            estimator.close()
     return 0
 
 
@@ -160,7 +176,8 @@ def run_subscriber(
 ) -> int:
     _reach_peers(transport)
     meter = _Meter(deque(), threading.Lock())
-    subscriber = ManagedSubscriber(transport, topic, meter.add)
+    reporter = ReceptionReporter(transport).start()  # for an optimizer that estimates
+    subscriber = ManagedSubscriber(transport, topic, meter.add, reporter=reporter)
     done = _until(stop, duration_s)
     try:
         while not done():
@@ -180,6 +197,7 @@ def run_subscriber(
             out.flush()
     finally:
         subscriber.close()
+        reporter.close()
     return 0
 
 
@@ -205,6 +223,8 @@ class ChannelRow:
     allocated_hz: float | None
     share: float | None
     status: str
+    estimate_mbit: float | None = None
+    estimator: str | None = None
 
     def as_json(self) -> dict[str, Any]:
         return {
@@ -216,6 +236,8 @@ class ChannelRow:
             "allocated_hz": self.allocated_hz,
             "share": self.share,
             "status": self.status,
+            "estimate_mbit": self.estimate_mbit,
+            "estimator": self.estimator,
         }
 
 
@@ -226,10 +248,13 @@ def channel_rows(transport: Transport) -> list[ChannelRow]:
     bandwidth = param_number(params.get(names.BANDWIDTH))
     estimate = param_number(params.get(names.ESTIMATE))
     utilization = param_number(params.get(names.UTILIZATION)) or 1.0
-    budget = None
-    if bandwidth is not None or estimate is not None:
-        budget = (estimate or bandwidth or 0.0) * BYTES_PER_S_PER_MBIT * utilization
+    budget = None  # what the optimizer allocates: the estimate is already the usable budget
+    if estimate is not None:
+        budget = estimate * BYTES_PER_S_PER_MBIT
+    elif bandwidth is not None:
+        budget = bandwidth * utilization * BYTES_PER_S_PER_MBIT
     status = params.get(names.STATUS)
+    estimator = params.get(names.ESTIMATOR_STATE)
     rows = []
     for topic in sorted(published_topics(entries)):
         managed = is_managed(entries, topic)
@@ -254,6 +279,8 @@ def channel_rows(transport: Transport) -> list[ChannelRow]:
                 allocated_hz=allocated,
                 share=share,
                 status=state,
+                estimate_mbit=estimate,
+                estimator=estimator if isinstance(estimator, str) else None,
             )
         )
     return rows
@@ -268,6 +295,9 @@ def _monitor_table(transport: Transport, rows: list[ChannelRow]) -> Table:
         title += f" — budget {budget:g} Mbit/s"
     if estimate is not None:
         title += f", estimate {estimate:.2f} Mbit/s"
+        state = params.get(names.ESTIMATOR_STATE)
+        if isinstance(state, str):
+            title += f" ({state})"
     table = Table(title=title)
     for name in (
         "topic",

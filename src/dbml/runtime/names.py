@@ -5,6 +5,7 @@ from __future__ import annotations
 __all__ = [
     "BANDWIDTH",
     "ESTIMATE",
+    "ESTIMATOR_STATE",
     "PERIOD",
     "STATUS",
     "STATUS_MESSAGE",
@@ -28,7 +29,9 @@ STATUS = "/dbm/status"
 """``optimal`` or ``infeasible``, written by the optimizer after every allocation."""
 STATUS_MESSAGE = "/dbm/status_message"
 ESTIMATE = "/dbm/estimated_bandwidth_in_mbit"
-"""The bandwidth estimator's current estimate, when one runs."""
+"""The bandwidth estimator's current estimate (the budget in use), when one runs."""
+ESTIMATOR_STATE = "/dbm/estimator_state"
+"""What the estimator sees: phase, receive rate, queueing delay, losses."""
 
 _CHANNEL = "/dbm/"
 

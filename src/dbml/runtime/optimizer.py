@@ -57,14 +57,15 @@ class Round:
     status: Status
     message: str
     budget_mbit: float | None
+    """What was allocatable: the estimate, else bandwidth times utilization."""
     allocation: Allocation | None
 
 
 class OptimizerNode:
     """Allocate and push rates; ``start()`` runs it in a thread, ``optimize()`` runs one round.
 
-    ``budget_mbit`` overrides ``/dbm/max_bandwidth_in_mbit`` when it returns a number: the hook a
-    bandwidth estimator uses.
+    ``budget_mbit`` overrides ``/dbm/max_bandwidth_in_mbit`` (and its utilization) when it returns
+    a number: the hook a bandwidth estimator uses; its value is the usable budget.
     """
 
     def __init__(
@@ -135,13 +136,21 @@ class OptimizerNode:
             log.error("%s=%r is not a strategy; using paper", names.STRATEGY, raw)
             return Strategy.PAPER
 
-    def budget_mbit(self) -> float | None:
+    def _budget(self) -> tuple[float, float] | None:
+        """(Mbit/s, utilization) to allocate: an estimate is already the usable budget."""
         if self._budget_override is not None:
             estimate = self._budget_override()
             if estimate is not None:
-                return estimate
+                return estimate, 1.0
         value = param_number(self._transport.params.get(names.BANDWIDTH))
-        return value if value is not None and value > 0 else None
+        if value is None or value <= 0:
+            return None
+        return value, param_number(self._transport.params.get(names.UTILIZATION)) or 1.0
+
+    def budget_mbit(self) -> float | None:
+        """What may be allocated: the estimate, else bandwidth times utilization."""
+        budget = self._budget()
+        return None if budget is None else budget[0] * budget[1]
 
     def channels(self) -> tuple[ChannelState, ...]:
         entries = self._transport.graph.entries()
@@ -170,7 +179,7 @@ class OptimizerNode:
     # -- one round ----------------------------------------------------------------------------
 
     def _allocate(
-        self, managed: list[ChannelState], budget: float | None
+        self, managed: list[ChannelState], budget: tuple[float, float] | None
     ) -> tuple[dict[str, float], Status, str, Allocation | None]:
         if not managed:
             return {}, Status.OPTIMAL, "no managed channels", None
@@ -197,8 +206,8 @@ class OptimizerNode:
                 ChannelSpec(c.topic, c.min_rate_hz, c.max_rate_hz, c.size_bytes or 1.0, c.priority)
                 for c in sized
             ),
-            bandwidth_mbit=budget,
-            utilization=param_number(self._transport.params.get(names.UTILIZATION)) or 1.0,
+            bandwidth_mbit=budget[0],
+            utilization=budget[1],
             links=links,
         )
         allocation = allocate(problem, strategy=strategy)
@@ -208,7 +217,7 @@ class OptimizerNode:
     def optimize(self) -> Round:
         """Read, allocate and push once."""
         channels = self.channels()
-        budget = self.budget_mbit()
+        budget = self._budget()
         managed = [c for c in channels if c.managed]
         try:
             rates, status, message, allocation = self._allocate(managed, budget)
@@ -222,7 +231,8 @@ class OptimizerNode:
         self._report_managed(channels)
         self._push(rates)
         self._report_status(status, message)
-        result = Round(channels, rates, status, message, budget, allocation)
+        usable = None if budget is None else budget[0] * budget[1]
+        result = Round(channels, rates, status, message, usable, allocation)
         self.last_round = result
         return result
 

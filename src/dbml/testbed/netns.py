@@ -1,0 +1,320 @@
+"""A real, shaped test network: Linux network namespaces joined through a router namespace.
+
+Each robot and the operator get their own namespace, linked to a router namespace by a veth pair::
+
+    r1 (10.200.1.2) ──┐
+    r2 (10.200.2.2) ──┼── rt ══ tbf ══> op (10.200.100.2)
+    ...             ──┘
+
+The bottleneck is the router's egress toward the operator, shaped by ``tc`` tbf, so every robot's
+traffic to the operator shares one link of ``link_mbit``, as in the paper's experiment. A robot can
+also get its own slower uplink (tbf on its egress). Processes run inside with ``ip netns exec``
+(:meth:`Network.exec_argv`), so they talk over real TCP/UDP through the kernel and its queues.
+
+Veth pairs are created directly inside their namespaces, so nothing is ever placed in the root
+namespace, and deleting a run's namespaces deletes all of it, even after a crash of the builder.
+Every name carries a random run id, so runs never collide and cleanup only touches its own run.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import secrets
+import shutil
+import subprocess
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from types import TracebackType
+
+from dbml.core.errors import DbmlError
+
+__all__ = ["Host", "Network", "TestbedError", "leftover_namespaces", "privilege_problem"]
+
+_PREFIX = "dbml-"
+_OPERATOR = "op"
+_ROUTER = "rt"
+_ROBOT_NAME = re.compile(r"^[a-z][a-z0-9]{0,5}$")
+_RUN_ID = re.compile(r"^[0-9a-f]{6}$")
+_OPERATOR_SUBNET = 100  # 10.200.100.0/24; robots use 10.200.1.0/24 .. 10.200.99.0/24
+_BURST = "32kbit"
+_LATENCY = "200ms"
+_COMMAND_TIMEOUT_S = 10.0
+_CAP_NET_ADMIN = 12
+_CAP_SYS_ADMIN = 21
+
+
+class TestbedError(DbmlError):
+    """The testbed cannot be built, changed or removed, or was given a bad value."""
+
+    __test__ = False  # not a pytest test class despite the name
+
+
+@dataclass(frozen=True, slots=True)
+class Host:
+    """One endpoint of the testbed: what a runner needs to start a process there and reach it."""
+
+    name: str
+    """Role name given by the caller (``"r1"``) or ``"op"`` for the operator."""
+    netns: str
+    """The real namespace name, for ``ip netns exec``."""
+    address: str
+    """Its IPv4 address inside the testbed, reachable from every other host."""
+
+
+def privilege_problem() -> str | None:
+    """None if this process can build namespaces, else a one-line reason (tests skip on it)."""
+    if not hasattr(os, "geteuid"):
+        return "network namespaces need Linux"
+    if os.geteuid() != 0:
+        return f"network namespaces need root (euid={os.geteuid()})"
+    for tool in ("ip", "tc", "sysctl"):
+        if shutil.which(tool) is None:
+            return f"'{tool}' is not on PATH (PATH={os.environ.get('PATH', '')})"
+    caps = _effective_capabilities()
+    if caps is None:
+        return "cannot read CapEff from /proc/self/status (not Linux?)"
+    for bit, name in ((_CAP_SYS_ADMIN, "CAP_SYS_ADMIN"), (_CAP_NET_ADMIN, "CAP_NET_ADMIN")):
+        if not caps >> bit & 1:
+            return f"root without {name} (CapEff={caps:#x}), e.g. an unprivileged container"
+    return None
+
+
+def leftover_namespaces(prefix: str = _PREFIX) -> list[str]:
+    """Names from ``ip netns list`` starting with ``prefix``: proves cleanup, finds crashed runs."""
+    names = (line.split()[0] for line in _run(["ip", "netns", "list"]).splitlines() if line)
+    return sorted(name for name in names if name.startswith(prefix))
+
+
+class Network:
+    """Robots and an operator in namespaces behind one shaped router; a context manager.
+
+    Nothing exists until :meth:`build` (or ``with``); :meth:`close` removes everything this run
+    created and is safe to call more than once.
+    """
+
+    run_id: str
+    """Six lowercase hex characters in every namespace and interface name of this run."""
+    hosts: dict[str, Host]
+    """Every robot and ``"op"``; the router is internal."""
+    robots: tuple[str, ...]
+    link_mbit: float
+    """The current bottleneck rate (router toward operator)."""
+    uplinks_mbit: dict[str, float]
+
+    def __init__(
+        self,
+        *,
+        robots: Sequence[str] = ("r1", "r2"),
+        link_mbit: float,
+        uplinks_mbit: Mapping[str, float] | None = None,
+        run_id: str | None = None,
+    ) -> None:
+        self.robots = _check_robots(robots)
+        self.link_mbit = _check_mbit("link_mbit", link_mbit)
+        uplinks = dict(uplinks_mbit or {})
+        for robot, mbit in uplinks.items():
+            if robot not in self.robots:
+                raise TestbedError(
+                    f"uplink {robot!r} is not a robot (robots: {', '.join(self.robots)})"
+                )
+            _check_mbit(f"uplinks_mbit[{robot!r}]", mbit)
+        self.uplinks_mbit = {robot: float(mbit) for robot, mbit in uplinks.items()}
+        if run_id is None:
+            run_id = secrets.token_hex(3)
+        elif not isinstance(run_id, str) or not _RUN_ID.match(run_id):
+            raise TestbedError(f"run_id={run_id!r} must be 6 lowercase hex characters")
+        self.run_id = run_id
+        self.hosts = {
+            robot: Host(robot, self._netns(robot), f"10.200.{index + 1}.2")
+            for index, robot in enumerate(self.robots)
+        }
+        self.hosts[_OPERATOR] = Host(
+            _OPERATOR, self._netns(_OPERATOR), f"10.200.{_OPERATOR_SUBNET}.2"
+        )
+        self._created: list[str] = []
+        self._built = False
+
+    @property
+    def namespaces(self) -> list[str]:
+        """All namespace names of this run, router included (whether built or not)."""
+        return [*(host.netns for host in self.hosts.values()), self._netns(_ROUTER)]
+
+    def build(self) -> Network:
+        """Create namespaces, links, addresses, routes and shaping; on failure remove them all."""
+        if self._built:
+            raise TestbedError(f"network run_id={self.run_id} is already built")
+        try:
+            self._build()
+        except BaseException as exc:
+            problems = self._delete_namespaces()
+            if problems and isinstance(exc, TestbedError):
+                raise TestbedError(f"{exc}; cleanup also failed: {'; '.join(problems)}") from exc
+            raise
+        self._built = True
+        return self
+
+    def exec_argv(self, host: str, argv: Sequence[str]) -> list[str]:
+        """The argv that runs ``argv`` inside ``host``'s namespace (needs root)."""
+        if host not in self.hosts:
+            raise TestbedError(
+                f"host {host!r} is not in the testbed (hosts: {', '.join(self.hosts)})"
+            )
+        if isinstance(argv, str):
+            raise TestbedError(f"argv={argv!r} must be a list of arguments, not a string")
+        return ["ip", "netns", "exec", self.hosts[host].netns, *argv]
+
+    def set_link_rate(self, mbit: float) -> None:
+        """Change the bottleneck rate live; queued packets drain at the new rate."""
+        rate = _check_mbit("link_mbit", mbit)
+        if not self._built:
+            raise TestbedError(f"network run_id={self.run_id} is not built")
+        router = self._netns(_ROUTER)
+        _run(["tc", "-n", router, "qdisc", "change", *self._tbf(self._router_if(_OPERATOR), rate)])
+        self.link_mbit = rate
+
+    def close(self) -> None:
+        """Delete every namespace this run created (their veth ends go with them); idempotent."""
+        self._built = False
+        problems = self._delete_namespaces()
+        if problems:
+            raise TestbedError(f"close of run_id={self.run_id} failed: {'; '.join(problems)}")
+
+    def __enter__(self) -> Network:
+        return self.build()
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return (
+            f"Network(run_id={self.run_id!r}, robots={self.robots!r}, "
+            f"link_mbit={self.link_mbit}, uplinks_mbit={self.uplinks_mbit!r})"
+        )
+
+    def _build(self) -> None:
+        router = self._netns(_ROUTER)
+        for netns in [router, *(host.netns for host in self.hosts.values())]:
+            _run(["ip", "netns", "add", netns])
+            self._created.append(netns)  # only what we made: a clash never deletes another run
+            _run(["ip", "-n", netns, "link", "set", "lo", "up"])
+        _run(["ip", "netns", "exec", router, "sysctl", "-qw", "net.ipv4.ip_forward=1"])
+        for index, role in enumerate([*self.robots, _OPERATOR]):
+            subnet = _OPERATOR_SUBNET if role == _OPERATOR else index + 1
+            self._link(role, subnet)
+        self._shape(router, self._router_if(_OPERATOR), self.link_mbit)
+        for robot, mbit in self.uplinks_mbit.items():
+            self._shape(self._netns(robot), self._host_if(robot), mbit)
+
+    def _link(self, role: str, subnet: int) -> None:
+        """One veth pair host <-> router on 10.200.{subnet}.0/24, router .1, host .2."""
+        netns, router = self._netns(role), self._netns(_ROUTER)
+        host_if, router_if = self._host_if(role), self._router_if(role)
+        veth = ["type", "veth", "peer", "name", router_if, "netns", router]
+        _run(["ip", "link", "add", host_if, "netns", netns, *veth])
+        _run(["ip", "-n", netns, "addr", "add", f"10.200.{subnet}.2/24", "dev", host_if])
+        _run(["ip", "-n", router, "addr", "add", f"10.200.{subnet}.1/24", "dev", router_if])
+        _run(["ip", "-n", netns, "link", "set", host_if, "up"])
+        _run(["ip", "-n", router, "link", "set", router_if, "up"])
+        _run(["ip", "-n", netns, "route", "add", "default", "via", f"10.200.{subnet}.1"])
+
+    def _shape(self, netns: str, interface: str, mbit: float) -> None:
+        _run(["tc", "-n", netns, "qdisc", "add", *self._tbf(interface, mbit)])
+
+    @staticmethod
+    def _tbf(interface: str, mbit: float) -> list[str]:
+        rate = f"{round(mbit * 1000)}kbit"  # kbit keeps fractional Mbit exact to 1 kbit/s
+        return ["dev", interface, "root", "tbf", "rate", rate, "burst", _BURST, "latency", _LATENCY]
+
+    def _delete_namespaces(self) -> list[str]:
+        """Delete what this run created, newest first; return problems instead of stopping."""
+        problems: list[str] = []
+        for netns in reversed(list(self._created)):
+            try:
+                _run(["ip", "netns", "delete", netns])
+            except TestbedError as exc:
+                if netns in leftover_namespaces(netns):
+                    problems.append(str(exc))
+                    continue  # still there: keep it listed so a later close() retries
+            self._created.remove(netns)
+        return problems
+
+    def _netns(self, role: str) -> str:
+        return f"{_PREFIX}{self.run_id}-{role}"
+
+    def _host_if(self, role: str) -> str:
+        return f"d{self.run_id}{role}"  # <= 1 + 6 + 6 = 13 characters (IFNAMSIZ allows 15)
+
+    def _router_if(self, role: str) -> str:
+        return f"r{self.run_id}{role}"
+
+
+def _check_robots(robots: Sequence[str]) -> tuple[str, ...]:
+    if isinstance(robots, str):
+        raise TestbedError(f"robots={robots!r} must be a sequence of names, not one string")
+    names = tuple(robots)
+    if not names:
+        raise TestbedError("robots=() must name at least one robot")
+    if len(names) >= _OPERATOR_SUBNET:
+        raise TestbedError(f"robots has {len(names)} names; at most {_OPERATOR_SUBNET - 1}")
+    seen: set[str] = set()
+    for name in names:
+        if not isinstance(name, str) or not _ROBOT_NAME.match(name):
+            raise TestbedError(
+                f"robot name {name!r} must match {_ROBOT_NAME.pattern} "
+                "(it goes into 15-character interface names)"
+            )
+        if name in (_OPERATOR, _ROUTER):
+            raise TestbedError(f"robot name {name!r} is reserved (op, rt)")
+        if name in seen:
+            raise TestbedError(f"robot name {name!r} appears twice in robots")
+        seen.add(name)
+    return names
+
+
+def _check_mbit(field: str, mbit: float) -> float:
+    if isinstance(mbit, bool) or not isinstance(mbit, int | float):
+        raise TestbedError(f"{field}={mbit!r} must be a number of Mbit/s")
+    if not math.isfinite(mbit) or mbit <= 0:
+        raise TestbedError(f"{field}={mbit!r} must be a finite number > 0")
+    if round(mbit * 1000) < 1:
+        raise TestbedError(f"{field}={mbit!r} is below tc's 1 kbit/s resolution")
+    return float(mbit)
+
+
+def _run(argv: Sequence[str]) -> str:
+    """Run one command; the only place the testbed starts processes, so failures read alike."""
+    command = " ".join(argv)
+    try:
+        done = subprocess.run(
+            list(argv),
+            check=False,
+            capture_output=True,
+            text=True,
+            timeout=_COMMAND_TIMEOUT_S,
+        )
+    except subprocess.TimeoutExpired as exc:
+        raise TestbedError(f"command '{command}' timed out after {_COMMAND_TIMEOUT_S} s") from exc
+    except OSError as exc:
+        raise TestbedError(f"command '{command}' could not start: {exc}") from exc
+    if done.returncode != 0:
+        stderr = " ".join(done.stderr.split()) or "(no stderr)"
+        raise TestbedError(f"command '{command}' failed (exit {done.returncode}): {stderr}")
+    return done.stdout
+
+
+def _effective_capabilities() -> int | None:
+    try:
+        with open("/proc/self/status", encoding="ascii") as status:
+            for line in status:
+                if line.startswith("CapEff:"):
+                    return int(line.split()[1], 16)
+    except (OSError, ValueError):
+        return None
+    return None

@@ -1,0 +1,149 @@
+"""Reception reports and the estimator node over the memory transport, on manual clocks."""
+
+from __future__ import annotations
+
+import pytest
+
+from dbml.core.estimator import Phase
+from dbml.runtime import names
+from dbml.runtime.estimator import LinkEstimator
+from dbml.runtime.metadata import pack_meta
+from dbml.runtime.optimizer import OptimizerNode
+from dbml.runtime.reception import RECEPTION_TOPIC, ReceptionReport, ReceptionReporter
+from dbml.runtime.subscriber import ManagedSubscriber
+from dbml.transports import MemoryNetwork, MemoryTransport, Variant
+from dbml.transports.base import Sample
+from dbml.transports.memory import ManualClock
+
+FRAME_BYTES = 100_000
+RATE_HZ = 10.0  # 8 Mbit/s
+
+
+class Link:
+    """A robot sending frames to an operator whose reports reach an estimating base station.
+
+    The three hosts have unrelated clocks: the operator's is 1000 s ahead of the base
+    station's, the robot's send stamps 50 s behind.
+    """
+
+    def __init__(self) -> None:
+        network = MemoryNetwork()
+        self.op_clock = ManualClock(1000.0)
+        self.base_clock = ManualClock(0.0)
+        self.operator = MemoryTransport(network, host="op", clock=self.op_clock)
+        self.base = MemoryTransport(network, host="base", clock=self.base_clock)
+        self.base.params.set(names.BANDWIDTH, 10.0)
+        self.base.params.set(names.UTILIZATION, 0.9)
+        self.changes = 0
+        self.estimator = LinkEstimator(self.base, on_change=self._changed)
+        self.reporter = ReceptionReporter(self.operator)
+        self.received: list[Sample] = []
+        self.subscriber = ManagedSubscriber(
+            self.operator, "/cam", self.received.append, reporter=self.reporter
+        )
+        robot = MemoryTransport(network, host="r1")
+        self.raw = robot.declare_publisher("/cam", Variant.OPTIMIZED)
+        self.t = 0.0
+        self.seq = 0
+
+    def _changed(self) -> None:
+        self.changes += 1
+
+    def run(self, seconds: float, *, delay_growth: float = 0.0, skip: int = 0) -> None:
+        """Send at 10 Hz for ``seconds``; one-way delay grows by ``delay_growth`` s per s."""
+        end = self.t + seconds
+        while self.t < end - 1e-9:
+            self.t += 1 / RATE_HZ
+            delay = 0.05 + delay_growth * self.t
+            self.op_clock.advance(1000.0 + self.t + delay - self.op_clock())
+            meta = pack_meta(self.seq, round((self.t - 50.0) * 1e9), RATE_HZ)
+            self.raw.put(bytes(FRAME_BYTES), meta)
+            self.seq += 1 + skip
+            self.reporter.flush()
+            self.base_clock.advance(self.t + delay + 0.2 - self.base_clock())
+            self.estimator.tick()
+
+
+def test_a_link_that_carries_everything_keeps_the_configured_budget() -> None:
+    link = Link()
+    link.run(3.0)
+    assert len(link.received) == 30
+    state = link.estimator.tick()
+    assert state is not None
+    assert state.phase is Phase.INCREASE
+    assert state.received_mbit == pytest.approx(8.0, rel=0.25)  # 4-5 frames in the window
+    assert link.estimator.budget_mbit() == pytest.approx(9.0)  # 10 Mbit/s x 0.9: the cap
+    assert link.base.params.get(names.ESTIMATE) == pytest.approx(9.0)
+    assert str(link.base.params.get(names.ESTIMATOR_STATE)).startswith("increase")
+
+
+def test_growing_delay_lowers_the_budget_and_pokes_the_optimizer() -> None:
+    link = Link()
+    optimizer = OptimizerNode(link.base, budget_mbit=link.estimator.budget_mbit)
+    link.run(2.0)
+    before = link.changes
+    link.run(1.0, delay_growth=0.5)  # the link carries 2/3 of what is sent
+    estimate = link.estimator.budget_mbit()
+    assert estimate is not None
+    assert estimate < 8.0
+    assert link.changes > before
+    assert float(link.base.params.get(names.ESTIMATE) or 0) == pytest.approx(estimate, rel=0.01)
+    assert optimizer.budget_mbit() == estimate  # the estimate replaces bandwidth x utilization
+    assert optimizer.optimize().budget_mbit == estimate
+    optimizer.stop()
+
+
+def test_lost_frames_lower_the_budget() -> None:
+    link = Link()
+    link.run(2.0)
+    link.run(0.5, skip=1)  # every other frame lost
+    estimate = link.estimator.budget_mbit()
+    assert estimate is not None
+    assert estimate < 9.0
+
+
+def test_the_estimate_never_exceeds_the_configured_budget_when_it_changes() -> None:
+    link = Link()
+    link.run(1.0)
+    link.base.params.set(names.BANDWIDTH, 5.0)
+    link.run(0.3)
+    assert link.estimator.budget_mbit() == pytest.approx(4.5)
+
+
+def test_no_budget_configured_means_no_estimate() -> None:
+    link = Link()
+    link.base.params.set(names.BANDWIDTH, None)
+    assert link.estimator.tick() is None
+    assert link.estimator.budget_mbit() is None
+
+
+def test_close_withdraws_the_estimate() -> None:
+    link = Link()
+    link.run(0.5)
+    link.estimator.close()
+    assert link.base.params.get(names.ESTIMATE) is None
+    assert link.base.params.get(names.ESTIMATOR_STATE) is None
+
+
+def test_reports_are_sent_only_while_someone_listens() -> None:
+    network = MemoryNetwork()
+    operator = MemoryTransport(network, host="op")
+    reporter = ReceptionReporter(operator)
+    sample = Sample("/cam", b"x" * 10, pack_meta(0, 0, 1.0))
+    reporter.record(sample)
+    assert reporter.flush() == 0  # nobody subscribed to the reports
+    got: list[Sample] = []
+    MemoryTransport(network, host="base").subscribe(RECEPTION_TOPIC, got.append)
+    reporter.record(sample)
+    reporter.record(Sample("/cam", b"y", None))  # not from a dbml publisher: ignored
+    assert reporter.flush() == 1
+    report = ReceptionReport.decode(got[0].payload)
+    assert report.host == "op"
+    assert [(f.topic, f.seq, f.size_bytes) for f in report.frames] == [("/cam", 0, 10)]
+
+
+def test_a_malformed_report_names_itself() -> None:
+    from dbml.core.errors import TransportError
+
+    with pytest.raises(TransportError, match="malformed reception report"):
+        ReceptionReport.decode(b'{"host": "op"}')

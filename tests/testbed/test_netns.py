@@ -1,0 +1,302 @@
+"""The namespace testbed for real: reachability, tbf shaping, live rate change, cleanup, errors."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import signal
+import subprocess
+import sys
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from typing import Any
+
+import pytest
+
+from dbml.testbed import Network, TestbedError, leftover_namespaces
+from dbml.testbed import netns as netns_module
+
+pytestmark = [pytest.mark.integration, pytest.mark.usefixtures("netns_privilege")]
+
+PORT = 5201
+
+# One small TCP peer run inside a namespace: "serve" receives until EOF and reports what arrived
+# and over how long (first to last byte, at the receiver, so queues do not inflate the rate);
+# "send" connects (retrying until its deadline while the server starts) and sends N bytes.
+PEER = r"""
+import json, socket, sys, time
+
+mode, addr, port = sys.argv[1], sys.argv[2], int(sys.argv[3])
+deadline = time.monotonic() + float(sys.argv[4])
+
+def left():
+    return max(0.05, deadline - time.monotonic())
+
+if mode == "serve":
+    with socket.create_server((addr, port)) as server:
+        server.settimeout(left())
+        conn, peer = server.accept()
+        with conn:
+            conn.settimeout(left())
+            total = first_len = 0
+            first = last = time.monotonic()
+            while chunk := conn.recv(1 << 16):
+                now = time.monotonic()
+                if total == 0:
+                    first, first_len = now, len(chunk)
+                total += len(chunk)
+                last = now
+            conn.sendall(b"ok")
+    seconds = last - first
+    print(json.dumps({"peer": peer[0], "bytes": total, "first": first_len, "seconds": seconds}))
+else:
+    nbytes = int(sys.argv[5])
+    while True:
+        try:
+            sock = socket.create_connection((addr, port), timeout=left())
+            break
+        except OSError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.01)
+    with sock:
+        sock.settimeout(left())
+        sock.sendall(b"x" * nbytes)
+        sock.shutdown(socket.SHUT_WR)
+        assert sock.recv(16) == b"ok"
+"""
+
+
+@contextmanager
+def started(argv: Sequence[str]) -> Iterator[subprocess.Popen[str]]:
+    """A process that is ended by PID when the block leaves, however it leaves."""
+    proc = subprocess.Popen(
+        list(argv),
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            os.kill(proc.pid, signal.SIGKILL)
+        proc.communicate(timeout=5)
+
+
+def transfer(network: Network, src: str, dst: str, nbytes: int, timeout_s: float) -> dict[str, Any]:
+    """Send ``nbytes`` over TCP from ``src`` to ``dst``; what the receiver saw."""
+    address = network.hosts[dst].address
+    args = [address, str(PORT), str(timeout_s)]
+    serve = network.exec_argv(dst, [sys.executable, "-c", PEER, "serve", *args])
+    send = network.exec_argv(src, [sys.executable, "-c", PEER, "send", *args, str(nbytes)])
+    with started(serve) as server, started(send) as client:
+        _, client_err = client.communicate(timeout=timeout_s + 2)
+        assert client.returncode == 0, f"{src}->{dst} sender failed: {client_err}"
+        out, server_err = server.communicate(timeout=timeout_s + 2)
+        assert server.returncode == 0, f"{src}->{dst} receiver failed: {server_err}"
+    result: dict[str, Any] = json.loads(out)
+    assert result["bytes"] == nbytes
+    return result
+
+
+def throughput_mbit(network: Network, src: str, dst: str, *, expect_mbit: float) -> float:
+    """TCP payload rate src -> dst in Mbit/s, over a transfer sized to last about 1.5 s."""
+    nbytes = int(expect_mbit * 1e6 / 8 * 1.5)
+    result = transfer(network, src, dst, nbytes, timeout_s=10)
+    return float((result["bytes"] - result["first"]) * 8 / result["seconds"] / 1e6)
+
+
+def assert_reaches(network: Network, src: str, dst: str) -> None:
+    result = transfer(network, src, dst, 4, timeout_s=5)
+    assert result["peer"] == network.hosts[src].address  # routed, not translated
+
+
+def root_interfaces() -> list[str]:
+    """Interface names in the root namespace (``ip -o link``: ``2: name@peer: <...``)."""
+    out = subprocess.run(
+        ["ip", "-o", "link"], check=True, capture_output=True, text=True, timeout=10
+    ).stdout
+    return [line.split(":")[1].strip().split("@")[0] for line in out.splitlines() if line]
+
+
+def assert_gone(run_id: str) -> None:
+    assert leftover_namespaces(f"dbml-{run_id}-") == []
+    assert [name for name in root_interfaces() if run_id in name] == []
+
+
+@pytest.fixture
+def make_network() -> Iterator[Callable[..., Network]]:
+    """Build networks that are closed, and proven gone, even when the test fails."""
+    networks: list[Network] = []
+
+    def make(**kwargs: Any) -> Network:
+        network = Network(**kwargs)
+        networks.append(network)
+        return network.build()
+
+    yield make
+    for network in networks:
+        network.close()
+    for network in networks:
+        assert_gone(network.run_id)
+
+
+def test_hosts_reach_each_other_through_the_router(make_network: Callable[..., Network]) -> None:
+    network = make_network(robots=("r1", "r2", "scout3"), link_mbit=8)
+    assert {name: host.address for name, host in network.hosts.items()} == {
+        "r1": "10.200.1.2",
+        "r2": "10.200.2.2",
+        "scout3": "10.200.3.2",
+        "op": "10.200.100.2",
+    }
+    assert sorted(network.namespaces) == leftover_namespaces(f"dbml-{network.run_id}-")
+    assert [name for name in root_interfaces() if network.run_id in name] == []
+    for robot in network.robots:
+        assert_reaches(network, "op", robot)
+        assert_reaches(network, robot, "op")
+    assert_reaches(network, "r1", "r2")
+
+
+def test_bottleneck_is_shaped_and_changes_live(make_network: Callable[..., Network]) -> None:
+    network = make_network(link_mbit=8)
+    first = throughput_mbit(network, "r1", "op", expect_mbit=8)
+    assert 0.70 * 8 <= first <= 1.05 * 8
+    network.set_link_rate(4)
+    assert network.link_mbit == 4
+    second = throughput_mbit(network, "r1", "op", expect_mbit=4)
+    assert second < 0.75 * first
+    assert 0.70 * 4 <= second <= 1.05 * 4
+    print(f"r1->op at 8 Mbit: {first:.2f} Mbit/s; after set_link_rate(4): {second:.2f} Mbit/s")
+
+
+def test_fractional_rates_shape(make_network: Callable[..., Network]) -> None:
+    network = make_network(link_mbit=2.5)
+    measured = throughput_mbit(network, "r2", "op", expect_mbit=2.5)
+    assert 0.70 * 2.5 <= measured <= 1.05 * 2.5
+    print(f"r2->op at 2.5 Mbit: {measured:.2f} Mbit/s")
+
+
+def test_uplink_shapes_only_its_robot(make_network: Callable[..., Network]) -> None:
+    network = make_network(link_mbit=8, uplinks_mbit={"r1": 2})
+    slow = throughput_mbit(network, "r1", "op", expect_mbit=2)
+    fast = throughput_mbit(network, "r2", "op", expect_mbit=8)
+    assert 0.70 * 2 <= slow <= 1.05 * 2
+    assert 0.70 * 8 <= fast <= 1.05 * 8
+    print(f"uplink r1 2 Mbit: {slow:.2f} Mbit/s; r2 over the 8 Mbit link: {fast:.2f} Mbit/s")
+
+
+def test_close_removes_everything_and_twice_is_fine() -> None:
+    network = Network(link_mbit=8).build()
+    try:
+        assert len(leftover_namespaces(f"dbml-{network.run_id}-")) == 4
+    finally:
+        network.close()
+    assert_gone(network.run_id)
+    network.close()
+    assert_gone(network.run_id)
+
+
+def test_with_block_cleans_up_after_an_exception() -> None:
+    network = Network(robots=("a", "b", "c"), link_mbit=8)
+
+    def use_and_fail() -> None:
+        with network:
+            assert len(leftover_namespaces(f"dbml-{network.run_id}-")) == 5
+            raise RuntimeError("inside the block")
+
+    with pytest.raises(RuntimeError, match="inside the block"):
+        use_and_fail()
+    assert_gone(network.run_id)
+
+
+@pytest.mark.parametrize(
+    "needle",
+    ["tc -n", "ip link add d", "ip netns add dbml-"],
+    ids=["shaping", "veth", "namespace"],
+)
+def test_failed_build_leaves_nothing_and_names_the_command(
+    monkeypatch: pytest.MonkeyPatch, needle: str
+) -> None:
+    real_run = netns_module._run
+    calls: list[str] = []
+
+    def run(argv: Sequence[str]) -> str:
+        command = " ".join(argv)
+        calls.append(command)
+        failing = needle in command and sum(needle in call for call in calls) == 2
+        # A real command that really fails, so the real error path and message are exercised.
+        return real_run([argv[0], "-bogus", *argv[1:]] if failing else argv)
+
+    monkeypatch.setattr(netns_module, "_run", run)
+    network = Network(link_mbit=8, uplinks_mbit={"r1": 2})
+    try:
+        with pytest.raises(TestbedError) as caught:
+            network.build()
+    finally:
+        network.close()
+    message = str(caught.value)
+    program, rest = [call for call in calls if needle in call][1].split(" ", 1)
+    assert f"command '{program} -bogus {rest}' failed" in message
+    assert 'Option "-bogus" is unknown' in message
+    assert "\n" not in message
+    assert_gone(network.run_id)
+
+
+def test_two_networks_at_once_are_independent(make_network: Callable[..., Network]) -> None:
+    first = make_network(link_mbit=8)
+    second = make_network(link_mbit=8)
+    assert first.run_id != second.run_id
+    for network in (first, second):
+        assert_reaches(network, "r1", "op")
+        assert_reaches(network, "op", "r2")
+    clash = Network(link_mbit=8, run_id=first.run_id)
+    with pytest.raises(TestbedError, match=f"ip netns add dbml-{first.run_id}-rt"):
+        clash.build()
+    second.close()
+    assert_gone(second.run_id)
+    assert sorted(first.namespaces) == leftover_namespaces(f"dbml-{first.run_id}-")
+    assert_reaches(first, "r2", "op")
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"robots": ("R1",)}, "robot name 'R1'"),
+        ({"robots": ("toolong7",)}, "robot name 'toolong7'"),
+        ({"robots": ("r1", "r1")}, "robot name 'r1' appears twice"),
+        ({"robots": ("op",)}, "robot name 'op' is reserved"),
+        ({"robots": "r1"}, "robots='r1'"),
+        ({"robots": ()}, "robots=()"),
+        ({"uplinks_mbit": {"r3": 2}}, "uplink 'r3' is not a robot (robots: r1, r2)"),
+        ({"uplinks_mbit": {"r1": 0}}, "uplinks_mbit['r1']=0"),
+        ({"link_mbit": 0}, "link_mbit=0"),
+        ({"link_mbit": -1.5}, "link_mbit=-1.5"),
+        ({"link_mbit": math.nan}, "link_mbit=nan"),
+        ({"link_mbit": math.inf}, "link_mbit=inf"),
+        ({"run_id": "ABCDEF"}, "run_id='ABCDEF'"),
+    ],
+)
+def test_bad_values_are_refused_before_anything_exists(
+    kwargs: dict[str, Any], message: str
+) -> None:
+    before = leftover_namespaces()
+    with pytest.raises(TestbedError, match=re.escape(message)) as caught:
+        Network(**{"link_mbit": 8, **kwargs}).build()
+    assert "\n" not in str(caught.value)
+    assert leftover_namespaces() == before
+
+
+def test_exec_argv_and_rate_checks_without_building() -> None:
+    network = Network(link_mbit=8, run_id="abc123")
+    assert network.exec_argv("op", ["true"]) == ["ip", "netns", "exec", "dbml-abc123-op", "true"]
+    with pytest.raises(TestbedError, match="host 'rt' is not in the testbed"):
+        network.exec_argv("rt", ["true"])
+    with pytest.raises(TestbedError, match="link_mbit=0"):
+        network.set_link_rate(0)
+    with pytest.raises(TestbedError, match="is not built"):
+        network.set_link_rate(4)
+    network.close()
