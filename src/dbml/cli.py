@@ -297,6 +297,33 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return EXIT_OK if result.ok else EXIT_MISMATCH
 
 
+def _cmd_testbed(args: argparse.Namespace) -> int:
+    from dbml.testbed.teleop import print_result as print_testbed
+    from dbml.testbed.teleop import run_teleop_testbed
+
+    console = Console(stderr=args.json)
+    result = run_teleop_testbed(
+        policy=args.policy,
+        link_mbit=args.link_mbit,
+        step_seconds=args.step_seconds,
+        link_schedule=args.link_schedule,
+        estimate=args.estimate,
+        uplinks=args.uplink,
+        strategy=args.strategy,
+        utilization=args.utilization,
+        console=Console(stderr=True),
+        show_live=not args.json,
+        plot=Path(args.plot) if args.plot else None,
+    )
+    if args.json:
+        print(json.dumps(result.as_json()))
+    else:
+        print_testbed(result, console)
+        if args.plot:
+            console.print(f"plot written to {args.plot}")
+    return 130 if result.interrupted else EXIT_OK
+
+
 def _positive(text: str) -> float:
     value = float(text)
     if not value > 0:
@@ -370,6 +397,36 @@ def _parser() -> argparse.ArgumentParser:
     demo_cmd.add_argument("--plot", metavar="FILE.png", help="write a PNG of rates and bandwidth")
     demo_cmd.add_argument("--transport", choices=["zenoh", "memory"], default="zenoh")
     demo_cmd.set_defaults(handler=_cmd_demo)
+
+    testbed_cmd = commands.add_parser(
+        "testbed", help="experiments over real tc-shaped links in network namespaces (root)"
+    )
+    testbed_cmd.add_argument("scenario", choices=["teleop"], help="the paper's section 4")
+    testbed_cmd.add_argument(
+        "--policy", choices=["dbml", "static", "unmanaged"], default="dbml", help="default dbml"
+    )
+    testbed_cmd.add_argument("--link-mbit", type=_positive, default=11.0, help="default 11")
+    testbed_cmd.add_argument("--step-seconds", type=_positive, default=6.0, help="default 6")
+    testbed_cmd.add_argument(
+        "--link-schedule", metavar="SPEC", help='change the link rate: "0:11,20:5,40:11" (s:Mbit)'
+    )
+    testbed_cmd.add_argument(
+        "--estimate", action="store_true", help="estimate the bandwidth instead of assuming it"
+    )
+    testbed_cmd.add_argument(
+        "--uplink",
+        metavar="ROBOT=MBIT",
+        action="append",
+        default=[],
+        help="shape a robot's own uplink too (e.g. R1=4); implies --strategy lp",
+    )
+    testbed_cmd.add_argument("--strategy", choices=[s.value for s in Strategy])
+    testbed_cmd.add_argument(
+        "--utilization", type=_positive, help="share of the link dbml may allocate (0.92)"
+    )
+    testbed_cmd.add_argument("--json", action="store_true", help="one JSON object on stdout")
+    testbed_cmd.add_argument("--plot", metavar="FILE.png", help="rates, latency and budget")
+    testbed_cmd.set_defaults(handler=_cmd_testbed)
     return parser
 
 

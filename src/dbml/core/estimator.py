@@ -59,8 +59,10 @@ class Arrival:
 @dataclass(frozen=True, slots=True, kw_only=True)
 class EstimatorSettings:
     window_s: float = 0.5
-    """Receive rate and delay trend are measured over this much recent time."""
-    base_window_s: float = 30.0
+    """The delay trend is measured over this much recent time."""
+    rate_window_s: float = 1.0
+    """The receive rate is measured over this much recent time."""
+    base_window_s: float = 15.0
     """A stream's base delay is its minimum one-way delay over this much time."""
     overuse_delay_s: float = 0.04
     """Queueing delay above this, while rising faster than ``overuse_trend``, is overuse."""
@@ -83,6 +85,7 @@ class EstimatorSettings:
     def __post_init__(self) -> None:
         for name in (
             "window_s",
+            "rate_window_s",
             "base_window_s",
             "overuse_delay_s",
             "max_queue_delay_s",
@@ -179,8 +182,9 @@ class BandwidthEstimator:
         lost, self._lost = self._lost, 0
 
         recent: list[tuple[float, float, int]] = []  # (arrival, queue delay, size), all streams
-        latest_queue: list[float] = []
-        points: list[tuple[float, float]] = []  # (arrival, queue delay minus the stream's mean)
+        # per stream: (latest queueing delay, least in the window, trend). Each publisher's
+        # backlog sits in its own connection's buffers, so streams are judged one by one.
+        judged: list[tuple[float, float, float]] = []
         for name in list(self._streams):
             samples = self._streams[name].samples
             while samples and samples[0][0] < now_s - s.base_window_s:
@@ -191,29 +195,33 @@ class BandwidthEstimator:
             base = min(delay for _, delay, _ in samples)
             queued = [(t, d - base, size) for t, d, size in samples]
             recent.extend(queued)
-            latest_queue.append(queued[-1][1])
             # the trend needs a few frames, also from a slow stream: the window or the last 3
             mine = [q for q in queued if q[0] > now_s - s.window_s]
             if len(mine) < _TREND_FRAMES:
                 horizon = now_s - _SPARSE_WINDOWS * s.window_s
                 mine = [q for q in queued[-_TREND_FRAMES:] if q[0] > horizon]
-            if len(mine) >= 2:
-                mean = sum(q for _, q, _ in mine) / len(mine)
-                points.extend((t, q - mean) for t, q, _ in mine)
+            if mine:
+                # a frame that waited behind another's is not a standing queue: the least
+                # queueing in the window is
+                slope = _slope([(t, q) for t, q, _ in mine])
+                judged.append((queued[-1][1], min(q for _, q, _ in mine), slope))
         recent.sort()
-        received = _receive_rate_mbit(recent, now_s, s.window_s)
+        received = _receive_rate_mbit(recent, now_s, s.rate_window_s)
         window = [r for r in recent if r[0] > now_s - s.window_s]
         pairs = recent[-len(window) - 1 :] if len(window) >= _RATE_FRAMES else recent[-5:]
 
-        # One FIFO bottleneck delays every stream alike; the least-delayed stream is the one
-        # least disturbed by its own base delay changing (a slower link, bigger frames).
-        queue = min(latest_queue) if latest_queue else 0.0
-        trend = _slope(points)
-
-        overuse = (
-            lost > 0
-            or (queue > s.overuse_delay_s and trend > s.overuse_trend)
-            or (queue > s.max_queue_delay_s and trend >= 0)
+        queue = max((standing for _, standing, _ in judged), default=0.0)
+        trend = max((slope for *_, slope in judged), default=0.0)
+        overuse = lost > 0 or any(
+            (latest > s.overuse_delay_s and slope > s.overuse_trend)
+            or (standing > s.max_queue_delay_s and slope >= 0)
+            for latest, standing, slope in judged
+        )
+        draining = bool(judged) and all(slope < -s.overuse_trend for *_, slope in judged)
+        # the queue keeps growing until a decrease acts: drain what it will be by then
+        backlog = max(
+            (latest + max(0.0, slope) * (latest + s.response_s) for latest, _, slope in judged),
+            default=0.0,
         )
         floor = s.floor_fraction * self._max_mbit
         if overuse and now_s >= self._frozen_until:
@@ -222,13 +230,13 @@ class BandwidthEstimator:
             capacity = _busy_rate_mbit(pairs, s.overuse_delay_s / 2) or received
             if capacity > 0:
                 self._capacity_mbit = capacity
-                drain = queue * capacity / s.drain_s
+                drain = backlog * capacity / s.drain_s
                 target = max(s.backoff * capacity - drain, 0.5 * s.backoff * capacity)
                 self._estimate = min(self._estimate, target)
-                self._frozen_until = now_s + queue + s.response_s
+                self._frozen_until = now_s + backlog + s.response_s
                 self._last_decrease = now_s
             phase = Phase.DECREASE
-        elif overuse or trend < -s.overuse_trend or now_s < self._frozen_until:
+        elif overuse or draining or now_s < self._frozen_until:
             phase = Phase.HOLD  # the queue is still draining, or the decrease not yet seen
         elif received >= s.probe_fraction * self._estimate:
             low, high = s.near_band
