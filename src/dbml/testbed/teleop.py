@@ -168,6 +168,7 @@ class _Roles:
         self.messages: queue.Queue[tuple[str, dict[str, Any] | None]] = queue.Queue()
         self.children: dict[str, subprocess.Popen[str]] = {}
         self.logs: dict[str, IO[str]] = {}
+        self.readers: list[threading.Thread] = []
 
     def spawn(self, role: str, spec: RoleSpec) -> None:
         log = tempfile.TemporaryFile("w+")  # noqa: SIM115 - closed in close()
@@ -181,7 +182,9 @@ class _Roles:
             text=True,
         )
         self.children[role] = child
-        threading.Thread(target=self._read, args=(role, child), daemon=True).start()
+        reader = threading.Thread(target=self._read, args=(role, child), daemon=True)
+        reader.start()
+        self.readers.append(reader)
 
     def _read(self, role: str, child: subprocess.Popen[str]) -> None:
         assert child.stdout is not None
@@ -220,6 +223,11 @@ class _Roles:
             if child.stdin is not None:
                 with contextlib.suppress(OSError):
                     child.stdin.close()
+        for reader in self.readers:
+            reader.join(timeout=2.0)  # EOF follows the exit
+        for child in self.children.values():
+            if child.stdout is not None:
+                child.stdout.close()
         for log in self.logs.values():
             log.close()
 

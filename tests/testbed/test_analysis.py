@@ -1,0 +1,90 @@
+"""What a testbed run measured, computed from frames (no namespaces needed)."""
+
+from __future__ import annotations
+
+import pytest
+
+from dbml.testbed import TestbedError
+from dbml.testbed.analysis import Frame, Tick, analyse, link_at, parse_schedule, parse_uplinks
+
+
+def test_schedule_parses_and_names_bad_values() -> None:
+    assert parse_schedule("0:11,20:5,40:11") == ((0.0, 11.0), (20.0, 5.0), (40.0, 11.0))
+    assert link_at(((0.0, 11.0), (20.0, 5.0)), 25.0, 11.0) == 5.0
+    for bad, named in (
+        ("0:11,x:5", "'x:5'"),
+        ("0:11,20", "'20'"),
+        ("0:0", "rate '0'"),
+        ("10:5,5:11", "times must increase"),
+        ("-1:5", "time '-1'"),
+    ):
+        with pytest.raises(TestbedError, match=named):
+            parse_schedule(bad)
+
+
+def test_uplinks_parse_and_name_bad_values() -> None:
+    assert parse_uplinks(["R1=4", "r2=2.5"], ["R1", "R2"]) == {"R1": 4.0, "R2": 2.5}
+    for bad in ("R3=4", "R1", "R1=fast", "R1=0"):
+        with pytest.raises(TestbedError, match=f"--uplink={bad!r}"):
+            parse_uplinks([bad], ["R1", "R2"])
+
+
+def _stream(
+    robot: int, *, hz: float, start: float, end: float, delay: float, size: int, skip: int = -1
+) -> list[Frame]:
+    frames = []
+    seq, t = 0, start
+    while t < end:
+        if seq != skip:
+            frames.append(Frame(robot, seq, t, t + delay, size, hz))
+        seq += 1
+        t += 1 / hz
+    return frames
+
+
+def test_steps_measure_rate_latency_losses_and_goodput() -> None:
+    t0 = 1000.0
+    frames = [
+        *_stream(0, hz=10, start=t0, end=t0 + 4, delay=0.05, size=100_000, skip=25),
+        *_stream(1, hz=4, start=t0, end=t0 + 4, delay=0.2, size=10_000),
+    ]
+    ticks = [Tick(t0 + 0.5, (10.0, 4.0), 9.0, None)]
+    result = analyse(frames, ticks, robots=["R1", "R2"], t0=t0, step_s=2.0, steps=2, link_mbit=11.0)
+    first, second = result["steps"]
+    r1, r2 = first["robots"]
+    assert r1["delivered_hz"] == pytest.approx(10.0, rel=1e-6)
+    assert r2["delivered_hz"] == pytest.approx(4.0, rel=1e-6)
+    assert r1["latency_p50_ms"] == pytest.approx(50.0)
+    assert r2["latency_p95_ms"] == pytest.approx(200.0)
+    assert r1["lost"] == 0
+    assert second["robots"][0]["lost"] == 1  # frame 25, sent at 2.5 s
+    # goodput over the measured part of the step: 10 x 100 kB + 4 x 10 kB per second
+    assert first["goodput_mbit"] == pytest.approx((10 * 100_000 + 4 * 10_000) * 8e-6, rel=0.1)
+    assert first["budget_mbit"] == 9.0
+    assert first["link_mbit"] == 11.0
+
+
+def test_a_drop_reports_when_latency_recovered() -> None:
+    t0 = 0.0
+    # delays grow for 2 s after a drop at 4 s, then are back to normal
+    frames = []
+    for seq in range(120):
+        sent = seq * 0.1
+        delay = 0.06 if not 4.0 <= sent < 6.0 else 0.06 + (sent - 4.0) * 0.4
+        frames.append(Frame(0, seq, sent, sent + delay, 50_000, 10.0))
+    ticks = [Tick(t / 4, (10.0,), 5.0, 5.0) for t in range(48)]
+    result = analyse(
+        frames,
+        ticks,
+        robots=["R1"],
+        t0=t0,
+        step_s=1.2,
+        steps=10,
+        link_mbit=11.0,
+        schedule=((0.0, 11.0), (4.0, 5.0)),
+    )
+    (change,) = result["changes"]
+    assert change["to_mbit"] == 5.0
+    assert change["max_latency_p95_ms"] > 700
+    # the last bad frame arrives at ~6.7 s; the first all-good 1-s window after it ends ~7.7 s
+    assert 3.0 < change["recovery_s"] < 4.5

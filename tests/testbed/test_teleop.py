@@ -1,0 +1,173 @@
+"""``dbml testbed teleop`` for real: namespaces, tc-shaped links, the runtime over zenoh.
+
+Short runs (2 s steps) keep CI fast; the README shows a full run.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+
+import pytest
+from rich.console import Console
+
+from dbml.testbed import leftover_namespaces
+from dbml.testbed.teleop import TestbedResult, run_teleop_testbed
+from tests.conftest import wait_for
+
+pytestmark = pytest.mark.integration
+
+STEP_S = 2.0
+PAYLOAD_SHARE = 0.957  # what TCP payload gets of a tbf rate (headers), measured in test_netns
+
+
+def _run(**options: object) -> TestbedResult:
+    result = run_teleop_testbed(
+        step_seconds=STEP_S, show_live=False, console=Console(file=io.StringIO()), **options
+    )  # type: ignore[arg-type]
+    assert not result.interrupted
+    assert leftover_namespaces(f"dbml-{result.run_id}-") == []
+    assert len(result.steps) == 10
+    return result
+
+
+@pytest.fixture(scope="module")
+def dbml_run(netns_privilege: None) -> TestbedResult:
+    return _run(policy="dbml")
+
+
+@pytest.fixture(scope="module")
+def unmanaged_run(netns_privilege: None) -> TestbedResult:
+    return _run(policy="unmanaged")
+
+
+def test_dbml_fits_the_link(dbml_run: TestbedResult) -> None:
+    for step in dbml_run.steps:
+        assert step["goodput_mbit"] >= 0.9 * step["link_mbit"], step
+        assert step["goodput_mbit"] <= step["link_mbit"] * PAYLOAD_SHARE * 1.05, step
+        for robot in step["robots"]:
+            assert robot["lost"] == 0, step
+            assert robot["latency_p95_ms"] < 200, step
+            allocated = robot["allocated_hz"]
+            # a 1 Hz stream has one or two frames in a 1.3 s window: judge fast ones at 5 %
+            tolerance = 0.05 * allocated if allocated >= 4 else 1.0
+            assert abs(robot["delivered_hz"] - allocated) <= tolerance, step
+    assert dbml_run.summary()["lost"] == 0
+
+
+def test_unmanaged_overloads_the_link(
+    dbml_run: TestbedResult, unmanaged_run: TestbedResult
+) -> None:
+    managed, unmanaged = dbml_run.summary(), unmanaged_run.summary()
+    assert all(r["allocated_hz"] == 16.0 for s in unmanaged_run.steps for r in s["robots"])
+    # 16 Hz of both cameras is 13.4 Mbit/s into an 11 Mbit/s link: it queues or drops
+    assert (
+        unmanaged["lost"] > 0 or unmanaged["latency_p95_ms_max"] > 2 * managed["latency_p95_ms_max"]
+    )
+
+
+def test_a_rate_drop_with_and_without_estimation(netns_privilege: None) -> None:
+    schedule = "0:11,8:5"
+    estimating = _run(policy="dbml", link_schedule=schedule, estimate=True)
+    constant = _run(policy="dbml", link_schedule=schedule)
+    (drop,) = estimating.changes
+    assert drop["to_mbit"] == 5.0
+    assert drop["recovery_s"] is not None
+    assert drop["recovery_s"] <= 3.0, drop
+    assert drop["lost_after"] == 0
+    assert estimating.steps[-1]["budget_mbit"] < 5.0  # the estimate followed the link down
+    # the paper's constant budget keeps sending 10 Mbit/s into 5: it never recovers
+    (unestimated,) = constant.changes
+    assert unestimated["recovery_s"] is None
+    assert unestimated["max_latency_p95_ms"] > 2 * drop["max_latency_p95_ms"]
+
+
+def test_an_uplink_limit_is_kept(netns_privilege: None) -> None:
+    result = _run(policy="dbml", uplinks=["R1=4"])
+    assert result.strategy == "lp"
+    for step in result.steps:
+        r1, _ = step["robots"]
+        assert r1["goodput_mbit"] <= 4.0 * PAYLOAD_SHARE, step
+        assert step["goodput_mbit"] <= step["link_mbit"] * PAYLOAD_SHARE * 1.05, step
+        assert all(r["lost"] == 0 and r["latency_p95_ms"] < 200 for r in step["robots"]), step
+
+
+# -- cleanup, driven through the CLI as a user would ----------------------------------------
+
+
+@pytest.fixture
+def testbed_cli(netns_privilege: None) -> Iterator[tuple[subprocess.Popen[str], str]]:
+    """A running ``dbml testbed teleop`` and its run id, once its roles are up."""
+    before = set(leftover_namespaces())
+    process = subprocess.Popen(
+        [sys.executable, "-m", "dbml", "testbed", "teleop", "--step-seconds", "3", "--json"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        wait_for(
+            lambda: len(set(leftover_namespaces()) - before) >= 4,
+            timeout_s=20,
+            what="the testbed's namespaces",
+        )
+        run_id = sorted(set(leftover_namespaces()) - before)[0].split("-")[1]
+        wait_for(
+            lambda: len(_pids(f"dbml-{run_id}-op")) >= 2,
+            timeout_s=20,
+            what="the operator and optimizer processes",
+        )
+        yield process, run_id
+    finally:
+        if process.poll() is None:
+            process.kill()
+        process.communicate(timeout=30)
+
+
+def _pids(netns: str) -> list[int]:
+    out = subprocess.run(
+        ["ip", "netns", "pids", netns], capture_output=True, text=True, check=False, timeout=5
+    )
+    return [int(pid) for pid in out.stdout.split()]
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+def test_ctrl_c_removes_every_namespace_and_process(
+    testbed_cli: tuple[subprocess.Popen[str], str],
+) -> None:
+    process, run_id = testbed_cli
+    roles = [pid for role in ("op", "r1", "r2") for pid in _pids(f"dbml-{run_id}-{role}")]
+    process.send_signal(signal.SIGINT)
+    assert process.wait(timeout=30) == 130
+    assert leftover_namespaces(f"dbml-{run_id}-") == []
+    wait_for(lambda: not any(_alive(pid) for pid in roles), timeout_s=5, what="roles gone")
+
+
+def test_a_failing_role_removes_every_namespace_and_process(
+    testbed_cli: tuple[subprocess.Popen[str], str],
+) -> None:
+    process, run_id = testbed_cli
+    robots = _pids(f"dbml-{run_id}-r1") + _pids(f"dbml-{run_id}-r2")
+    for pid in _pids(f"dbml-{run_id}-op"):  # the operator's side dies
+        os.kill(pid, signal.SIGKILL)
+    started = time.monotonic()
+    code = process.wait(timeout=60)
+    _, stderr = process.communicate(timeout=5)
+    assert code == 2
+    assert "exited early" in stderr
+    assert stderr.count("\n") == 1  # one line, no traceback
+    assert time.monotonic() - started < 30
+    assert leftover_namespaces(f"dbml-{run_id}-") == []
+    wait_for(lambda: not any(_alive(pid) for pid in robots), timeout_s=5, what="robots gone")
