@@ -115,10 +115,18 @@ def test_demo_over_memory_runs_in_one_process() -> None:
     assert json.loads(result.stdout)["ok"] is True
 
 
-def demo_port(pid: int) -> int:
-    environ = Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
-    value = next(e for e in environ if e.startswith(b"DBML_ZENOH_PORT="))
-    return int(value.split(b"=", 1)[1])
+def demo_port(pids: set[int]) -> int | None:
+    """The demo's private rendezvous port, from a role's environment once it has exec'd
+    (between fork and exec a child still shows its parent's environment)."""
+    for pid in pids:
+        try:
+            environ = Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        for entry in environ:
+            if entry.startswith(b"DBML_ZENOH_PORT="):
+                return int(entry.split(b"=", 1)[1])
+    return None
 
 
 @pytest.mark.parametrize("when", ["starting", "running"])
@@ -134,7 +142,8 @@ def test_ctrl_c_ends_the_demo_cleanly_and_leaves_no_process(when: str) -> None:
         wait_for(lambda: len(children_of(demo.pid)) == 4, timeout_s=30, what="the 4 role processes")
         roles = children_of(demo.pid)
         if when == "running":
-            probe = ZenohTransport(host="probe", port=demo_port(next(iter(roles))))
+            wait_for(lambda: demo_port(roles) is not None, timeout_s=10, what="a role's port")
+            probe = ZenohTransport(host="probe", port=demo_port(roles))
             try:
                 wait_for(
                     lambda: probe.params.get("/r1/camera/dbm/frequency/current_value") is not None,

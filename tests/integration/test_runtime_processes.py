@@ -143,7 +143,10 @@ def test_monitor_json_lists_every_channel(tmp_path: Path) -> None:
             "allocated_hz",
             "share",
             "status",
+            "estimate_mbit",
+            "estimator",
         }
+        assert row["estimate_mbit"] is None  # this optimizer does not estimate
         assert row["host"] == "robot1"
         assert row["managed"] is True
         assert row["priority"] == 0.5
@@ -152,3 +155,18 @@ def test_monitor_json_lists_every_channel(tmp_path: Path) -> None:
         assert row["share"] == pytest.approx(16 * 21_000 / 1_375_000)
         assert row["status"] == "optimal"
         assert monitor.popen.wait(timeout=15) == 0
+
+
+def test_an_estimating_optimizer_shows_its_estimate_in_the_monitor(tmp_path: Path) -> None:
+    """On loopback the link carries everything: the estimate sits at the configured budget."""
+    with fleet() as f:
+        f.start("optimizer", "--config", config(tmp_path, mbit=11), "--estimate", "--host", "base")
+        f.start(*publisher(21_000, "--priority", "0.5"))
+        f.start("subscribe", CAMERA, "--host", "operator")  # reports what it receives
+        monitor = f.start("monitor", "--json", "--duration", "6", "--host", "viewer")
+        rows = (row for row in monitor.json_lines(timeout_s=20) if row["topic"] == CAMERA)
+        row = next((r for r in rows if r["estimate_mbit"] is not None), None)
+        assert row is not None, monitor.stderr()
+        assert row["estimate_mbit"] == pytest.approx(11.0)  # never above the configured
+        assert row["estimator"].split(":")[0] in {"increase", "hold", "decrease"}
+        assert "received" in row["estimator"]
