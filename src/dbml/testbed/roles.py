@@ -157,7 +157,7 @@ def _operator(
         estimate = param_number(store.get(names.ESTIMATE))
         bandwidth = param_number(store.get(names.BANDWIDTH))
         utilization = param_number(store.get(names.UTILIZATION)) or 1.0
-        budget = estimate if estimate is not None else None
+        budget = estimate  # an estimate is the budget in use; else bandwidth x utilization
         if budget is None and bandwidth is not None:
             budget = bandwidth * utilization
         state = store.get(names.ESTIMATOR_STATE)
