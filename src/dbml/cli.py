@@ -277,6 +277,18 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
     )
 
 
+def _show(
+    args: argparse.Namespace, console: Console, document: dict[str, Any], table: Callable[[], None]
+) -> None:
+    """A scenario's result: one JSON object with ``--json``, else the table (and the plot)."""
+    if args.json:
+        print(json.dumps(document))
+        return
+    table()
+    if args.plot:
+        console.print(f"plot written to {args.plot}")
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     console = Console(stderr=args.json)
     result = run_teleop_demo(
@@ -286,12 +298,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         show_live=not args.json,
         plot=Path(args.plot) if args.plot else None,
     )
-    if args.json:
-        print(json.dumps(result.as_json()))
-    else:
-        print_result(result, console)
-        if args.plot:
-            console.print(f"plot written to {args.plot}")
+    _show(args, console, result.as_json(), lambda: print_result(result, console))
     if result.interrupted:
         return EXIT_OK
     return EXIT_OK if result.ok else EXIT_MISMATCH
@@ -315,12 +322,7 @@ def _cmd_testbed(args: argparse.Namespace) -> int:
         show_live=not args.json,
         plot=Path(args.plot) if args.plot else None,
     )
-    if args.json:
-        print(json.dumps(result.as_json()))
-    else:
-        print_testbed(result, console)
-        if args.plot:
-            console.print(f"plot written to {args.plot}")
+    _show(args, console, result.as_json(), lambda: print_testbed(result, console))
     return 130 if result.interrupted else EXIT_OK
 
 

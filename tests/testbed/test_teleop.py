@@ -12,6 +12,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
+from typing import Any
 
 import pytest
 from rich.console import Console
@@ -26,10 +27,10 @@ STEP_S = 2.0
 PAYLOAD_SHARE = 0.957  # what TCP payload gets of a tbf rate (headers), measured in test_netns
 
 
-def _run(**options: object) -> TestbedResult:
+def _run(**options: Any) -> TestbedResult:
     result = run_teleop_testbed(
         step_seconds=STEP_S, show_live=False, console=Console(file=io.StringIO()), **options
-    )  # type: ignore[arg-type]
+    )
     assert not result.interrupted
     assert leftover_namespaces(f"dbml-{result.run_id}-") == []
     assert len(result.steps) == 10

@@ -150,7 +150,6 @@ class BandwidthEstimator:
         self._streams: dict[str, _Stream] = {}
         self._lost = 0
         self._last_update: float | None = None
-        self._last_decrease = -math.inf
         self._frozen_until = -math.inf
         self._capacity_mbit: float | None = None
         self.last: Estimate | None = None
@@ -234,7 +233,6 @@ class BandwidthEstimator:
                 target = max(s.backoff * capacity - drain, 0.5 * s.backoff * capacity)
                 self._estimate = min(self._estimate, target)
                 self._frozen_until = now_s + backlog + s.response_s
-                self._last_decrease = now_s
             phase = Phase.DECREASE
         elif overuse or draining or now_s < self._frozen_until:
             phase = Phase.HOLD  # the queue is still draining, or the decrease not yet seen

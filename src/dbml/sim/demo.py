@@ -8,18 +8,15 @@ ended by PID on the way out, also on error and Ctrl-C.
 
 from __future__ import annotations
 
-import json
 import os
 import queue
 import socket
-import subprocess
 import sys
-import tempfile
 import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 from rich.console import Console, Group
 from rich.live import Live
@@ -28,6 +25,7 @@ from rich.table import Table
 
 from dbml.core.errors import DbmlError
 from dbml.sim.live import ROLES, run_role
+from dbml.sim.processes import RoleProcesses
 from dbml.sim.reproduce import reproduce_table2
 from dbml.sim.teleop import LINK_MBIT, ROBOTS, STEPS
 from dbml.transports.memory import MemoryNetwork, MemoryTransport
@@ -99,83 +97,12 @@ def _free_port() -> int:
         return port
 
 
-class _Processes:
-    """The role processes, with their stdout read line by line into one queue."""
-
-    def __init__(self, step_s: float) -> None:
-        self.messages: queue.Queue[tuple[str, dict[str, Any] | None]] = queue.Queue()
-        self.children: dict[str, subprocess.Popen[str]] = {}
-        self.logs: dict[str, IO[str]] = {}
-        self.step_s = step_s
-
-    def spawn(self) -> None:
-        """Start every role; ``close()`` ends those already started if this is interrupted."""
-        step_s = self.step_s
-        env = dict(os.environ, DBML_ZENOH_PORT=str(_free_port()))  # a mesh of its own
-        for role in ROLES:
-            log = tempfile.TemporaryFile("w+")  # noqa: SIM115 - closed in close()
-            self.logs[role] = log
-            child = subprocess.Popen(
-                [
-                    sys.executable,
-                    "-m",
-                    "dbml.sim.live",
-                    role,
-                    "--step-seconds",
-                    str(step_s),
-                    "--host",
-                    HOSTS[role],
-                ],
-                stdin=subprocess.PIPE,
-                stdout=subprocess.PIPE,
-                stderr=log,
-                text=True,
-                env=env,
-            )
-            self.children[role] = child
-            threading.Thread(target=self._read, args=(role, child), daemon=True).start()
-
-    def _read(self, role: str, child: subprocess.Popen[str]) -> None:
-        assert child.stdout is not None
-        for line in child.stdout:
-            try:
-                self.messages.put((role, json.loads(line)))
-            except ValueError:
-                continue
-        self.messages.put((role, None))  # EOF: the process ended
-
-    def send(self, line: str) -> None:
-        for child in self.children.values():
-            if child.poll() is None and child.stdin is not None:
-                try:
-                    child.stdin.write(line + "\n")
-                    child.stdin.flush()
-                except (BrokenPipeError, OSError):
-                    pass
-
-    def log_tail(self, role: str) -> str:
-        log = self.logs[role]
-        log.seek(0)
-        return log.read()[-2000:]
-
-    def close(self) -> None:
-        self.send("stop")
-        deadline = time.monotonic() + 5.0
-        for child in self.children.values():
-            try:
-                child.wait(timeout=max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                child.terminate()
-        for child in self.children.values():
-            try:
-                child.wait(timeout=3.0)
-            except subprocess.TimeoutExpired:
-                child.kill()
-                child.wait(timeout=3.0)
-            if child.stdin is not None:
-                child.stdin.close()
-        for log in self.logs.values():
-            log.close()
+def _spawn(processes: RoleProcesses, step_s: float) -> None:
+    """Start every role on a private rendezvous port (a mesh of its own)."""
+    env = dict(os.environ, DBML_ZENOH_PORT=str(_free_port()))
+    for role in ROLES:
+        argv = [sys.executable, "-m", "dbml.sim.live", role, "--step-seconds", str(step_s)]
+        processes.spawn(role, [*argv, "--host", HOSTS[role]], env=env)
 
 
 class _Threads:
@@ -303,8 +230,8 @@ def run_teleop_demo(
         raise DbmlError(f"--transport={transport!r} is not one of: zenoh, memory")
     console = console or Console(stderr=True)
     result = DemoResult(step_seconds, transport)
-    runner: _Processes | _Threads
-    runner = _Processes(step_seconds) if transport == "zenoh" else _Threads(step_seconds)
+    runner: RoleProcesses | _Threads
+    runner = RoleProcesses() if transport == "zenoh" else _Threads(step_seconds)
     progress = Progress(
         TextColumn("step {task.fields[step]}/10"),
         BarColumn(),
@@ -313,16 +240,11 @@ def run_teleop_demo(
     )
     task = progress.add_task("demo", total=len(STEPS) * step_seconds, step=0)
     try:
-        if isinstance(runner, _Processes):
-            runner.spawn()
-            ready: set[str] = set()
-            deadline = time.monotonic() + READY_TIMEOUT_S
-            while ready != set(ROLES):
-                role, message = runner.messages.get(timeout=max(0.1, deadline - time.monotonic()))
-                if message is None:
-                    raise DbmlError(f"demo role {role} exited early:\n{runner.log_tail(role)}")
-                if message.get("type") == "ready":
-                    ready.add(role)
+        if isinstance(runner, RoleProcesses):
+            _spawn(runner, step_seconds)
+            ended = runner.wait_ready(set(ROLES), timeout_s=READY_TIMEOUT_S)
+            if ended is not None:
+                raise DbmlError(f"demo role {ended} exited early:\n{runner.log_tail(ended)}")
             t0 = time.time() + START_MARGIN_S
             runner.send(f"start {t0!r}")
         else:

@@ -14,12 +14,10 @@ times a second, one ``step`` per step and ``done``.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 import threading
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -32,6 +30,7 @@ from dbml.runtime.optimizer import OptimizerNode
 from dbml.runtime.priority import collision_priority_source
 from dbml.runtime.publisher import ManagedPublisher
 from dbml.runtime.subscriber import ManagedSubscriber
+from dbml.sim.processes import Emit, emit_json, serve_role
 from dbml.sim.teleop import LINK_MBIT, MAX_RATE_HZ, MIN_RATE_HZ, ROBOTS, STEPS
 from dbml.transports.base import Sample, Transport
 from dbml.transports.registry import open_transport
@@ -40,7 +39,6 @@ __all__ = ["ROLES", "Arrivals", "operator_role", "optimizer_role", "robot_role"]
 
 log = logging.getLogger("dbml.demo")
 
-Emit = Callable[[dict[str, Any]], None]
 STATUS_INTERVAL_S = 0.25
 
 
@@ -214,36 +212,18 @@ def _main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format=f"{args.role}: %(name)s: %(message)s")
 
-    def emit(message: dict[str, Any]) -> None:
-        sys.stdout.write(json.dumps(message) + "\n")
-        sys.stdout.flush()
-
     with stop_on_signals() as stop:
         transport = open_transport("zenoh", host=args.host)
         try:
             wait = getattr(transport, "wait_for_peers", None)
             if wait is not None:
                 wait(10.0)
-            emit({"type": "ready", "role": args.role})
-
-            def control() -> None:
-                for line in sys.stdin:
-                    if line.startswith("stop"):
-                        break
-                    if line.startswith("start "):
-                        start_at.append(float(line.split()[1]))
-                        started.set()
-                stop.set()  # stdin closed or told to stop
-
-            start_at: list[float] = []
-            started = threading.Event()
-            threading.Thread(target=control, name="control", daemon=True).start()
-            while not started.is_set() and not stop.is_set():
-                started.wait(0.1)
-            if stop.is_set():
-                return 0
-            run_role(
-                args.role, transport, t0=start_at[0], step_s=args.step_seconds, stop=stop, emit=emit
+            serve_role(
+                args.role,
+                stop,
+                lambda t0: run_role(
+                    args.role, transport, t0=t0, step_s=args.step_seconds, stop=stop, emit=emit_json
+                ),
             )
         finally:
             transport.close()

@@ -23,7 +23,6 @@ import logging
 import sys
 import threading
 import time
-from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -38,6 +37,7 @@ from dbml.runtime.rate import Rate
 from dbml.runtime.reception import ReceptionReporter
 from dbml.runtime.subscriber import ManagedSubscriber
 from dbml.sim.live import robot_role
+from dbml.sim.processes import Emit, emit_json, serve_role
 from dbml.sim.teleop import MAX_RATE_HZ, ROBOTS, STEPS
 from dbml.transports.base import Handle, Sample, Transport, Variant, param_number
 from dbml.transports.zenoh import ZenohTransport
@@ -48,7 +48,6 @@ log = logging.getLogger("dbml.testbed")
 
 ROLES = ("operator", "optimizer", "r1", "r2")
 REPORT_INTERVAL_S = 0.2
-Emit = Callable[[dict[str, Any]], None]
 TAIL_S = 1.0
 """The operator keeps receiving this long after the last step, for frames still in flight."""
 
@@ -204,32 +203,15 @@ def main(argv: list[str] | None = None) -> int:
     role, spec = args[0], RoleSpec.from_json(args[1])
     logging.basicConfig(level=logging.WARNING, format=f"{role}: %(name)s: %(message)s")
 
-    def emit(message: dict[str, Any]) -> None:
-        sys.stdout.write(json.dumps(message) + "\n")
-        sys.stdout.flush()
-
     with stop_on_signals() as stop:
         transport = ZenohTransport(host=spec.host, listen=spec.listen, connect=spec.connect)
         try:
             transport.wait_for_peers(15.0)
-            emit({"type": "ready", "role": role})
-            start_at: list[float] = []
-            started = threading.Event()
-
-            def control() -> None:
-                for line in sys.stdin:
-                    if line.startswith("stop"):
-                        break
-                    if line.startswith("start "):
-                        start_at.append(float(line.split()[1]))
-                        started.set()
-                stop.set()  # stdin closed or told to stop
-
-            threading.Thread(target=control, name="control", daemon=True).start()
-            while not started.is_set() and not stop.is_set():
-                started.wait(0.1)
-            if not stop.is_set():
-                _run_role(role, transport, t0=start_at[0], spec=spec, stop=stop, emit=emit)
+            serve_role(
+                role,
+                stop,
+                lambda t0: _run_role(role, transport, t0=t0, spec=spec, stop=stop, emit=emit_json),
+            )
         finally:
             transport.close()
     return 0

@@ -13,19 +13,16 @@ Every namespace and process is removed at the end, also on error, Ctrl-C or SIGT
 from __future__ import annotations
 
 import contextlib
-import json
 import queue
 import signal
-import subprocess
 import sys
-import tempfile
 import threading
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
-from typing import IO, Any
+from typing import Any
 
 from rich.console import Console, Group
 from rich.live import Live
@@ -33,6 +30,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
 from dbml.core.allocation import Strategy
+from dbml.sim.processes import RoleProcesses
 from dbml.sim.teleop import ROBOTS, STEPS
 from dbml.testbed.analysis import (
     Frame,
@@ -161,78 +159,6 @@ def _mean(values: list[float]) -> float | None:
     return sum(values) / len(values) if values else None
 
 
-class _Roles:
-    """The role processes inside the namespaces, their stdout read into one queue."""
-
-    def __init__(self, network: Network) -> None:
-        self.network = network
-        self.messages: queue.Queue[tuple[str, dict[str, Any] | None]] = queue.Queue()
-        self.children: dict[str, subprocess.Popen[str]] = {}
-        self.logs: dict[str, IO[str]] = {}
-        self.readers: list[threading.Thread] = []
-
-    def spawn(self, role: str, spec: RoleSpec) -> None:
-        log = tempfile.TemporaryFile("w+")  # noqa: SIM115 - closed in close()
-        self.logs[role] = log
-        argv = [sys.executable, "-m", "dbml.testbed.roles", role, spec.to_json()]
-        child = subprocess.Popen(
-            self.network.exec_argv(HOST_OF_ROLE[role], argv),
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            stderr=log,
-            text=True,
-        )
-        self.children[role] = child
-        reader = threading.Thread(target=self._read, args=(role, child), daemon=True)
-        reader.start()
-        self.readers.append(reader)
-
-    def _read(self, role: str, child: subprocess.Popen[str]) -> None:
-        assert child.stdout is not None
-        for line in child.stdout:
-            with contextlib.suppress(ValueError):
-                self.messages.put((role, json.loads(line)))
-        self.messages.put((role, None))
-
-    def send(self, line: str) -> None:
-        for child in self.children.values():
-            if child.poll() is None and child.stdin is not None:
-                with contextlib.suppress(BrokenPipeError, OSError):
-                    child.stdin.write(line + "\n")
-                    child.stdin.flush()
-
-    def log_tail(self, role: str) -> str:
-        log = self.logs[role]
-        log.seek(0)
-        return log.read()[-1500:]
-
-    def close(self) -> None:
-        """Ask, then terminate, then kill: every process we started, by PID."""
-        self.send("stop")
-        deadline = time.monotonic() + 5.0
-        for child in self.children.values():
-            try:
-                child.wait(timeout=max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                child.terminate()
-        for child in self.children.values():
-            try:
-                child.wait(timeout=3.0)
-            except subprocess.TimeoutExpired:
-                child.kill()
-                child.wait(timeout=3.0)
-            if child.stdin is not None:
-                with contextlib.suppress(OSError):
-                    child.stdin.close()
-        for reader in self.readers:
-            reader.join(timeout=2.0)  # EOF follows the exit
-        for child in self.children.values():
-            if child.stdout is not None:
-                child.stdout.close()
-        for log in self.logs.values():
-            log.close()
-
-
 @contextlib.contextmanager
 def _sigterm_as_interrupt() -> Iterator[None]:
     """SIGTERM unwinds like Ctrl-C, so the namespaces are removed either way."""
@@ -346,7 +272,7 @@ def run_teleop_testbed(
     with _sigterm_as_interrupt():
         try:
             network.build()
-            roles = _Roles(network)
+            roles = RoleProcesses()
             try:
                 t0 = _run(
                     network,
@@ -420,7 +346,7 @@ def _specs(network: Network, result: TestbedResult) -> dict[str, RoleSpec]:
 
 def _run(
     network: Network,
-    roles: _Roles,
+    roles: RoleProcesses,
     *,
     result: TestbedResult,
     frames: list[Frame],
@@ -432,19 +358,14 @@ def _run(
     specs = _specs(network, result)
     for role in ROLES:
         if role in specs:
-            roles.spawn(role, specs[role])
-    ready: set[str] = set()
-    deadline = time.monotonic() + READY_TIMEOUT_S
-    while ready != set(specs):
-        try:
-            role, message = roles.messages.get(timeout=max(0.1, deadline - time.monotonic()))
-        except queue.Empty:
-            missing = sorted(set(specs) - ready)
-            raise TestbedError(f"testbed roles {missing} did not get ready in time") from None
-        if message is None:
-            raise TestbedError(f"testbed role {role} exited early: {roles.log_tail(role)}")
-        if message.get("type") == "ready":
-            ready.add(role)
+            argv = [sys.executable, "-m", "dbml.testbed.roles", role, specs[role].to_json()]
+            roles.spawn(role, network.exec_argv(HOST_OF_ROLE[role], argv))
+    try:
+        ended = roles.wait_ready(set(specs), timeout_s=READY_TIMEOUT_S)
+    except queue.Empty:
+        raise TestbedError("testbed roles did not get ready in time") from None
+    if ended is not None:
+        raise _exited_early(roles, ended)
     t0 = time.time() + START_MARGIN_S
     roles.send(f"start {t0!r}")
     stop = threading.Event()
@@ -479,9 +400,7 @@ def _run(
                     if role == "operator":
                         break
                     if time.time() < t0 + total:
-                        raise TestbedError(
-                            f"testbed role {role} exited early: {roles.log_tail(role)}"
-                        )
+                        raise _exited_early(roles, role)
                     continue
                 if message.get("type") == "done":
                     break
@@ -512,6 +431,12 @@ def _run(
     finally:
         stop.set()
     return t0
+
+
+def _exited_early(roles: RoleProcesses, role: str) -> TestbedError:
+    """One line: the role and the last lines of its log."""
+    tail = " | ".join(roles.log_tail(role).strip().splitlines()[-3:])
+    return TestbedError(f"testbed role {role} exited early{': ' + tail if tail else ''}")
 
 
 def _change_link(

@@ -1,0 +1,147 @@
+"""Scenario roles as OS processes, driven over stdin and read over stdout as JSON lines.
+
+Both ``dbml demo teleop`` (on loopback) and ``dbml testbed teleop`` (inside network namespaces)
+start one process per role, wait for ``{"type": "ready"}``, send ``start <t0>``, and read the
+roles' reports. This is that plumbing, once: every line lands in one queue, ``None`` marks a
+process's end, and ``close()`` ends every process it started, by PID (ask, terminate, kill).
+
+The role side is :func:`serve_role`: announce readiness, wait for the start time, run, and end on
+``stop``, stdin EOF or a signal.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import queue
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Callable, Mapping, Sequence
+from typing import IO, Any
+
+__all__ = ["Emit", "RoleProcesses", "emit_json", "serve_role"]
+
+Emit = Callable[[dict[str, Any]], None]
+
+
+class RoleProcesses:
+    """The role processes, with their stdout read line by line into one queue."""
+
+    def __init__(self) -> None:
+        self.messages: queue.Queue[tuple[str, dict[str, Any] | None]] = queue.Queue()
+        self.children: dict[str, subprocess.Popen[str]] = {}
+        self._logs: dict[str, IO[str]] = {}
+        self._readers: list[threading.Thread] = []
+
+    def spawn(
+        self, role: str, argv: Sequence[str], *, env: Mapping[str, str] | None = None
+    ) -> None:
+        log = tempfile.TemporaryFile("w+")  # noqa: SIM115 - closed in close()
+        self._logs[role] = log
+        child = subprocess.Popen(
+            list(argv),
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=log,
+            text=True,
+            env=None if env is None else dict(env),
+        )
+        self.children[role] = child
+        reader = threading.Thread(target=self._read, args=(role, child), daemon=True)
+        reader.start()
+        self._readers.append(reader)
+
+    def _read(self, role: str, child: subprocess.Popen[str]) -> None:
+        assert child.stdout is not None
+        for line in child.stdout:
+            with contextlib.suppress(ValueError):
+                self.messages.put((role, json.loads(line)))
+        self.messages.put((role, None))  # EOF: the process ended
+
+    def wait_ready(self, roles: set[str], *, timeout_s: float) -> str | None:
+        """Wait until every role printed ``ready``; the role that ended first, if one did.
+
+        Raises ``queue.Empty`` when the time runs out.
+        """
+        ready: set[str] = set()
+        deadline = time.monotonic() + timeout_s
+        while ready != roles:
+            role, message = self.messages.get(timeout=max(0.1, deadline - time.monotonic()))
+            if message is None:
+                return role
+            if message.get("type") == "ready":
+                ready.add(role)
+        return None
+
+    def send(self, line: str) -> None:
+        for child in self.children.values():
+            if child.poll() is None and child.stdin is not None:
+                with contextlib.suppress(BrokenPipeError, OSError):
+                    child.stdin.write(line + "\n")
+                    child.stdin.flush()
+
+    def log_tail(self, role: str) -> str:
+        log = self._logs[role]
+        log.seek(0)
+        return log.read()[-2000:]
+
+    def close(self) -> None:
+        """Ask, then terminate, then kill: every process started here, by PID."""
+        self.send("stop")
+        deadline = time.monotonic() + 5.0
+        for child in self.children.values():
+            try:
+                child.wait(timeout=max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                child.terminate()
+        for child in self.children.values():
+            try:
+                child.wait(timeout=3.0)
+            except subprocess.TimeoutExpired:
+                child.kill()
+                child.wait(timeout=3.0)
+            if child.stdin is not None:
+                with contextlib.suppress(OSError):
+                    child.stdin.close()
+        for reader in self._readers:
+            reader.join(timeout=2.0)  # EOF follows the exit
+        for child in self.children.values():
+            if child.stdout is not None:
+                child.stdout.close()
+        for log in self._logs.values():
+            log.close()
+
+
+def emit_json(message: dict[str, Any]) -> None:
+    """A role's report: one JSON line on stdout."""
+    sys.stdout.write(json.dumps(message) + "\n")
+    sys.stdout.flush()
+
+
+def serve_role(role: str, stop: threading.Event, run: Callable[[float], None]) -> None:
+    """Announce ``ready``, wait for ``start <t0>`` on stdin, then ``run(t0)``.
+
+    ``stop`` is set by ``stop`` or EOF on stdin (and by the caller's signal handlers), so a role
+    whose parent went away ends too.
+    """
+    emit_json({"type": "ready", "role": role})
+    start_at: list[float] = []
+    started = threading.Event()
+
+    def control() -> None:
+        for line in sys.stdin:
+            if line.startswith("stop"):
+                break
+            if line.startswith("start "):
+                start_at.append(float(line.split()[1]))
+                started.set()
+        stop.set()  # stdin closed or told to stop
+
+    threading.Thread(target=control, name="control", daemon=True).start()
+    while not started.is_set() and not stop.is_set():
+        started.wait(0.1)
+    if not stop.is_set():
+        run(start_at[0])
