@@ -397,7 +397,12 @@ def _parser() -> argparse.ArgumentParser:
     demo_cmd.add_argument("--step-seconds", type=_positive, default=3.0, help="default 3")
     demo_cmd.add_argument("--json", action="store_true", help="one JSON object on stdout")
     demo_cmd.add_argument("--plot", metavar="FILE.png", help="write a PNG of rates and bandwidth")
-    demo_cmd.add_argument("--transport", choices=["zenoh", "memory"], default="zenoh")
+    demo_cmd.add_argument(
+        "--transport",
+        choices=["zenoh", "ros1", "memory"],
+        default="zenoh",
+        help="zenoh (default), ros1 (a real ROS master, started if none answers) or memory",
+    )
     demo_cmd.set_defaults(handler=_cmd_demo)
 
     testbed_cmd = commands.add_parser(

@@ -1,16 +1,18 @@
 """``dbml demo teleop``: run the live scenario, show it, check it against Table 2.
 
-The parent starts the roles (OS processes over zenoh, threads over memory), gives them one start
-time, renders the operator's reports live and, per step and robot, prints tc, priority,
-allocated and measured Hz, and the total Mbit/s against the budget. Every process it started is
-ended by PID on the way out, also on error and Ctrl-C.
+The parent starts the roles (OS processes over zenoh and ROS 1, threads over memory), gives them
+one start time, renders the operator's reports live and, per step and robot, prints tc, priority,
+allocated and measured Hz, and the total Mbit/s against the budget. Over ROS 1 it uses the master
+at ``ROS_MASTER_URI`` when one answers and otherwise starts ``rosmaster`` for the run; each role is
+a node with its own ROS_IP on loopback (127.0.0.x), so R1, R2 and the operator are different ROS
+hosts. Every process it started is ended by PID on the way out, also on error and Ctrl-C.
 """
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import queue
-import socket
 import sys
 import threading
 import time
@@ -29,10 +31,19 @@ from dbml.sim.processes import RoleProcesses
 from dbml.sim.reproduce import reproduce_table2
 from dbml.sim.teleop import LINK_MBIT, ROBOTS, STEPS
 from dbml.transports.memory import MemoryNetwork, MemoryTransport
+from dbml.transports.rosmaster import RosMaster, free_port
 
 __all__ = ["DemoResult", "run_teleop_demo"]
 
 HOSTS = {"optimizer": "base-station", "r1": "robot-r1", "r2": "robot-r2", "operator": "operator"}
+ROS1_HOSTS = {
+    "optimizer": "127.0.0.1",
+    "r1": "127.0.0.2",
+    "r2": "127.0.0.3",
+    "operator": "127.0.0.4",
+}
+"""ROS_IP per role: loopback addresses, so the master sees four hosts on one machine."""
+TRANSPORTS = ("zenoh", "ros1", "memory")
 RATE_TOLERANCE = 0.05
 RATE_TOLERANCE_HZ = 0.3
 READY_TIMEOUT_S = 60.0
@@ -90,19 +101,19 @@ class DemoResult:
         }
 
 
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-        return port
-
-
-def _spawn(processes: RoleProcesses, step_s: float) -> None:
-    """Start every role on a private rendezvous port (a mesh of its own)."""
-    env = dict(os.environ, DBML_ZENOH_PORT=str(_free_port()))
+def _spawn(processes: RoleProcesses, step_s: float, master: RosMaster | None) -> None:
+    """Start every role: over zenoh on a private rendezvous port (a mesh of its own), over ROS 1
+    as nodes of ``master``, each on its own loopback address."""
+    zenoh_port = str(free_port())
     for role in ROLES:
         argv = [sys.executable, "-m", "dbml.sim.live", role, "--step-seconds", str(step_s)]
-        processes.spawn(role, [*argv, "--host", HOSTS[role]], env=env)
+        if master is None:
+            env = dict(os.environ, DBML_ZENOH_PORT=zenoh_port)
+            processes.spawn(role, [*argv, "--host", HOSTS[role]], env=env)
+        else:
+            host = ROS1_HOSTS[role]
+            env = dict(os.environ, ROS_MASTER_URI=master.uri, ROS_IP=host, ROS_HOSTNAME=host)
+            processes.spawn(role, [*argv, "--transport", "ros1"], env=env)
 
 
 class _Threads:
@@ -226,12 +237,18 @@ def run_teleop_demo(
 ) -> DemoResult:
     if step_seconds < 1.0:
         raise DbmlError(f"--step-seconds={step_seconds!r} must be >= 1 (rates down to 1.48 Hz)")
-    if transport not in ("zenoh", "memory"):
-        raise DbmlError(f"--transport={transport!r} is not one of: zenoh, memory")
+    if transport not in TRANSPORTS:
+        raise DbmlError(f"--transport={transport!r} is not one of: {', '.join(TRANSPORTS)}")
     console = console or Console(stderr=True)
     result = DemoResult(step_seconds, transport)
+    if transport == "ros1" and importlib.util.find_spec("rospy") is None:
+        raise DbmlError(
+            f"--transport ros1 needs rospy, which {sys.executable} cannot import: run "
+            "`make run-ros1` (Debian's ROS packages and a venv of Debian's Python)"
+        )
+    master = RosMaster.reuse_or_start() if transport == "ros1" else None
     runner: RoleProcesses | _Threads
-    runner = RoleProcesses() if transport == "zenoh" else _Threads(step_seconds)
+    runner = _Threads(step_seconds) if transport == "memory" else RoleProcesses()
     progress = Progress(
         TextColumn("step {task.fields[step]}/10"),
         BarColumn(),
@@ -241,7 +258,7 @@ def run_teleop_demo(
     task = progress.add_task("demo", total=len(STEPS) * step_seconds, step=0)
     try:
         if isinstance(runner, RoleProcesses):
-            _spawn(runner, step_seconds)
+            _spawn(runner, step_seconds, master)
             ended = runner.wait_ready(set(ROLES), timeout_s=READY_TIMEOUT_S)
             if ended is not None:
                 raise DbmlError(f"demo role {ended} exited early:\n{runner.log_tail(ended)}")
@@ -287,6 +304,8 @@ def run_teleop_demo(
         raise DbmlError("demo roles did not get ready in time") from None
     finally:
         runner.close()
+        if master is not None:
+            master.stop()
     result.evaluate()
     if plot is not None and result.series:
         _plot(result, plot)

@@ -1,8 +1,9 @@
 """The paper's teleoperation scenario, live: optimizer, two robots and an operator.
 
-Over zenoh each role is its own OS process with its own session and host identity; over the
-memory transport they are threads of one process. The robots publish synthetic 84,000 / 21,000
-byte frames and set their camera priority from Table 2's replayed distance and speed at every
+Over zenoh or ROS 1 each role is its own OS process with its own host identity (over ROS 1, its
+own ROS_IP); over the memory transport they are threads of one process. The robots publish
+synthetic 84,000 / 21,000 byte frames (over ROS 1, ``sensor_msgs/Image`` messages of that size)
+and set their camera priority from Table 2's replayed distance and speed at every
 step (eq. 6-7); the operator receives through managed subscribers and measures what arrives.
 
 Process protocol (``python -m dbml.sim.live ROLE``): the role prints ``{"type": "ready"}``, waits
@@ -62,6 +63,25 @@ def optimizer_role(transport: Transport, t0: float, step_s: float, stop: threadi
         node.stop()
 
 
+def camera_frame(transport: Transport, topic: str, size_bytes: int) -> bytes:
+    """One frame of ``size_bytes`` as the transport carries it: raw bytes, or over ROS 1 a
+    serialised ``sensor_msgs/Image`` of exactly that size (one mono8 row after the header), so
+    the allocation is the paper's."""
+    ros1 = sys.modules.get("dbml.transports.ros1")
+    if ros1 is None or not isinstance(transport, ros1.Ros1Transport):
+        return bytes(size_bytes)
+    from sensor_msgs.msg import Image
+
+    transport.use_message_class(topic, Image)
+    image = Image(height=1, encoding="mono8", data=b"")
+    pixels = size_bytes - len(ros1.serialize(image))
+    image.width = image.step = pixels
+    image.data = bytes(pixels)
+    serialized: bytes = ros1.serialize(image)
+    assert len(serialized) == size_bytes
+    return serialized
+
+
 def robot_role(
     transport: Transport, index: int, t0: float, step_s: float, stop: threading.Event
 ) -> None:
@@ -71,6 +91,7 @@ def robot_role(
     )
 
     camera_priority = collision_priority_source(transport, camera.topic)
+    frame = camera_frame(transport, camera.topic, camera.size_bytes)
 
     def replay_events() -> None:
         for k, step in enumerate(STEPS):
@@ -80,7 +101,6 @@ def robot_role(
             camera_priority.update(event.distance_m, event.speed_m_per_s)
 
     events = threading.Thread(target=replay_events, name=f"events-{camera.robot}", daemon=True)
-    frame = bytes(camera.size_bytes)
     end = t0 + len(STEPS) * step_s
     try:
         publisher.publish(frame)  # the first frame makes the size known before step 1
@@ -208,12 +228,19 @@ def _main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m dbml.sim.live")
     parser.add_argument("role", choices=ROLES)
     parser.add_argument("--step-seconds", type=float, required=True)
-    parser.add_argument("--host", required=True)
+    parser.add_argument("--host", help="zenoh host identity (ROS 1 takes ROS_IP/ROS_HOSTNAME)")
+    parser.add_argument("--transport", choices=["zenoh", "ros1"], default="zenoh")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format=f"{args.role}: %(name)s: %(message)s")
 
     with stop_on_signals() as stop:
-        transport = open_transport("zenoh", host=args.host)
+        transport: Transport
+        if args.transport == "ros1":
+            from dbml.transports.ros1 import Ros1Transport
+
+            transport = Ros1Transport(node_name=f"dbml_{args.role}")
+        else:
+            transport = open_transport("zenoh", host=args.host)
         try:
             wait = getattr(transport, "wait_for_peers", None)
             if wait is not None:

@@ -1,0 +1,192 @@
+"""DBMPublisher, DBMSubscriber, DBMRate and DBMOptimizer: rospy-shaped faces of the runtime.
+
+Each is a thin adapter: it resolves the ROS name, (de)serialises rospy messages and hands bytes
+to ``ManagedPublisher``, ``ManagedSubscriber``, ``Rate`` or ``OptimizerNode``, so ROS 1 gets the
+same allocation, fail-safe and local/remote rules as every other transport.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable, Iterable
+from typing import Any
+
+import rospy
+
+from dbml.core.config import DbmSettings
+from dbml.core.errors import SpecError
+from dbml.core.spec import LinkSpec
+from dbml.runtime.optimizer import OptimizerNode, Round
+from dbml.runtime.publisher import ManagedPublisher
+from dbml.runtime.subscriber import ManagedSubscriber
+from dbml.transports.base import Sample, Variant, check_topic
+from dbml.transports.ros1 import Ros1Transport, serialize
+
+__all__ = ["DBMOptimizer", "DBMPublisher", "DBMRate", "DBMSubscriber", "ros1_transport"]
+
+_lock = threading.Lock()
+_shared: list[Ros1Transport] = []
+
+
+def ros1_transport() -> Ros1Transport:
+    """This process's ROS 1 transport, started on first use (on the rospy node, if one runs)."""
+    with _lock:
+        if not _shared:
+            _shared.append(Ros1Transport())
+        return _shared[0]
+
+
+def _resolve(name: str) -> str:
+    """A ROS name as the node sees it (``camera`` in namespace ``/r1`` is ``/r1/camera``)."""
+    return check_topic(rospy.resolve_name(name))
+
+
+def _message_type(data_class: type) -> str:
+    kind = getattr(data_class, "_type", None)
+    if not isinstance(kind, str) or not hasattr(data_class, "serialize"):
+        raise SpecError(f"data_class={data_class!r} is not a rospy message class")
+    return kind
+
+
+class DBMPublisher:
+    """Publish ``data_class`` messages on ``name`` at the frequency the optimizer allocates,
+    between ``min_frequency`` and ``max_frequency`` (Hz).
+
+    ``publish(msg)`` sends every message to ``[name]`` when someone on this host listens, and to
+    ``[name]/optimized`` within the allocated frequency; it returns True when the message went
+    to the optimized copy. The message size parameter follows the serialised size.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        data_class: type,
+        min_frequency: float,
+        max_frequency: float,
+        *,
+        priority: float | None = None,
+        failsafe_periods: float = 3.0,
+    ) -> None:
+        self._type = _message_type(data_class)
+        self.data_class = data_class
+        self.name = _resolve(name)
+        transport = ros1_transport()
+        transport.use_message_class(self.name, data_class)
+        self._managed = ManagedPublisher(
+            transport,
+            self.name,
+            min_rate_hz=min_frequency,
+            max_rate_hz=max_frequency,
+            priority=priority,
+            failsafe_periods=failsafe_periods,
+        )
+
+    @property
+    def frequency(self) -> float:
+        """The frequency in force (Hz): the allocation, or the minimum before one."""
+        return self._managed.current_rate_hz()
+
+    def publish(self, message: Any) -> bool:
+        if not isinstance(message, self.data_class):
+            raise SpecError(
+                f"message={type(message).__name__} is not {self._type} (topic {self.name})"
+            )
+        return self._managed.publish(serialize(message))
+
+    def unregister(self) -> None:
+        self._managed.close()
+
+
+class DBMRate:
+    """``rospy.Rate`` at a publisher's allocated frequency: ``sleep()`` follows every change.
+
+    Like ``rospy.Rate.sleep``, it raises ``rospy.ROSInterruptException`` once ROS shuts down.
+    """
+
+    def __init__(self, publisher: DBMPublisher) -> None:
+        self._rate = publisher._managed.rate
+
+    def sleep(self) -> None:
+        if rospy.is_shutdown():
+            raise rospy.ROSInterruptException("ROS shutdown request")
+        self._rate.sleep()
+
+    def reset(self) -> None:
+        self._rate.reset()
+
+
+class DBMSubscriber:
+    """Subscribe to ``name``: ``[name]`` from a publisher on this host, else the optimized copy.
+
+    ``callback(msg)`` (or ``callback(msg, callback_args)``) gets ``data_class`` messages. The
+    subscription to ``[name]/optimized`` from another host is what makes the topic managed.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        data_class: type,
+        callback: Callable[..., None],
+        callback_args: Any = None,
+    ) -> None:
+        _message_type(data_class)
+        self.data_class = data_class
+        self.name = _resolve(name)
+        transport = ros1_transport()
+        transport.use_message_class(self.name, data_class)
+
+        def deliver(sample: Sample) -> None:
+            message = data_class()
+            message.deserialize(sample.payload)
+            if callback_args is None:
+                callback(message)
+            else:
+                callback(message, callback_args)
+
+        self._managed = ManagedSubscriber(transport, self.name, deliver)
+
+    @property
+    def optimized(self) -> bool:
+        """True while it receives ``[name]/optimized`` (the publisher is on another host)."""
+        return self._managed.variant is Variant.OPTIMIZED
+
+    def unregister(self) -> None:
+        self._managed.close()
+
+
+class DBMOptimizer:
+    """The optimizer node: allocate every ``/dbm/optimization_rate_in_seconds`` and at once on
+    a priority, size, bound, budget or graph change.
+
+    With ``settings`` it writes the ``/dbm/...`` parameters first; without, it uses what is on
+    the parameter server (``rosparam set /dbm/max_bandwidth_in_mbit 11``). An infeasible budget
+    is reported in ``/dbm/status`` and ``/dbm/status_message``, never silently ignored.
+    """
+
+    def __init__(
+        self, settings: DbmSettings | None = None, *, links: Iterable[LinkSpec] = ()
+    ) -> None:
+        self._node = OptimizerNode(ros1_transport(), settings=settings, links=links)
+
+    def optimize(self) -> Round:
+        """One round now: read, allocate, push."""
+        return self._node.optimize()
+
+    @property
+    def last_round(self) -> Round | None:
+        return self._node.last_round
+
+    def start(self) -> DBMOptimizer:
+        self._node.start()
+        return self
+
+    def stop(self) -> None:
+        self._node.stop()
+
+    def spin(self) -> None:
+        """Run until ROS shuts down (or Ctrl-C)."""
+        self.start()
+        try:
+            rospy.spin()
+        finally:
+            self.stop()

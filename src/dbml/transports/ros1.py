@@ -1,0 +1,435 @@
+"""The ROS 1 transport: real ROS topics, the ROS parameter server and the master's graph.
+
+- Topics: ``[topic]`` and ``[topic]/optimized`` are ordinary ROS topics of the message class
+  registered for the topic (``use_message_class``). A payload is the serialised message: it is
+  sent as it is (no second serialisation) and received raw, so its length is the serialised
+  size. Topics without a class (dbml's own JSON reports) travel as ``std_msgs/String``.
+- Parameters: the real parameter server, under the paper's absolute names, so ``rosparam get``
+  and ``rosparam set`` work on them. The master pushes every change (``subscribeParam``, then
+  ``paramUpdate`` calls) to a small XML-RPC endpoint of this process; reads are served from that
+  mirror, so nothing polls the master per message.
+- Graph: the master's ``getSystemState``; each node's host is the host of its URI, which
+  ``ROS_IP`` / ``ROS_HOSTNAME`` decide. It is refreshed only while someone watches it, and nodes
+  that no longer answer (killed without unregistering) are left out.
+- No attachments: ROS 1 messages carry none, so subscribers see ``attachment=None`` (no
+  per-message latency or loss, hence no bandwidth estimation over ROS 1).
+
+rospy allows one node per process, so there is one ``Ros1Transport`` per process; it reuses a
+node the application already started with ``rospy.init_node``.
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+import os
+import struct
+import threading
+import time
+from collections.abc import Callable, Mapping
+from typing import Any
+from urllib.parse import urlparse
+from xmlrpc.server import SimpleXMLRPCServer
+
+from dbml.core.errors import TransportError
+from dbml.transports.base import (
+    Closer,
+    GraphEntry,
+    Handle,
+    ParamValue,
+    Role,
+    Sample,
+    Variant,
+    check_param_value,
+    check_topic,
+)
+from dbml.transports.rosmaster import CALL_TIMEOUT_S, MasterClient
+
+try:
+    import rosgraph.network
+    import rospy
+    import std_msgs.msg
+except ImportError as err:  # pragma: no cover - depends on the machine
+    raise TransportError(
+        "transport='ros1' needs rospy, which comes from Debian's packages, not PyPI: "
+        "run scripts/install-ros1 (see the README's ROS 1 section)"
+    ) from err
+
+__all__ = ["Ros1Transport", "serialize"]
+
+log = logging.getLogger("dbml.ros1")
+
+GRAPH_POLL_S = 0.25
+"""How often a watched graph is re-read from the master (one ``getSystemState`` call)."""
+LIVENESS_S = 2.0
+"""How long a node's answer to ``getPid`` counts as alive."""
+_OPTIMIZED = "/" + Variant.OPTIMIZED.value
+_STRING = std_msgs.msg.String
+_SCALARS = (bool, int, float, str)
+
+_active_lock = threading.Lock()
+_active: list[Ros1Transport] = []
+"""The process's transport, if one is open (rospy runs one node per process)."""
+
+
+def serialize(message: Any) -> bytes:
+    """A rospy message as it goes on the wire (without the 4-byte length prefix)."""
+    buffer = io.BytesIO()
+    message.serialize(buffer)
+    return buffer.getvalue()
+
+
+def _flatten(name: str, value: object, out: dict[str, ParamValue]) -> None:
+    """Parameter-server values as leaves: ``{'dbm': {'x': 1}}`` at ``/`` is ``/dbm/x = 1``."""
+    if isinstance(value, dict):
+        for key, sub in value.items():
+            _flatten(f"{name.rstrip('/')}/{key}", sub, out)
+    elif isinstance(value, _SCALARS):
+        out[name] = value  # lists and binary values are not dbml parameters
+
+
+def _under(name: str, namespace: str) -> bool:
+    return namespace in {"/", name} or name.startswith(namespace + "/")
+
+
+class _Ros1Params:
+    """The parameter server, mirrored in this process from the master's pushes."""
+
+    def __init__(self, master: MasterClient, node_name: str, host: str, bind: str) -> None:
+        self._master = master
+        self._lock = threading.Lock()
+        self._mirror: dict[str, ParamValue] = {}
+        self._watchers: list[Callable[[str, ParamValue], None]] = []
+        self._server = SimpleXMLRPCServer((bind, 0), logRequests=False, allow_none=True)
+        self._server.register_function(self._param_update, "paramUpdate")  # type: ignore[arg-type]
+        self._server.register_function(lambda _caller: [1, "", os.getpid()], "getPid")
+        self._server.register_function(lambda _caller, _msg="": [1, "", 0], "shutdown")
+        port = self._server.server_address[1]
+        self._api = f"http://{host}:{port}/"
+        # A caller id of its own: the master would shut down a node re-registered at another URI.
+        self._subscriber = MasterClient(master.uri, caller_id=f"{node_name}/dbml_params")
+        self._thread = threading.Thread(
+            target=self._server.serve_forever, name="dbml-ros1-params", daemon=True
+        )
+        self._thread.start()
+        tree = self._subscriber.call("subscribeParam", self._api, "/")
+        _flatten("/", tree, self._mirror)
+
+    def _param_update(self, _caller: str, key: str, value: object) -> list[object]:
+        """The master's push: a key (with a trailing ``/``) and its new value; ``{}`` deletes."""
+        namespace = key.rstrip("/") or "/"
+        fresh: dict[str, ParamValue] = {}
+        _flatten(namespace, value, fresh)
+        with self._lock:
+            gone = [k for k in self._mirror if _under(k, namespace) and k not in fresh]
+            for name in gone:
+                del self._mirror[name]
+            self._mirror.update(fresh)
+            watchers = list(self._watchers)
+        for callback in watchers:
+            for name in gone:
+                callback(name, None)
+            for name, new in fresh.items():
+                callback(name, new)
+        return [1, "", 0]
+
+    def set(self, name: str, value: ParamValue) -> None:
+        check_param_value(value)
+        if value is None:
+            self._master.call("deleteParam", name, missing_ok=True)
+        else:
+            self._master.call("setParam", name, value)
+        with self._lock:  # read-your-writes before the master's push arrives
+            if value is None:
+                self._mirror.pop(name, None)
+            else:
+                self._mirror[name] = value
+
+    def get(self, name: str) -> ParamValue:
+        with self._lock:
+            return self._mirror.get(name)
+
+    def snapshot(self, prefix: str = "/") -> dict[str, ParamValue]:
+        """Read from the master itself: the authoritative values under ``prefix``."""
+        out: dict[str, ParamValue] = {}
+        namespace = prefix.rstrip("/") or "/"
+        _flatten(namespace, self._master.call("getParam", namespace, missing_ok=True), out)
+        return out
+
+    def watch(self, callback: Callable[[str, ParamValue], None]) -> Handle:
+        with self._lock:
+            self._watchers.append(callback)
+
+        def remove() -> None:
+            with self._lock:
+                if callback in self._watchers:
+                    self._watchers.remove(callback)
+
+        return Closer(remove)
+
+    def close(self) -> None:
+        try:
+            self._subscriber.call("unsubscribeParam", self._api, "/")
+        except TransportError as err:
+            log.debug("unsubscribeParam: %s", err)
+        self._server.shutdown()
+        self._server.server_close()
+        self._thread.join(timeout=2.0)
+
+
+def _split(ros_topic: str) -> tuple[str, Variant]:
+    if ros_topic.endswith(_OPTIMIZED) and len(ros_topic) > len(_OPTIMIZED):
+        return ros_topic[: -len(_OPTIMIZED)], Variant.OPTIMIZED
+    return ros_topic, Variant.FULL
+
+
+class _Ros1Graph:
+    """The master's view of who publishes and subscribes what, by the host of each node."""
+
+    def __init__(self, master: MasterClient, poll_s: float) -> None:
+        self._master = master
+        self._poll_s = poll_s
+        self._lock = threading.Lock()
+        self._entries: frozenset[GraphEntry] | None = None
+        self._uris: dict[str, str] = {}
+        self._alive: dict[str, float] = {}
+        self._watchers: list[Callable[[], None]] = []
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def announce(self, role: Role, topic: str, variant: Variant) -> Handle:
+        """Nothing to do: declaring the ROS publisher or subscriber registered it already."""
+        check_topic(topic)
+        return Closer(lambda: None)
+
+    def _host(self, node: str) -> str | None:
+        """The host part of a node's URI, if the node answers (cached for ``LIVENESS_S``)."""
+        uri = self._uris.get(node)
+        if uri is None:
+            uri = self._master.call("lookupNode", node, missing_ok=True)
+            if uri is None:
+                return None
+            self._uris[node] = uri
+        now = time.monotonic()
+        if now - self._alive.get(node, -LIVENESS_S) >= LIVENESS_S:
+            try:
+                MasterClient(uri, caller_id=self._master.caller_id, timeout_s=0.5).call("getPid")
+            except TransportError:
+                self._uris.pop(node, None)
+                return None
+            self._alive[node] = now
+        return urlparse(uri).hostname
+
+    def _read(self) -> frozenset[GraphEntry]:
+        publishers, subscribers, _services = self._master.call("getSystemState")
+        entries = set()
+        for role, listing in ((Role.PUBLISHER, publishers), (Role.SUBSCRIBER, subscribers)):
+            for ros_topic, nodes in listing:
+                topic, variant = _split(ros_topic)
+                for node in nodes:
+                    host = self._host(node)
+                    if host is not None:
+                        entries.add(GraphEntry(role, host, topic, variant, f"{node} {ros_topic}"))
+        return frozenset(entries)
+
+    def refresh(self) -> bool:
+        """Re-read the graph; True if it changed."""
+        fresh = self._read()
+        with self._lock:
+            changed = fresh != self._entries
+            self._entries = fresh
+        return changed
+
+    def entries(self) -> frozenset[GraphEntry]:
+        with self._lock:
+            cached = self._entries
+        if cached is None or self._thread is None:
+            self.refresh()  # nobody keeps it fresh: read it now
+            with self._lock:
+                cached = self._entries
+        assert cached is not None
+        return cached
+
+    def watch(self, callback: Callable[[], None]) -> Handle:
+        with self._lock:
+            self._watchers.append(callback)
+            if self._thread is None:
+                self._thread = threading.Thread(
+                    target=self._poll, name="dbml-ros1-graph", daemon=True
+                )
+                self._thread.start()
+
+        def remove() -> None:
+            with self._lock:
+                if callback in self._watchers:
+                    self._watchers.remove(callback)
+
+        return Closer(remove)
+
+    def _poll(self) -> None:
+        while not self._stop.wait(self._poll_s):
+            try:
+                changed = self.refresh()
+            except TransportError as err:
+                log.warning("graph: %s", err)
+                continue
+            if changed:
+                with self._lock:
+                    watchers = list(self._watchers)
+                for callback in watchers:
+                    callback()
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=CALL_TIMEOUT_S * 2)
+
+
+def _raw_class(data_class: type) -> type:
+    """A message class of ``data_class``'s ROS type whose instances hold serialised bytes."""
+
+    class Raw(rospy.AnyMsg):  # type: ignore[misc]
+        _type = data_class._type  # type: ignore[attr-defined]
+        _md5sum = data_class._md5sum  # type: ignore[attr-defined]
+        _full_text = data_class._full_text  # type: ignore[attr-defined]
+        __slots__ = ()
+
+        def __init__(self, buff: bytes) -> None:
+            self._buff = buff  # type: ignore[misc]  # AnyMsg's slot
+
+    return Raw
+
+
+class _Received(rospy.AnyMsg):  # type: ignore[misc]
+    """Raw incoming bytes; rospy attaches the connection header (it needs a ``__dict__``)."""
+
+
+class _Ros1Publisher:
+    def __init__(self, topic: str, variant: Variant, data_class: type | None, queue: int) -> None:
+        self.topic = topic
+        self._framed = data_class is None
+        self._raw = _raw_class(_STRING if data_class is None else data_class)
+        self._publisher = rospy.Publisher(variant.key(topic), self._raw, queue_size=queue)
+
+    def put(self, payload: bytes, attachment: bytes | None = None) -> None:
+        if self._framed:
+            payload = struct.pack("<I", len(payload)) + payload
+        self._publisher.publish(self._raw(payload))
+
+    @property
+    def has_subscribers(self) -> bool:
+        return bool(self._publisher.get_num_connections() > 0)
+
+    def close(self) -> None:
+        self._publisher.unregister()
+
+
+class Ros1Transport:
+    """dbml over a ROS 1 master. ``node_name`` is used only when no node runs in this process."""
+
+    def __init__(
+        self,
+        *,
+        node_name: str = "dbml",
+        anonymous: bool = True,
+        message_classes: Mapping[str, type] | None = None,
+        queue_size: int = 10,
+        graph_poll_s: float = GRAPH_POLL_S,
+    ) -> None:
+        with _active_lock:
+            if _active:
+                raise TransportError("one Ros1Transport per process (rospy runs one node)")
+            master = MasterClient()
+            if not master.reachable():
+                raise TransportError(
+                    f"no ROS master at ROS_MASTER_URI={master.uri} (start one: rosmaster --core)"
+                )
+            if rospy.core.is_shutdown_requested() or rospy.is_shutdown():
+                raise TransportError("this process's rospy node has shut down; start a new one")
+            self._owns_node = not rospy.core.is_initialized()
+            if self._owns_node:
+                rospy.init_node(node_name, anonymous=anonymous, disable_signals=True)
+            self.node_name = str(rospy.get_name())
+            uri_host = urlparse(rospy.get_node_uri()).hostname
+            self._host = str(uri_host or rosgraph.network.get_host_name())
+            self._master = MasterClient(master.uri, caller_id=self.node_name)
+            self._params = _Ros1Params(
+                self._master, self.node_name, self._host, rosgraph.network.get_bind_address()
+            )
+            self._graph = _Ros1Graph(self._master, graph_poll_s)
+            self._classes: dict[str, type] = dict(message_classes or {})
+            self._queue_size = queue_size
+            self._handles: list[Handle] = []
+            self._closed = False
+            _active.append(self)
+
+    @property
+    def host(self) -> str:
+        return self._host
+
+    @property
+    def master_uri(self) -> str:
+        return self._master.uri
+
+    @property
+    def params(self) -> _Ros1Params:
+        return self._params
+
+    @property
+    def graph(self) -> _Ros1Graph:
+        return self._graph
+
+    def use_message_class(self, topic: str, data_class: type) -> None:
+        """Carry ``topic`` (both copies) as ``data_class``, e.g. ``sensor_msgs.msg.Image``."""
+        check_topic(topic)
+        if not hasattr(data_class, "_md5sum") or not hasattr(data_class, "_type"):
+            raise TransportError(f"data_class={data_class!r} is not a rospy message class")
+        self._classes[topic] = data_class
+
+    def message_class(self, topic: str) -> type | None:
+        return self._classes.get(topic)
+
+    def declare_publisher(self, topic: str, variant: Variant = Variant.FULL) -> _Ros1Publisher:
+        self._check_open()
+        check_topic(topic)
+        return _Ros1Publisher(topic, variant, self._classes.get(topic), self._queue_size)
+
+    def subscribe(
+        self, topic: str, callback: Callable[[Sample], None], variant: Variant = Variant.FULL
+    ) -> Handle:
+        self._check_open()
+        check_topic(topic)
+        typed = topic in self._classes
+
+        def deliver(message: _Received) -> None:
+            payload: bytes = message._buff
+            if not typed and message._connection_header.get("type") == _STRING._type:
+                payload = payload[4:]  # a framed untyped payload: the String's bytes
+            callback(Sample(topic, payload, None))
+
+        subscriber = rospy.Subscriber(
+            variant.key(topic), _Received, deliver, buff_size=1 << 24, tcp_nodelay=True
+        )
+        handle = Closer(subscriber.unregister)
+        self._handles.append(handle)
+        return handle
+
+    def now(self) -> float:
+        return time.monotonic()
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise TransportError("transport is closed")
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        for handle in self._handles:
+            handle.close()
+        self._graph.close()
+        self._params.close()
+        if self._owns_node:
+            rospy.signal_shutdown("dbml transport closed")
+        with _active_lock:
+            _active.clear()
