@@ -3,9 +3,14 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 import pytest
+
+if TYPE_CHECKING:
+    from tests.ros1.rosnet import RosNet
 
 
 def wait_for(predicate: Callable[[], bool], *, timeout_s: float = 5.0, what: str = "") -> None:
@@ -15,3 +20,12 @@ def wait_for(predicate: Callable[[], bool], *, timeout_s: float = 5.0, what: str
         if time.monotonic() > deadline:
             pytest.fail(f"timed out after {timeout_s} s waiting for {what or predicate}")
         time.sleep(0.005)
+
+
+@pytest.fixture
+def ros(tmp_path: Path) -> Iterator[RosNet]:
+    """A private ROS master with its nodes; skipped without ROS 1 (a failure when CI=true)."""
+    from tests.ros1.rosnet import rosnet
+
+    with rosnet(tmp_path) as net:
+        yield net

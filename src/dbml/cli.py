@@ -10,6 +10,7 @@ import argparse
 import json
 import logging
 import math
+import os
 import sys
 import threading
 from collections.abc import Callable, Sequence
@@ -172,7 +173,14 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
 def _transport_options(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("network (default: processes of this machine, no flags)")
     group.add_argument(
-        "--host", help="this process's host identity (default: $DBML_HOST or hostname)"
+        "--transport",
+        choices=["zenoh", "ros1"],
+        default="zenoh",
+        help="zenoh (default) or ros1: the ROS master at $ROS_MASTER_URI, host from $ROS_IP",
+    )
+    group.add_argument(
+        "--host",
+        help="this process's host identity (default: $DBML_HOST or hostname; ros1: ROS_HOSTNAME)",
     )
     group.add_argument(
         "--connect",
@@ -193,7 +201,7 @@ def _transport_options(parser: argparse.ArgumentParser) -> None:
 
 def _open(args: argparse.Namespace) -> Transport:
     return open_transport(
-        "zenoh",
+        args.transport,
         host=args.host,
         connect=args.connect,
         listen=args.listen,
@@ -202,18 +210,22 @@ def _open(args: argparse.Namespace) -> Transport:
 
 
 def _setup_logging(verbose: bool = True) -> None:
+    """Log to stderr. Called after the transport opens: rospy's node start replaces the root
+    handlers with ROS's own (a file under ~/.ros/log), which would hide dbml's warnings."""
     logging.basicConfig(
+        force=True,
         level=logging.INFO if verbose else logging.WARNING,
         format="%(asctime)s %(name)s: %(message)s",
         datefmt="%H:%M:%S",
         stream=sys.stderr,
     )
+    logging.getLogger("rospy").setLevel(logging.WARNING)  # its INFO is its own start-up chatter
 
 
 def _run_node(args: argparse.Namespace, body: Callable[[Transport, threading.Event], int]) -> int:
-    _setup_logging()
     with stop_on_signals() as stop:
         transport = _open(args)
+        _setup_logging()
         try:
             return body(transport, stop)
         finally:
@@ -221,6 +233,11 @@ def _run_node(args: argparse.Namespace, body: Callable[[Transport, threading.Eve
 
 
 def _cmd_optimizer(args: argparse.Namespace) -> int:
+    if args.estimate and args.transport == "ros1":
+        raise DbmlError(
+            "--estimate needs per-message send times and sequence numbers, which ROS 1 "
+            "messages do not carry: use --transport zenoh"
+        )
     settings: DbmSettings | None = None
     links: tuple[LinkSpec, ...] = ()
     if args.config:
@@ -235,6 +252,7 @@ def _cmd_optimizer(args: argparse.Namespace) -> int:
             stop=stop,
             duration_s=args.duration,
             estimate=args.estimate,
+            write_defaults=args.transport == "ros1",
         ),
     )
 
@@ -446,6 +464,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USAGE
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:  # e.g. `dbml monitor --json | head`: the reader is gone, not an error
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_OK
     return code
 
 

@@ -43,6 +43,7 @@ __all__ = [
     "run_subscriber",
     "set_priority",
     "stop_on_signals",
+    "synthetic_frame",
 ]
 
 log = logging.getLogger("dbml")
@@ -83,6 +84,7 @@ def run_optimizer(
     stop: threading.Event,
     duration_s: float | None = None,
     estimate: bool = False,
+    write_defaults: bool = False,
 ) -> int:
     _reach_peers(transport)
     if settings is None and transport.params.get(names.BANDWIDTH) is None:
@@ -93,6 +95,7 @@ def run_optimizer(
         settings=settings,
         links=links,
         budget_mbit=None if estimator is None else estimator.budget_mbit,
+        write_defaults=write_defaults,
     )
     if estimator is not None:
         estimator.on_change = node.poke
@@ -111,6 +114,25 @@ def run_optimizer(
     return 0
 
 
+def synthetic_frame(transport: Transport, topic: str, size_bytes: int) -> bytes:
+    """A synthetic camera frame of ``size_bytes``: raw bytes, or over ROS 1 a serialised
+    ``sensor_msgs/Image`` of exactly that size (one mono8 row after the header), so the size the
+    optimizer sees is the one asked for."""
+    ros1 = sys.modules.get("dbml.transports.ros1")
+    if ros1 is None or not isinstance(transport, ros1.Ros1Transport):
+        return bytes(size_bytes)
+    from sensor_msgs.msg import Image
+
+    transport.use_message_class(topic, Image)
+    image = Image(height=1, encoding="mono8", data=b"")
+    pixels = size_bytes - len(ros1.serialize(image))
+    image.width = image.step = pixels
+    image.data = bytes(pixels)
+    serialized: bytes = ros1.serialize(image)
+    assert len(serialized) == size_bytes
+    return serialized
+
+
 def run_publisher(
     transport: Transport,
     topic: str,
@@ -125,10 +147,10 @@ def run_publisher(
     if size_bytes <= 0:
         raise SpecError(f"--size-bytes={size_bytes!r} must be > 0")
     _reach_peers(transport)
+    payload = synthetic_frame(transport, topic, size_bytes)  # first: it may set the ROS type
     publisher = ManagedPublisher(
         transport, topic, min_rate_hz=min_rate_hz, max_rate_hz=max_rate_hz, priority=priority
     )
-    payload = bytes(size_bytes)
     done = _until(stop, duration_s)
     shown: float | None = None
     try:
@@ -257,6 +279,8 @@ def channel_rows(transport: Transport) -> list[ChannelRow]:
     estimator = params.get(names.ESTIMATOR_STATE)
     rows = []
     for topic in sorted(published_topics(entries)):
+        if names.max_rate(topic) not in params:
+            continue  # not a dbml channel (ROS 1's graph lists every topic, /rosout too)
         managed = is_managed(entries, topic)
         size = param_number(params.get(names.size(topic)))
         allocated = param_number(params.get(names.current_value(topic)))

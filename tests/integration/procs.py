@@ -12,19 +12,23 @@ import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 from dbml.transports.zenoh import ZenohTransport
 from tests.transports.zenoh_network import free_port
 
+ROOT = Path(__file__).resolve().parents[2]
+
 
 class Proc:
-    """One ``python -m dbml ...`` process with its stdout and stderr lines collected."""
+    """One ``python -m dbml ...`` process (or ``-m module``) with its output lines collected."""
 
-    def __init__(self, args: list[str], env: dict[str, str]) -> None:
+    def __init__(self, args: list[str], env: dict[str, str], *, module: str = "dbml") -> None:
         self.args = args
         self.popen = subprocess.Popen(
-            [sys.executable, "-m", "dbml", *args],
+            [sys.executable, "-m", module, *args],
+            cwd=ROOT,
             stdin=subprocess.DEVNULL,
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,

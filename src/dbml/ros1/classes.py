@@ -159,14 +159,17 @@ class DBMOptimizer:
     a priority, size, bound, budget or graph change.
 
     With ``settings`` it writes the ``/dbm/...`` parameters first; without, it uses what is on
-    the parameter server (``rosparam set /dbm/max_bandwidth_in_mbit 11``). An infeasible budget
+    the parameter server (``rosparam set /dbm/max_bandwidth_in_mbit 11``) and writes the
+    defaults of the others. An infeasible budget
     is reported in ``/dbm/status`` and ``/dbm/status_message``, never silently ignored.
     """
 
     def __init__(
         self, settings: DbmSettings | None = None, *, links: Iterable[LinkSpec] = ()
     ) -> None:
-        self._node = OptimizerNode(ros1_transport(), settings=settings, links=links)
+        self._node = OptimizerNode(
+            ros1_transport(), settings=settings, links=links, write_defaults=True
+        )
 
     def optimize(self) -> Round:
         """One round now: read, allocate, push."""

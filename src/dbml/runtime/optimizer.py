@@ -32,6 +32,11 @@ __all__ = ["ChannelState", "OptimizerNode", "Round"]
 log = logging.getLogger("dbml.optimizer")
 
 _TRIGGERS = frozenset({"frequency/min", "frequency/max", "message_size_in_bytes", "priority"})
+_DEFAULTS: dict[str, ParamValue] = {
+    names.UTILIZATION: 1.0,
+    names.PERIOD: 1.0,
+    names.STRATEGY: Strategy.PAPER.value,
+}
 _GLOBAL_TRIGGERS = frozenset({names.BANDWIDTH, names.UTILIZATION, names.PERIOD, names.STRATEGY})
 
 
@@ -65,7 +70,9 @@ class OptimizerNode:
     """Allocate and push rates; ``start()`` runs it in a thread, ``optimize()`` runs one round.
 
     ``budget_mbit`` overrides ``/dbm/max_bandwidth_in_mbit`` (and its utilization) when it returns
-    a number: the hook a bandwidth estimator uses; its value is the usable budget.
+    a number: the hook a bandwidth estimator uses; its value is the usable budget. With
+    ``write_defaults`` the defaults of unset parameters (utilization 1, period 1 s) are written, so
+    ``rosparam get`` shows every one; only for stores whose reads are complete at start (ROS's).
     """
 
     def __init__(
@@ -77,6 +84,7 @@ class OptimizerNode:
         ack_timeout_s: float = 0.25,
         coalesce_s: float = 0.002,
         budget_mbit: Callable[[], float | None] | None = None,
+        write_defaults: bool = False,
     ) -> None:
         self._transport = transport
         self._links = tuple(links)
@@ -97,6 +105,10 @@ class OptimizerNode:
             params.set(names.UTILIZATION, settings.utilization)
             params.set(names.PERIOD, settings.optimization_period_s)
             params.set(names.STRATEGY, settings.strategy.value)
+        elif write_defaults:
+            for name, default in _DEFAULTS.items():
+                if transport.params.get(name) is None:
+                    transport.params.set(name, default)
         self._handles: list[Handle] = [
             transport.params.watch(self._on_param),
             transport.graph.watch(self.poke),

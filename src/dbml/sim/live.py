@@ -24,7 +24,7 @@ from typing import Any
 
 from dbml.core.allocation import Strategy
 from dbml.core.config import DbmSettings
-from dbml.nodes import stop_on_signals
+from dbml.nodes import stop_on_signals, synthetic_frame
 from dbml.runtime import names
 from dbml.runtime.metadata import MessageMeta
 from dbml.runtime.optimizer import OptimizerNode
@@ -63,25 +63,6 @@ def optimizer_role(transport: Transport, t0: float, step_s: float, stop: threadi
         node.stop()
 
 
-def camera_frame(transport: Transport, topic: str, size_bytes: int) -> bytes:
-    """One frame of ``size_bytes`` as the transport carries it: raw bytes, or over ROS 1 a
-    serialised ``sensor_msgs/Image`` of exactly that size (one mono8 row after the header), so
-    the allocation is the paper's."""
-    ros1 = sys.modules.get("dbml.transports.ros1")
-    if ros1 is None or not isinstance(transport, ros1.Ros1Transport):
-        return bytes(size_bytes)
-    from sensor_msgs.msg import Image
-
-    transport.use_message_class(topic, Image)
-    image = Image(height=1, encoding="mono8", data=b"")
-    pixels = size_bytes - len(ros1.serialize(image))
-    image.width = image.step = pixels
-    image.data = bytes(pixels)
-    serialized: bytes = ros1.serialize(image)
-    assert len(serialized) == size_bytes
-    return serialized
-
-
 def robot_role(
     transport: Transport, index: int, t0: float, step_s: float, stop: threading.Event
 ) -> None:
@@ -91,7 +72,7 @@ def robot_role(
     )
 
     camera_priority = collision_priority_source(transport, camera.topic)
-    frame = camera_frame(transport, camera.topic, camera.size_bytes)
+    frame = synthetic_frame(transport, camera.topic, camera.size_bytes)
 
     def replay_events() -> None:
         for k, step in enumerate(STEPS):
@@ -231,7 +212,6 @@ def _main(argv: list[str] | None = None) -> int:
     parser.add_argument("--host", help="zenoh host identity (ROS 1 takes ROS_IP/ROS_HOSTNAME)")
     parser.add_argument("--transport", choices=["zenoh", "ros1"], default="zenoh")
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.WARNING, format=f"{args.role}: %(name)s: %(message)s")
 
     with stop_on_signals() as stop:
         transport: Transport
@@ -241,6 +221,10 @@ def _main(argv: list[str] | None = None) -> int:
             transport = Ros1Transport(node_name=f"dbml_{args.role}")
         else:
             transport = open_transport("zenoh", host=args.host)
+        # After the node starts: rospy replaces the root handlers with its own log file.
+        logging.basicConfig(
+            force=True, level=logging.WARNING, format=f"{args.role}: %(name)s: %(message)s"
+        )
         try:
             wait = getattr(transport, "wait_for_peers", None)
             if wait is not None:

@@ -172,6 +172,7 @@ class _Ros1Params:
             self._subscriber.call("unsubscribeParam", self._api, "/")
         except TransportError as err:
             log.debug("unsubscribeParam: %s", err)
+        self._subscriber.close()
         self._server.shutdown()
         self._server.server_close()
         self._thread.join(timeout=2.0)
@@ -213,7 +214,8 @@ class _Ros1Graph:
         now = time.monotonic()
         if now - self._alive.get(node, -LIVENESS_S) >= LIVENESS_S:
             try:
-                MasterClient(uri, caller_id=self._master.caller_id, timeout_s=0.5).call("getPid")
+                with MasterClient(uri, caller_id=self._master.caller_id, timeout_s=0.5) as node_api:
+                    node_api.call("getPid")
             except TransportError:
                 self._uris.pop(node, None)
                 return None
@@ -339,11 +341,12 @@ class Ros1Transport:
         with _active_lock:
             if _active:
                 raise TransportError("one Ros1Transport per process (rospy runs one node)")
-            master = MasterClient()
-            if not master.reachable():
-                raise TransportError(
-                    f"no ROS master at ROS_MASTER_URI={master.uri} (start one: rosmaster --core)"
-                )
+            with MasterClient() as master:
+                if not master.reachable():
+                    raise TransportError(
+                        f"no ROS master at ROS_MASTER_URI={master.uri} "
+                        "(start one: rosmaster --core)"
+                    )
             if rospy.core.is_shutdown_requested() or rospy.is_shutdown():
                 raise TransportError("this process's rospy node has shut down; start a new one")
             self._owns_node = not rospy.core.is_initialized()

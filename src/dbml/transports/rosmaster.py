@@ -80,6 +80,24 @@ class MasterClient:
             return False
         return True
 
+    def close(self) -> None:
+        """Close this thread's connection (each thread's closes when the thread ends)."""
+        proxy = getattr(self._local, "proxy", None)
+        self._local.proxy = None
+        if proxy is not None:
+            proxy("close")()
+
+    def __enter__(self) -> MasterClient:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.close()
+
+
+def _answers(uri: str) -> bool:
+    with MasterClient(uri, timeout_s=0.5) as client:
+        return client.reachable()
+
 
 def free_port(host: str = "127.0.0.1") -> int:
     with socket.socket() as sock:
@@ -106,7 +124,7 @@ class RosMaster:
     def reuse_or_start(cls) -> RosMaster:
         """The running master at ``ROS_MASTER_URI`` (not ours to stop), else a new one."""
         existing = os.environ.get("ROS_MASTER_URI")
-        if existing and MasterClient(existing, timeout_s=0.5).reachable():
+        if existing and _answers(existing):
             master = cls()
             master.uri, master.reused = existing, True
             return master
@@ -129,9 +147,8 @@ class RosMaster:
             stdout=log,
             stderr=subprocess.STDOUT,
         )
-        client = MasterClient(self.uri, timeout_s=0.5)
         deadline = time.monotonic() + self._ready_timeout_s
-        while not client.reachable():
+        while not _answers(self.uri):
             if self.process.poll() is not None or time.monotonic() > deadline:
                 log.seek(0)
                 output = log.read()[-500:].decode(errors="replace")
