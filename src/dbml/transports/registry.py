@@ -45,7 +45,10 @@ def open_transport(
         if host is not None:
             # rospy names this process's host from the environment, before the node starts.
             os.environ["ROS_HOSTNAME"] = host
-        module = importlib.import_module("dbml.transports.ros1")
+        try:
+            module = importlib.import_module("dbml.transports.ros1")
+        except ImportError as err:
+            raise TransportError(str(err)) from err
         ros1: Transport = module.Ros1Transport()
         return ros1
     raise TransportError(f"transport={name!r} is not one of: {', '.join(TRANSPORTS)}")

@@ -45,15 +45,17 @@ from dbml.transports.base import (
 )
 from dbml.transports.rosmaster import CALL_TIMEOUT_S, MasterClient
 
+ROSPY_MISSING = (
+    "dbml's ROS 1 support needs rospy, which comes from Debian's packages, not PyPI, and imports "
+    "in Debian's Python: run scripts/install-ros1, then make (see the README's ROS 1 section)"
+)
+
 try:
     import rosgraph.network
     import rospy
     import std_msgs.msg
 except ImportError as err:  # pragma: no cover - depends on the machine
-    raise TransportError(
-        "transport='ros1' needs rospy, which comes from Debian's packages, not PyPI: "
-        "run scripts/install-ros1 (see the README's ROS 1 section)"
-    ) from err
+    raise ImportError(ROSPY_MISSING) from err
 
 __all__ = ["Ros1Transport", "serialize"]
 
