@@ -57,6 +57,9 @@ bench: $(STAMP)
 	$(BIN)/python bench/allocate.py
 	$(BIN)/python bench/reaction.py
 	$(BIN)/python bench/publish_overhead.py
+ifeq ($(KIND),ros1)
+	$(BIN)/python bench/ros1_hz.py
+endif
 
 clean:
 	rm -rf $(VENV) .mypy_cache .pytest_cache .ruff_cache .hypothesis

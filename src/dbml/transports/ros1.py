@@ -114,8 +114,9 @@ class _Ros1Params:
             target=self._server.serve_forever, name="dbml-ros1-params", daemon=True
         )
         self._thread.start()
-        tree = self._subscriber.call("subscribeParam", self._api, "/")
-        _flatten("/", tree, self._mirror)
+        with self._lock:  # pushes after the subscription wait for the tree it returns
+            tree = self._subscriber.call("subscribeParam", self._api, "/")
+            _flatten("/", tree, self._mirror)
 
     def _param_update(self, _caller: str, key: str, value: object) -> list[object]:
         """The master's push: a key (with a trailing ``/``) and its new value; ``{}`` deletes."""
