@@ -28,8 +28,10 @@ from rich.console import Console
 from rich.table import Table
 
 from dbml.runtime import names
+from dbml.sim.processes import end_process
+from dbml.sim.rosmaster import RosMaster
 from dbml.sim.teleop import ROBOTS
-from dbml.transports.rosmaster import MasterClient, RosMaster
+from dbml.transports.rosapi import MasterClient
 
 SETTLE_S = 1.0
 TOLERANCE = 0.05
@@ -61,12 +63,7 @@ class HzReader:
                 self.readings.append((time.time(), rate, int(match.group(1))))
 
     def stop(self) -> None:
-        self.process.send_signal(signal.SIGINT)
-        try:
-            self.process.wait(timeout=5)
-        except subprocess.TimeoutExpired:
-            self.process.kill()
-            self.process.wait(timeout=5)
+        end_process(self.process, sig=signal.SIGINT)
         self._thread.join(timeout=5)
 
 

@@ -15,8 +15,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from dbml.sim.processes import end_process, free_port
 from dbml.transports.zenoh import ZenohTransport
-from tests.transports.zenoh_network import free_port
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -71,13 +71,7 @@ class Proc:
         return "".join(self.stderr_lines)
 
     def stop(self, sig: int = signal.SIGTERM, timeout_s: float = 10.0) -> int:
-        if self.popen.poll() is None:
-            self.popen.send_signal(sig)
-            try:
-                self.popen.wait(timeout=timeout_s)
-            except subprocess.TimeoutExpired:
-                self.popen.kill()
-                self.popen.wait(timeout=5)
+        end_process(self.popen, sig=sig, timeout_s=timeout_s)
         for pump in self._pumps:
             pump.join(timeout=5)  # EOF once the process is gone
         for pipe in (self.popen.stdout, self.popen.stderr):

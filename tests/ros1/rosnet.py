@@ -17,7 +17,9 @@ from pathlib import Path
 
 import pytest
 
-from dbml.transports.rosmaster import MasterClient, RosMaster
+from dbml.sim.processes import end_process
+from dbml.sim.rosmaster import RosMaster
+from dbml.transports.rosapi import MasterClient
 from tests.integration.procs import Proc
 
 TOOLS = ("rosmaster", "rosparam", "rostopic")
@@ -120,12 +122,7 @@ class RosNet:
                 ):
                     return rate
         finally:
-            process.send_signal(signal.SIGINT)
-            try:
-                process.wait(timeout=5)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait(timeout=5)
+            end_process(process, sig=signal.SIGINT)
             if process.stdout is not None:
                 process.stdout.close()
         pytest.fail(f"rostopic hz {topic}: no full window of {window} in {timeout_s} s")

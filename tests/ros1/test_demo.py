@@ -11,7 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from dbml.transports.rosmaster import MasterClient, RosMaster
+from dbml.sim.rosmaster import RosMaster
+from dbml.transports.rosapi import MasterClient
 from tests.ros1.rosnet import RosNet, require_ros1
 
 pytestmark = pytest.mark.integration

@@ -2,19 +2,12 @@
 
 from __future__ import annotations
 
-import socket
 from collections.abc import Iterator
 
+from dbml.sim.processes import free_port
 from dbml.transports.base import Transport
 from dbml.transports.zenoh import ZenohTransport
 from tests.conftest import wait_for
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-        return port
 
 
 def zenoh_network() -> Iterator[Factory]:

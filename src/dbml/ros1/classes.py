@@ -11,7 +11,12 @@ import threading
 from collections.abc import Callable, Iterable
 from typing import Any
 
-import rospy
+from dbml.transports.rosapi import ROSPY_MISSING
+
+try:
+    import rospy
+except ImportError as err:  # pragma: no cover - depends on the machine
+    raise ImportError(ROSPY_MISSING) from err
 
 from dbml.core.config import DbmSettings
 from dbml.core.errors import SpecError

@@ -27,11 +27,11 @@ from rich.table import Table
 
 from dbml.core.errors import DbmlError
 from dbml.sim.live import ROLES, run_role
-from dbml.sim.processes import RoleProcesses
+from dbml.sim.processes import RoleProcesses, free_port
 from dbml.sim.reproduce import reproduce_table2
+from dbml.sim.rosmaster import RosMaster
 from dbml.sim.teleop import LINK_MBIT, ROBOTS, STEPS
 from dbml.transports.memory import MemoryNetwork, MemoryTransport
-from dbml.transports.rosmaster import RosMaster, free_port
 
 __all__ = ["DemoResult", "run_teleop_demo"]
 

@@ -14,6 +14,8 @@ from __future__ import annotations
 import contextlib
 import json
 import queue
+import signal
+import socket
 import subprocess
 import sys
 import tempfile
@@ -22,9 +24,31 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from typing import IO, Any
 
-__all__ = ["Emit", "RoleProcesses", "emit_json", "serve_role"]
+__all__ = ["Emit", "RoleProcesses", "emit_json", "end_process", "free_port", "serve_role"]
 
 Emit = Callable[[dict[str, Any]], None]
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port free on ``host`` now (for a rendezvous or a master of a run's own)."""
+    with socket.socket() as sock:
+        sock.bind((host, 0))
+        port: int = sock.getsockname()[1]
+        return port
+
+
+def end_process(
+    process: subprocess.Popen[Any], *, sig: int = signal.SIGTERM, timeout_s: float = 5.0
+) -> int:
+    """End a process we started: ``sig``, then SIGKILL after ``timeout_s``; its exit code."""
+    if process.poll() is None:
+        process.send_signal(sig)
+        try:
+            process.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait(timeout=timeout_s)
+    return process.returncode
 
 
 class RoleProcesses:

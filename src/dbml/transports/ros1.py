@@ -27,7 +27,7 @@ import struct
 import threading
 import time
 from collections.abc import Callable, Mapping
-from typing import Any
+from typing import Any, TypeVar
 from urllib.parse import urlparse
 from xmlrpc.server import SimpleXMLRPCServer
 
@@ -43,12 +43,7 @@ from dbml.transports.base import (
     check_param_value,
     check_topic,
 )
-from dbml.transports.rosmaster import CALL_TIMEOUT_S, MasterClient
-
-ROSPY_MISSING = (
-    "dbml's ROS 1 support needs rospy, which comes from Debian's packages, not PyPI, and imports "
-    "in Debian's Python: run scripts/install-ros1, then make (see the README's ROS 1 section)"
-)
+from dbml.transports.rosapi import CALL_TIMEOUT_S, ROSPY_MISSING, MasterClient
 
 try:
     import rosgraph.network
@@ -68,6 +63,7 @@ LIVENESS_S = 2.0
 _OPTIMIZED = "/" + Variant.OPTIMIZED.value
 _STRING = std_msgs.msg.String
 _SCALARS = (bool, int, float, str)
+_Callback = TypeVar("_Callback", bound=Callable[..., None])
 
 _active_lock = threading.Lock()
 _active: list[Ros1Transport] = []
@@ -88,6 +84,19 @@ def _flatten(name: str, value: object, out: dict[str, ParamValue]) -> None:
             _flatten(f"{name.rstrip('/')}/{key}", sub, out)
     elif isinstance(value, _SCALARS):
         out[name] = value  # lists and binary values are not dbml parameters
+
+
+def _listen(lock: threading.Lock, watchers: list[_Callback], callback: _Callback) -> Handle:
+    """Add ``callback`` to ``watchers``; the handle removes it."""
+    with lock:
+        watchers.append(callback)
+
+    def remove() -> None:
+        with lock:
+            if callback in watchers:
+                watchers.remove(callback)
+
+    return Closer(remove)
 
 
 def _under(name: str, namespace: str) -> bool:
@@ -160,15 +169,7 @@ class _Ros1Params:
         return out
 
     def watch(self, callback: Callable[[str, ParamValue], None]) -> Handle:
-        with self._lock:
-            self._watchers.append(callback)
-
-        def remove() -> None:
-            with self._lock:
-                if callback in self._watchers:
-                    self._watchers.remove(callback)
-
-        return Closer(remove)
+        return _listen(self._lock, self._watchers, callback)
 
     def close(self) -> None:
         try:
@@ -257,19 +258,12 @@ class _Ros1Graph:
 
     def watch(self, callback: Callable[[], None]) -> Handle:
         with self._lock:
-            self._watchers.append(callback)
             if self._thread is None:
                 self._thread = threading.Thread(
                     target=self._poll, name="dbml-ros1-graph", daemon=True
                 )
                 self._thread.start()
-
-        def remove() -> None:
-            with self._lock:
-                if callback in self._watchers:
-                    self._watchers.remove(callback)
-
-        return Closer(remove)
+        return _listen(self._lock, self._watchers, callback)
 
     def _poll(self) -> None:
         while not self._stop.wait(self._poll_s):
