@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -11,6 +12,15 @@ import pytest
 
 if TYPE_CHECKING:
     from tests.ros1.rosnet import RosNet
+
+
+def require(problem: str | None, *, what: str) -> None:
+    """Skip with ``problem`` when something a test needs is missing; in CI (CI=true) fail."""
+    if problem is None:
+        return
+    if os.environ.get("CI") == "true":
+        pytest.fail(f"CI must {what}: {problem}")
+    pytest.skip(problem)
 
 
 def wait_for(predicate: Callable[[], bool], *, timeout_s: float = 5.0, what: str = "") -> None:

@@ -20,6 +20,7 @@ import pytest
 from dbml.sim.processes import end_process
 from dbml.sim.rosmaster import RosMaster
 from dbml.transports.rosapi import MasterClient
+from tests.conftest import require
 from tests.integration.procs import Proc
 
 TOOLS = ("rosmaster", "rosparam", "rostopic")
@@ -39,12 +40,7 @@ def ros1_problem() -> str | None:
 
 
 def require_ros1() -> None:
-    problem = ros1_problem()
-    if problem is None:
-        return
-    if os.environ.get("CI") == "true":
-        pytest.fail(f"CI must run the ROS 1 tests: {problem}")
-    pytest.skip(problem)
+    require(ros1_problem(), what="run the ROS 1 tests")
 
 
 class RosNet:

@@ -2,19 +2,13 @@
 
 from __future__ import annotations
 
-import os
-
 import pytest
 
 from dbml.testbed import privilege_problem
+from tests.conftest import require
 
 
 @pytest.fixture(scope="session")
 def netns_privilege() -> None:
     """Stop a namespace test early when this process cannot build namespaces."""
-    problem = privilege_problem()
-    if problem is None:
-        return
-    if os.environ.get("CI") == "true":
-        pytest.fail(f"CI must be able to build network namespaces: {problem}")
-    pytest.skip(problem)
+    require(privilege_problem(), what="be able to build network namespaces")

@@ -45,10 +45,6 @@ class RosMaster:
             return master
         return cls().start()
 
-    @property
-    def started_here(self) -> bool:
-        return self.process is not None
-
     def start(self) -> RosMaster:
         executable = shutil.which("rosmaster")
         if executable is None:
