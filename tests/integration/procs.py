@@ -21,6 +21,12 @@ from dbml.transports.zenoh import ZenohTransport
 ROOT = Path(__file__).resolve().parents[2]
 
 
+def publish_argv(topic: str, size_bytes: int, *more: str) -> list[str]:
+    """``dbml publish`` of a camera-like channel, 1-16 Hz (the paper's bounds)."""
+    bounds = ["--size-bytes", str(size_bytes), "--min-hz", "1", "--max-hz", "16"]
+    return ["publish", topic, *bounds, *more]
+
+
 class Proc:
     """One ``python -m dbml ...`` process (or ``-m module``) with its output lines collected."""
 

@@ -9,7 +9,7 @@ import pytest
 
 from dbml.runtime import names
 from tests.conftest import wait_for
-from tests.integration.procs import fleet
+from tests.integration.procs import fleet, publish_argv
 
 pytestmark = pytest.mark.integration
 
@@ -78,18 +78,7 @@ def test_priority_change_reacts_at_once_not_at_the_period(tmp_path: Path) -> Non
             ("robot1", "/r1/camera", 84_000),
             ("robot2", "/r2/camera", 21_000),
         ):
-            f.start(
-                "publish",
-                topic,
-                "--size-bytes",
-                str(size),
-                "--min-hz",
-                "1",
-                "--max-hz",
-                "16",
-                "--host",
-                robot,
-            )
+            f.start(*publish_argv(topic, size, "--host", robot))
             f.start("subscribe", topic, "--host", "operator")
         # priorities 0/0: Table 2 step 2, R1 12.37 Hz
         wait_for(lambda: round(allocated(f) or 0, 2) == 12.37, timeout_s=20, what="12.37 Hz")

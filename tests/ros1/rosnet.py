@@ -10,6 +10,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -103,12 +104,12 @@ class RosNet:
             text=True,
         )
         rate: float | None = None
-        deadline = time.monotonic() + timeout_s
+        # Ends the read below at the deadline even if rostopic prints nothing more.
+        timer = threading.Timer(timeout_s, process.send_signal, [signal.SIGINT])
+        timer.start()
         try:
             assert process.stdout is not None
             for line in process.stdout:
-                if time.monotonic() > deadline:
-                    break
                 if match := re.search(r"average rate: ([0-9.]+)", line):
                     rate = float(match.group(1))
                 elif (
@@ -118,6 +119,7 @@ class RosNet:
                 ):
                     return rate
         finally:
+            timer.cancel()
             end_process(process, sig=signal.SIGINT)
             if process.stdout is not None:
                 process.stdout.close()

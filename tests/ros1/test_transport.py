@@ -7,7 +7,7 @@ import signal
 
 import pytest
 
-from tests.integration.procs import Proc
+from tests.integration.procs import Proc, publish_argv
 from tests.ros1.rosnet import RosNet
 
 pytestmark = pytest.mark.integration
@@ -27,20 +27,7 @@ def close_to(expected: float, rel: float = 1e-6) -> object:
 
 
 def start_camera(ros: RosNet, topic: str = CAMERA, size: int = SIZE, *more: str) -> Proc:
-    return ros.node(
-        "publish",
-        topic,
-        "--transport",
-        "ros1",
-        "--size-bytes",
-        str(size),
-        "--min-hz",
-        "1",
-        "--max-hz",
-        "16",
-        *more,
-        host=ROBOT,
-    )
+    return ros.node(*publish_argv(topic, size, "--transport", "ros1", *more), host=ROBOT)
 
 
 def start_viewer(ros: RosNet, topic: str = CAMERA, host: str = OPERATOR) -> Proc:
