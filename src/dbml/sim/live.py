@@ -74,9 +74,13 @@ def robot_role(
     camera_priority = collision_priority_source(transport, camera.topic)
     frame = synthetic_frame(transport, camera.topic, camera.size_bytes)
 
+    # The robot's own end, not ``stop``: over the memory transport every role shares ``stop``,
+    # and a robot done with its last frame must not end the operator before its last report.
+    finished = threading.Event()
+
     def replay_events() -> None:
         for k, step in enumerate(STEPS):
-            if not _wait_until(t0 + k * step_s, stop):
+            if not _wait_until(t0 + k * step_s, finished) or stop.is_set():
                 return
             event = step.events[index]
             camera_priority.update(event.distance_m, event.speed_m_per_s)
@@ -92,7 +96,7 @@ def robot_role(
             publisher.rate.sleep()
             publisher.publish(frame)
     finally:
-        stop.set()
+        finished.set()
         events.join(timeout=2)
         publisher.close()
 
