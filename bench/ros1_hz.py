@@ -28,9 +28,9 @@ from rich.console import Console
 from rich.table import Table
 
 from dbml.runtime import names
-from dbml.sim.processes import end_process
-from dbml.sim.rosmaster import RosMaster
-from dbml.sim.teleop import ROBOTS
+from dbml.harness.processes import end_process
+from dbml.harness.rosmaster import RosMaster
+from dbml.scenarios.teleop import ROBOTS
 from dbml.transports.rosapi import MasterClient
 
 SETTLE_S = 1.0

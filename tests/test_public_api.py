@@ -11,7 +11,7 @@ import dbml
 HAVE_ROSPY = importlib.util.find_spec("rospy") is not None
 ROS1_MODULES = ("dbml.ros1", "dbml.transports.ros1")
 """Modules that need rospy (Debian's packages); checked where it imports (always in CI)."""
-PACKAGES = ["dbml", "dbml.core", "dbml.runtime", "dbml.sim", "dbml.transports"]
+PACKAGES = ["dbml", "dbml.core", "dbml.runtime", "dbml.scenarios", "dbml.transports"]
 PACKAGES += ["dbml.ros1"] if HAVE_ROSPY else []
 
 

@@ -1,39 +1,40 @@
-"""dbml: dynamic bandwidth management for multi-robot systems."""
+"""dbml: dynamic bandwidth management for multi-robot systems.
 
-from dbml.configfile import load_config
-from dbml.core import (
-    BYTES_PER_S_PER_MBIT,
-    Allocation,
-    ChannelAllocation,
-    ChannelSpec,
-    Config,
-    ConfigError,
-    DbmlError,
-    DbmSettings,
-    LinkSpec,
-    Problem,
-    SpecError,
-    Status,
-    Strategy,
-    TransportError,
-    allocate,
-    collision_priority,
-    linear_ramp,
-    normalize_priorities,
-    parse_config,
-    time_to_collision_s,
-)
+The names a user needs, from one place: the model (specs, ``allocate``, config), the errors, and
+the runtime (managed publisher and subscriber, the optimizer node, transports by name). The
+runtime's names load on first use, so ``import dbml.core`` stays free of threads and middleware.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING
+
+from dbml.core.allocation import Allocation, Status, Strategy, allocate
+from dbml.core.config import Config, DbmSettings, load_config, parse_config
+from dbml.core.errors import ConfigError, DbmlError, SpecError, TransportError
+from dbml.core.priority import collision_priority, time_to_collision_s
+from dbml.core.spec import ChannelSpec, LinkSpec, Problem
+
+if TYPE_CHECKING:
+    from dbml.runtime.optimizer import OptimizerNode
+    from dbml.runtime.publisher import ManagedPublisher
+    from dbml.runtime.subscriber import ManagedSubscriber
+    from dbml.transports.memory import MemoryNetwork
+    from dbml.transports.registry import open_transport
 
 __all__ = [
-    "BYTES_PER_S_PER_MBIT",
     "Allocation",
-    "ChannelAllocation",
     "ChannelSpec",
     "Config",
     "ConfigError",
     "DbmSettings",
     "DbmlError",
     "LinkSpec",
+    "ManagedPublisher",
+    "ManagedSubscriber",
+    "MemoryNetwork",
+    "OptimizerNode",
     "Problem",
     "SpecError",
     "Status",
@@ -41,11 +42,28 @@ __all__ = [
     "TransportError",
     "allocate",
     "collision_priority",
-    "linear_ramp",
     "load_config",
-    "normalize_priorities",
+    "open_transport",
     "parse_config",
     "time_to_collision_s",
 ]
 
 __version__ = "0.1.0"
+
+_LAZY = {
+    "ManagedPublisher": "dbml.runtime.publisher",
+    "ManagedSubscriber": "dbml.runtime.subscriber",
+    "MemoryNetwork": "dbml.transports.memory",
+    "OptimizerNode": "dbml.runtime.optimizer",
+    "open_transport": "dbml.transports.registry",
+}
+
+
+def __getattr__(name: str) -> object:
+    """Load a runtime name on first use (PEP 562)."""
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'dbml' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value

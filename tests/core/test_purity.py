@@ -4,7 +4,7 @@ import sys
 
 def test_core_imports_no_middleware_runtime_or_threads() -> None:
     code = (
-        "import sys, dbml.core, dbml.sim; "
+        "import sys, dbml.core, dbml.scenarios; "
         "bad = [m for m in sys.modules "
         "if m.split('.')[0] in {'zenoh', 'rospy', 'rosgraph', 'rich'} "
         "or m.startswith(('dbml.runtime', 'dbml.transports', 'dbml.testbed', 'dbml.cli'))]; "

@@ -15,7 +15,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from dbml.sim.processes import end_process, free_port
+from dbml.harness.processes import end_process, free_port
 from dbml.transports.zenoh import ZenohTransport
 
 ROOT = Path(__file__).resolve().parents[2]

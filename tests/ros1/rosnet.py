@@ -18,8 +18,8 @@ from pathlib import Path
 
 import pytest
 
-from dbml.sim.processes import end_process
-from dbml.sim.rosmaster import RosMaster
+from dbml.harness.processes import end_process
+from dbml.harness.rosmaster import RosMaster
 from dbml.transports.rosapi import MasterClient
 from tests.conftest import require
 from tests.integration.procs import Proc

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from dbml.sim.rosmaster import RosMaster
+from dbml.harness.rosmaster import RosMaster
 from dbml.transports.rosapi import MasterClient
 from tests.ros1.rosnet import RosNet, require_ros1
 

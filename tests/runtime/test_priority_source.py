@@ -25,5 +25,5 @@ def test_direct_priority_is_validated() -> None:
     assert source.set(0.25) == 0.25
     with pytest.raises(SpecError, match=r"channel '/cam': priority=1.5 must be within \[0, 1\]"):
         source.set(1.5)
-    with pytest.raises(SpecError, match=r"speed_m_per_s=-1.0 must be a non-negative number"):
+    with pytest.raises(SpecError, match=r"speed_m_per_s=-1.0 must be >= 0$"):
         collision_priority_source(MemoryTransport(), "/cam").update(1.0, -1.0)

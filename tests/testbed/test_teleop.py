@@ -18,7 +18,7 @@ import pytest
 from rich.console import Console
 
 from dbml.testbed import leftover_namespaces
-from dbml.testbed.teleop import TestbedResult, run_teleop_testbed
+from dbml.testbed.runner import TestbedResult, run_teleop_testbed
 from tests.conftest import wait_for
 
 pytestmark = pytest.mark.integration

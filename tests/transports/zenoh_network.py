@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 
-from dbml.sim.processes import free_port
+from dbml.harness.processes import free_port
 from dbml.transports.base import Transport
 from dbml.transports.zenoh import ZenohTransport
 from tests.conftest import wait_for

@@ -15,23 +15,24 @@
     links:                               # optional, strategy lp only
       - {name: r1-uplink, max_bandwidth_in_mbit: 6, channels: [/r1/camera]}
 
-Parsing is pure (text in, specs out); reading the file is the caller's business.
+Parsing is pure (text in, specs out); ``load_config`` is the one function that reads a file.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import Any
 
 import yaml
 
 from dbml.core.allocation import Strategy
 from dbml.core.errors import ConfigError, SpecError
-from dbml.core.spec import ChannelSpec, LinkSpec, Problem
+from dbml.core.spec import ChannelSpec, LinkSpec, Problem, check_number
 
-__all__ = ["Config", "DbmSettings", "parse_config"]
+__all__ = ["Config", "DbmSettings", "load_config", "parse_config"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -78,10 +79,15 @@ def _mapping(where: str, value: object, allowed: set[str], required: set[str]) -
     return dict(value)
 
 
-def _number(where: str, field: str, value: object) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-        raise ConfigError(f"{where}: {field}={value!r} is not a finite number")
-    return float(value)
+def _number(where: str, field: str, value: object, **bounds: Any) -> float:
+    try:
+        return check_number(value, field=field, owner=where, **bounds)
+    except SpecError as err:
+        raise ConfigError(str(err)) from None
+
+
+_POSITIVE: dict[str, Any] = {"minimum": 0, "exclusive_minimum": True}
+_FRACTION: dict[str, Any] = {"minimum": 0, "maximum": 1, "exclusive_minimum": True}
 
 
 def _dbm(value: object) -> DbmSettings:
@@ -97,34 +103,29 @@ def _dbm(value: object) -> DbmSettings:
         },
         {"max_bandwidth_in_mbit"},
     )
-    bandwidth = _number(where, "max_bandwidth_in_mbit", data["max_bandwidth_in_mbit"])
-    if bandwidth <= 0:
-        raise ConfigError(
-            f"{where}: max_bandwidth_in_mbit={data['max_bandwidth_in_mbit']!r} must be > 0"
-        )
+    bandwidth = _number(where, "max_bandwidth_in_mbit", data["max_bandwidth_in_mbit"], **_POSITIVE)
     utilization = _number(
-        where, "max_bandwidth_utilization", data.get("max_bandwidth_utilization", 1.0)
+        where,
+        "max_bandwidth_utilization",
+        data.get("max_bandwidth_utilization", 1.0),
+        **_FRACTION,
     )
-    if not 0 < utilization <= 1:
-        raise ConfigError(
-            f"{where}: max_bandwidth_utilization={data['max_bandwidth_utilization']!r} "
-            "must be within (0, 1]"
-        )
     period = _number(
-        where, "optimization_rate_in_seconds", data.get("optimization_rate_in_seconds", 1.0)
+        where,
+        "optimization_rate_in_seconds",
+        data.get("optimization_rate_in_seconds", 1.0),
+        **_POSITIVE,
     )
-    if period <= 0:
-        raise ConfigError(
-            f"{where}: optimization_rate_in_seconds={data['optimization_rate_in_seconds']!r} "
-            "must be > 0"
-        )
-    raw_strategy = data.get("strategy", Strategy.PAPER.value)
+    strategy = _strategy(f"{where}: strategy", data.get("strategy", Strategy.PAPER.value))
+    return DbmSettings(bandwidth, utilization, period, strategy)
+
+
+def _strategy(field: str, value: object) -> Strategy:
     try:
-        strategy = Strategy(raw_strategy)
+        return Strategy(value)
     except ValueError:
         names = " | ".join(s.value for s in Strategy)
-        raise ConfigError(f"{where}: strategy={raw_strategy!r} is not one of {names}") from None
-    return DbmSettings(bandwidth, utilization, period, strategy)
+        raise ConfigError(f"{field}={value!r} is not one of {names}") from None
 
 
 def _channel(index: int, value: object) -> ChannelSpec:
@@ -172,11 +173,18 @@ def _link(index: int, value: object) -> LinkSpec:
         raise ConfigError(f"links[{index}] {err}") from None
 
 
-def parse_config(text: str, *, source: str = "<config>", require_channels: bool = True) -> Config:
+def parse_config(
+    text: str,
+    *,
+    source: str = "<config>",
+    require_channels: bool = True,
+    strategy: Strategy | str | None = None,
+) -> Config:
     """Parse and validate a config document; every error names the field and the value.
 
     ``require_channels=False`` accepts a config with only the ``dbm:`` section, for an optimizer
-    whose channels are announced live by the publishers.
+    whose channels are announced live by the publishers. ``strategy`` overrides
+    ``dbm.strategy`` (the CLI's ``--strategy``) before the links are checked against it.
     """
     try:
         document = yaml.safe_load(text)
@@ -187,6 +195,8 @@ def parse_config(text: str, *, source: str = "<config>", require_channels: bool 
         raise ConfigError(f"{source}: invalid YAML{at}: {reason}") from None
     top = _mapping(source, document, {"dbm", "channels", "links"}, {"dbm"})
     dbm = _dbm(top["dbm"])
+    if strategy is not None:
+        dbm = replace(dbm, strategy=_strategy("strategy", strategy))
     raw_channels = top.get("channels")
     if raw_channels is None:
         raw_channels = []
@@ -222,3 +232,20 @@ def parse_config(text: str, *, source: str = "<config>", require_channels: bool 
                     f"links[{i}] {link.name!r}: channels lists unknown topic {topic!r}"
                 )
     return Config(dbm=dbm, channels=channels, links=links)
+
+
+def load_config(
+    path: str | Path, *, require_channels: bool = True, strategy: Strategy | str | None = None
+) -> Config:
+    """Read and validate a YAML config; an unreadable file is a ``ConfigError`` naming the path."""
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as err:
+        reason = err.strerror if isinstance(err, OSError) and err.strerror else str(err)
+        raise ConfigError(f"config {str(path)!r}: cannot read: {reason}") from None
+    return parse_config(
+        text,
+        source=f"config {str(path)!r}",
+        require_channels=require_channels,
+        strategy=strategy,
+    )

@@ -13,6 +13,7 @@ import numpy as np
 import numpy.typing as npt
 
 from dbml.core.errors import SpecError
+from dbml.core.spec import check_number
 
 __all__ = [
     "collision_priority",
@@ -28,11 +29,7 @@ SAFE_TC_S = 20.0
 
 
 def _non_negative(name: str, value: float) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise SpecError(f"{name}={value!r} is not a number")
-    if math.isnan(value) or value < 0:
-        raise SpecError(f"{name}={value!r} must be a non-negative number")
-    return float(value)
+    return check_number(value, field=name, minimum=0, finite=False)
 
 
 def time_to_collision_s(distance_m: float, speed_m_per_s: float) -> float:
@@ -56,8 +53,7 @@ def linear_ramp(value: float, *, full_at: float, zero_at: float) -> float:
     Works in both directions: ``full_at < zero_at`` for "closer is more urgent" (time to
     collision), ``full_at > zero_at`` for "more is more urgent" (a detector's confidence).
     """
-    if isinstance(value, bool) or not isinstance(value, int | float) or math.isnan(value):
-        raise SpecError(f"value={value!r} is not a number")
+    check_number(value, field="value", finite=False)
     if not (math.isfinite(full_at) and math.isfinite(zero_at)) or full_at == zero_at:
         raise SpecError(f"ramp full_at={full_at!r}, zero_at={zero_at!r} must differ and be finite")
     fraction = (zero_at - value) / (zero_at - full_at)

@@ -14,21 +14,75 @@ import numpy.typing as npt
 
 from dbml.core.errors import SpecError
 
-__all__ = ["BYTES_PER_S_PER_MBIT", "ChannelSpec", "LinkSpec", "Problem"]
+__all__ = [
+    "BYTES_PER_S_PER_MBIT",
+    "ChannelSpec",
+    "LinkSpec",
+    "Problem",
+    "bytes_per_s_to_mbit",
+    "check_number",
+    "mbit_to_bytes_per_s",
+]
 
 BYTES_PER_S_PER_MBIT = 125_000.0
 """1 Mbit/s = 10**6 bit/s = 125,000 bytes/s (the paper's 11 Mbit is 1,375,000 B/s)."""
 
+
+def mbit_to_bytes_per_s(mbit: float) -> float:
+    """Mbit/s to bytes/s, the unit dbml computes in."""
+    return mbit * BYTES_PER_S_PER_MBIT
+
+
+def bytes_per_s_to_mbit(bytes_per_s: float) -> float:
+    """Bytes/s to Mbit/s, the unit people and the paper's parameters use."""
+    return bytes_per_s / BYTES_PER_S_PER_MBIT
+
+
 FloatArray = npt.NDArray[np.float64]
 
 
-def _finite_number(owner: str, name: str, value: object) -> float:
+def check_number(
+    value: object,
+    *,
+    field: str,
+    owner: str | None = None,
+    minimum: float | None = None,
+    maximum: float | None = None,
+    exclusive_minimum: bool = False,
+    finite: bool = True,
+) -> float:
+    """The one validation of a number: ``value`` as a float, or a ``SpecError`` naming it.
+
+    Booleans are not numbers; NaN never passes; infinities pass only with ``finite=False``.
+    The range is ``[minimum, maximum]`` (``(minimum, maximum]`` with ``exclusive_minimum``),
+    either end optional. Messages read ``owner: field=value must be ...``.
+    """
+    where = f"{owner}: " if owner else ""
     if isinstance(value, bool) or not isinstance(value, int | float):
-        raise SpecError(f"{owner}: {name}={value!r} is not a number")
-    number = float(value)
-    if not math.isfinite(number):
-        raise SpecError(f"{owner}: {name}={value!r} is not finite")
+        raise SpecError(f"{where}{field}={value!r} is not a number")
+    try:
+        number = float(value)
+    except OverflowError:  # an int too large for a float (10**400)
+        raise SpecError(f"{where}{field}={value!r} is not finite") from None
+    if math.isnan(number):
+        raise SpecError(f"{where}{field}={value!r} is {'not finite' if finite else 'not a number'}")
+    if finite and math.isinf(number):
+        raise SpecError(f"{where}{field}={value!r} is not finite")
+    low_ok = minimum is None or (number > minimum if exclusive_minimum else number >= minimum)
+    high_ok = maximum is None or number <= maximum
+    if not (low_ok and high_ok):
+        raise SpecError(
+            f"{where}{field}={value!r} must be {_range(minimum, maximum, exclusive_minimum=exclusive_minimum)}"
+        )
     return number
+
+
+def _range(minimum: float | None, maximum: float | None, *, exclusive_minimum: bool) -> str:
+    if minimum is not None and maximum is not None:
+        return f"within {'(' if exclusive_minimum else '['}{minimum:g}, {maximum:g}]"
+    if minimum is not None:
+        return f"{'>' if exclusive_minimum else '>='} {minimum:g}"
+    return f"<= {maximum:g}"
 
 
 @dataclass(frozen=True, slots=True)
@@ -45,21 +99,20 @@ class ChannelSpec:
         if not isinstance(self.topic, str) or not self.topic:
             raise SpecError(f"channel topic={self.topic!r} must be a non-empty string")
         owner = f"channel {self.topic!r}"
-        fmin = _finite_number(owner, "frequency.min", self.min_rate_hz)
-        fmax = _finite_number(owner, "frequency.max", self.max_rate_hz)
-        size = _finite_number(owner, "message_size_in_bytes", self.size_bytes)
-        priority = _finite_number(owner, "priority", self.priority)
-        if fmin <= 0:
-            raise SpecError(f"{owner}: frequency.min={self.min_rate_hz!r} must be > 0")
+        fmin = check_number(self.min_rate_hz, field="frequency.min", owner=owner)
+        fmax = check_number(self.max_rate_hz, field="frequency.max", owner=owner)
+        size = check_number(self.size_bytes, field="message_size_in_bytes", owner=owner)
+        priority = check_number(self.priority, field="priority", owner=owner)
+        check_number(fmin, field="frequency.min", owner=owner, minimum=0, exclusive_minimum=True)
         if fmin > fmax:
             raise SpecError(
                 f"{owner}: frequency.min={self.min_rate_hz!r} exceeds "
                 f"frequency.max={self.max_rate_hz!r}"
             )
-        if size <= 0:
-            raise SpecError(f"{owner}: message_size_in_bytes={self.size_bytes!r} must be > 0")
-        if not 0.0 <= priority <= 1.0:
-            raise SpecError(f"{owner}: priority={self.priority!r} must be within [0, 1]")
+        check_number(
+            size, field="message_size_in_bytes", owner=owner, minimum=0, exclusive_minimum=True
+        )
+        check_number(priority, field="priority", owner=owner, minimum=0, maximum=1)
         object.__setattr__(self, "min_rate_hz", fmin)
         object.__setattr__(self, "max_rate_hz", fmax)
         object.__setattr__(self, "size_bytes", size)
@@ -78,9 +131,13 @@ class LinkSpec:
         if not isinstance(self.name, str) or not self.name:
             raise SpecError(f"link name={self.name!r} must be a non-empty string")
         owner = f"link {self.name!r}"
-        capacity = _finite_number(owner, "max_bandwidth_in_mbit", self.capacity_mbit)
-        if capacity <= 0:
-            raise SpecError(f"{owner}: max_bandwidth_in_mbit={self.capacity_mbit!r} must be > 0")
+        capacity = check_number(
+            self.capacity_mbit,
+            field="max_bandwidth_in_mbit",
+            owner=owner,
+            minimum=0,
+            exclusive_minimum=True,
+        )
         topics = tuple(self.topics)
         if not topics:
             raise SpecError(f"{owner}: channels=[] must name at least one channel")
@@ -133,14 +190,21 @@ class Problem:
         duplicates = [topic for topic, count in Counter(topics).items() if count > 1]
         if duplicates:
             raise SpecError(f"channel {duplicates[0]!r}: topic={duplicates[0]!r} is declared twice")
-        bandwidth = _finite_number("problem", "max_bandwidth_in_mbit", self.bandwidth_mbit)
-        if bandwidth <= 0:
-            raise SpecError(f"problem: max_bandwidth_in_mbit={self.bandwidth_mbit!r} must be > 0")
-        utilization = _finite_number("problem", "max_bandwidth_utilization", self.utilization)
-        if not 0.0 < utilization <= 1.0:
-            raise SpecError(
-                f"problem: max_bandwidth_utilization={self.utilization!r} must be within (0, 1]"
-            )
+        bandwidth = check_number(
+            self.bandwidth_mbit,
+            field="max_bandwidth_in_mbit",
+            owner="problem",
+            minimum=0,
+            exclusive_minimum=True,
+        )
+        utilization = check_number(
+            self.utilization,
+            field="max_bandwidth_utilization",
+            owner="problem",
+            minimum=0,
+            maximum=1,
+            exclusive_minimum=True,
+        )
         links = tuple(self.links)
         known = set(topics)
         names: set[str] = set()
@@ -174,7 +238,7 @@ class Problem:
     @property
     def link_bytes_per_s(self) -> float:
         """The link's full bandwidth, the reference of the paper's "Bandwidth (%)" column."""
-        return self.bandwidth_mbit * BYTES_PER_S_PER_MBIT
+        return mbit_to_bytes_per_s(self.bandwidth_mbit)
 
     @property
     def budget_bytes_per_s(self) -> float:

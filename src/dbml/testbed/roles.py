@@ -30,15 +30,15 @@ from dbml.core.allocation import Strategy
 from dbml.core.config import DbmSettings
 from dbml.core.errors import TransportError
 from dbml.core.spec import LinkSpec
-from dbml.nodes import run_optimizer, stop_on_signals
+from dbml.runtime.nodes import run_optimizer, stop_on_signals
 from dbml.runtime import names
 from dbml.runtime.metadata import MessageMeta, pack_meta
 from dbml.runtime.rate import Rate
 from dbml.runtime.reception import ReceptionReporter
 from dbml.runtime.subscriber import ManagedSubscriber
-from dbml.sim.live import robot_role
-from dbml.sim.processes import Emit, emit_json, serve_role
-from dbml.sim.teleop import MAX_RATE_HZ, ROBOTS, STEPS
+from dbml.demo.roles import robot_role
+from dbml.harness.processes import Emit, emit_json, serve_role
+from dbml.scenarios.teleop import MAX_RATE_HZ, ROBOTS, STEPS
 from dbml.transports.base import Handle, Sample, Transport, Variant, param_number
 from dbml.transports.zenoh import ZenohTransport
 

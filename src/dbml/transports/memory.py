@@ -200,6 +200,24 @@ class MemoryTransport:
     def now(self) -> float:
         return self._clock()
 
+    def wait_for_peers(self, timeout_s: float) -> bool:
+        """Nothing to wait for: the store is complete at once."""
+        return True
+
+    def confirm_param(self, name: str, *, timeout_s: float) -> bool:
+        """Nothing to confirm: a write is everyone's at once."""
+        return True
+
+    def __enter__(self) -> MemoryTransport:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.close()
+
+    def camera_frame(self, topic: str, size_bytes: int) -> bytes:
+        """A synthetic camera frame of ``size_bytes``: raw bytes over this transport."""
+        return bytes(size_bytes)
+
     def declare_publisher(self, topic: str, variant: Variant = Variant.FULL) -> _MemoryPublisher:
         self._check_open()
         return _MemoryPublisher(self, check_topic(topic), variant)

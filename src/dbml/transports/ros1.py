@@ -389,6 +389,36 @@ class Ros1Transport:
     def message_class(self, topic: str) -> type | None:
         return self._classes.get(topic)
 
+    def wait_for_peers(self, timeout_s: float) -> bool:
+        """Nothing to wait for: the store is complete at once."""
+        return True
+
+    def confirm_param(self, name: str, *, timeout_s: float) -> bool:
+        """Nothing to confirm: a write is everyone's at once."""
+        return True
+
+    def __enter__(self) -> Ros1Transport:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.close()
+
+    def camera_frame(self, topic: str, size_bytes: int) -> bytes:
+        """A serialised ``sensor_msgs/Image`` of exactly ``size_bytes`` (one mono8 row after the
+        header), and ``topic`` carried as that type, so the size the optimizer sees is the one
+        asked for."""
+        from sensor_msgs.msg import Image
+
+        self.use_message_class(topic, Image)
+        image = Image(height=1, encoding="mono8", data=b"")
+        pixels = size_bytes - len(serialize(image))
+        image.width = image.step = pixels
+        image.data = bytes(pixels)
+        serialized = serialize(image)
+        if len(serialized) != size_bytes:
+            raise TransportError(f"size_bytes={size_bytes!r} is smaller than an empty Image")
+        return serialized
+
     def declare_publisher(self, topic: str, variant: Variant = Variant.FULL) -> _Ros1Publisher:
         self._check_open()
         check_topic(topic)

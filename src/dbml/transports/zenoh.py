@@ -420,6 +420,10 @@ class ZenohTransport:
     def now(self) -> float:
         return time.monotonic()
 
+    def camera_frame(self, topic: str, size_bytes: int) -> bytes:
+        """A synthetic camera frame of ``size_bytes``: raw bytes over this transport."""
+        return bytes(size_bytes)
+
     def declare_publisher(self, topic: str, variant: Variant = Variant.FULL) -> _ZenohPublisher:
         check_topic(topic)
         publisher = _ZenohPublisher(self.session, topic, variant)

@@ -6,7 +6,7 @@ synthetic 84,000 / 21,000 byte frames (over ROS 1, ``sensor_msgs/Image`` message
 and set their camera priority from Table 2's replayed distance and speed at every
 step (eq. 6-7); the operator receives through managed subscribers and measures what arrives.
 
-Process protocol (``python -m dbml.sim.live ROLE``): the role prints ``{"type": "ready"}``, waits
+Process protocol (``python -m dbml.demo.roles ROLE``): the role prints ``{"type": "ready"}``, waits
 for ``start <t0>`` on stdin (wall-clock seconds of step 1), runs, and ends at the last step, on
 ``stop``, on stdin EOF, SIGINT or SIGTERM. The operator prints JSON lines: ``status`` several
 times a second, one ``step`` per step and ``done``.
@@ -24,15 +24,15 @@ from typing import Any
 
 from dbml.core.allocation import Strategy
 from dbml.core.config import DbmSettings
-from dbml.nodes import stop_on_signals, synthetic_frame
+from dbml.runtime.nodes import stop_on_signals
 from dbml.runtime import names
 from dbml.runtime.metadata import MessageMeta
 from dbml.runtime.optimizer import OptimizerNode
 from dbml.runtime.priority import collision_priority_source
 from dbml.runtime.publisher import ManagedPublisher
 from dbml.runtime.subscriber import ManagedSubscriber
-from dbml.sim.processes import Emit, emit_json, serve_role
-from dbml.sim.teleop import LINK_MBIT, MAX_RATE_HZ, MIN_RATE_HZ, ROBOTS, STEPS
+from dbml.harness.processes import Emit, emit_json, serve_role
+from dbml.scenarios.teleop import LINK_MBIT, MAX_RATE_HZ, MIN_RATE_HZ, ROBOTS, STEPS
 from dbml.transports.base import Sample, Transport
 from dbml.transports.registry import open_transport
 
@@ -72,7 +72,7 @@ def robot_role(
     )
 
     camera_priority = collision_priority_source(transport, camera.topic)
-    frame = synthetic_frame(transport, camera.topic, camera.size_bytes)
+    frame = transport.camera_frame(camera.topic, camera.size_bytes)
 
     # The robot's own end, not ``stop``: over the memory transport every role shares ``stop``,
     # and a robot done with its last frame must not end the operator before its last report.
@@ -210,7 +210,7 @@ def run_role(
 
 def _main(argv: list[str] | None = None) -> int:
     """One role as an OS process, driven over stdin/stdout by ``dbml demo teleop``."""
-    parser = argparse.ArgumentParser(prog="python -m dbml.sim.live")
+    parser = argparse.ArgumentParser(prog="python -m dbml.demo.roles")
     parser.add_argument("role", choices=ROLES)
     parser.add_argument("--step-seconds", type=float, required=True)
     parser.add_argument("--host", help="zenoh host identity (ROS 1 takes ROS_IP/ROS_HOSTNAME)")

@@ -15,7 +15,7 @@ import time
 from typing import IO
 
 from dbml.core.errors import TransportError
-from dbml.sim.processes import end_process, free_port
+from dbml.harness.processes import end_process, free_port
 from dbml.transports.rosapi import answers
 
 __all__ = ["RosMaster"]

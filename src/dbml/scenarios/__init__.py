@@ -1,6 +1,7 @@
-"""Scenarios: the paper's teleoperation experiment, replayed as events."""
+"""Scenarios as pure data and rules: the paper's teleoperation (robots, events, Table 2)."""
 
-from dbml.sim.teleop import (
+from dbml.scenarios.reproduce import RobotRow, reproduce_table2
+from dbml.scenarios.teleop import (
     PAPER_TABLE2,
     ROBOTS,
     STEPS,
@@ -18,6 +19,8 @@ __all__ = [
     "PaperCell",
     "RobotCamera",
     "RobotEvent",
+    "RobotRow",
     "Step",
+    "reproduce_table2",
     "step_problem",
 ]

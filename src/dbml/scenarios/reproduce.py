@@ -6,7 +6,7 @@ import math
 from dataclasses import dataclass
 
 from dbml.core.allocation import Strategy, allocate
-from dbml.sim.teleop import PAPER_TABLE2, ROBOTS, STEPS, PaperCell, step_problem
+from dbml.scenarios.teleop import PAPER_TABLE2, ROBOTS, STEPS, PaperCell, step_problem
 
 __all__ = ["RobotRow", "reproduce_table2"]
 

@@ -26,11 +26,11 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
 from dbml.core.errors import DbmlError
-from dbml.sim.live import ROLES, run_role
-from dbml.sim.processes import RoleProcesses, free_port
-from dbml.sim.reproduce import reproduce_table2
-from dbml.sim.rosmaster import RosMaster
-from dbml.sim.teleop import LINK_MBIT, ROBOTS, STEPS
+from dbml.demo.roles import ROLES, run_role
+from dbml.harness.processes import RoleProcesses, free_port
+from dbml.scenarios.reproduce import reproduce_table2
+from dbml.harness.rosmaster import RosMaster
+from dbml.scenarios.teleop import LINK_MBIT, ROBOTS, STEPS
 from dbml.transports.memory import MemoryNetwork, MemoryTransport
 
 __all__ = ["DemoResult", "run_teleop_demo"]
@@ -106,7 +106,7 @@ def _spawn(processes: RoleProcesses, step_s: float, master: RosMaster | None) ->
     as nodes of ``master``, each on its own loopback address."""
     zenoh_port = str(free_port())
     for role in ROLES:
-        argv = [sys.executable, "-m", "dbml.sim.live", role, "--step-seconds", str(step_s)]
+        argv = [sys.executable, "-m", "dbml.demo.roles", role, "--step-seconds", str(step_s)]
         if master is None:
             env = dict(os.environ, DBML_ZENOH_PORT=zenoh_port)
             processes.spawn(role, [*argv, "--host", HOSTS[role]], env=env)

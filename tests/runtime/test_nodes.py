@@ -7,7 +7,8 @@ import threading
 import pytest
 
 from dbml.core import DbmSettings, SpecError
-from dbml.nodes import channel_rows, run_monitor, run_subscriber, set_priority
+from dbml.runtime.monitor import MonitorView, channel_rows
+from dbml.runtime.nodes import run_monitor, run_subscriber, set_priority
 from dbml.runtime import ManagedPublisher, ManagedSubscriber, OptimizerNode, names
 from dbml.transports import MemoryNetwork, MemoryTransport
 
@@ -50,21 +51,32 @@ def test_monitor_rows_and_json() -> None:
     assert not rows["/r2/scan"].managed
     assert rows["/r2/scan"].allocated_hz == 10.0
     assert rows["/r2/scan"].status == "unmanaged"
-    out = io.StringIO()
+    views: list[MonitorView] = []
     stop = threading.Event()
     stop.set()  # one update, then stop
-    run_monitor(MemoryTransport(network, host="viewer"), as_json=True, stop=stop, out=out)
-    assert out.getvalue() == ""  # stopped before the first update
+    run_monitor(MemoryTransport(network, host="viewer"), show=views.append, stop=stop)
+    assert views == []  # stopped before the first update
     run_monitor(
         MemoryTransport(network, host="viewer"),
-        as_json=True,
+        show=views.append,
         stop=threading.Event(),
         duration_s=0.01,
         interval_s=0.01,
-        out=out,
     )
-    lines = [json.loads(line) for line in out.getvalue().splitlines()]
+    lines = [json.loads(json.dumps(row.as_json())) for view in views for row in view.rows]
     assert {line["topic"] for line in lines} == {"/r1/camera", "/r2/scan"}
+    assert set(lines[0]) == {
+        "topic",
+        "host",
+        "managed",
+        "priority",
+        "size_bytes",
+        "allocated_hz",
+        "share",
+        "status",
+        "estimate_mbit",
+        "estimator",
+    }
 
 
 def test_subscriber_reports_variant_rate_and_bytes() -> None:

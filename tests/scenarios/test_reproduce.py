@@ -4,8 +4,8 @@ import math
 
 import pytest
 
-from dbml.sim.reproduce import reproduce_table2
-from dbml.sim.teleop import STEPS
+from dbml.scenarios.reproduce import reproduce_table2
+from dbml.scenarios.teleop import STEPS
 
 # step: (R1 tc, p, f Hz, BW %), (R2 tc, p, f Hz, BW %)  -- as printed in the paper
 PAPER = {

@@ -30,8 +30,8 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
 from dbml.core.allocation import Strategy
-from dbml.sim.processes import RoleProcesses
-from dbml.sim.teleop import ROBOTS, STEPS
+from dbml.harness.processes import RoleProcesses
+from dbml.scenarios.teleop import ROBOTS, STEPS
 from dbml.testbed.analysis import (
     Frame,
     Tick,

@@ -1,0 +1,298 @@
+"""The ``dbml`` command line: each command's handler, JSON at the edge, one error line.
+
+Exit codes: 0 success (``optimal``); 2 bad input or an unreadable file, with one line on stderr;
+3 an infeasible budget (the result is still printed); 1 a reproduction that does not match.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import os
+import sys
+import threading
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+from rich.live import Live
+
+from dbml.cli import render
+from dbml.cli.parser import EXIT_USAGE, build_parser
+from dbml.core.allocation import Allocation, Status, allocate
+from dbml.core.config import DbmSettings, load_config
+from dbml.core.errors import DbmlError
+from dbml.core.spec import LinkSpec
+from dbml.demo.runner import print_result, run_teleop_demo
+from dbml.runtime import nodes
+from dbml.runtime.monitor import MonitorView
+from dbml.runtime.nodes import stop_on_signals
+from dbml.scenarios.reproduce import RobotRow, reproduce_table2
+from dbml.transports.base import Transport
+from dbml.transports.registry import open_transport
+
+__all__ = ["EXIT_INFEASIBLE", "EXIT_MISMATCH", "EXIT_OK", "EXIT_USAGE", "main"]
+
+EXIT_OK = 0
+EXIT_MISMATCH = 1
+EXIT_INFEASIBLE = 3
+EXIT_INTERRUPTED = 130
+"""What a shell reports for a program ended by Ctrl-C."""
+
+
+def _allocation_json(allocation: Allocation) -> dict[str, Any]:
+    return {
+        "strategy": allocation.strategy.value,
+        "status": allocation.status.value,
+        "message": allocation.message,
+        "budget_bytes_per_s": allocation.budget_bytes_per_s,
+        "total_bytes_per_s": allocation.total_bytes_per_s,
+        "channels": [
+            {
+                "topic": c.topic,
+                "priority": c.priority,
+                "normalized_priority": c.normalized_priority,
+                "floor_hz": c.floor_hz,
+                "rate_hz": c.rate_hz,
+                "bytes_per_s": c.bytes_per_s,
+                "share": c.share,
+            }
+            for c in allocation.channels
+        ],
+    }
+
+
+def _cmd_allocate(args: argparse.Namespace) -> int:
+    config = load_config(args.config, strategy=args.strategy)
+    allocation = allocate(config.problem(), strategy=config.dbm.strategy)
+    if args.json:
+        print(json.dumps(_allocation_json(allocation)))
+    else:
+        Console().print(render.allocation_table(allocation))
+    return EXIT_OK if allocation.status is Status.OPTIMAL else EXIT_INFEASIBLE
+
+
+def _row_json(row: RobotRow) -> dict[str, Any]:
+    return {
+        "robot": row.robot,
+        "topic": row.topic,
+        "tc_s": None if math.isinf(row.tc_s) else row.tc_s,
+        "priority": row.priority,
+        "rate_hz": row.rate_hz,
+        "share": row.share,
+        "static_rate_hz": row.static_rate_hz,
+        "paper": {
+            "tc_s": row.paper.tc_s,
+            "priority": row.paper.priority,
+            "rate_hz": row.paper.rate_hz,
+            "share": row.paper.share_percent / 100,
+        },
+        "match": row.match,
+    }
+
+
+def _cmd_reproduce(args: argparse.Namespace) -> int:
+    steps = reproduce_table2()
+    all_match = all(row.match for step in steps for row in step)
+    if args.json:
+        document = {
+            "steps": [
+                {"step": step[0].step, "robots": [_row_json(r) for r in step]} for step in steps
+            ],
+            "all_match": all_match,
+        }
+        print(json.dumps(document))
+    else:
+        Console().print(render.reproduce_table(steps))
+    return EXIT_OK if all_match else EXIT_MISMATCH
+
+
+def _open(args: argparse.Namespace) -> Transport:
+    return open_transport(
+        args.transport,
+        host=args.host,
+        connect=args.connect,
+        listen=args.listen,
+        config_file=args.zenoh_config,
+    )
+
+
+def _setup_logging(verbose: bool = True) -> None:
+    """Log to stderr. Called after the transport opens: rospy's node start replaces the root
+    handlers with ROS's own (a file under ~/.ros/log), which would hide dbml's warnings."""
+    logging.basicConfig(
+        force=True,
+        level=logging.INFO if verbose else logging.WARNING,
+        format="%(asctime)s %(name)s: %(message)s",
+        datefmt="%H:%M:%S",
+        stream=sys.stderr,
+    )
+    logging.getLogger("rospy").setLevel(logging.WARNING)  # its INFO is its own start-up chatter
+
+
+def _run_node(args: argparse.Namespace, body: Callable[[Transport, threading.Event], int]) -> int:
+    with stop_on_signals() as stop:
+        transport = _open(args)
+        _setup_logging()
+        try:
+            return body(transport, stop)
+        finally:
+            transport.close()
+
+
+def _cmd_optimizer(args: argparse.Namespace) -> int:
+    if args.estimate and args.transport == "ros1":
+        raise DbmlError(
+            "--estimate needs per-message send times and sequence numbers, which ROS 1 "
+            "messages do not carry: use --transport zenoh"
+        )
+    settings: DbmSettings | None = None
+    links: tuple[LinkSpec, ...] = ()
+    if args.config:
+        config = load_config(args.config, require_channels=False)
+        settings, links = config.dbm, config.links
+    return _run_node(
+        args,
+        lambda t, stop: nodes.run_optimizer(
+            t,
+            settings=settings,
+            links=links,
+            stop=stop,
+            duration_s=args.duration,
+            estimate=args.estimate,
+            write_defaults=args.transport == "ros1",
+        ),
+    )
+
+
+def _cmd_publish(args: argparse.Namespace) -> int:
+    return _run_node(
+        args,
+        lambda t, stop: nodes.run_publisher(
+            t,
+            args.topic,
+            size_bytes=args.size_bytes,
+            min_rate_hz=args.min_hz,
+            max_rate_hz=args.max_hz,
+            priority=args.priority,
+            stop=stop,
+            duration_s=args.duration,
+        ),
+    )
+
+
+def _cmd_subscribe(args: argparse.Namespace) -> int:
+    return _run_node(
+        args,
+        lambda t, stop: nodes.run_subscriber(
+            t, args.topic, as_json=args.json, stop=stop, duration_s=args.duration
+        ),
+    )
+
+
+def _cmd_priority(args: argparse.Namespace) -> int:
+    return _run_node(args, lambda t, _stop: nodes.set_priority(t, args.topic, args.value))
+
+
+def _cmd_monitor(args: argparse.Namespace) -> int:
+    if args.json:
+
+        def show(view: MonitorView) -> None:
+            for row in view.rows:
+                sys.stdout.write(json.dumps(row.as_json()) + "\n")
+            sys.stdout.flush()
+
+        return _run_node(
+            args,
+            lambda t, stop: nodes.run_monitor(t, show=show, stop=stop, duration_s=args.duration),
+        )
+    with Live(console=Console(), auto_refresh=False) as live:
+        return _run_node(
+            args,
+            lambda t, stop: nodes.run_monitor(
+                t,
+                show=lambda view: live.update(render.monitor_table(view), refresh=True),
+                stop=stop,
+                duration_s=args.duration,
+            ),
+        )
+
+
+def _show(
+    args: argparse.Namespace, console: Console, document: dict[str, Any], table: Callable[[], None]
+) -> None:
+    """A scenario's result: one JSON object with ``--json``, else the table (and the plot)."""
+    if args.json:
+        print(json.dumps(document))
+        return
+    table()
+    if args.plot:
+        console.print(f"plot written to {args.plot}")
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    console = Console(stderr=args.json)
+    result = run_teleop_demo(
+        step_seconds=args.step_seconds,
+        transport=args.transport,
+        console=Console(stderr=True),
+        show_live=not args.json,
+        plot=Path(args.plot) if args.plot else None,
+    )
+    _show(args, console, result.as_json(), lambda: print_result(result, console))
+    if result.interrupted:
+        return EXIT_OK
+    return EXIT_OK if result.ok else EXIT_MISMATCH
+
+
+def _cmd_testbed(args: argparse.Namespace) -> int:
+    from dbml.testbed.runner import print_result as print_testbed
+    from dbml.testbed.runner import run_teleop_testbed
+
+    console = Console(stderr=args.json)
+    result = run_teleop_testbed(
+        policy=args.policy,
+        link_mbit=args.link_mbit,
+        step_seconds=args.step_seconds,
+        link_schedule=args.link_schedule,
+        estimate=args.estimate,
+        uplinks=args.uplink,
+        strategy=args.strategy,
+        utilization=args.utilization,
+        console=Console(stderr=True),
+        show_live=not args.json,
+        plot=Path(args.plot) if args.plot else None,
+    )
+    _show(args, console, result.as_json(), lambda: print_testbed(result, console))
+    return EXIT_INTERRUPTED if result.interrupted else EXIT_OK
+
+
+_HANDLERS: dict[str, Callable[[argparse.Namespace], int]] = {
+    "allocate": _cmd_allocate,
+    "reproduce": _cmd_reproduce,
+    "optimizer": _cmd_optimizer,
+    "publish": _cmd_publish,
+    "subscribe": _cmd_subscribe,
+    "priority": _cmd_priority,
+    "monitor": _cmd_monitor,
+    "demo": _cmd_demo,
+    "testbed": _cmd_testbed,
+}
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run ``dbml`` with ``argv`` (default: the process's arguments); the exit code."""
+    args = build_parser().parse_args(argv)
+    try:
+        return _HANDLERS[args.command](args)
+    except DbmlError as err:
+        sys.stderr.write(f"dbml: error: {err}\n")
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        return EXIT_INTERRUPTED
+    except BrokenPipeError:  # e.g. `dbml monitor --json | head`: the reader is gone, not an error
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_OK

@@ -1,0 +1,154 @@
+"""The ``dbml`` argument parser: every command, flag and default in one place."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import NoReturn
+
+from dbml.core.allocation import Strategy
+
+__all__ = ["EXIT_USAGE", "build_parser"]
+
+EXIT_USAGE = 2
+"""Bad input: one line on stderr naming the field and the value."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse that reports a usage error in one line, like every other dbml error."""
+
+    def error(self, message: str) -> NoReturn:
+        sys.stderr.write(f"{self.prog}: error: {message}\n")
+        raise SystemExit(EXIT_USAGE)
+
+
+def _transport_options(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("network (default: processes of this machine, no flags)")
+    group.add_argument(
+        "--transport",
+        choices=["zenoh", "ros1"],
+        default="zenoh",
+        help="zenoh (default) or ros1: the ROS master at $ROS_MASTER_URI, host from $ROS_IP",
+    )
+    group.add_argument(
+        "--host",
+        help="this process's host identity (default: $DBML_HOST or hostname; ros1: ROS_HOSTNAME)",
+    )
+    group.add_argument(
+        "--connect",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="zenoh endpoint to connect to, e.g. tcp/192.168.1.2:7447 (repeatable)",
+    )
+    group.add_argument(
+        "--listen",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)",
+    )
+    group.add_argument("--zenoh-config", metavar="FILE", help="a zenoh JSON5 config file")
+
+
+def _positive(text: str) -> float:
+    value = float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be > 0")
+    return value
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``dbml`` parser; each subcommand's name is ``args.command``."""
+    parser = _Parser(
+        prog="dbml", description="Dynamic bandwidth management for multi-robot systems."
+    )
+    commands = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    allocate_cmd = commands.add_parser("allocate", help="allocate rates for a config file")
+    allocate_cmd.add_argument("config", help="YAML config (dbm, channels, links)")
+    allocate_cmd.add_argument(
+        "--strategy", choices=[s.value for s in Strategy], help="override dbm.strategy"
+    )
+    allocate_cmd.add_argument("--json", action="store_true", help="one JSON object on stdout")
+
+    reproduce_cmd = commands.add_parser("reproduce", help="reproduce a table of the paper")
+    reproduce_cmd.add_argument("table", choices=["table2"], help="which table")
+    reproduce_cmd.add_argument("--json", action="store_true", help="one JSON object on stdout")
+
+    optimizer_cmd = commands.add_parser("optimizer", help="run the optimizer node")
+    optimizer_cmd.add_argument("--config", help="YAML config; its dbm: section is enough")
+    optimizer_cmd.add_argument("--duration", type=_positive, help="stop after S seconds")
+    optimizer_cmd.add_argument(
+        "--estimate",
+        action="store_true",
+        help="estimate the usable bandwidth from what subscribers receive (at most the budget)",
+    )
+    _transport_options(optimizer_cmd)
+
+    publish_cmd = commands.add_parser("publish", help="a managed publisher of synthetic payloads")
+    publish_cmd.add_argument("topic", help="e.g. /r1/camera")
+    publish_cmd.add_argument("--size-bytes", type=int, required=True, help="payload size")
+    publish_cmd.add_argument("--min-hz", type=_positive, required=True, help="minimum rate")
+    publish_cmd.add_argument("--max-hz", type=_positive, required=True, help="maximum rate")
+    publish_cmd.add_argument("--priority", type=float, help="raw priority in [0, 1]")
+    publish_cmd.add_argument("--duration", type=_positive, help="stop after S seconds")
+    _transport_options(publish_cmd)
+
+    subscribe_cmd = commands.add_parser("subscribe", help="a managed subscriber that reports")
+    subscribe_cmd.add_argument("topic", help="e.g. /r1/camera")
+    subscribe_cmd.add_argument("--json", action="store_true", help="one JSON object per line")
+    subscribe_cmd.add_argument("--duration", type=_positive, help="stop after S seconds")
+    _transport_options(subscribe_cmd)
+
+    priority_cmd = commands.add_parser("priority", help="set a channel's raw priority")
+    priority_cmd.add_argument("topic", help="e.g. /r1/camera")
+    priority_cmd.add_argument("value", type=float, help="raw priority in [0, 1]")
+    _transport_options(priority_cmd)
+
+    monitor_cmd = commands.add_parser("monitor", help="a live view of every channel")
+    monitor_cmd.add_argument("--json", action="store_true", help="one JSON object per channel")
+    monitor_cmd.add_argument("--duration", type=_positive, help="stop after S seconds")
+    _transport_options(monitor_cmd)
+
+    demo_cmd = commands.add_parser("demo", help="live scenarios")
+    demo_cmd.add_argument("scenario", choices=["teleop"], help="the paper's section 4")
+    demo_cmd.add_argument("--step-seconds", type=_positive, default=3.0, help="default 3")
+    demo_cmd.add_argument("--json", action="store_true", help="one JSON object on stdout")
+    demo_cmd.add_argument("--plot", metavar="FILE.png", help="write a PNG of rates and bandwidth")
+    demo_cmd.add_argument(
+        "--transport",
+        choices=["zenoh", "ros1", "memory"],
+        default="zenoh",
+        help="zenoh (default), ros1 (a real ROS master, started if none answers) or memory",
+    )
+
+    testbed_cmd = commands.add_parser(
+        "testbed", help="experiments over real tc-shaped links in network namespaces (root)"
+    )
+    testbed_cmd.add_argument("scenario", choices=["teleop"], help="the paper's section 4")
+    testbed_cmd.add_argument(
+        "--policy", choices=["dbml", "static", "unmanaged"], default="dbml", help="default dbml"
+    )
+    testbed_cmd.add_argument("--link-mbit", type=_positive, default=11.0, help="default 11")
+    testbed_cmd.add_argument("--step-seconds", type=_positive, default=6.0, help="default 6")
+    testbed_cmd.add_argument(
+        "--link-schedule", metavar="SPEC", help='change the link rate: "0:11,20:5,40:11" (s:Mbit)'
+    )
+    testbed_cmd.add_argument(
+        "--estimate", action="store_true", help="estimate the bandwidth instead of assuming it"
+    )
+    testbed_cmd.add_argument(
+        "--uplink",
+        metavar="ROBOT=MBIT",
+        action="append",
+        default=[],
+        help="shape a robot's own uplink too (e.g. R1=4); implies --strategy lp",
+    )
+    testbed_cmd.add_argument("--strategy", choices=[s.value for s in Strategy])
+    testbed_cmd.add_argument(
+        "--utilization", type=_positive, help="share of the link dbml may allocate (0.92)"
+    )
+    testbed_cmd.add_argument("--json", action="store_true", help="one JSON object on stdout")
+    testbed_cmd.add_argument("--plot", metavar="FILE.png", help="rates, latency and budget")
+    return parser

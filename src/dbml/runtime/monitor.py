@@ -1,0 +1,111 @@
+"""What ``dbml monitor`` shows, as data: every live channel with its allocation and state."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from dbml.core.spec import mbit_to_bytes_per_s
+from dbml.runtime import names
+from dbml.runtime.graph import is_managed, published_topics, publisher_hosts
+from dbml.runtime.params import channel_params, dbm_params, valid_values
+from dbml.transports.base import Transport
+
+__all__ = ["ChannelRow", "MonitorView", "channel_rows", "monitor_view"]
+
+
+@dataclass(frozen=True, slots=True)
+class ChannelRow:
+    """One live channel; ``share`` is of the budget in use."""
+
+    topic: str
+    host: str
+    managed: bool
+    priority: float
+    size_bytes: float | None
+    allocated_hz: float | None
+    share: float | None
+    status: str
+    estimate_mbit: float | None = None
+    estimator: str | None = None
+
+    def as_json(self) -> dict[str, Any]:
+        """The row as ``dbml monitor --json`` prints it."""
+        return {
+            "topic": self.topic,
+            "host": self.host,
+            "managed": self.managed,
+            "priority": self.priority,
+            "size_bytes": self.size_bytes,
+            "allocated_hz": self.allocated_hz,
+            "share": self.share,
+            "status": self.status,
+            "estimate_mbit": self.estimate_mbit,
+            "estimator": self.estimator,
+        }
+
+
+@dataclass(frozen=True, slots=True)
+class MonitorView:
+    """One update of the monitor: the rows and the global state above them."""
+
+    rows: tuple[ChannelRow, ...]
+    bandwidth_mbit: float | None
+    estimate_mbit: float | None
+    estimator: str | None
+    status_message: str | None
+
+
+def monitor_view(transport: Transport) -> MonitorView:
+    """Read the graph and the (validated) parameters once."""
+    entries = transport.graph.entries()
+    values = valid_values(transport.params.snapshot())
+    dbm = dbm_params(values)
+    budget_mbit = dbm.budget_mbit
+    budget = None if budget_mbit is None else mbit_to_bytes_per_s(budget_mbit)
+    status = values.get(names.STATUS)
+    estimator = values.get(names.ESTIMATOR_STATE)
+    estimator_text = estimator if isinstance(estimator, str) else None
+    rows = []
+    for topic in sorted(published_topics(entries)):
+        channel = channel_params(values, topic)
+        if channel.max_rate_hz is None:
+            continue  # not a dbml channel (ROS 1's graph lists every topic, /rosout too)
+        managed = is_managed(entries, topic)
+        size, allocated = channel.size_bytes, channel.current_rate_hz
+        share = None
+        if managed and budget and size is not None and allocated is not None:
+            share = allocated * size / budget
+        if allocated is None:
+            state = "no allocation"
+        elif not managed:
+            state = "unmanaged"
+        else:
+            state = str(status) if isinstance(status, str) else "managed"
+        rows.append(
+            ChannelRow(
+                topic=topic,
+                host=",".join(sorted(publisher_hosts(entries, topic))),
+                managed=managed,
+                priority=channel.priority,
+                size_bytes=size,
+                allocated_hz=allocated,
+                share=share,
+                status=state,
+                estimate_mbit=dbm.estimate_mbit,
+                estimator=estimator_text,
+            )
+        )
+    message = values.get(names.STATUS_MESSAGE)
+    return MonitorView(
+        rows=tuple(rows),
+        bandwidth_mbit=dbm.bandwidth_mbit,
+        estimate_mbit=dbm.estimate_mbit,
+        estimator=estimator_text,
+        status_message=message if isinstance(message, str) else None,
+    )
+
+
+def channel_rows(transport: Transport) -> list[ChannelRow]:
+    """Every live channel as ``dbml monitor`` shows it."""
+    return list(monitor_view(transport).rows)

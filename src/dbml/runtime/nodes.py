@@ -1,0 +1,221 @@
+"""The long-running commands behind ``dbml optimizer|publish|subscribe|priority|monitor``.
+
+Each opens a transport, runs until its duration ends, SIGINT or SIGTERM, and closes the
+transport on the way out (zenoh sessions must be closed for the process to exit).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import signal
+import sys
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import TextIO
+
+from dbml.core.config import DbmSettings
+from dbml.core.errors import SpecError
+from dbml.core.spec import LinkSpec
+from dbml.runtime import names
+from dbml.runtime.estimator import LinkEstimator
+from dbml.runtime.monitor import MonitorView, monitor_view
+from dbml.runtime.optimizer import OptimizerNode
+from dbml.runtime.publisher import ManagedPublisher
+from dbml.runtime.reception import ReceptionReporter
+from dbml.runtime.subscriber import ManagedSubscriber
+from dbml.transports.base import Sample, Transport
+
+__all__ = [
+    "PEER_WAIT_S",
+    "run_monitor",
+    "run_optimizer",
+    "run_publisher",
+    "run_subscriber",
+    "set_priority",
+    "stop_on_signals",
+]
+
+log = logging.getLogger("dbml")
+
+PEER_WAIT_S = 2.0
+"""How long a command waits to reach a running dbml process before going on alone."""
+
+
+@contextmanager
+def stop_on_signals() -> Iterator[threading.Event]:
+    """An event set by SIGINT or SIGTERM, so loops end cleanly and transports get closed."""
+    stop = threading.Event()
+    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    for sig in previous:
+        signal.signal(sig, lambda *_: stop.set())
+    try:
+        yield stop
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def _until(stop: threading.Event, duration_s: float | None) -> Callable[[], bool]:
+    deadline = None if duration_s is None else time.monotonic() + duration_s
+    return lambda: stop.is_set() or (deadline is not None and time.monotonic() >= deadline)
+
+
+def run_optimizer(
+    transport: Transport,
+    *,
+    settings: DbmSettings | None,
+    links: tuple[LinkSpec, ...],
+    stop: threading.Event,
+    duration_s: float | None = None,
+    estimate: bool = False,
+    write_defaults: bool = False,
+) -> int:
+    transport.wait_for_peers(PEER_WAIT_S)
+    if settings is None and transport.params.get(names.BANDWIDTH) is None:
+        log.warning("no budget yet: waiting for %s (or pass --config)", names.BANDWIDTH)
+    estimator = LinkEstimator(transport) if estimate else None
+    node = OptimizerNode(
+        transport,
+        settings=settings,
+        links=links,
+        budget_mbit=None if estimator is None else estimator.budget_mbit,
+        write_defaults=write_defaults,
+    )
+    if estimator is not None:
+        estimator.on_change = node.poke
+        estimator.start()
+        log.info("estimating the bandwidth from reception reports (at most the configured)")
+    node.start()
+    log.info("optimizer running on host %s", transport.host)
+    done = _until(stop, duration_s)
+    try:
+        while not done():
+            stop.wait(0.1)
+    finally:
+        node.stop()
+        if estimator is not None:
+            estimator.close()
+    return 0
+
+
+def run_publisher(
+    transport: Transport,
+    topic: str,
+    *,
+    size_bytes: int,
+    min_rate_hz: float,
+    max_rate_hz: float,
+    priority: float | None,
+    stop: threading.Event,
+    duration_s: float | None = None,
+) -> int:
+    if size_bytes <= 0:
+        raise SpecError(f"--size-bytes={size_bytes!r} must be > 0")
+    transport.wait_for_peers(PEER_WAIT_S)
+    payload = transport.camera_frame(topic, size_bytes)  # first: it may set the ROS type
+    publisher = ManagedPublisher(
+        transport, topic, min_rate_hz=min_rate_hz, max_rate_hz=max_rate_hz, priority=priority
+    )
+    done = _until(stop, duration_s)
+    shown: float | None = None
+    try:
+        while not done():
+            publisher.rate.sleep()
+            publisher.publish(payload)
+            rate = publisher.current_rate_hz()
+            if rate != shown:
+                shown = rate
+                log.info("%s: publishing %d B at %.3f Hz", topic, size_bytes, rate)
+    finally:
+        publisher.close()
+    return 0
+
+
+@dataclass
+class _Meter:
+    """Counts what arrives, for rates over the last second."""
+
+    arrivals: deque[tuple[float, int]]
+    lock: threading.Lock
+
+    def add(self, sample: Sample) -> None:
+        with self.lock:
+            self.arrivals.append((time.monotonic(), len(sample.payload)))
+
+    def window(self, seconds: float) -> tuple[float, float]:
+        now = time.monotonic()
+        with self.lock:
+            while self.arrivals and self.arrivals[0][0] < now - seconds:
+                self.arrivals.popleft()
+            count = len(self.arrivals)
+            size = sum(n for _, n in self.arrivals)
+        return count / seconds, size / seconds
+
+
+def run_subscriber(
+    transport: Transport,
+    topic: str,
+    *,
+    as_json: bool,
+    stop: threading.Event,
+    duration_s: float | None = None,
+    out: TextIO = sys.stdout,
+) -> int:
+    transport.wait_for_peers(PEER_WAIT_S)
+    meter = _Meter(deque(), threading.Lock())
+    reporter = ReceptionReporter(transport).start()  # for an optimizer that estimates
+    subscriber = ManagedSubscriber(transport, topic, meter.add, reporter=reporter)
+    done = _until(stop, duration_s)
+    try:
+        while not done():
+            stop.wait(1.0)
+            rate_hz, bytes_per_s = meter.window(1.0)
+            variant = subscriber.variant.value
+            if as_json:
+                line = {
+                    "topic": topic,
+                    "variant": variant,
+                    "rate_hz": rate_hz,
+                    "bytes_per_s": bytes_per_s,
+                }
+                out.write(json.dumps(line) + "\n")
+            else:
+                out.write(f"{topic} [{variant}] {rate_hz:.2f} Hz {bytes_per_s:,.0f} B/s\n")
+            out.flush()
+    finally:
+        subscriber.close()
+        reporter.close()
+    return 0
+
+
+def set_priority(transport: Transport, topic: str, value: float) -> int:
+    if isinstance(value, bool) or not 0.0 <= value <= 1.0:
+        raise SpecError(f"priority={value!r} must be within [0, 1]")
+    if not transport.wait_for_peers(PEER_WAIT_S):
+        log.warning("no running dbml process reached; the value is set for none to read")
+    transport.params.set(names.priority(topic), float(value))
+    if not transport.confirm_param(names.priority(topic), timeout_s=PEER_WAIT_S):
+        log.warning("no other process confirmed %s", names.priority(topic))
+    return 0
+
+
+def run_monitor(
+    transport: Transport,
+    *,
+    show: Callable[[MonitorView], None],
+    stop: threading.Event,
+    duration_s: float | None = None,
+    interval_s: float = 1.0,
+) -> int:
+    """Hand a fresh ``MonitorView`` to ``show`` every ``interval_s`` until stopped."""
+    transport.wait_for_peers(PEER_WAIT_S)
+    done = _until(stop, duration_s)
+    while not done():
+        show(monitor_view(transport))
+        stop.wait(interval_s)
+    return 0
