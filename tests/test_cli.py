@@ -199,3 +199,24 @@ def test_example_config_in_repo_allocates(capsys: pytest.CaptureFixture[str]) ->
     code, out, _ = run(capsys, "allocate", str(REPO / "examples" / "teleop.yaml"), "--json")
     assert code == 0
     assert [round(c["rate_hz"], 2) for c in json.loads(out)["channels"]] == [12.37, 16.0]
+
+
+def test_strategy_flag_overrides_the_config_before_links_are_checked(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "links.yaml"
+    text = CONFIG.format(mbit=11, strategy="paper", p1=0.0, p2=0.0).replace(
+        "  strategy: paper\n", ""
+    )
+    path.write_text(
+        text + "links:\n  - {name: r1-up, max_bandwidth_in_mbit: 4, channels: [/r1/camera]}\n"
+    )
+    code, _, err = run(capsys, "allocate", str(path), "--json")
+    assert code == 2  # the file alone asks for links under the default strategy, paper
+    assert err.strip().endswith("links need strategy 'lp', but dbm.strategy='paper'")
+    code, out, err = run(capsys, "allocate", str(path), "--strategy", "lp", "--json")
+    assert (code, err) == (0, "")
+    document = json.loads(out)
+    assert document["strategy"] == "lp"
+    r1 = next(c for c in document["channels"] if c["topic"] == "/r1/camera")
+    assert r1["bytes_per_s"] == pytest.approx(4 * 125_000)  # the link, not the 11 Mbit budget

@@ -1,3 +1,6 @@
+import sys
+import threading
+
 from dbml.runtime import ManagedPublisher, ManagedSubscriber
 from dbml.transports import MemoryNetwork, MemoryTransport, Role, Sample, Variant
 
@@ -39,3 +42,38 @@ def test_close_withdraws_the_subscription() -> None:
     subscriber = ManagedSubscriber(operator, "/cam", lambda s: None)
     subscriber.close()
     assert not [e for e in operator.graph.entries() if e.role is Role.SUBSCRIBER]
+
+
+def test_two_subscribers_switching_at_once_from_two_threads_do_not_deadlock() -> None:
+    """Announcing fires every graph watcher, other subscribers' among them: no subscriber may
+    hold its lock while it does (each switch below fires the other subscriber's update)."""
+    network = MemoryNetwork()
+    operator = MemoryTransport(network, host="op")
+    subscribers = {
+        topic: ManagedSubscriber(operator, topic, lambda s: None) for topic in ("/a", "/b")
+    }
+    rounds = 2000
+    done = {topic: threading.Event() for topic in subscribers}
+
+    def flip(topic: str) -> None:
+        for _ in range(rounds):  # a local publisher comes and goes: full, then optimized
+            ManagedPublisher(operator, topic, min_rate_hz=1, max_rate_hz=16).close()
+        done[topic].set()
+
+    threads = [threading.Thread(target=flip, args=(t,), daemon=True) for t in subscribers]
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)  # interleave the threads inside every switch (found it before)
+    try:
+        for thread in threads:
+            thread.start()
+        for topic, event in done.items():
+            assert event.wait(timeout=30), f"the thread switching {topic} is stuck (deadlock)"
+    finally:
+        sys.setswitchinterval(interval)
+    for thread in threads:
+        thread.join(timeout=5)
+    assert all(s.variant is Variant.OPTIMIZED for s in subscribers.values())
+    tokens = sorted(
+        (e.topic, e.variant) for e in operator.graph.entries() if e.role is Role.SUBSCRIBER
+    )
+    assert tokens == [("/a", Variant.OPTIMIZED), ("/b", Variant.OPTIMIZED)]

@@ -54,6 +54,8 @@ class Strategy(enum.StrEnum):
 
 
 class Status(enum.StrEnum):
+    """Whether the budget held every floor (``optimal``) or the floors were pulled back."""
+
     OPTIMAL = "optimal"
     INFEASIBLE = "infeasible"
 
@@ -98,18 +100,22 @@ class Allocation:
 
     @property
     def success(self) -> bool:
+        """Whether the allocation is optimal."""
         return self.status is Status.OPTIMAL
 
     @property
     def bytes_per_s(self) -> FloatArray:
+        """Each channel's rate times its size."""
         return self.rate_hz * self.size_bytes
 
     @property
     def total_bytes_per_s(self) -> float:
+        """What the channels use together."""
         return float(self.bytes_per_s.sum())
 
     @property
     def channels(self) -> tuple[ChannelAllocation, ...]:
+        """One row per channel, in declaration order."""
         used = self.bytes_per_s
         return tuple(
             ChannelAllocation(
@@ -125,6 +131,7 @@ class Allocation:
         )
 
     def rates_by_topic(self) -> dict[str, float]:
+        """The rates as plain floats by topic."""
         return dict(zip(self.topics, (float(r) for r in self.rate_hz), strict=True))
 
 

@@ -20,7 +20,6 @@ Parsing is pure (text in, specs out); ``load_config`` is the one function that r
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -121,11 +120,10 @@ def _dbm(value: object) -> DbmSettings:
 
 
 def _strategy(field: str, value: object) -> Strategy:
-    try:
-        return Strategy(value)
-    except ValueError:
-        names = " | ".join(s.value for s in Strategy)
-        raise ConfigError(f"{field}={value!r} is not one of {names}") from None
+    known = {s.value: s for s in Strategy}
+    if isinstance(value, str) and value in known:
+        return known[value]
+    raise ConfigError(f"{field}={value!r} is not one of {' | '.join(known)}")
 
 
 def _channel(index: int, value: object) -> ChannelSpec:

@@ -38,6 +38,8 @@ _SPARSE_WINDOWS = 4
 
 
 class Phase(enum.StrEnum):
+    """What the estimator is doing: probing up, holding, or cutting after overuse."""
+
     INCREASE = "increase"
     HOLD = "hold"
     DECREASE = "decrease"
@@ -58,6 +60,8 @@ class Arrival:
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class EstimatorSettings:
+    """The estimator's thresholds and rates; the defaults were tuned on the testbed."""
+
     window_s: float = 0.5
     """The delay trend is measured over this much recent time."""
     rate_window_s: float = 1.0
@@ -156,9 +160,11 @@ class BandwidthEstimator:
 
     @property
     def estimate_mbit(self) -> float:
+        """The usable bandwidth now."""
         return self._estimate
 
     def observe(self, arrival: Arrival) -> None:
+        """Take in one received frame (any order of streams; each stream in order)."""
         stream = self._streams.get(arrival.stream)
         if stream is None:
             stream = self._streams[arrival.stream] = _Stream()
@@ -257,22 +263,31 @@ def _check_max(max_mbit: float) -> float:
     return max_mbit
 
 
+_MIN_SLOPE_POINTS = 3
+"""A trend needs at least this many points."""
+_MIN_SPREAD_S2 = 1e-6
+"""Below this variance of times (s^2), points are simultaneous: no slope."""
+
+
 def _slope(points: list[tuple[float, float]]) -> float:
     """Least-squares slope of y over t; 0 without enough spread."""
-    if len(points) < 3:
+    if len(points) < _MIN_SLOPE_POINTS:
         return 0.0
     n = len(points)
     mean_t = sum(t for t, _ in points) / n
     mean_y = sum(y for _, y in points) / n
     var = sum((t - mean_t) ** 2 for t, _ in points)
-    if var < 1e-6:
+    if var < _MIN_SPREAD_S2:
         return 0.0
     return sum((t - mean_t) * (y - mean_y) for t, y in points) / var
 
 
 def _busy_rate_mbit(ordered: list[tuple[float, float, int]], queued_s: float) -> float | None:
-    """Delivery rate while the link was busy: a frame that waited in the queue arrived as soon
-    as the one before it had, so its size over that gap is the link's rate (packet pairs)."""
+    """Delivery rate while the link was busy.
+
+    A frame that waited in the queue arrived as soon as the one before it had, so its size over
+    that gap is the link's rate (packet pairs).
+    """
     size = gap = 0.0
     for (t_prev, _, _), (t, queue, frame) in itertools.pairwise(ordered):
         if queue > queued_s and t > t_prev:

@@ -71,9 +71,8 @@ def check_number(
     low_ok = minimum is None or (number > minimum if exclusive_minimum else number >= minimum)
     high_ok = maximum is None or number <= maximum
     if not (low_ok and high_ok):
-        raise SpecError(
-            f"{where}{field}={value!r} must be {_range(minimum, maximum, exclusive_minimum=exclusive_minimum)}"
-        )
+        bounds = _range(minimum, maximum, exclusive_minimum=exclusive_minimum)
+        raise SpecError(f"{where}{field}={value!r} must be {bounds}")
     return number
 
 

@@ -19,15 +19,21 @@ from collections.abc import Callable
 from dbml.core.errors import TransportError
 from dbml.core.estimator import Arrival, BandwidthEstimator, Estimate, EstimatorSettings
 from dbml.runtime import names
-from dbml.runtime.reception import RECEPTION_TOPIC, ReceptionReport
-from dbml.transports.base import Sample, Transport, param_number
+from dbml.runtime.params import ParamView
+from dbml.runtime.reception import RECEPTION_TOPIC, REPORT_INTERVAL_S, ReceptionReport
+from dbml.runtime.worker import PeriodicWorker
+from dbml.transports.base import Sample, Transport
 
-__all__ = ["LinkEstimator"]
+__all__ = ["ESTIMATE_INTERVAL_S", "LinkEstimator"]
 
 log = logging.getLogger("dbml.estimator")
 
 _PUBLISH_CHANGE = 0.01
 """Publish the estimate when it moves by this fraction (or the phase changes)."""
+ESTIMATE_INTERVAL_S = 0.1
+"""How often the estimator judges the link."""
+REPORT_LAG_S = REPORT_INTERVAL_S * 1.5
+"""Frames arrive up to one report interval late: the estimator judges the window before."""
 
 
 class LinkEstimator:
@@ -38,13 +44,12 @@ class LinkEstimator:
         transport: Transport,
         *,
         settings: EstimatorSettings | None = None,
-        interval_s: float = 0.1,
-        report_lag_s: float = 0.15,
+        interval_s: float = ESTIMATE_INTERVAL_S,
+        report_lag_s: float = REPORT_LAG_S,
         on_change: Callable[[], None] | None = None,
     ) -> None:
         self._transport = transport
         self._settings = settings
-        self._interval_s = interval_s
         self._report_lag_s = report_lag_s
         self.on_change = on_change
         """Called when the published estimate changes (the optimizer's ``poke``)."""
@@ -52,20 +57,15 @@ class LinkEstimator:
         self._estimator: BandwidthEstimator | None = None
         self._offsets: dict[str, float] = {}
         self._published: tuple[float, str] | None = None
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._view = ParamView(transport.params)
+        self._worker = PeriodicWorker(
+            self.tick, interval_s=interval_s, name="dbml-estimator", log=log
+        )
         self._subscription = transport.subscribe(RECEPTION_TOPIC, self._on_report)
 
     def cap_mbit(self) -> float | None:
-        """The configured budget: the estimate's ceiling."""
-        params = self._transport.params
-        bandwidth = param_number(params.get(names.BANDWIDTH))
-        utilization = param_number(params.get(names.UTILIZATION))
-        if bandwidth is None or not (math.isfinite(bandwidth) and bandwidth > 0):
-            return None
-        if utilization is None or not 0 < utilization <= 1:
-            utilization = 1.0
-        return bandwidth * utilization
+        """The configured budget (bandwidth times utilization): the estimate's ceiling."""
+        return self._view.dbm().configured_mbit
 
     def budget_mbit(self) -> float | None:
         """The current estimate, or None before the budget is configured."""
@@ -132,23 +132,15 @@ class LinkEstimator:
             self.on_change()
 
     def start(self) -> LinkEstimator:
-        self._thread = threading.Thread(target=self._run, name="dbml-estimator", daemon=True)
-        self._thread.start()
+        """Judge the link every interval on a thread of its own."""
+        self._worker.start()
         return self
-
-    def _run(self) -> None:
-        while not self._stop.wait(self._interval_s):
-            try:
-                self.tick()
-            except Exception:  # keep estimating; the next tick retries
-                log.exception("estimator update failed")
 
     def close(self) -> None:
         """Stop and withdraw the estimate, so nobody reads a stale one."""
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2)
+        self._worker.stop()
         self._subscription.close()
+        self._view.close()
         if self._published is not None:
             self._transport.params.set(names.ESTIMATE, None)
             self._transport.params.set(names.ESTIMATOR_STATE, None)

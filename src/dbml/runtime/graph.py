@@ -10,10 +10,12 @@ __all__ = ["is_managed", "published_topics", "publisher_hosts", "remote_subscrib
 
 
 def publisher_hosts(entries: Iterable[GraphEntry], topic: str) -> set[str]:
+    """The hosts that publish ``topic``."""
     return {e.host for e in entries if e.role is Role.PUBLISHER and e.topic == topic}
 
 
 def published_topics(entries: Iterable[GraphEntry]) -> set[str]:
+    """Every topic someone publishes: the live channels."""
     return {e.topic for e in entries if e.role is Role.PUBLISHER}
 
 

@@ -20,17 +20,17 @@ pack_meta = _LAYOUT.pack
 
 @dataclass(frozen=True, slots=True)
 class MessageMeta:
+    """What a managed publisher attaches to every message."""
+
     seq: int
     sent_ns: int
     """Wall-clock send time (``time.time_ns()``) on the publisher's host."""
     rate_hz: float
     """The rate the publisher applied to ``[topic]/optimized`` when it sent this message."""
 
-    def encode(self) -> bytes:
-        return pack_meta(self.seq, self.sent_ns, self.rate_hz)
-
     @classmethod
     def decode(cls, data: bytes | None) -> MessageMeta:
+        """The metadata in an attachment; ``TransportError`` if it is not dbml's."""
         if data is None or len(data) != _LAYOUT.size:
             raise TransportError(f"attachment={data!r} is not dbml message metadata")
         seq, sent_ns, rate_hz = _LAYOUT.unpack(data)

@@ -37,18 +37,22 @@ _CHANNEL = "/dbm/"
 
 
 def min_rate(topic: str) -> str:
+    """The channel's declared minimum rate (Hz)."""
     return f"{topic}/dbm/frequency/min"
 
 
 def max_rate(topic: str) -> str:
+    """The channel's declared maximum rate (Hz)."""
     return f"{topic}/dbm/frequency/max"
 
 
 def size(topic: str) -> str:
+    """The serialised size of the channel's messages, as the publisher measures it."""
     return f"{topic}/dbm/message_size_in_bytes"
 
 
 def priority(topic: str) -> str:
+    """The channel's raw priority in [0, 1]."""
     return f"{topic}/dbm/priority"
 
 
@@ -63,6 +67,7 @@ def applied(topic: str) -> str:
 
 
 def managed(topic: str) -> str:
+    """Whether the optimizer manages the channel (a remote host subscribes)."""
     return f"{topic}/dbm/managed"
 
 

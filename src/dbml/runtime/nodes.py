@@ -20,7 +20,7 @@ from typing import TextIO
 
 from dbml.core.config import DbmSettings
 from dbml.core.errors import SpecError
-from dbml.core.spec import LinkSpec
+from dbml.core.spec import LinkSpec, check_number
 from dbml.runtime import names
 from dbml.runtime.estimator import LinkEstimator
 from dbml.runtime.monitor import MonitorView, monitor_view
@@ -75,6 +75,7 @@ def run_optimizer(
     estimate: bool = False,
     write_defaults: bool = False,
 ) -> int:
+    """``dbml optimizer``: the optimizer node (and the estimator with ``estimate``)."""
     transport.wait_for_peers(PEER_WAIT_S)
     if settings is None and transport.params.get(names.BANDWIDTH) is None:
         log.warning("no budget yet: waiting for %s (or pass --config)", names.BANDWIDTH)
@@ -114,6 +115,7 @@ def run_publisher(
     stop: threading.Event,
     duration_s: float | None = None,
 ) -> int:
+    """``dbml publish``: a managed publisher of synthetic frames, paced by its rate."""
     if size_bytes <= 0:
         raise SpecError(f"--size-bytes={size_bytes!r} must be > 0")
     transport.wait_for_peers(PEER_WAIT_S)
@@ -166,6 +168,7 @@ def run_subscriber(
     duration_s: float | None = None,
     out: TextIO = sys.stdout,
 ) -> int:
+    """``dbml subscribe``: a managed subscriber printing what it receives once a second."""
     transport.wait_for_peers(PEER_WAIT_S)
     meter = _Meter(deque(), threading.Lock())
     reporter = ReceptionReporter(transport).start()  # for an optimizer that estimates
@@ -194,11 +197,11 @@ def run_subscriber(
 
 
 def set_priority(transport: Transport, topic: str, value: float) -> int:
-    if isinstance(value, bool) or not 0.0 <= value <= 1.0:
-        raise SpecError(f"priority={value!r} must be within [0, 1]")
+    """``dbml priority``: write a channel's raw priority and wait for a peer to hold it."""
+    priority = check_number(value, field="priority", minimum=0, maximum=1)
     if not transport.wait_for_peers(PEER_WAIT_S):
         log.warning("no running dbml process reached; the value is set for none to read")
-    transport.params.set(names.priority(topic), float(value))
+    transport.params.set(names.priority(topic), priority)
     if not transport.confirm_param(names.priority(topic), timeout_s=PEER_WAIT_S):
         log.warning("no other process confirmed %s", names.priority(topic))
     return 0

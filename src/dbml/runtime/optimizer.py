@@ -17,40 +17,49 @@ from __future__ import annotations
 import logging
 import threading
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from dbml.core.allocation import Allocation, Status, Strategy, allocate
 from dbml.core.config import DbmSettings
 from dbml.core.errors import DbmlError
-from dbml.core.spec import ChannelSpec, LinkSpec, Problem
+from dbml.core.spec import LinkSpec, Problem
 from dbml.runtime import names
-from dbml.runtime.graph import is_managed, published_topics, publisher_hosts
-from dbml.transports.base import Handle, ParamValue, Transport, param_number
+from dbml.runtime.graph import is_managed, published_topics
+from dbml.runtime.params import ChannelParams, DbmParams, ParamView, write_settings
+from dbml.runtime.worker import PeriodicWorker
+from dbml.transports.base import Handle, ParamValue, Transport
 
 __all__ = ["ChannelState", "OptimizerNode", "Round"]
 
 log = logging.getLogger("dbml.optimizer")
 
 _TRIGGERS = frozenset({"frequency/min", "frequency/max", "message_size_in_bytes", "priority"})
+"""Channel parameters whose change re-allocates at once."""
+_GLOBAL_TRIGGERS = frozenset(
+    {names.BANDWIDTH, names.UTILIZATION, names.PERIOD, names.STRATEGY, names.ESTIMATE}
+)
 _DEFAULTS: dict[str, ParamValue] = {
     names.UTILIZATION: 1.0,
     names.PERIOD: 1.0,
     names.STRATEGY: Strategy.PAPER.value,
 }
-_GLOBAL_TRIGGERS = frozenset({names.BANDWIDTH, names.UTILIZATION, names.PERIOD, names.STRATEGY})
+ACK_TIMEOUT_S = 0.25
+"""How long increases wait for publishers to acknowledge the decreases pushed before them."""
+COALESCE_S = 0.002
+"""Triggers within this time of the first run one round."""
 
 
 @dataclass(frozen=True, slots=True)
 class ChannelState:
-    """A live channel as the optimizer sees it."""
+    """A live channel as the optimizer sees it: its parameters and whether it is managed."""
 
-    topic: str
-    host: str
-    min_rate_hz: float
-    max_rate_hz: float
-    size_bytes: float | None
-    priority: float
+    params: ChannelParams
     managed: bool
+
+    @property
+    def topic(self) -> str:
+        """The channel's topic."""
+        return self.params.topic
 
 
 @dataclass(frozen=True, slots=True)
@@ -69,10 +78,10 @@ class Round:
 class OptimizerNode:
     """Allocate and push rates; ``start()`` runs it in a thread, ``optimize()`` runs one round.
 
-    ``budget_mbit`` overrides ``/dbm/max_bandwidth_in_mbit`` (and its utilization) when it returns
-    a number: the hook a bandwidth estimator uses; its value is the usable budget. With
-    ``write_defaults`` the defaults of unset parameters (utilization 1, period 1 s) are written, so
-    ``rosparam get`` shows every one; only for stores whose reads are complete at start (ROS's).
+    ``budget_mbit`` is the hook a bandwidth estimator uses: when it returns a number, that is the
+    estimate, the usable budget in place of bandwidth times utilization. With ``write_defaults``
+    the defaults of unset parameters (utilization 1, period 1 s) are written, so ``rosparam get``
+    shows every one; only for stores whose reads are complete at start (ROS's).
     """
 
     def __init__(
@@ -81,170 +90,143 @@ class OptimizerNode:
         *,
         settings: DbmSettings | None = None,
         links: Iterable[LinkSpec] = (),
-        ack_timeout_s: float = 0.25,
-        coalesce_s: float = 0.002,
+        ack_timeout_s: float = ACK_TIMEOUT_S,
+        coalesce_s: float = COALESCE_S,
         budget_mbit: Callable[[], float | None] | None = None,
         write_defaults: bool = False,
     ) -> None:
         self._transport = transport
         self._links = tuple(links)
         self._ack_timeout_s = ack_timeout_s
-        self._coalesce_s = coalesce_s
-        self._budget_override = budget_mbit
+        self._estimate = budget_mbit
         self._pushed: dict[str, float] = {}
         self._managed: dict[str, bool] = {}
         self._status: tuple[str, str] | None = None
         self._acks = threading.Condition()
-        self._wake = threading.Event()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
         self.last_round: Round | None = None
+        params = transport.params
         if settings is not None:
-            params = transport.params
-            params.set(names.BANDWIDTH, settings.max_bandwidth_mbit)
-            params.set(names.UTILIZATION, settings.utilization)
-            params.set(names.PERIOD, settings.optimization_period_s)
-            params.set(names.STRATEGY, settings.strategy.value)
+            write_settings(params, settings)
         elif write_defaults:
             for name, default in _DEFAULTS.items():
-                if transport.params.get(name) is None:
-                    transport.params.set(name, default)
-        self._handles: list[Handle] = [
-            transport.params.watch(self._on_param),
-            transport.graph.watch(self.poke),
-        ]
+                if params.get(name) is None:
+                    params.set(name, default)
+        self._view = ParamView(params, on_change=self._on_param)
+        self._worker = PeriodicWorker(
+            self._round,
+            interval_s=lambda: self._view.dbm().period_s,
+            name="dbml-optimizer",
+            log=log,
+            coalesce_s=coalesce_s,
+            immediate=True,
+            clock=transport.now,
+        )
+        self._handles: list[Handle] = [transport.graph.watch(self.poke)]
+
+    def _round(self) -> None:
+        self.optimize()  # looked up per round, so a wrapped ``optimize`` is the one that runs
 
     # -- triggers -----------------------------------------------------------------------------
 
     def poke(self) -> None:
         """Ask for a re-optimisation as soon as possible (bursts coalesce into one)."""
-        self._wake.set()
+        self._worker.wake()
 
     def _on_param(self, name: str, _value: ParamValue) -> None:
+        """A valid value arrived (the view has it already): react to what it changes."""
         if name in _GLOBAL_TRIGGERS:
             self.poke()
             return
         split = names.topic_of(name)
         if split is None:
             return
-        _, field = split
-        if field in _TRIGGERS:
+        if split[1] in _TRIGGERS:
             self.poke()
-        elif field == "frequency/applied_value":
+        elif split[1] == "frequency/applied_value":
             with self._acks:
                 self._acks.notify_all()
 
     # -- reading the world --------------------------------------------------------------------
 
+    def dbm(self) -> DbmParams:
+        """The ``/dbm/...`` parameters in force, with the estimate when one runs."""
+        dbm = self._view.dbm()
+        if self._estimate is not None:
+            dbm = replace(dbm, estimate_mbit=self._estimate())
+        return dbm
+
     def period_s(self) -> float:
-        period = param_number(self._transport.params.get(names.PERIOD))
-        return period if period is not None and period > 0 else 1.0
+        """The optimisation period in force."""
+        return self._view.dbm().period_s
 
     def strategy(self) -> Strategy:
-        raw = self._transport.params.get(names.STRATEGY)
-        try:
-            return Strategy(raw) if isinstance(raw, str) else Strategy.PAPER
-        except ValueError:
-            log.error("%s=%r is not a strategy; using paper", names.STRATEGY, raw)
-            return Strategy.PAPER
-
-    def _budget(self) -> tuple[float, float] | None:
-        """(Mbit/s, utilization) to allocate: an estimate is already the usable budget."""
-        if self._budget_override is not None:
-            estimate = self._budget_override()
-            if estimate is not None:
-                return estimate, 1.0
-        value = param_number(self._transport.params.get(names.BANDWIDTH))
-        if value is None or value <= 0:
-            return None
-        return value, param_number(self._transport.params.get(names.UTILIZATION)) or 1.0
+        """The allocation strategy in force."""
+        return self._view.dbm().strategy
 
     def budget_mbit(self) -> float | None:
         """What may be allocated: the estimate, else bandwidth times utilization."""
-        budget = self._budget()
-        return None if budget is None else budget[0] * budget[1]
+        return self.dbm().budget_mbit
 
     def channels(self) -> tuple[ChannelState, ...]:
+        """Every live channel whose publisher declared valid bounds, by topic."""
         entries = self._transport.graph.entries()
-        params = self._transport.params.snapshot()
         states = []
         for topic in sorted(published_topics(entries)):
-            low = param_number(params.get(names.min_rate(topic)))
-            high = param_number(params.get(names.max_rate(topic)))
-            if low is None or high is None or not 0 < low <= high:
-                continue  # a publisher that has not declared valid bounds yet
-            size = param_number(params.get(names.size(topic)))
-            priority = param_number(params.get(names.priority(topic))) or 0.0
-            states.append(
-                ChannelState(
-                    topic=topic,
-                    host=min(publisher_hosts(entries, topic)),
-                    min_rate_hz=low,
-                    max_rate_hz=high,
-                    size_bytes=size if size is not None and size > 0 else None,
-                    priority=min(1.0, max(0.0, priority)),
-                    managed=is_managed(entries, topic),
-                )
-            )
+            params = self._view.channel(topic)
+            if params.bounded:  # else a publisher that has not declared valid bounds yet
+                states.append(ChannelState(params, is_managed(entries, topic)))
         return tuple(states)
 
     # -- one round ----------------------------------------------------------------------------
 
     def _allocate(
-        self, managed: list[ChannelState], budget: tuple[float, float] | None
+        self, managed: list[ChannelParams], dbm: DbmParams
     ) -> tuple[dict[str, float], Status, str, Allocation | None]:
         if not managed:
             return {}, Status.OPTIMAL, "no managed channels", None
-        if budget is None:
-            rates = {c.topic: c.min_rate_hz for c in managed}
-            return rates, Status.INFEASIBLE, f"no budget: set {names.BANDWIDTH}", None
-        sized = [c for c in managed if c.size_bytes is not None]
+        floors = {c.topic: c.floor_hz for c in managed}
+        if dbm.budget_mbit is None:
+            return floors, Status.INFEASIBLE, f"no budget: set {names.BANDWIDTH}", None
+        specs = [spec for c in managed if (spec := c.spec()) is not None]
         # Channels that have not sent a message yet have no size: they stay at their minimum.
-        rates = {c.topic: c.min_rate_hz for c in managed if c.size_bytes is None}
-        if not sized:
+        rates = {t: r for t, r in floors.items() if t not in {s.topic for s in specs}}
+        if not specs:
             return rates, Status.OPTIMAL, "waiting for the first message sizes", None
-        strategy = self.strategy()
-        topics = {c.topic for c in sized}
+        topics = {s.topic for s in specs}
         links = tuple(
             LinkSpec(link.name, link.capacity_mbit, kept)
             for link in self._links
             if (kept := tuple(t for t in link.topics if t in topics))
         )
-        if links and strategy is not Strategy.LP:
-            log.error("links are configured but strategy is %s; links ignored", strategy.value)
+        if links and dbm.strategy is not Strategy.LP:
+            log.error("links are configured but strategy is %s; links ignored", dbm.strategy.value)
             links = ()
-        problem = Problem(
-            channels=tuple(
-                ChannelSpec(c.topic, c.min_rate_hz, c.max_rate_hz, c.size_bytes or 1.0, c.priority)
-                for c in sized
-            ),
-            bandwidth_mbit=budget[0],
-            utilization=budget[1],
-            links=links,
-        )
-        allocation = allocate(problem, strategy=strategy)
+        problem = Problem(tuple(specs), bandwidth_mbit=dbm.budget_mbit, links=links)
+        allocation = allocate(problem, strategy=dbm.strategy)
         rates.update(allocation.rates_by_topic())
         return rates, allocation.status, allocation.message, allocation
 
     def optimize(self) -> Round:
         """Read, allocate and push once."""
         channels = self.channels()
-        budget = self._budget()
-        managed = [c for c in channels if c.managed]
+        dbm = self.dbm()
+        managed = [c.params for c in channels if c.managed]
         try:
-            rates, status, message, allocation = self._allocate(managed, budget)
+            rates, status, message, allocation = self._allocate(managed, dbm)
         except DbmlError as err:
-            # e.g. a utilization parameter out of range: keep every managed channel at its min.
-            rates = {c.topic: c.min_rate_hz for c in managed}
+            # A bad combination of good values: keep every managed channel at its minimum.
+            rates = {c.topic: c.floor_hz for c in managed}
             status, message, allocation = Status.INFEASIBLE, str(err), None
         for channel in channels:
-            if not channel.managed:
-                rates[channel.topic] = channel.max_rate_hz
+            if not channel.managed and channel.params.max_rate_hz is not None:
+                rates[channel.topic] = channel.params.max_rate_hz
+        problems = self._view.problems()
+        if problems:
+            message = f"{message}; ignored: {'; '.join(problems)}"
         self._report_managed(channels)
         self._push(rates)
         self._report_status(status, message)
-        usable = None if budget is None else budget[0] * budget[1]
-        result = Round(channels, rates, status, message, usable, allocation)
+        result = Round(channels, rates, status, message, dbm.budget_mbit, allocation)
         self.last_round = result
         return result
 
@@ -253,7 +235,7 @@ class OptimizerNode:
 
         def running(topic: str) -> float | None:
             """What the publisher acknowledged running, else what we last pushed."""
-            applied = param_number(params.get(names.applied(topic)))
+            applied = self._view.channel(topic).applied_rate_hz
             return applied if applied is not None else self._pushed.get(topic)
 
         before = {t: running(t) for t in rates}
@@ -265,19 +247,21 @@ class OptimizerNode:
         for topic, rate in rates.items():
             if topic not in decreases:
                 params.set(names.current_value(topic), rate)  # also the periodic heartbeat
-        self._pushed = {t: rates[t] for t in rates}
+        self._pushed = dict(rates)
 
     def _await_acks(self, decreases: dict[str, float]) -> None:
         """Wait until publishers apply the decreases (bounded), so increases come after them."""
-        params = self._transport.params
 
-        def applied() -> bool:
-            return all(params.get(names.applied(t)) == r for t, r in decreases.items())
+        def late() -> list[str]:
+            return sorted(
+                t for t, r in decreases.items() if self._view.channel(t).applied_rate_hz != r
+            )
 
         with self._acks:
-            if not self._acks.wait_for(applied, timeout=self._ack_timeout_s):
-                late = sorted(t for t, r in decreases.items() if params.get(names.applied(t)) != r)
-                log.warning("no acknowledgement of a decrease from %s; raising others anyway", late)
+            if not self._acks.wait_for(lambda: not late(), timeout=self._ack_timeout_s):
+                log.warning(
+                    "no acknowledgement of a decrease from %s; raising others anyway", late()
+                )
 
     def _report_managed(self, channels: tuple[ChannelState, ...]) -> None:
         for channel in channels:
@@ -298,33 +282,15 @@ class OptimizerNode:
 
     # -- the loop -----------------------------------------------------------------------------
 
-    def run(self) -> None:
-        """Optimise every period and on every trigger until ``stop()``."""
-        now = self._transport.now
-        next_round = now()
-        while not self._stop.is_set():
-            triggered = self._wake.wait(timeout=max(0.0, next_round - now()))
-            if self._stop.is_set():
-                break
-            if triggered:
-                self._stop.wait(self._coalesce_s)
-            self._wake.clear()
-            try:
-                self.optimize()
-            except Exception:  # keep the node alive; the next trigger retries
-                log.exception("optimisation round failed")
-            next_round = now() + self.period_s()
-
     def start(self) -> OptimizerNode:
-        self._thread = threading.Thread(target=self.run, name="dbml-optimizer", daemon=True)
-        self._thread.start()
+        """Optimise now, then every period and on every trigger, until ``stop()``."""
+        self._worker.start()
         return self
 
     def stop(self) -> None:
-        self._stop.set()
-        self._wake.set()
-        if self._thread is not None:
-            self._thread.join(timeout=5)
+        """Stop the loop and stop following the store and the graph."""
+        self._worker.stop()
         for handle in self._handles:
             handle.close()
         self._handles.clear()
+        self._view.close()

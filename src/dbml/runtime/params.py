@@ -24,7 +24,7 @@ from typing import Any
 from dbml.core.allocation import Status, Strategy
 from dbml.core.config import DbmSettings
 from dbml.core.errors import SpecError
-from dbml.core.spec import check_number
+from dbml.core.spec import ChannelSpec, check_number
 from dbml.runtime import names
 from dbml.transports.base import Handle, ParamStore, ParamValue
 
@@ -76,6 +76,8 @@ _CHANNEL_RULES: dict[str, dict[str, Any]] = {
     "message_size_in_bytes": {**_POSITIVE, "maximum": MAX_SIZE_BYTES},
     "priority": {"minimum": 0.0, "maximum": 1.0},
 }
+_SHORT_CHARS = 80
+"""A value longer than this is cut in messages: a 10 MB value is not logged whole."""
 _TEXTS = frozenset({names.STATUS_MESSAGE, names.ESTIMATOR_STATE})
 
 
@@ -127,7 +129,7 @@ def _not(name: str, value: object) -> ParamValue:
 
 def _short(value: object) -> str:
     text = repr(value)
-    return text if len(text) <= 80 else f"{text[:77]}..."
+    return text if len(text) <= _SHORT_CHARS else f"{text[: _SHORT_CHARS - 3]}..."
 
 
 @dataclass(frozen=True, slots=True)
@@ -174,6 +176,19 @@ class ChannelParams:
             self.min_rate_hz is not None
             and self.max_rate_hz is not None
             and self.min_rate_hz <= self.max_rate_hz
+        )
+
+    @property
+    def floor_hz(self) -> float:
+        """The declared minimum rate (0 when undeclared): where an unsized channel stays."""
+        return self.min_rate_hz or 0.0
+
+    def spec(self) -> ChannelSpec | None:
+        """The channel as the allocator takes it, once bounds and size are known."""
+        if not self.bounded or self.size_bytes is None:
+            return None
+        return ChannelSpec(
+            self.topic, self.floor_hz, self.max_rate_hz or 0.0, self.size_bytes, self.priority
         )
 
 
@@ -286,8 +301,10 @@ def channel_params(values: Mapping[str, ParamValue], topic: str) -> ChannelParam
 
 
 def valid_values(snapshot: Mapping[str, ParamValue]) -> dict[str, ParamValue]:
-    """The valid values of a one-off snapshot (bad ones left out), for a reader that does not
-    follow the store (``dbml monitor``'s rows)."""
+    """The valid values of a one-off snapshot, bad ones left out.
+
+    For a reader that does not follow the store (``dbml monitor``'s rows).
+    """
     good: dict[str, ParamValue] = {}
     for name, value in snapshot.items():
         try:

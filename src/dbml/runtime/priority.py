@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from dbml.core.errors import SpecError
 from dbml.core.priority import collision_priority, time_to_collision_s
+from dbml.core.spec import check_number
 from dbml.runtime import names
 from dbml.transports.base import Transport, check_topic
 
@@ -27,9 +27,9 @@ class PrioritySource:
 
     def set(self, priority: float) -> float:
         """Set the priority directly (validated as the core validates it)."""
-        if isinstance(priority, bool) or not 0.0 <= priority <= 1.0:
-            raise SpecError(f"channel {self.topic!r}: priority={priority!r} must be within [0, 1]")
-        value = float(priority)
+        value = check_number(
+            priority, field="priority", owner=f"channel {self.topic!r}", minimum=0, maximum=1
+        )
         if value != self._last:
             self._last = value
             self._transport.params.set(names.priority(self.topic), value)

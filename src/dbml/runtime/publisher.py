@@ -19,33 +19,30 @@ from dbml.core.errors import SpecError
 from dbml.core.spec import ChannelSpec
 from dbml.runtime import names
 from dbml.runtime.metadata import pack_meta
+from dbml.runtime.params import ParamView
 from dbml.runtime.rate import Rate, RateLimiter
-from dbml.transports.base import (
-    Handle,
-    ParamValue,
-    Role,
-    Transport,
-    Variant,
-    check_topic,
-    param_number,
-)
+from dbml.transports.base import Handle, ParamValue, Role, Transport, Variant, check_topic
 
-__all__ = ["ManagedPublisher"]
+__all__ = ["FAILSAFE_PERIODS", "SIZE_CHANGE", "ManagedPublisher"]
 
 log = logging.getLogger("dbml.publisher")
 
 SIZE_CHANGE = 0.10
 """Relative change of message size that is worth telling the optimizer about."""
+FAILSAFE_PERIODS = 3.0
+"""Optimisation periods without an allocation before a publisher falls back to its minimum."""
 
 
 class ManagedPublisher:
-    """Publish on ``topic`` at the rate the optimizer allocates, between ``min_rate_hz`` and
-    ``max_rate_hz``.
+    """Publish on ``topic`` at the rate the optimizer allocates, within its declared bounds.
 
     ``publish(payload)`` drops what exceeds the rate; ``rate.sleep()`` paces a sensor loop so it
     does not even capture what would be dropped. Call ``publish`` from one thread; allocations
-    arrive on the transport's thread. The per-message path reads only cached values: the rate
-    in force and the fail-safe deadline are recomputed when an allocation or the period arrives.
+    arrive on the transport's thread. The rate in force is derived in one place,
+    ``current_rate_hz()``: the last allocation while it is fresh, else the minimum (before the
+    first allocation, and in fail-safe once ``failsafe_periods`` periods pass without one). A
+    pushed rate above the declared maximum is clamped to it: the publisher is the authority on
+    its own bounds.
     """
 
     def __init__(
@@ -56,7 +53,7 @@ class ManagedPublisher:
         min_rate_hz: float,
         max_rate_hz: float,
         priority: float | None = None,
-        failsafe_periods: float = 3.0,
+        failsafe_periods: float = FAILSAFE_PERIODS,
         wall_clock_ns: Callable[[], int] = time.time_ns,
     ) -> None:
         check_topic(topic)
@@ -76,78 +73,78 @@ class ManagedPublisher:
         self._optimized_seq = 0
         self._size_bytes = -1
         self._allocated_hz: float | None = None
-        self._rate_hz = self.min_rate_hz  # in force: the allocation, else the minimum
         self._last_heard = transport.now()
-        self._period_s = param_number(transport.params.get(names.PERIOD)) or 1.0
-        self._deadline = self._last_heard + failsafe_periods * self._period_s
-        self._failsafe = False
+        self._deadline = self._last_heard  # the fail-safe time of the allocation in force
+        self._failsafe_noted = False
         self._limiter = RateLimiter(self.min_rate_hz)
         self.rate = Rate(self.current_rate_hz, clock=transport.now)
 
         params = transport.params
-        self._handles: list[Handle] = [params.watch(self._on_param)]
+        self._view = ParamView(params, on_change=self._on_param)
+        self._period_s = self._view.dbm().period_s
         params.set(names.min_rate(topic), self.min_rate_hz)
         params.set(names.max_rate(topic), self.max_rate_hz)
         if priority is not None:  # otherwise keep what was set (the optimizer reads none as 0)
             params.set(names.priority(topic), float(priority))
         self._full = transport.declare_publisher(topic, Variant.FULL)
         self._optimized = transport.declare_publisher(topic, Variant.OPTIMIZED)
-        self._handles.append(transport.graph.announce(Role.PUBLISHER, topic, Variant.FULL))
+        self._handles: list[Handle] = [
+            transport.graph.announce(Role.PUBLISHER, topic, Variant.FULL)
+        ]
 
     # -- allocation ---------------------------------------------------------------------------
 
     def _on_param(self, name: str, value: ParamValue) -> None:
-        if name == names.PERIOD:
-            period = param_number(value)
-            if period is not None and period > 0:
-                with self._lock:
-                    self._period_s = period
-                    self._deadline = self._last_heard + self._failsafe_periods * period
+        """A valid period or allocation: apply it (and acknowledge an allocation)."""
+        if name == names.PERIOD and isinstance(value, float):
+            with self._lock:
+                self._period_s = value
+                self._deadline = self._last_heard + self._failsafe_periods * value
             return
-        if name != names.current_value(self.topic):
+        if name != names.current_value(self.topic) or not isinstance(value, float):
             return
-        rate = param_number(value)
-        if rate is None or rate <= 0:
-            return
+        rate = min(value, self.max_rate_hz)
         with self._lock:
-            self._last_heard = self._transport.now()
+            self._last_heard = self._now()
             self._deadline = self._last_heard + self._failsafe_periods * self._period_s
-            if self._failsafe:
+            if self._failsafe_noted:
                 log.warning("%s: allocation heard again; running at %.3f Hz", self.topic, rate)
-                self._failsafe = False
+                self._failsafe_noted = False
             changed = rate != self._allocated_hz
             self._allocated_hz = rate
-            self._rate_hz = rate
-            self._limiter.set_rate(rate)
         if changed:
             self._transport.params.set(names.applied(self.topic), rate)
 
-    def _enter_failsafe(self, now: float) -> None:
-        with self._lock:
-            if self._failsafe or now <= self._deadline:
-                return
-            self._failsafe = True
-            log.warning(
-                "%s: no allocation heard for %.1f s (%g periods); fail-safe: minimum %.3f Hz",
-                self.topic,
-                now - self._last_heard,
-                self._failsafe_periods,
-                self.min_rate_hz,
-            )
-            self._allocated_hz = None
-            self._rate_hz = self.min_rate_hz
-            self._limiter.set_rate(self.min_rate_hz)
-
     def current_rate_hz(self) -> float:
-        """The rate in force: the allocation, or the minimum before one and in fail-safe."""
-        if self._now() > self._deadline:
-            self._enter_failsafe(self._now())
-        return self._rate_hz
+        """The rate in force: the allocation while it is fresh, else the minimum."""
+        return self._rate_at(self._now())
+
+    def _rate_at(self, now: float) -> float:
+        allocated = self._allocated_hz
+        if allocated is not None and now <= self._deadline:
+            return allocated
+        if allocated is not None:
+            self._note_failsafe(now)
+        return self.min_rate_hz
+
+    def _note_failsafe(self, now: float) -> None:
+        """Log once that the allocation went stale (nothing else changes: the rate is derived)."""
+        with self._lock:
+            if self._failsafe_noted:
+                return
+            self._failsafe_noted = True
+        log.warning(
+            "%s: no allocation heard for %.1f s (%g periods); fail-safe: minimum %.3f Hz",
+            self.topic,
+            now - self._last_heard,
+            self._failsafe_periods,
+            self.min_rate_hz,
+        )
 
     @property
     def failsafe(self) -> bool:
-        self.current_rate_hz()
-        return self._failsafe
+        """Whether an allocation was heard but has gone stale."""
+        return self._allocated_hz is not None and self._now() > self._deadline
 
     # -- publishing ---------------------------------------------------------------------------
 
@@ -166,23 +163,25 @@ class ManagedPublisher:
         the throttling.
         """
         now = self._now()
-        if now > self._deadline:
-            self._enter_failsafe(now)
+        rate = self._rate_at(now)
         if len(payload) != self._size_bytes:
             self._track_size(len(payload))
         sent_ns = self._wall_clock_ns()
         if self._full.has_subscribers:
             self._full_seq += 1
-            self._full.put(payload, pack_meta(self._full_seq, sent_ns, self._rate_hz))
+            self._full.put(payload, pack_meta(self._full_seq, sent_ns, rate))
+        self._limiter.set_rate(rate)
         if not self._limiter.allow(now):
             return False
         self._optimized_seq += 1
-        self._optimized.put(payload, pack_meta(self._optimized_seq, sent_ns, self._rate_hz))
+        self._optimized.put(payload, pack_meta(self._optimized_seq, sent_ns, rate))
         return True
 
     def close(self) -> None:
+        """Withdraw from the graph and undeclare both publishers."""
         for handle in self._handles:
             handle.close()
         self._handles.clear()
+        self._view.close()
         self._full.close()
         self._optimized.close()

@@ -26,12 +26,15 @@ class RateLimiter:
 
     @property
     def rate_hz(self) -> float:
+        """The rate in force."""
         return 1.0 / self._period
 
     def set_rate(self, rate_hz: float) -> None:
+        """Apply a new rate from the next message on."""
         self._period = 1.0 / rate_hz
 
     def allow(self, now: float) -> bool:
+        """Whether a message may go out at ``now``; if so it counts as sent."""
         if now < self._due:
             return False
         first = self._due == -float("inf")
@@ -62,6 +65,7 @@ class Rate:
         self._last: float | None = None
 
     def sleep(self) -> None:
+        """Block until the loop's next tick."""
         now = self._clock()
         if self._last is None:  # the loop's first tick is now
             self._last = now
@@ -76,4 +80,5 @@ class Rate:
         self._last = deadline if now - deadline < period else now
 
     def reset(self) -> None:
+        """Start the schedule again at the next ``sleep()``."""
         self._last = None

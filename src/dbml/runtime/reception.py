@@ -16,19 +16,30 @@ from typing import Any
 
 from dbml.core.errors import TransportError
 from dbml.runtime.metadata import MessageMeta
+from dbml.runtime.worker import PeriodicWorker
 from dbml.transports.base import Sample, Transport
 
-__all__ = ["RECEPTION_TOPIC", "Frame", "ReceptionReport", "ReceptionReporter"]
+__all__ = [
+    "RECEPTION_TOPIC",
+    "REPORT_INTERVAL_S",
+    "ReceivedFrame",
+    "ReceptionReport",
+    "ReceptionReporter",
+]
 
 log = logging.getLogger("dbml.reception")
 
 RECEPTION_TOPIC = "/dbm/reception"
+REPORT_INTERVAL_S = 0.1
+"""How often a reporter sends what it recorded."""
 _MAX_FRAMES = 10_000
 """Frames kept between flushes at most; beyond that the oldest are dropped (nobody reads)."""
 
 
 @dataclass(frozen=True, slots=True)
-class Frame:
+class ReceivedFrame:
+    """One frame as a subscriber received it."""
+
     topic: str
     seq: int
     sent_ns: int
@@ -44,18 +55,20 @@ class ReceptionReport:
 
     host: str
     now_s: float
-    frames: tuple[Frame, ...]
+    frames: tuple[ReceivedFrame, ...]
 
     def encode(self) -> bytes:
+        """The report as JSON bytes."""
         rows = [[f.topic, f.seq, f.sent_ns, f.arrival_s, f.size_bytes] for f in self.frames]
         return json.dumps({"host": self.host, "now_s": self.now_s, "frames": rows}).encode()
 
     @classmethod
     def decode(cls, data: bytes) -> ReceptionReport:
+        """A report from its bytes; ``TransportError`` if they are malformed."""
         try:
             document: dict[str, Any] = json.loads(data)
             frames = tuple(
-                Frame(str(topic), int(seq), int(sent), float(arrival), int(size))
+                ReceivedFrame(str(topic), int(seq), int(sent), float(arrival), int(size))
                 for topic, seq, sent, arrival, size in document["frames"]
             )
             return cls(str(document["host"]), float(document["now_s"]), frames)
@@ -66,14 +79,14 @@ class ReceptionReport:
 class ReceptionReporter:
     """Collects frames from managed subscribers and publishes them in batches."""
 
-    def __init__(self, transport: Transport, *, interval_s: float = 0.1) -> None:
+    def __init__(self, transport: Transport, *, interval_s: float = REPORT_INTERVAL_S) -> None:
         self._transport = transport
-        self._interval_s = interval_s
         self._publisher = transport.declare_publisher(RECEPTION_TOPIC)
-        self._frames: list[Frame] = []
+        self._frames: list[ReceivedFrame] = []
         self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._worker = PeriodicWorker(
+            self.flush, interval_s=interval_s, name="dbml-reception", log=log
+        )
 
     def record(self, sample: Sample) -> None:
         """Note one received frame (called on the middleware's thread: cheap, never blocks)."""
@@ -83,7 +96,7 @@ class ReceptionReporter:
             meta = MessageMeta.decode(sample.attachment)
         except TransportError:
             return  # not a dbml publisher: nothing to learn about the link from it
-        frame = Frame(
+        frame = ReceivedFrame(
             sample.topic, meta.seq, meta.sent_ns, self._transport.now(), len(sample.payload)
         )
         with self._lock:
@@ -102,19 +115,11 @@ class ReceptionReporter:
         return len(frames)
 
     def start(self) -> ReceptionReporter:
-        self._thread = threading.Thread(target=self._run, name="dbml-reception", daemon=True)
-        self._thread.start()
+        """Flush every interval on a thread of its own."""
+        self._worker.start()
         return self
 
-    def _run(self) -> None:
-        while not self._stop.wait(self._interval_s):
-            try:
-                self.flush()
-            except Exception:  # keep reporting; the next flush retries
-                log.exception("reception report failed")
-
     def close(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2)
+        """Stop flushing and undeclare the report publisher."""
+        self._worker.stop()
         self._publisher.close()

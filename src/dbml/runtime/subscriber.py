@@ -20,6 +20,8 @@ __all__ = ["ManagedSubscriber"]
 
 
 class ManagedSubscriber:
+    """Receive ``topic`` in the right copy, following the publisher's host."""
+
     def __init__(
         self,
         transport: Transport,
@@ -32,16 +34,21 @@ class ManagedSubscriber:
         self._transport = transport
         self._callback = callback
         self._reporter = reporter
-        self._lock = threading.RLock()  # announcing may call back into _update
+        # The lock guards state only; graph reads, subscribing and announcing happen outside it
+        # (announcing fires every graph watcher, other subscribers' updates among them).
+        self._lock = threading.Lock()
         self._variant: Variant | None = None
         self._subscription: Handle | None = None
         self._token: Handle | None = None
+        self._pending = False
+        self._updating = False
         self._closed = False
         self._graph_watch = transport.graph.watch(self._update)
         self._update()
 
     @property
     def variant(self) -> Variant:
+        """The copy received now: ``full`` from a local publisher, else ``optimized``."""
         with self._lock:
             assert self._variant is not None
             return self._variant
@@ -51,24 +58,43 @@ class ManagedSubscriber:
         return Variant.FULL if self._transport.host in hosts else Variant.OPTIMIZED
 
     def _update(self) -> None:
+        """Follow the graph.
+
+        One thread at a time switches; a change seen meanwhile (also one caused by our own
+        announcement) makes that thread look again instead of waiting.
+        """
         with self._lock:
-            if self._closed:
+            self._pending = True
+            if self._updating or self._closed:
                 return
+            self._updating = True
+        while True:
+            with self._lock:
+                if not self._pending or self._closed:
+                    self._updating = False
+                    return
+                self._pending = False
+                current = self._variant
             wanted = self._wanted()
-            if wanted is self._variant:
-                return
-            old_subscription, old_token = self._subscription, self._token
-            self._variant = wanted
-            # Subscribe to the new copy before leaving the old one, so nothing is missed.
-            callback = self._callback
-            if wanted is Variant.OPTIMIZED and self._reporter is not None:
-                callback = self._reported
-            self._subscription = self._transport.subscribe(self.topic, callback, wanted)
-            self._token = self._transport.graph.announce(Role.SUBSCRIBER, self.topic, wanted)
-        if old_subscription is not None:
-            old_subscription.close()
-        if old_token is not None:
-            old_token.close()
+            if wanted is not current:
+                self._switch(wanted)
+
+    def _switch(self, wanted: Variant) -> None:
+        # Subscribe to the new copy before leaving the old one, so nothing is missed.
+        callback = self._callback
+        if wanted is Variant.OPTIMIZED and self._reporter is not None:
+            callback = self._reported
+        subscription = self._transport.subscribe(self.topic, callback, wanted)
+        token = self._transport.graph.announce(Role.SUBSCRIBER, self.topic, wanted)
+        with self._lock:
+            old = [self._subscription, self._token]
+            if self._closed:  # closed meanwhile: the new handles go too
+                old = [subscription, token]
+            else:
+                self._variant, self._subscription, self._token = wanted, subscription, token
+        for handle in old:
+            if handle is not None:
+                handle.close()
 
     def _reported(self, sample: Sample) -> None:
         assert self._reporter is not None
@@ -76,9 +102,11 @@ class ManagedSubscriber:
         self._callback(sample)
 
     def close(self) -> None:
+        """Unsubscribe and withdraw from the graph."""
         with self._lock:
             self._closed = True
             handles = [self._graph_watch, self._subscription, self._token]
+            self._subscription = self._token = None
         for handle in handles:
             if handle is not None:
                 handle.close()

@@ -16,9 +16,11 @@ __all__ = ["PeriodicWorker"]
 
 
 class PeriodicWorker:
-    """Call ``tick()`` on a daemon thread every ``interval_s`` (a number, or read before each
-    wait) and as soon as possible after ``wake()``; bursts of wakes within ``coalesce_s`` run
-    one tick. ``immediate`` runs the first tick at start instead of one interval later."""
+    """Call ``tick()`` on a daemon thread every ``interval_s`` and soon after ``wake()``.
+
+    ``interval_s`` is a number, or read before each wait. Bursts of wakes within ``coalesce_s``
+    run one tick. ``immediate`` runs the first tick at start instead of one interval later.
+    """
 
     def __init__(
         self,

@@ -1,0 +1,167 @@
+"""The typed parameters: one validation of every value, the last good value stands, one budget
+rule; and what that means to the optimizer and the publisher when a peer writes garbage."""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import pytest
+
+from dbml.core import DbmSettings, Strategy
+from dbml.runtime import ManagedPublisher, ManagedSubscriber, OptimizerNode, names
+from dbml.runtime.params import (
+    DbmParams,
+    ParamError,
+    ParamView,
+    check_param,
+    valid_values,
+)
+from dbml.transports import MemoryNetwork, MemoryTransport
+from dbml.transports.base import ParamValue
+from tests.conftest import wait_for
+
+CAMERA = "/r1/camera"
+
+
+@pytest.mark.parametrize(
+    ("name", "value", "message"),
+    [
+        (names.BANDWIDTH, math.nan, r"^/dbm/max_bandwidth_in_mbit=nan is not finite$"),
+        (names.BANDWIDTH, math.inf, r"is not finite$"),
+        (names.BANDWIDTH, 10**400, r"is not finite$"),
+        (names.BANDWIDTH, -1, r"=-1 must be within \(0, 1e\+06\]$"),
+        (names.BANDWIDTH, "eleven", r"='eleven' is not a number$"),
+        (names.BANDWIDTH, True, r"=True is not a number$"),
+        (names.UTILIZATION, 1.5, r"=1.5 must be within \(0, 1\]$"),
+        (names.PERIOD, 1e-6, r"=1e-06 must be within \[0.01, 3600\]$"),
+        (names.PERIOD, math.inf, r"is not finite$"),
+        (names.STRATEGY, "fastest", r"^/dbm/strategy='fastest' is not valid$"),
+        (names.STRATEGY, 3, r"^/dbm/strategy=3 is not valid$"),
+        (names.max_rate(CAMERA), 0, r"^/r1/camera/dbm/frequency/max=0 must be within"),
+        (names.max_rate(CAMERA), 1e12, r"=1000000000000.0 must be within \(0, 10000\]$"),
+        (names.current_value(CAMERA), math.nan, r"frequency/current_value=nan is not finite"),
+        (names.size(CAMERA), 1e15, r"message_size_in_bytes=1000000000000000.0 must be within"),
+        (names.priority(CAMERA), 10**400, r"priority=1000.* is not finite$"),
+        (names.priority(CAMERA), -0.5, r"priority=-0.5 must be within \[0, 1\]$"),
+        (names.managed(CAMERA), "yes", r"managed='yes' is not valid$"),
+        (names.STATUS_MESSAGE, "x" * 20_000, r"status_message='xxx.*\.\.\. is not valid$"),
+    ],
+)
+def test_bad_values_are_refused_naming_key_and_value(
+    name: str, value: ParamValue, message: str
+) -> None:
+    with pytest.raises(ParamError, match=message):
+        check_param(name, value)
+
+
+def test_good_values_come_back_typed_and_unknown_names_pass() -> None:
+    assert check_param(names.BANDWIDTH, 11) == 11.0
+    assert isinstance(check_param(names.BANDWIDTH, 11), float)
+    assert check_param(names.STRATEGY, "lp") == "lp"
+    assert check_param(names.managed(CAMERA), True) is True
+    assert check_param(names.priority(CAMERA), None) is None  # deleted
+    assert check_param("/someone/else", [1, 2]) == [1, 2]  # type: ignore[arg-type]
+
+
+def test_the_one_budget_rule() -> None:
+    assert DbmParams(bandwidth_mbit=10, utilization=0.9).budget_mbit == pytest.approx(9.0)
+    assert DbmParams(bandwidth_mbit=10, utilization=0.9, estimate_mbit=4).budget_mbit == 4
+    assert DbmParams(bandwidth_mbit=10, utilization=0.9, estimate_mbit=4).configured_mbit == 9.0
+    assert DbmParams().budget_mbit is None
+
+
+def test_the_view_keeps_the_last_good_value_and_reports_the_bad_one_once(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    network = MemoryNetwork()
+    writer = MemoryTransport(network, host="peer")
+    writer.params.set(names.BANDWIDTH, 11)
+    changes: list[tuple[str, ParamValue]] = []
+    view = ParamView(
+        MemoryTransport(network, host="me").params, on_change=lambda *c: changes.append(c)
+    )
+    assert view.dbm().bandwidth_mbit == 11.0
+    with caplog.at_level(logging.WARNING, logger="dbml.params"):
+        for _ in range(3):
+            writer.params.set(names.BANDWIDTH, math.inf)
+    assert view.dbm().bandwidth_mbit == 11.0
+    assert view.problems() == ("/dbm/max_bandwidth_in_mbit=inf is not finite",)
+    assert caplog.text.count("max_bandwidth_in_mbit=inf") == 1
+    assert changes == []  # a bad value is no change
+    writer.params.set(names.BANDWIDTH, 5)
+    assert view.dbm().bandwidth_mbit == 5.0
+    assert view.problems() == ()
+    assert changes == [(names.BANDWIDTH, 5.0)]
+    assert valid_values({names.BANDWIDTH: "x", names.UTILIZATION: 0.5}) == {names.UTILIZATION: 0.5}
+
+
+def test_bad_writes_never_widen_the_budget_nor_drop_a_live_channel() -> None:
+    network = MemoryNetwork()
+    camera = ManagedPublisher(
+        MemoryTransport(network, host="r1"), CAMERA, min_rate_hz=1, max_rate_hz=16
+    )
+    camera.publish(bytes(84_000))
+    ManagedSubscriber(MemoryTransport(network, host="op"), CAMERA, lambda s: None)
+    optimizer = OptimizerNode(
+        MemoryTransport(network, host="base"), settings=DbmSettings(4.0, 1.0, 1.0, Strategy.PAPER)
+    )
+    assert optimizer.optimize().rates_hz[CAMERA] == pytest.approx(500_000 / 84_000)
+    peer = MemoryTransport(network, host="hostile")
+    for name, value in [
+        (names.BANDWIDTH, 1e300),
+        (names.max_rate(CAMERA), "x"),
+        (names.max_rate(CAMERA), -1),
+        (names.size(CAMERA), 1e15),
+        (names.priority(CAMERA), math.nan),
+        (names.PERIOD, math.inf),
+    ]:
+        peer.params.set(name, value)
+    result = optimizer.optimize()
+    assert [c.topic for c in result.channels] == [CAMERA]  # still allocated, not dropped
+    assert result.rates_hz[CAMERA] == pytest.approx(500_000 / 84_000)
+    assert "ignored: /dbm/max_bandwidth_in_mbit=1e+300 must be within" in result.message
+    status = peer.params.get(names.STATUS_MESSAGE)
+    assert isinstance(status, str)
+    assert "/r1/camera/dbm/frequency/max=-1 must be within" in status
+    assert optimizer.period_s() == 1.0
+
+
+def test_a_publisher_ignores_a_bad_push_and_clamps_to_its_maximum() -> None:
+    network = MemoryNetwork()
+    camera = ManagedPublisher(
+        MemoryTransport(network, host="r1"), CAMERA, min_rate_hz=1, max_rate_hz=16
+    )
+    peer = MemoryTransport(network, host="hostile")
+    peer.params.set(names.current_value(CAMERA), 8.0)
+    assert camera.current_rate_hz() == 8.0
+    peer.params.set(names.current_value(CAMERA), math.nan)  # once crashed the publisher
+    peer.params.set(names.current_value(CAMERA), 1e12)
+    assert camera.current_rate_hz() == 8.0
+    peer.params.set(names.current_value(CAMERA), 59.0)
+    assert camera.current_rate_hz() == 16.0  # its own maximum: it is the authority on it
+    assert peer.params.get(names.applied(CAMERA)) == 16.0
+
+
+def test_an_optimizer_thread_survives_an_absurd_period() -> None:
+    network = MemoryNetwork()
+    camera = ManagedPublisher(
+        MemoryTransport(network, host="r1"), CAMERA, min_rate_hz=1, max_rate_hz=16
+    )
+    camera.publish(bytes(84_000))
+    ManagedSubscriber(MemoryTransport(network, host="op"), CAMERA, lambda s: None)
+    peer = MemoryTransport(network, host="hostile")
+    optimizer = OptimizerNode(
+        MemoryTransport(network, host="base"), settings=DbmSettings(4.0, 1.0, 1.0, Strategy.PAPER)
+    ).start()
+    try:
+        peer.params.set(names.PERIOD, math.inf)
+        peer.params.set(names.PERIOD, 10**400)
+        peer.params.set(names.priority(CAMERA), 10**400)
+        peer.params.set(names.BANDWIDTH, 8.0)  # a good change afterwards is still acted on
+        wait_for(
+            lambda: camera.current_rate_hz() == pytest.approx(1_000_000 / 84_000),
+            what="the new budget applied by a live optimizer",
+        )
+    finally:
+        optimizer.stop()
