@@ -43,7 +43,7 @@ def fleet(channels: int, seed: int) -> Problem:
         ChannelSpec(f"/robot{i}/sensor", float(a), float(b), float(w), float(p))
         for i, (a, b, w, p) in enumerate(zip(fmin, fmax, sizes, priority, strict=True))
     )
-    return Problem(specs, bandwidth_mbit=budget / 125_000)
+    return Problem(specs, bandwidth_mbit=float(budget) / 125_000)
 
 
 def best_of(run: Callable[[], Any], repeat: int) -> tuple[float, Any]:
@@ -65,8 +65,8 @@ def measure(channels: int, *, seed: int, highs_limit_s: float) -> dict[str, Any]
     arrays = problem.arrays
     w = arrays.size_bytes
     floors = np.asarray(allocation.floor_hz)
-    c, a_ub, b_ub = -w, w[None, :], [problem.budget_bytes_per_s]
-    bounds = np.column_stack([floors, arrays.max_rate_hz])
+    c, a_ub, b_ub = -w, w[None, :], [problem.budget_bytes_per_s]  # noqa: RUF100
+    bounds = [(float(lo), float(hi)) for lo, hi in zip(floors, arrays.max_rate_hz, strict=True)]
 
     def highs() -> Any:
         return linprog(

@@ -28,6 +28,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -247,7 +248,7 @@ def measure(changes: int) -> dict[str, Any]:
                 else:
                     latencies_ms.append((arrived - start) * 1e3)
                 # R2's side of the flip too, so each change starts from a quiet fleet.
-                if not probe.wait_until(lambda r=rates: probe.settled(r), TIMEOUT_S):
+                if not probe.wait_until(partial(probe.settled, rates), TIMEOUT_S):
                     unsettled += 1
         finally:
             if probe is not None:

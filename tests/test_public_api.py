@@ -2,6 +2,8 @@ import importlib
 import importlib.util
 import pkgutil
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -11,7 +13,17 @@ import dbml
 HAVE_ROSPY = importlib.util.find_spec("rospy") is not None
 ROS1_MODULES = ("dbml.ros1", "dbml.transports.ros1")
 """Modules that need rospy (Debian's packages); checked where it imports (always in CI)."""
-PACKAGES = ["dbml", "dbml.core", "dbml.runtime", "dbml.scenarios", "dbml.transports"]
+PACKAGES = [
+    "dbml",
+    "dbml.cli",
+    "dbml.core",
+    "dbml.demo",
+    "dbml.harness",
+    "dbml.runtime",
+    "dbml.scenarios",
+    "dbml.testbed",
+    "dbml.transports",
+]
 PACKAGES += ["dbml.ros1"] if HAVE_ROSPY else []
 
 
@@ -22,6 +34,22 @@ def test_all_is_sorted_and_resolves(name: str) -> None:
     assert names == sorted(names, key=lambda n: (not n.isupper(), n)) or names == sorted(names)
     for item in names:
         assert hasattr(module, item), item
+
+
+def test_the_top_level_is_what_a_user_needs_and_loads_the_runtime_lazily() -> None:
+    assert len(dbml.__all__) <= 25
+    code = (
+        "import sys, dbml; loaded = sorted(m for m in sys.modules "
+        "if m.startswith(('dbml.runtime', 'dbml.transports', 'zenoh')));"
+        "print(','.join(loaded)); dbml.ManagedPublisher; dbml.open_transport;"
+        "print('dbml.runtime.publisher' in sys.modules)"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True
+    )
+    assert result.stdout.splitlines() == ["", "True"]
+    with pytest.raises(AttributeError, match="module 'dbml' has no attribute 'nope'"):
+        _ = dbml.nope
 
 
 def test_every_module_declares_all() -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import pytest
 from hypothesis import assume, given, settings
@@ -116,8 +117,9 @@ def test_a_publisher_restart_is_not_a_loss() -> None:
     [("window_s", 0.0), ("drain_s", math.nan), ("backoff", 1.5), ("probe_fraction", 0.0)],
 )
 def test_bad_settings_name_the_field(field: str, value: float) -> None:
+    kwargs: dict[str, Any] = {field: value}
     with pytest.raises(SpecError, match=f"{field}={value!r}"):
-        EstimatorSettings(**{field: value})
+        EstimatorSettings(**kwargs)
 
 
 @pytest.mark.parametrize("value", [0.0, -1.0, math.inf])

@@ -1,4 +1,5 @@
 import math
+from typing import Any
 
 import pytest
 
@@ -35,7 +36,7 @@ def test_channel_normalises_numbers_to_float() -> None:
     ],
 )
 def test_channel_rejects_bad_values_naming_channel_and_field(
-    overrides: dict[str, float], message: str
+    overrides: dict[str, Any], message: str
 ) -> None:
     with pytest.raises(SpecError, match=r"channel '/r1/camera': " + message):
         camera(**overrides)
@@ -83,7 +84,7 @@ def test_problem_budget_uses_decimal_megabits_and_utilization() -> None:
         ),
     ],
 )
-def test_problem_rejects_bad_budget(kwargs: dict[str, float], message: str) -> None:
+def test_problem_rejects_bad_budget(kwargs: dict[str, Any], message: str) -> None:
     with pytest.raises(SpecError, match=message):
         Problem((camera(),), **kwargs)
 

@@ -7,9 +7,9 @@ import threading
 import pytest
 
 from dbml.core import DbmSettings, SpecError
+from dbml.runtime import ManagedPublisher, ManagedSubscriber, OptimizerNode, names
 from dbml.runtime.monitor import MonitorView, channel_rows
 from dbml.runtime.nodes import run_monitor, run_subscriber, set_priority
-from dbml.runtime import ManagedPublisher, ManagedSubscriber, OptimizerNode, names
 from dbml.transports import MemoryNetwork, MemoryTransport
 
 

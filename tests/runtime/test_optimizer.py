@@ -8,7 +8,7 @@ import threading
 import pytest
 
 from dbml.core import DbmSettings, LinkSpec, Status, Strategy
-from dbml.runtime import ManagedPublisher, ManagedSubscriber, OptimizerNode, names
+from dbml.runtime import ManagedPublisher, ManagedSubscriber, OptimizerNode, Round, names
 from dbml.transports import MemoryNetwork, MemoryTransport
 from tests.conftest import wait_for
 
@@ -173,7 +173,7 @@ def test_reacts_at_once_to_a_priority_change_and_coalesces_bursts() -> None:
     rounds: list[int] = []
     original = fleet.optimizer.optimize
 
-    def counting() -> object:
+    def counting() -> Round:
         rounds.append(1)
         return original()
 

@@ -1,4 +1,5 @@
 import logging
+from typing import Any
 
 import pytest
 
@@ -19,7 +20,7 @@ def network() -> MemoryNetwork:
 
 def robot(network: MemoryNetwork, clock: ManualClock, **kwargs: float) -> ManagedPublisher:
     transport = MemoryTransport(network, host="r1", clock=clock)
-    options = {"min_rate_hz": 1.0, "max_rate_hz": 16.0}
+    options: dict[str, Any] = {"min_rate_hz": 1.0, "max_rate_hz": 16.0}
     options.update(kwargs)
     return ManagedPublisher(transport, "/r1/camera", **options)
 

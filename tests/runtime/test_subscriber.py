@@ -22,14 +22,18 @@ def test_switches_when_the_publisher_moves() -> None:
     got: list[Sample] = []
     operator = MemoryTransport(network, host="op")
     subscriber = ManagedSubscriber(operator, "/cam", got.append)
-    assert subscriber.variant is Variant.OPTIMIZED  # nobody publishes yet: the safe copy
+
+    def variant() -> Variant:
+        return subscriber.variant
+
+    assert variant() is Variant.OPTIMIZED  # nobody publishes yet: the safe copy
     on_op = ManagedPublisher(operator, "/cam", min_rate_hz=1, max_rate_hz=16)
-    assert subscriber.variant is Variant.FULL
+    assert variant() is Variant.FULL
     on_op.close()
     elsewhere = ManagedPublisher(
         MemoryTransport(network, host="r9"), "/cam", min_rate_hz=1, max_rate_hz=16
     )
-    assert subscriber.variant is Variant.OPTIMIZED
+    assert variant() is Variant.OPTIMIZED
     elsewhere.publish(b"frame")
     assert [s.payload for s in got] == [b"frame"]
     tokens = [e for e in operator.graph.entries() if e.role is Role.SUBSCRIBER]
@@ -45,8 +49,11 @@ def test_close_withdraws_the_subscription() -> None:
 
 
 def test_two_subscribers_switching_at_once_from_two_threads_do_not_deadlock() -> None:
-    """Announcing fires every graph watcher, other subscribers' among them: no subscriber may
-    hold its lock while it does (each switch below fires the other subscriber's update)."""
+    """No subscriber may hold its lock while it announces.
+
+    Announcing fires every graph watcher, other subscribers' among them (each switch below fires
+    the other subscriber's update).
+    """
     network = MemoryNetwork()
     operator = MemoryTransport(network, host="op")
     subscribers = {
