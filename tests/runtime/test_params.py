@@ -71,6 +71,8 @@ def test_the_one_budget_rule() -> None:
     assert DbmParams(bandwidth_mbit=10, utilization=0.9).budget_mbit == pytest.approx(9.0)
     assert DbmParams(bandwidth_mbit=10, utilization=0.9, estimate_mbit=4).budget_mbit == 4
     assert DbmParams(bandwidth_mbit=10, utilization=0.9, estimate_mbit=4).configured_mbit == 9.0
+    assert DbmParams(bandwidth_mbit=10, utilization=0.9, estimate_mbit=20).budget_mbit == 9.0
+    assert DbmParams(estimate_mbit=4).budget_mbit is None  # an estimate needs a configured cap
     assert DbmParams().budget_mbit is None
 
 
@@ -169,3 +171,18 @@ def test_an_optimizer_thread_survives_an_absurd_period() -> None:
         )
     finally:
         optimizer.stop()
+
+
+def test_an_estimate_written_by_a_peer_is_not_the_optimizers_budget() -> None:
+    network = MemoryNetwork()
+    camera = ManagedPublisher(
+        MemoryTransport(network, host="r1"), CAMERA, min_rate_hz=1, max_rate_hz=16
+    )
+    camera.publish(bytes(84_000))
+    ManagedSubscriber(MemoryTransport(network, host="op"), CAMERA, lambda s: None)
+    optimizer = OptimizerNode(
+        MemoryTransport(network, host="base"), settings=DbmSettings(4.0, 1.0, 1.0, Strategy.PAPER)
+    )
+    MemoryTransport(network, host="hostile").params.set(names.ESTIMATE, 1e5)
+    assert optimizer.optimize().budget_mbit == 4.0
+    assert camera.current_rate_hz() == pytest.approx(500_000 / 84_000)

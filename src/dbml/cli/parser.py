@@ -7,6 +7,8 @@ import sys
 from typing import NoReturn
 
 from dbml.core.allocation import Strategy
+from dbml.core.errors import SpecError
+from dbml.core.spec import check_number
 
 __all__ = ["EXIT_USAGE", "build_parser"]
 
@@ -52,10 +54,11 @@ def _transport_options(parser: argparse.ArgumentParser) -> None:
 
 
 def _positive(text: str) -> float:
-    value = float(text)
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"{text!r} must be > 0")
-    return value
+    """A finite number > 0 (argparse reports a text that is no number)."""
+    try:
+        return check_number(float(text), field="value", minimum=0, exclusive_minimum=True)
+    except SpecError:
+        raise argparse.ArgumentTypeError(f"{text!r} must be a finite number > 0") from None
 
 
 def build_parser() -> argparse.ArgumentParser:

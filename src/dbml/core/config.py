@@ -126,10 +126,16 @@ def _strategy(field: str, value: object) -> Strategy:
     raise ConfigError(f"{field}={value!r} is not one of {' | '.join(known)}")
 
 
+def _where(section: str, index: int, value: object, label: str) -> str:
+    """``channels[1] '/r2/camera'``: the position, and the item's name when it has one."""
+    where = f"{section}[{index}]"
+    if isinstance(value, Mapping) and isinstance(value.get(label), str):
+        where += f" {value[label]!r}"
+    return where
+
+
 def _channel(index: int, value: object) -> ChannelSpec:
-    where = f"channels[{index}]"
-    if isinstance(value, Mapping) and isinstance(value.get("topic"), str):
-        where = f"channels[{index}] {value['topic']!r}"
+    where = _where("channels", index, value, "topic")
     data = _mapping(
         where,
         value,
@@ -152,9 +158,7 @@ def _channel(index: int, value: object) -> ChannelSpec:
 
 
 def _link(index: int, value: object) -> LinkSpec:
-    where = f"links[{index}]"
-    if isinstance(value, Mapping) and isinstance(value.get("name"), str):
-        where = f"links[{index}] {value['name']!r}"
+    where = _where("links", index, value, "name")
     data = _mapping(
         where,
         value,

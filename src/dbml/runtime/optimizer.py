@@ -35,9 +35,7 @@ log = logging.getLogger("dbml.optimizer")
 
 _TRIGGERS = frozenset({"frequency/min", "frequency/max", "message_size_in_bytes", "priority"})
 """Channel parameters whose change re-allocates at once."""
-_GLOBAL_TRIGGERS = frozenset(
-    {names.BANDWIDTH, names.UTILIZATION, names.PERIOD, names.STRATEGY, names.ESTIMATE}
-)
+_GLOBAL_TRIGGERS = frozenset({names.BANDWIDTH, names.UTILIZATION, names.PERIOD, names.STRATEGY})
 _DEFAULTS: dict[str, ParamValue] = {
     names.UTILIZATION: 1.0,
     names.PERIOD: 1.0,
@@ -149,11 +147,13 @@ class OptimizerNode:
     # -- reading the world --------------------------------------------------------------------
 
     def dbm(self) -> DbmParams:
-        """The ``/dbm/...`` parameters in force, with the estimate when one runs."""
-        dbm = self._view.dbm()
-        if self._estimate is not None:
-            dbm = replace(dbm, estimate_mbit=self._estimate())
-        return dbm
+        """The ``/dbm/...`` parameters in force, with this node's own estimate when it runs one.
+
+        An estimate in the store is for readers such as the monitor: the budget follows only the
+        estimator this node was given, never a value any peer can write.
+        """
+        estimate = None if self._estimate is None else self._estimate()
+        return replace(self._view.dbm(), estimate_mbit=estimate)
 
     def period_s(self) -> float:
         """The optimisation period in force."""

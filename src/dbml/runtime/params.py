@@ -10,7 +10,7 @@ thread and never takes a channel out of the allocation.
 
 ``DbmParams`` and ``ChannelParams`` are what the optimizer, the publishers, the estimator and
 the monitor read; ``DbmParams.budget_mbit`` is the one budget rule: an estimate, when one runs,
-else bandwidth times utilization.
+else bandwidth times utilization (an estimate never above that).
 """
 
 from __future__ import annotations
@@ -150,8 +150,14 @@ class DbmParams:
 
     @property
     def budget_mbit(self) -> float | None:
-        """What may be allocated: the estimate, else bandwidth times utilization."""
-        return self.estimate_mbit if self.estimate_mbit is not None else self.configured_mbit
+        """What may be allocated: the estimate, else bandwidth times utilization.
+
+        An estimate never widens the configured budget, and without one there is no budget.
+        """
+        configured = self.configured_mbit
+        if configured is None or self.estimate_mbit is None:
+            return configured
+        return min(self.estimate_mbit, configured)
 
 
 @dataclass(frozen=True, slots=True)
