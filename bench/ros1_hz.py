@@ -27,9 +27,9 @@ from typing import Any
 from rich.console import Console
 from rich.table import Table
 
-from dbml.runtime import names
 from dbml.harness.processes import end_process
 from dbml.harness.rosmaster import RosMaster
+from dbml.runtime import names
 from dbml.scenarios.teleop import ROBOTS
 from dbml.transports.rosapi import MasterClient
 

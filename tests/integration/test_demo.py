@@ -116,8 +116,10 @@ def test_demo_over_memory_runs_in_one_process() -> None:
 
 
 def demo_port(pids: set[int]) -> int | None:
-    """The demo's private rendezvous port, from a role's environment once it has exec'd
-    (between fork and exec a child still shows its parent's environment)."""
+    """The demo's private rendezvous port, from a role's environment once it has exec'd.
+
+    Between fork and exec a child still shows its parent's environment.
+    """
     for pid in pids:
         try:
             environ = Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")

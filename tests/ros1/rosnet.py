@@ -1,5 +1,8 @@
-"""A private ROS 1 world for a test: a real ``rosmaster`` on a free port, real node processes
-on their own loopback hosts (ROS_IP), and the real ``rosparam`` / ``rostopic`` tools."""
+"""A private ROS 1 world for a test.
+
+A real ``rosmaster`` on a free port, real node processes on their own loopback hosts (ROS_IP),
+and the real ``rosparam`` / ``rostopic`` tools.
+"""
 
 from __future__ import annotations
 

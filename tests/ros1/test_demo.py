@@ -1,5 +1,7 @@
-"""``dbml demo teleop --transport ros1``: the scenario on a real master, which the demo starts
-when none answers and stops after; and the master helper's reuse rule."""
+"""``dbml demo teleop --transport ros1``: the scenario on a real master.
+
+The demo starts one when none answers and stops it after; and the master helper's reuse rule.
+"""
 
 from __future__ import annotations
 

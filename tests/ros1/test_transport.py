@@ -1,5 +1,8 @@
-"""The ros1 transport against a real master: ``dbml`` node processes on their own ROS hosts,
-checked with the real parameter server, ``rosparam`` and ``rostopic``."""
+"""The ros1 transport against a real master.
+
+``dbml`` node processes on their own ROS hosts, checked with the real parameter server,
+``rosparam`` and ``rostopic``.
+"""
 
 from __future__ import annotations
 

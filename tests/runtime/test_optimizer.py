@@ -157,6 +157,15 @@ def test_lp_honours_a_configured_uplink() -> None:
     assert rates[R2] == 16.0
 
 
+def test_a_links_capacity_shares_the_utilization() -> None:
+    fleet = Fleet(strategy=Strategy.LP, links=[LinkSpec("r1-uplink", 4, (R1,))])
+    fleet.operator.params.set(names.UTILIZATION, 0.92)  # headers take the rest of every link
+    fleet.watch_remotely(R1)
+    fleet.watch_remotely(R2)
+    fleet.optimizer.optimize()
+    assert fleet.rates()[R1] == pytest.approx(0.92 * 500_000 / 84_000)
+
+
 def test_a_dead_publisher_is_forgotten() -> None:
     fleet = Fleet()
     fleet.watch_remotely(R1)

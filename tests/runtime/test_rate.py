@@ -36,6 +36,16 @@ def test_a_decrease_applies_from_the_next_message_without_a_burst() -> None:
     assert all(gap >= 0.5 - 1e-9 for gap in gaps)
 
 
+def test_an_increase_applies_from_the_last_message_not_after_the_old_period() -> None:
+    limiter = RateLimiter(1)
+    assert limiter.allow(0.0)
+    limiter.set_rate(10)  # the allocation arrives: 10 Hz, not one more second at 1 Hz
+    assert not limiter.allow(0.05)
+    assert limiter.allow(0.1)
+    assert not limiter.allow(0.15)
+    assert limiter.allow(0.2)
+
+
 def test_rate_sleep_keeps_absolute_deadlines() -> None:
     clock = ManualClock(10.0)
     slept: list[float] = []

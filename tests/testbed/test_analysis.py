@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import pytest
 
+from dbml.experiment.analysis import Arrival, Tick, analyse, link_at, rate_hz, settle_s
 from dbml.testbed import TestbedError
-from dbml.testbed.analysis import Frame, Tick, analyse, link_at, parse_schedule, parse_uplinks
+from dbml.testbed.runner import parse_schedule, parse_uplinks
 
 
 def test_schedule_parses_and_names_bad_values() -> None:
@@ -31,12 +32,12 @@ def test_uplinks_parse_and_name_bad_values() -> None:
 
 def _stream(
     robot: int, *, hz: float, start: float, end: float, delay: float, size: int, skip: int = -1
-) -> list[Frame]:
+) -> list[Arrival]:
     frames = []
     seq, t = 0, start
     while t < end:
         if seq != skip:
-            frames.append(Frame(robot, seq, t, t + delay, size, hz))
+            frames.append(Arrival(robot, seq, t, t + delay, size, hz))
         seq += 1
         t += 1 / hz
     return frames
@@ -50,18 +51,18 @@ def test_steps_measure_rate_latency_losses_and_goodput() -> None:
     ]
     ticks = [Tick(t0 + 0.5, (10.0, 4.0), 9.0, None)]
     result = analyse(frames, ticks, robots=["R1", "R2"], t0=t0, step_s=2.0, steps=2, link_mbit=11.0)
-    first, second = result["steps"]
-    r1, r2 = first["robots"]
-    assert r1["delivered_hz"] == pytest.approx(10.0, rel=1e-6)
-    assert r2["delivered_hz"] == pytest.approx(4.0, rel=1e-6)
-    assert r1["latency_p50_ms"] == pytest.approx(50.0)
-    assert r2["latency_p95_ms"] == pytest.approx(200.0)
-    assert r1["lost"] == 0
-    assert second["robots"][0]["lost"] == 1  # frame 25, sent at 2.5 s
+    first, second = result.steps
+    r1, r2 = first.robots
+    assert r1.delivered_hz == pytest.approx(10.0, rel=1e-6)
+    assert r2.delivered_hz == pytest.approx(4.0, rel=1e-6)
+    assert r1.latency_p50_ms == pytest.approx(50.0)
+    assert r2.latency_p95_ms == pytest.approx(200.0)
+    assert r1.lost == 0
+    assert second.robots[0].lost == 1  # frame 25, sent at 2.5 s
     # goodput over the measured part of the step: 10 x 100 kB + 4 x 10 kB per second
-    assert first["goodput_mbit"] == pytest.approx((10 * 100_000 + 4 * 10_000) * 8e-6, rel=0.1)
-    assert first["budget_mbit"] == 9.0
-    assert first["link_mbit"] == 11.0
+    assert first.goodput_mbit == pytest.approx((10 * 100_000 + 4 * 10_000) * 8e-6, rel=0.1)
+    assert first.budget_mbit == 9.0
+    assert first.link_mbit == 11.0
 
 
 def test_a_drop_reports_when_latency_recovered() -> None:
@@ -71,7 +72,7 @@ def test_a_drop_reports_when_latency_recovered() -> None:
     for seq in range(120):
         sent = seq * 0.1
         delay = 0.06 if not 4.0 <= sent < 6.0 else 0.06 + (sent - 4.0) * 0.4
-        frames.append(Frame(0, seq, sent, sent + delay, 50_000, 10.0))
+        frames.append(Arrival(0, seq, sent, sent + delay, 50_000, 10.0))
     ticks = [Tick(t / 4, (10.0,), 5.0, 5.0) for t in range(48)]
     result = analyse(
         frames,
@@ -83,8 +84,25 @@ def test_a_drop_reports_when_latency_recovered() -> None:
         link_mbit=11.0,
         schedule=((0.0, 11.0), (4.0, 5.0)),
     )
-    (change,) = result["changes"]
-    assert change["to_mbit"] == 5.0
-    assert change["max_latency_p95_ms"] > 700
+    (change,) = result.changes
+    assert change.to_mbit == 5.0
+    assert change.max_latency_p95_ms is not None
+    assert change.max_latency_p95_ms > 700
     # the last bad frame arrives at ~6.7 s; the first all-good 1-s window after it ends ~7.7 s
-    assert 3.0 < change["recovery_s"] < 4.5
+    assert change.recovery_s is not None
+    assert 3.0 < change.recovery_s < 4.5
+
+
+@pytest.mark.parametrize("offset_s", [0.0, 0.1, 0.3, 0.55])
+def test_a_slow_stream_is_timed_exactly_in_a_short_step(offset_s: float) -> None:
+    # 1.48 Hz (Table 2's slowest) in a 2 s step: one or two frames after the settling time,
+    # timed from the frame before the window, so the 5 % check holds whatever the phase
+    period = 1 / 1.48
+    times = [offset_s + k * period for k in range(20)]
+    start = 4.0 + settle_s(2.0)
+    assert rate_hz(times, start, 6.0) == pytest.approx(1.48, rel=1e-9)
+
+
+def test_a_window_without_a_gap_to_time_counts() -> None:
+    assert rate_hz([0.5], 0.0, 2.0) == 0.5
+    assert rate_hz([], 0.0, 2.0) == 0.0

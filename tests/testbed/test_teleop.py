@@ -5,7 +5,6 @@ Short runs (2 s steps) keep CI fast; the README shows a full run.
 
 from __future__ import annotations
 
-import io
 import os
 import signal
 import subprocess
@@ -15,10 +14,9 @@ from collections.abc import Iterator
 from typing import Any
 
 import pytest
-from rich.console import Console
 
 from dbml.testbed import leftover_namespaces
-from dbml.testbed.runner import TestbedResult, run_teleop_testbed
+from dbml.testbed.runner import TestbedOptions, TestbedResult, run_teleop_testbed
 from tests.conftest import wait_for
 
 pytestmark = pytest.mark.integration
@@ -28,9 +26,7 @@ PAYLOAD_SHARE = 0.957  # what TCP payload gets of a tbf rate (headers), measured
 
 
 def _run(**options: Any) -> TestbedResult:
-    result = run_teleop_testbed(
-        step_seconds=STEP_S, show_live=False, console=Console(file=io.StringIO()), **options
-    )
+    result = run_teleop_testbed(TestbedOptions.from_flags(step_seconds=STEP_S, **options))
     assert not result.interrupted
     assert leftover_namespaces(f"dbml-{result.run_id}-") == []
     assert len(result.steps) == 10
@@ -49,26 +45,30 @@ def unmanaged_run(netns_privilege: None) -> TestbedResult:
 
 def test_dbml_fits_the_link(dbml_run: TestbedResult) -> None:
     for step in dbml_run.steps:
-        assert step["goodput_mbit"] >= 0.9 * step["link_mbit"], step
-        assert step["goodput_mbit"] <= step["link_mbit"] * PAYLOAD_SHARE * 1.05, step
-        for robot in step["robots"]:
-            assert robot["lost"] == 0, step
-            assert robot["latency_p95_ms"] < 200, step
-            allocated = robot["allocated_hz"]
+        assert step.goodput_mbit >= 0.9 * step.link_mbit, step
+        assert step.goodput_mbit <= step.link_mbit * PAYLOAD_SHARE * 1.05, step
+        for robot in step.robots:
+            assert robot.lost == 0, step
+            assert robot.latency_p95_ms is not None
+            assert robot.latency_p95_ms < 200, step
+            allocated = robot.allocated_hz
+            assert allocated is not None
             # a 1 Hz stream has one or two frames in a 1.3 s window: judge fast ones at 5 %
             tolerance = 0.05 * allocated if allocated >= 4 else 1.0
-            assert abs(robot["delivered_hz"] - allocated) <= tolerance, step
-    assert dbml_run.summary()["lost"] == 0
+            assert abs(robot.delivered_hz - allocated) <= tolerance, step
+    assert dbml_run.summary().lost == 0
 
 
 def test_unmanaged_overloads_the_link(
     dbml_run: TestbedResult, unmanaged_run: TestbedResult
 ) -> None:
     managed, unmanaged = dbml_run.summary(), unmanaged_run.summary()
-    assert all(r["allocated_hz"] == 16.0 for s in unmanaged_run.steps for r in s["robots"])
+    assert all(r.allocated_hz == 16.0 for s in unmanaged_run.steps for r in s.robots)
     # 16 Hz of both cameras is 13.4 Mbit/s into an 11 Mbit/s link: it queues or drops
-    assert (
-        unmanaged["lost"] > 0 or unmanaged["latency_p95_ms_max"] > 2 * managed["latency_p95_ms_max"]
+    assert managed.latency_p95_ms_max is not None
+    assert unmanaged.lost > 0 or (
+        unmanaged.latency_p95_ms_max is not None
+        and unmanaged.latency_p95_ms_max > 2 * managed.latency_p95_ms_max
     )
 
 
@@ -77,24 +77,31 @@ def test_a_rate_drop_with_and_without_estimation(netns_privilege: None) -> None:
     estimating = _run(policy="dbml", link_schedule=schedule, estimate=True)
     constant = _run(policy="dbml", link_schedule=schedule)
     (drop,) = estimating.changes
-    assert drop["to_mbit"] == 5.0
-    assert drop["recovery_s"] is not None
-    assert drop["recovery_s"] <= 3.0, drop  # p95 under 250 ms and no loss from then on
-    assert estimating.steps[-1]["budget_mbit"] < 5.0  # the estimate followed the link down
+    assert drop.to_mbit == 5.0
+    assert drop.recovery_s is not None
+    assert drop.recovery_s <= 3.0, drop  # p95 under 250 ms and no loss from then on
+    budget = estimating.steps[-1].budget_mbit
+    assert budget is not None
+    assert budget < 5.0  # the estimate followed the link down
     # the paper's constant budget keeps sending 10 Mbit/s into 5: it never recovers
     (unestimated,) = constant.changes
-    assert unestimated["recovery_s"] is None
-    assert unestimated["max_latency_p95_ms"] > 2 * drop["max_latency_p95_ms"]
+    assert unestimated.recovery_s is None
+    assert unestimated.max_latency_p95_ms is not None
+    assert drop.max_latency_p95_ms is not None
+    assert unestimated.max_latency_p95_ms > 2 * drop.max_latency_p95_ms
 
 
 def test_an_uplink_limit_is_kept(netns_privilege: None) -> None:
     result = _run(policy="dbml", uplinks=["R1=4"])
-    assert result.strategy == "lp"
+    assert result.options.strategy == "lp"
     for step in result.steps:
-        r1, _ = step["robots"]
-        assert r1["goodput_mbit"] <= 4.0 * PAYLOAD_SHARE, step
-        assert step["goodput_mbit"] <= step["link_mbit"] * PAYLOAD_SHARE * 1.05, step
-        assert all(r["lost"] == 0 and r["latency_p95_ms"] < 200 for r in step["robots"]), step
+        r1, _ = step.robots
+        assert r1.goodput_mbit <= 4.0 * PAYLOAD_SHARE, step
+        assert step.goodput_mbit <= step.link_mbit * PAYLOAD_SHARE * 1.05, step
+        assert all(
+            r.lost == 0 and r.latency_p95_ms is not None and r.latency_p95_ms < 200
+            for r in step.robots
+        ), step
 
 
 # -- cleanup, driven through the CLI as a user would ----------------------------------------

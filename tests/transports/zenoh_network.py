@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 from dbml.harness.processes import free_port
 from dbml.transports.base import Transport
 from dbml.transports.zenoh import ZenohTransport
 from tests.conftest import wait_for
+
+Factory = Callable[[str], Transport]
 
 
 def zenoh_network() -> Iterator[Factory]:
@@ -51,8 +53,3 @@ def zenoh_endpoints_network() -> Iterator[Factory]:
     yield make
     for transport in made:
         transport.close()
-
-
-from collections.abc import Callable  # noqa: E402
-
-Factory = Callable[[str], Transport]

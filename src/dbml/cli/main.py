@@ -26,13 +26,12 @@ from dbml.core.allocation import Allocation, Status, allocate
 from dbml.core.config import DbmSettings, load_config
 from dbml.core.errors import DbmlError
 from dbml.core.spec import LinkSpec
-from dbml.demo.runner import print_result, run_teleop_demo
 from dbml.runtime import nodes
 from dbml.runtime.monitor import MonitorView
 from dbml.runtime.nodes import stop_on_signals
 from dbml.scenarios.reproduce import RobotRow, reproduce_table2
 from dbml.transports.base import Transport
-from dbml.transports.registry import open_transport
+from dbml.transports.registry import TRANSPORTS, open_transport
 
 __all__ = ["EXIT_INFEASIBLE", "EXIT_MISMATCH", "EXIT_OK", "EXIT_USAGE", "main"]
 
@@ -121,8 +120,11 @@ def _open(args: argparse.Namespace) -> Transport:
 
 
 def _setup_logging(verbose: bool = True) -> None:
-    """Log to stderr. Called after the transport opens: rospy's node start replaces the root
-    handlers with ROS's own (a file under ~/.ros/log), which would hide dbml's warnings."""
+    """Log to stderr.
+
+    Called after the transport opens: rospy's node start replaces the root handlers with ROS's
+    own (a file under ~/.ros/log), which would hide dbml's warnings.
+    """
     logging.basicConfig(
         force=True,
         level=logging.INFO if verbose else logging.WARNING,
@@ -144,10 +146,11 @@ def _run_node(args: argparse.Namespace, body: Callable[[Transport, threading.Eve
 
 
 def _cmd_optimizer(args: argparse.Namespace) -> int:
-    if args.estimate and args.transport == "ros1":
+    entry = TRANSPORTS[args.transport]
+    if args.estimate and not entry.carries_metadata:
         raise DbmlError(
-            "--estimate needs per-message send times and sequence numbers, which ROS 1 "
-            "messages do not carry: use --transport zenoh"
+            "--estimate needs per-message send times and sequence numbers, which "
+            f"--transport {args.transport} messages do not carry: use --transport zenoh"
         )
     settings: DbmSettings | None = None
     links: tuple[LinkSpec, ...] = ()
@@ -163,7 +166,7 @@ def _cmd_optimizer(args: argparse.Namespace) -> int:
             stop=stop,
             duration_s=args.duration,
             estimate=args.estimate,
-            write_defaults=args.transport == "ros1",
+            write_defaults=entry.params_complete_at_start,
         ),
     )
 
@@ -222,9 +225,15 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
 
 
 def _show(
-    args: argparse.Namespace, console: Console, document: dict[str, Any], table: Callable[[], None]
+    args: argparse.Namespace,
+    console: Console,
+    document: dict[str, Any],
+    table: Callable[[], None],
+    plot: Callable[[Path], None] | None = None,
 ) -> None:
-    """A scenario's result: one JSON object with ``--json``, else the table (and the plot)."""
+    """A scenario's result: one JSON object with ``--json``, else the table; and the plot."""
+    if args.plot and plot is not None:
+        plot(Path(args.plot))
     if args.json:
         print(json.dumps(document))
         return
@@ -234,26 +243,40 @@ def _show(
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
+    from dbml.cli.documents import demo_document
+    from dbml.cli.plots import plot_series
+    from dbml.demo.runner import DemoOptions, run_teleop_demo
+
+    options = DemoOptions(step_seconds=args.step_seconds, transport=args.transport)
     console = Console(stderr=args.json)
-    result = run_teleop_demo(
-        step_seconds=args.step_seconds,
-        transport=args.transport,
-        console=Console(stderr=True),
-        show_live=not args.json,
-        plot=Path(args.plot) if args.plot else None,
+    title = "dbml demo teleop — live"
+    with render.ExperimentView(
+        Console(stderr=True), title=title, step_s=options.step_seconds, show=not args.json
+    ) as view:
+        result = run_teleop_demo(options, observe=view.update)
+    _show(
+        args,
+        console,
+        demo_document(result),
+        lambda: console.print(render.demo_table(result)),
+        lambda path: plot_series(
+            result.series,
+            path,
+            step_s=options.step_seconds,
+            title=f"dbml teleoperation demo over {options.transport}",
+        ),
     )
-    _show(args, console, result.as_json(), lambda: print_result(result, console))
     if result.interrupted:
         return EXIT_OK
     return EXIT_OK if result.ok else EXIT_MISMATCH
 
 
 def _cmd_testbed(args: argparse.Namespace) -> int:
-    from dbml.testbed.runner import print_result as print_testbed
-    from dbml.testbed.runner import run_teleop_testbed
+    from dbml.cli.documents import testbed_document
+    from dbml.cli.plots import plot_series
+    from dbml.testbed.runner import TestbedOptions, run_teleop_testbed
 
-    console = Console(stderr=args.json)
-    result = run_teleop_testbed(
+    options = TestbedOptions.from_flags(
         policy=args.policy,
         link_mbit=args.link_mbit,
         step_seconds=args.step_seconds,
@@ -262,11 +285,30 @@ def _cmd_testbed(args: argparse.Namespace) -> int:
         uplinks=args.uplink,
         strategy=args.strategy,
         utilization=args.utilization,
-        console=Console(stderr=True),
-        show_live=not args.json,
-        plot=Path(args.plot) if args.plot else None,
     )
-    _show(args, console, result.as_json(), lambda: print_testbed(result, console))
+    console = Console(stderr=args.json)
+    with render.ExperimentView(
+        Console(stderr=True),
+        title=f"dbml testbed teleop — {options.policy}, live",
+        step_s=options.step_seconds,
+        link_mbit=options.link_mbit,
+        schedule=options.link_schedule,
+        show=not args.json,
+    ) as view:
+        result = run_teleop_testbed(options, observe=view.update)
+    _show(
+        args,
+        console,
+        testbed_document(result),
+        lambda: console.print(render.testbed_table(result)),
+        lambda path: plot_series(
+            result.series,
+            path,
+            step_s=options.step_seconds,
+            title=f"dbml testbed teleop: policy {options.policy} on a tc-shaped link",
+            budget_label="budget (estimate)" if options.estimate else "budget",
+        ),
+    )
     return EXIT_INTERRUPTED if result.interrupted else EXIT_OK
 
 

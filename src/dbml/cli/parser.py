@@ -9,6 +9,7 @@ from typing import NoReturn
 from dbml.core.allocation import Strategy
 from dbml.core.errors import SpecError
 from dbml.core.spec import check_number
+from dbml.transports.registry import DEFAULT_TRANSPORT, TRANSPORTS
 
 __all__ = ["EXIT_USAGE", "build_parser"]
 
@@ -28,9 +29,13 @@ def _transport_options(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("network (default: processes of this machine, no flags)")
     group.add_argument(
         "--transport",
-        choices=["zenoh", "ros1"],
-        default="zenoh",
-        help="zenoh (default) or ros1: the ROS master at $ROS_MASTER_URI, host from $ROS_IP",
+        choices=[name for name, entry in TRANSPORTS.items() if entry.spans_processes],
+        default=DEFAULT_TRANSPORT,
+        help="; ".join(
+            f"{name}: {entry.summary}"
+            for name, entry in TRANSPORTS.items()
+            if entry.spans_processes
+        ),
     )
     group.add_argument(
         "--host",
@@ -114,6 +119,8 @@ def build_parser() -> argparse.ArgumentParser:
     monitor_cmd.add_argument("--duration", type=_positive, help="stop after S seconds")
     _transport_options(monitor_cmd)
 
+    from dbml.transports.registry import TRANSPORTS
+
     demo_cmd = commands.add_parser("demo", help="live scenarios")
     demo_cmd.add_argument("scenario", choices=["teleop"], help="the paper's section 4")
     demo_cmd.add_argument("--step-seconds", type=_positive, default=3.0, help="default 3")
@@ -121,7 +128,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo_cmd.add_argument("--plot", metavar="FILE.png", help="write a PNG of rates and bandwidth")
     demo_cmd.add_argument(
         "--transport",
-        choices=["zenoh", "ros1", "memory"],
+        choices=list(TRANSPORTS),
         default="zenoh",
         help="zenoh (default), ros1 (a real ROS master, started if none answers) or memory",
     )

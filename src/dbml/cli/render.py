@@ -1,20 +1,48 @@
 """Everything the CLI shows a person: rich tables, live views and plots.
 
 The library returns typed results; this module is the only place that turns them into terminal
-output (JSON is produced next to it, in ``dbml.cli.main``), so no library module imports rich.
+output (JSON is produced next to it, in ``dbml.cli.main`` and ``dbml.cli.documents``; plots in
+``dbml.cli.plots``), so no library module imports rich.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
+from types import TracebackType
+from typing import TYPE_CHECKING
 
+from rich.console import Console, Group
+from rich.live import Live
+from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
 from dbml.core.allocation import Allocation, Status
+from dbml.experiment.analysis import (
+    BUDGET_BACK_FRACTION,
+    RATE_TOLERANCE,
+    RATE_TOLERANCE_HZ,
+    latest,
+    link_at,
+)
 from dbml.runtime.monitor import MonitorView
 from dbml.scenarios.reproduce import RobotRow
+from dbml.scenarios.teleop import LINK_MBIT, ROBOTS, STEPS
 
-__all__ = ["allocation_table", "mark", "monitor_table", "reproduce_table"]
+if TYPE_CHECKING:
+    from dbml.demo.runner import DemoResult
+    from dbml.experiment.runner import Snapshot
+    from dbml.testbed.runner import TestbedResult
+
+__all__ = [
+    "ExperimentView",
+    "allocation_table",
+    "demo_table",
+    "mark",
+    "monitor_table",
+    "reproduce_table",
+    "testbed_table",
+]
 
 OK_MARK = "[green]✓[/]"
 BAD_MARK = "[bold red]✗[/]"
@@ -112,4 +140,159 @@ def monitor_table(view: MonitorView) -> Table:
         )
     if view.status_message is not None:
         table.caption = view.status_message
+    return table
+
+
+def _fmt(value: float | None, spec: str) -> str:
+    return "-" if value is None else format(value, spec)
+
+
+class ExperimentView:
+    """A running demo or testbed: a progress bar and a live table of what arrives.
+
+    Redrawn at every report of the operator (``update`` is the runner's observer).
+
+    With ``show=False`` (``--json``) it shows nothing.
+    """
+
+    def __init__(
+        self,
+        console: Console,
+        *,
+        title: str,
+        step_s: float,
+        link_mbit: float = LINK_MBIT,
+        schedule: Sequence[tuple[float, float]] = (),
+        show: bool = True,
+    ) -> None:
+        self._title, self._link_mbit, self._schedule = title, link_mbit, schedule
+        self._show = show
+        self._progress = Progress(
+            TextColumn(f"step {{task.fields[step]}}/{len(STEPS)}"),
+            BarColumn(),
+            TimeRemainingColumn(),
+            console=console,
+        )
+        self._task = self._progress.add_task("run", total=len(STEPS) * step_s, step=0)
+        self._live = Live(self._progress, console=console, auto_refresh=False, transient=True)
+
+    def __enter__(self) -> ExperimentView:
+        if self._show:
+            self._live.start()
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        if self._show:
+            self._live.stop()
+
+    def update(self, snapshot: Snapshot) -> None:
+        """Show the newest reports (nothing when not shown, as under ``--json``)."""
+        if not self._show:
+            return
+        self._progress.update(self._task, completed=snapshot.elapsed_s, step=snapshot.step)
+        table = Table(title=self._title, expand=False)
+        for name in ("robot", "allocated Hz", "delivered Hz", "p95 ms", "Mbit/s"):
+            table.add_column(name, justify="right")
+        robots = latest(snapshot.arrivals, snapshot.ticks, robots=[c.robot for c in ROBOTS])
+        for robot in robots:
+            table.add_row(
+                robot.robot,
+                _fmt(robot.allocated_hz, ".2f"),
+                f"{robot.delivered_hz:.2f}",
+                _fmt(robot.latency_p95_ms, ".0f"),
+                f"{robot.goodput_mbit:.2f}",
+            )
+        link = link_at(self._schedule, snapshot.elapsed_s, self._link_mbit)
+        caption = f"received {sum(r.goodput_mbit for r in robots):.2f} Mbit/s on a {link:g}"
+        caption += " Mbit/s link"
+        budget = snapshot.ticks[-1].budget_mbit if snapshot.ticks else None
+        if budget is not None:
+            caption += f", budget {budget:.2f}"
+        table.caption = caption
+        self._live.update(Group(self._progress, table), refresh=True)
+
+
+def demo_table(result: DemoResult) -> Table:
+    """``dbml demo teleop``: per step and robot, allocated beside Table 2 and measured."""
+    table = Table(
+        title=f"Teleoperation, live over {result.options.transport} "
+        f"({result.options.step_seconds:g} s per step)"
+    )
+    for name in ("step", "robot", "tc s", "p", "alloc Hz", "Table 2", "measured", "Mbit/s"):
+        table.add_column(name, justify="right", no_wrap=True)
+    for step in result.steps:
+        for i, robot in enumerate(step.robots):
+            measured = robot.measured
+            table.add_row(
+                str(step.step.step) if i == 0 else "",
+                measured.robot,
+                "∞" if math.isinf(robot.tc_s) else f"{robot.tc_s:g}",
+                f"{robot.priority:.2f}",
+                _fmt(measured.allocated_hz, ".2f") + f" {mark(robot.matches_table2)}",
+                f"{robot.table2_hz:g}",
+                f"{measured.delivered_hz:.2f} {mark(robot.within_tolerance)}",
+                f"{step.total_mbit:.2f}/{step.step.link_mbit:g}" if i == 0 else "",
+                end_section=i == len(step.robots) - 1,
+            )
+    verdict = "[green]all steps match[/]" if result.ok else "[bold red]NOT all steps match[/]"
+    table.caption = (
+        f"{verdict}: allocated = Table 2, measured within {RATE_TOLERANCE * 100:g} % "
+        f"(or {RATE_TOLERANCE_HZ:g} Hz) of allocated"
+    )
+    return table
+
+
+def testbed_table(result: TestbedResult) -> Table:
+    """``dbml testbed teleop``: per step and robot, the summary and targets in the caption."""
+    options = result.options
+    title = f"Teleoperation over a shaped link — policy {options.policy}"
+    if options.strategy and options.policy == "dbml":
+        title += f" ({options.strategy}{', estimating' if options.estimate else ''})"
+    table = Table(title=title)
+    for name in ("step", "robot", "alloc", "deliv", "p50", "p95", "lost", "goodput", "budget"):
+        table.add_column(name, justify="right", no_wrap=True)
+    table.add_column("link", justify="right", no_wrap=True)
+    for step in result.steps:
+        for i, robot in enumerate(step.robots):
+            first = i == 0
+            table.add_row(
+                str(step.step) if first else "",
+                robot.robot,
+                _fmt(robot.allocated_hz, ".2f"),
+                _fmt(robot.delivered_hz, ".2f"),
+                _fmt(robot.latency_p50_ms, ".0f"),
+                _fmt(robot.latency_p95_ms, ".0f"),
+                str(robot.lost),
+                _fmt(step.goodput_mbit, ".2f") if first else "",
+                _fmt(step.budget_mbit, ".2f") if first else "",
+                f"{step.link_mbit:g}" if first else "",
+                end_section=i == len(step.robots) - 1,
+            )
+    summary = result.summary()
+    lines = [
+        "rates in Hz, one-way latency in ms, goodput, budget and link in Mbit/s",
+        f"goodput {_fmt(summary.goodput_fraction_mean, '.0%')} of the link on average, "
+        f"p95 latency at most {_fmt(summary.latency_p95_ms_max, '.0f')} ms, "
+        f"{summary.lost} frames lost",
+    ]
+    for change in result.changes:
+        link = f"link {change.from_mbit:g} -> {change.to_mbit:g} Mbit/s at {change.t_s:g} s"
+        if change.drop:
+            lines.append(
+                f"{link}: latency and losses recovered after "
+                f"{_fmt(change.recovery_s, '.2f')} s, {change.lost_after} lost"
+            )
+        else:
+            lines.append(
+                f"{link}: budget at {BUDGET_BACK_FRACTION * 100:g} % of the link after "
+                f"{_fmt(change.budget_recovery_s, '.2f')} s"
+            )
+    for name, ok in summary.targets.items():
+        lines.append(f"{mark(ok)} {name.replace('_', ' ')}")
+    table.caption = "\n".join(lines)
     return table

@@ -1,5 +1,5 @@
 """The live demo: the paper's teleoperation scenario over a real middleware (or in memory)."""
 
-from dbml.demo.runner import DemoResult, run_teleop_demo
+from dbml.demo.runner import DemoOptions, DemoResult, run_teleop_demo
 
-__all__ = ["DemoResult", "run_teleop_demo"]
+__all__ = ["DemoOptions", "DemoResult", "run_teleop_demo"]

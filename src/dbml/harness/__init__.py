@@ -1,6 +1,21 @@
 """Process plumbing shared by the demo, the testbed, the benchmarks and the tests."""
 
-from dbml.harness.processes import RoleProcesses, emit_json, end_process, free_port, serve_role
+from dbml.harness.processes import (
+    RoleProcesses,
+    emit_json,
+    end_process,
+    free_port,
+    serve_role,
+    wait_ready,
+)
 from dbml.harness.rosmaster import RosMaster
 
-__all__ = ["RoleProcesses", "RosMaster", "emit_json", "end_process", "free_port", "serve_role"]
+__all__ = [
+    "RoleProcesses",
+    "RosMaster",
+    "emit_json",
+    "end_process",
+    "free_port",
+    "serve_role",
+    "wait_ready",
+]

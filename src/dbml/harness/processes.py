@@ -24,9 +24,21 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from typing import IO, Any
 
-__all__ = ["Emit", "RoleProcesses", "emit_json", "end_process", "free_port", "serve_role"]
+__all__ = [
+    "Emit",
+    "Message",
+    "RoleProcesses",
+    "emit_json",
+    "end_process",
+    "free_port",
+    "serve_role",
+    "wait_ready",
+]
 
 Emit = Callable[[dict[str, Any]], None]
+"""A role's report sink: one JSON-able message."""
+Message = tuple[str, dict[str, Any] | None]
+"""A role's name and one of its reports; None when the role ended."""
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -55,7 +67,7 @@ class RoleProcesses:
     """The role processes, with their stdout read line by line into one queue."""
 
     def __init__(self) -> None:
-        self.messages: queue.Queue[tuple[str, dict[str, Any] | None]] = queue.Queue()
+        self.messages: queue.Queue[Message] = queue.Queue()
         self.children: dict[str, subprocess.Popen[str]] = {}
         self._logs: dict[str, IO[str]] = {}
         self._readers: list[threading.Thread] = []
@@ -63,6 +75,7 @@ class RoleProcesses:
     def spawn(
         self, role: str, argv: Sequence[str], *, env: Mapping[str, str] | None = None
     ) -> None:
+        """Start ``argv`` as ``role``, its stdout read into ``messages``, its stderr logged."""
         log = tempfile.TemporaryFile("w+")  # noqa: SIM115 - closed in close()
         self._logs[role] = log
         child = subprocess.Popen(
@@ -85,29 +98,20 @@ class RoleProcesses:
                 self.messages.put((role, json.loads(line)))
         self.messages.put((role, None))  # EOF: the process ended
 
-    def wait_ready(self, roles: set[str], *, timeout_s: float) -> str | None:
-        """Wait until every role printed ``ready``; the role that ended first, if one did.
-
-        Raises ``queue.Empty`` when the time runs out.
-        """
-        ready: set[str] = set()
-        deadline = time.monotonic() + timeout_s
-        while ready != roles:
-            role, message = self.messages.get(timeout=max(0.1, deadline - time.monotonic()))
-            if message is None:
-                return role
-            if message.get("type") == "ready":
-                ready.add(role)
-        return None
-
     def send(self, line: str) -> None:
+        """One line to every running role's stdin."""
         for child in self.children.values():
             if child.poll() is None and child.stdin is not None:
                 with contextlib.suppress(BrokenPipeError, OSError):
                     child.stdin.write(line + "\n")
                     child.stdin.flush()
 
+    def start(self, t0: float) -> None:
+        """Tell every role the wall-clock time of step 1."""
+        self.send(f"start {t0!r}")
+
     def log_tail(self, role: str) -> str:
+        """The end of what ``role`` wrote on stderr."""
         log = self._logs[role]
         log.seek(0)
         return log.read()[-2000:]
@@ -137,6 +141,22 @@ class RoleProcesses:
                 child.stdout.close()
         for log in self._logs.values():
             log.close()
+
+
+def wait_ready(messages: queue.Queue[Message], roles: set[str], *, timeout_s: float) -> str | None:
+    """Wait until every role reported ``ready``; the role that ended first, if one did.
+
+    Raises ``queue.Empty`` when the time runs out.
+    """
+    ready: set[str] = set()
+    deadline = time.monotonic() + timeout_s
+    while ready != roles:
+        role, message = messages.get(timeout=max(0.1, deadline - time.monotonic()))
+        if message is None:
+            return role
+        if message.get("type") == "ready":
+            ready.add(role)
+    return None
 
 
 def emit_json(message: dict[str, Any]) -> None:

@@ -46,6 +46,7 @@ class RosMaster:
         return cls().start()
 
     def start(self) -> RosMaster:
+        """Start ``rosmaster --core`` and wait until it answers."""
         executable = shutil.which("rosmaster")
         if executable is None:
             raise TransportError(

@@ -7,7 +7,6 @@ same allocation, fail-safe and local/remote rules as every other transport.
 
 from __future__ import annotations
 
-import threading
 from collections.abc import Callable, Iterable
 from typing import Any
 
@@ -29,16 +28,10 @@ from dbml.transports.ros1 import Ros1Transport, serialize
 
 __all__ = ["DBMOptimizer", "DBMPublisher", "DBMRate", "DBMSubscriber", "ros1_transport"]
 
-_lock = threading.Lock()
-_shared: list[Ros1Transport] = []
-
 
 def ros1_transport() -> Ros1Transport:
     """This process's ROS 1 transport, started on first use (on the rospy node, if one runs)."""
-    with _lock:
-        if not _shared:
-            _shared.append(Ros1Transport())
-        return _shared[0]
+    return Ros1Transport.shared()
 
 
 def _resolve(name: str) -> str:
@@ -54,8 +47,9 @@ def _message_type(data_class: type) -> str:
 
 
 class DBMPublisher:
-    """Publish ``data_class`` messages on ``name`` at the frequency the optimizer allocates,
-    between ``min_frequency`` and ``max_frequency`` (Hz).
+    """Publish ``data_class`` messages on ``name`` at the frequency the optimizer allocates.
+
+    The frequency stays between ``min_frequency`` and ``max_frequency`` (Hz).
 
     ``publish(msg)`` sends every message to ``[name]`` when someone on this host listens, and to
     ``[name]/optimized`` within the allocated frequency; it returns True when the message went
@@ -92,6 +86,7 @@ class DBMPublisher:
         return self._managed.current_rate_hz()
 
     def publish(self, message: Any) -> bool:
+        """Send ``message``; True when it also went to ``[name]/optimized``."""
         if not isinstance(message, self.data_class):
             raise SpecError(
                 f"message={type(message).__name__} is not {self._type} (topic {self.name})"
@@ -99,6 +94,7 @@ class DBMPublisher:
         return self._managed.publish(serialize(message))
 
     def unregister(self) -> None:
+        """Stop publishing and withdraw the channel."""
         self._managed.close()
 
 
@@ -112,11 +108,13 @@ class DBMRate:
         self._rate = publisher._managed.rate
 
     def sleep(self) -> None:
+        """Sleep until the next period at the allocated frequency."""
         if rospy.is_shutdown():
             raise rospy.ROSInterruptException("ROS shutdown request")
         self._rate.sleep()
 
     def reset(self) -> None:
+        """Start the schedule again at the next ``sleep()``."""
         self._rate.reset()
 
 
@@ -156,16 +154,17 @@ class DBMSubscriber:
         return self._managed.variant is Variant.OPTIMIZED
 
     def unregister(self) -> None:
+        """Stop receiving."""
         self._managed.close()
 
 
 class DBMOptimizer:
-    """The optimizer node: allocate every ``/dbm/optimization_rate_in_seconds`` and at once on
-    a priority, size, bound, budget or graph change.
+    """The optimizer node: allocate periodically and at once on every change.
 
-    With ``settings`` it writes the ``/dbm/...`` parameters first; without, it uses what is on
-    the parameter server (``rosparam set /dbm/max_bandwidth_in_mbit 11``) and writes the
-    defaults of the others. An infeasible budget
+    The period is ``/dbm/optimization_rate_in_seconds``; a priority, size, bound, budget or
+    graph change triggers a round at once. With ``settings`` it writes the ``/dbm/...``
+    parameters first; without, it uses what is on the parameter server (``rosparam set
+    /dbm/max_bandwidth_in_mbit 11``) and writes the defaults of the others. An infeasible budget
     is reported in ``/dbm/status`` and ``/dbm/status_message``, never silently ignored.
     """
 
@@ -182,13 +181,16 @@ class DBMOptimizer:
 
     @property
     def last_round(self) -> Round | None:
+        """The latest round's allocation, or None before the first."""
         return self._node.last_round
 
     def start(self) -> DBMOptimizer:
+        """Run rounds in the background; returns itself."""
         self._node.start()
         return self
 
     def stop(self) -> None:
+        """Stop the background rounds."""
         self._node.stop()
 
     def spin(self) -> None:

@@ -185,7 +185,8 @@ class OptimizerNode:
         if not managed:
             return {}, Status.OPTIMAL, "no managed channels", None
         floors = {c.topic: c.floor_hz for c in managed}
-        if dbm.budget_mbit is None:
+        budget = dbm.link_and_utilization()
+        if budget is None:
             return floors, Status.INFEASIBLE, f"no budget: set {names.BANDWIDTH}", None
         specs = [spec for c in managed if (spec := c.spec()) is not None]
         # Channels that have not sent a message yet have no size: they stay at their minimum.
@@ -201,7 +202,9 @@ class OptimizerNode:
         if links and dbm.strategy is not Strategy.LP:
             log.error("links are configured but strategy is %s; links ignored", dbm.strategy.value)
             links = ()
-        problem = Problem(tuple(specs), bandwidth_mbit=dbm.budget_mbit, links=links)
+        problem = Problem(
+            tuple(specs), bandwidth_mbit=budget[0], utilization=budget[1], links=links
+        )
         allocation = allocate(problem, strategy=dbm.strategy)
         rates.update(allocation.rates_by_topic())
         return rates, allocation.status, allocation.message, allocation

@@ -154,10 +154,21 @@ class DbmParams:
 
         An estimate never widens the configured budget, and without one there is no budget.
         """
-        configured = self.configured_mbit
-        if configured is None or self.estimate_mbit is None:
-            return configured
-        return min(self.estimate_mbit, configured)
+        budget = self.link_and_utilization()
+        return None if budget is None else budget[0] * budget[1]
+
+    def link_and_utilization(self) -> tuple[float, float] | None:
+        """The budget as a ``Problem`` takes it: a link of Mbit/s and the usable fraction.
+
+        The configured bandwidth and utilization (which per-link capacities share), or an
+        estimate below them, which is usable whole.
+        """
+        if self.bandwidth_mbit is None:
+            return None
+        configured = self.bandwidth_mbit * self.utilization
+        if self.estimate_mbit is not None and self.estimate_mbit < configured:
+            return self.estimate_mbit, 1.0
+        return self.bandwidth_mbit, self.utilization
 
 
 @dataclass(frozen=True, slots=True)

@@ -17,7 +17,7 @@ class RateLimiter:
 
     A message is due every period; a source faster than the rate gets exactly the rate on
     average, and after a pause at most one extra message goes out early. A new rate applies
-    from the next message on.
+    from the last message on.
     """
 
     def __init__(self, rate_hz: float) -> None:
@@ -30,8 +30,14 @@ class RateLimiter:
         return 1.0 / self._period
 
     def set_rate(self, rate_hz: float) -> None:
-        """Apply a new rate from the next message on."""
-        self._period = 1.0 / rate_hz
+        """Apply a new rate from the last message on: the next is due one new period after it.
+
+        So a faster allocation takes effect at once instead of after the old, slower period.
+        """
+        period = 1.0 / rate_hz
+        if period != self._period:
+            self._due += period - self._period  # -inf (nothing sent yet) stays -inf
+            self._period = period
 
     def allow(self, now: float) -> bool:
         """Whether a message may go out at ``now``; if so it counts as sent."""

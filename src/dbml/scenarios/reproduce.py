@@ -27,24 +27,29 @@ class RobotRow:
 
     @property
     def tc_match(self) -> bool:
+        """Time to collision as printed (None for infinity)."""
         if self.paper.tc_s is None:
             return math.isinf(self.tc_s)
         return math.isclose(self.tc_s, self.paper.tc_s)
 
     @property
     def priority_match(self) -> bool:
+        """Priority to the printed two decimals."""
         return round(self.priority, 2) == self.paper.priority
 
     @property
     def rate_match(self) -> bool:
+        """Rate to the printed two decimals."""
         return round(self.rate_hz, 2) == self.paper.rate_hz
 
     @property
     def share_match(self) -> bool:
+        """Bandwidth share to the printed two decimals of a percent."""
         return round(self.share * 100, 2) == self.paper.share_percent
 
     @property
     def match(self) -> bool:
+        """Every printed cell matches."""
         return self.tc_match and self.priority_match and self.rate_match and self.share_match
 
 

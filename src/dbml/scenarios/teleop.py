@@ -24,8 +24,11 @@ __all__ = [
 ]
 
 LINK_MBIT = 11.0
+"""The shared link of the paper's experiment (Table 1)."""
 MIN_RATE_HZ = 1.0
+"""Every camera's minimum rate (Table 1)."""
 MAX_RATE_HZ = 16.0
+"""Every camera's maximum rate (Table 1)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -46,15 +49,19 @@ class RobotEvent:
 
     @property
     def tc_s(self) -> float:
+        """Time to collision (eq. 6), infinity when standing still."""
         return time_to_collision_s(self.distance_m, self.speed_m_per_s)
 
     @property
     def priority(self) -> float:
+        """The camera's raw priority (eq. 7)."""
         return collision_priority(self.tc_s)
 
 
 @dataclass(frozen=True, slots=True)
 class Step:
+    """One step of Table 2: what each robot senses, in ``ROBOTS`` order."""
+
     number: int
     events: tuple[RobotEvent, ...]
 

@@ -10,14 +10,21 @@ from dbml.transports.base import (
     Role,
     Sample,
     Transport,
+    TransportBase,
     Variant,
     check_topic,
     resolve_host,
 )
 from dbml.transports.memory import ManualClock, MemoryNetwork, MemoryTransport
-from dbml.transports.registry import TRANSPORTS, open_transport
+from dbml.transports.registry import (
+    DEFAULT_TRANSPORT,
+    TRANSPORTS,
+    TransportEntry,
+    open_transport,
+)
 
 __all__ = [
+    "DEFAULT_TRANSPORT",
     "TRANSPORTS",
     "GraphEntry",
     "GraphView",
@@ -31,6 +38,8 @@ __all__ = [
     "Role",
     "Sample",
     "Transport",
+    "TransportBase",
+    "TransportEntry",
     "Variant",
     "check_topic",
     "open_transport",

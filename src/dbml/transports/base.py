@@ -3,7 +3,13 @@
 A transport gives a process five things: publish bytes (with attachment metadata) on a topic,
 subscribe to a topic, a parameter store with change notification, the live graph (which host
 publishes or subscribes which topic variant) and this process's host identity. ``memory`` is the
-in-process test double; ``zenoh`` is the real engine. Both pass one contract test suite.
+in-process test double; ``zenoh`` is the real engine; ``ros1`` is rospy and a ROS master. All
+pass one contract test suite.
+
+A transport is a context manager (leaving the block closes it). Capabilities that only some
+middleware needs (waiting for peers, confirming a write, a camera frame in the middleware's own
+message type) are part of the protocol, with the defaults of a store that is complete and
+synchronous in ``TransportBase``, so no caller has to ask whether a transport has them.
 
 Topics are ROS-style names (``/r1/camera``). Callbacks may run on a middleware thread: keep them
 short and never block in them.
@@ -12,13 +18,12 @@ short and never block in them.
 from __future__ import annotations
 
 import enum
-import json
 import os
 import re
 import socket
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Protocol, TypeAlias, runtime_checkable
+from typing import Protocol, Self, TypeAlias, runtime_checkable
 
 from dbml.core.errors import TransportError
 
@@ -33,11 +38,10 @@ __all__ = [
     "Role",
     "Sample",
     "Transport",
+    "TransportBase",
     "Variant",
     "check_param_value",
     "check_topic",
-    "decode_param",
-    "encode_param",
     "param_number",
     "resolve_host",
 ]
@@ -76,10 +80,13 @@ class Variant(enum.StrEnum):
     OPTIMIZED = "optimized"
 
     def key(self, topic: str) -> str:
+        """The name this copy of ``topic`` travels under (``/r1/camera/optimized``)."""
         return topic if self is Variant.FULL else f"{topic}/optimized"
 
 
 class Role(enum.StrEnum):
+    """What a graph entry declares: publishing or subscribing."""
+
     PUBLISHER = "pub"
     SUBSCRIBER = "sub"
 
@@ -108,20 +115,28 @@ class Sample:
 class Handle(Protocol):
     """Anything declared that must be undeclared: a subscription, a watch, a graph token."""
 
-    def close(self) -> None: ...
+    def close(self) -> None:
+        """Undeclare it; closing twice does nothing."""
+        ...
 
 
 class Publisher(Protocol):
+    """A declared publisher of one topic variant."""
+
     topic: str
 
-    def put(self, payload: bytes, attachment: bytes | None = None) -> None: ...
+    def put(self, payload: bytes, attachment: bytes | None = None) -> None:
+        """Send ``payload`` (and the publisher's metadata in ``attachment``)."""
+        ...
 
     @property
     def has_subscribers(self) -> bool:
         """Whether any subscriber matches, so a full-rate copy nobody reads is never sent."""
         ...
 
-    def close(self) -> None: ...
+    def close(self) -> None:
+        """Undeclare the publisher."""
+        ...
 
 
 class ParamStore(Protocol):
@@ -130,49 +145,132 @@ class ParamStore(Protocol):
     Every process sees every value; the newest write wins; ``watch`` reports every change.
     """
 
-    def set(self, name: str, value: ParamValue) -> None: ...
+    def set(self, name: str, value: ParamValue) -> None:
+        """Write ``name`` (``None`` deletes it)."""
+        ...
 
-    def get(self, name: str) -> ParamValue: ...
+    def get(self, name: str) -> ParamValue:
+        """The value of ``name``; ``None`` when unset."""
+        ...
 
-    def snapshot(self, prefix: str = "/") -> dict[str, ParamValue]: ...
+    def snapshot(self, prefix: str = "/") -> dict[str, ParamValue]:
+        """Every set parameter whose name starts with ``prefix``."""
+        ...
 
-    def watch(self, callback: Callable[[str, ParamValue], None]) -> Handle: ...
+    def watch(self, callback: Callable[[str, ParamValue], None]) -> Handle:
+        """Call ``callback(name, value)`` on every change; ``value`` is ``None`` on deletion."""
+        ...
 
 
 class GraphView(Protocol):
     """Who publishes and subscribes what, from which host, live."""
 
-    def announce(self, role: Role, topic: str, variant: Variant) -> Handle: ...
+    def announce(self, role: Role, topic: str, variant: Variant) -> Handle:
+        """Declare that this host plays ``role`` on ``topic``; closing the handle withdraws it."""
+        ...
 
-    def entries(self) -> frozenset[GraphEntry]: ...
+    def entries(self) -> frozenset[GraphEntry]:
+        """Every live declaration, from every host."""
+        ...
 
-    def watch(self, callback: Callable[[], None]) -> Handle: ...
+    def watch(self, callback: Callable[[], None]) -> Handle:
+        """Call ``callback()`` whenever the entries change."""
+        ...
 
 
 @runtime_checkable
 class Transport(Protocol):
+    """What the runtime needs from a middleware: topics, parameters, graph, host, clock."""
+
     @property
     def host(self) -> str:
         """This process's host identity."""
         ...
 
     @property
-    def params(self) -> ParamStore: ...
+    def params(self) -> ParamStore:
+        """The parameter store every process of the network shares."""
+        ...
 
     @property
-    def graph(self) -> GraphView: ...
+    def graph(self) -> GraphView:
+        """Who publishes and subscribes what, live."""
+        ...
 
-    def declare_publisher(self, topic: str, variant: Variant = Variant.FULL) -> Publisher: ...
+    def declare_publisher(self, topic: str, variant: Variant = Variant.FULL) -> Publisher:
+        """A publisher of ``topic`` in ``variant``."""
+        ...
 
     def subscribe(
         self, topic: str, callback: Callable[[Sample], None], variant: Variant = Variant.FULL
-    ) -> Handle: ...
+    ) -> Handle:
+        """Call ``callback(sample)`` for every message of ``topic`` in ``variant``."""
+        ...
 
     def now(self) -> float:
         """Monotonic seconds; the memory transport's is injectable."""
         ...
 
-    def close(self) -> None: ...
+    def wait_for_peers(self, timeout_s: float) -> bool:
+        """Wait until another process is reachable and its parameters are known.
+
+        A node that starts by reading parameters must not read an empty store just because its
+        peers have not been found yet. True when peers were found (or there is nothing to wait
+        for); False after ``timeout_s`` without one.
+        """
+        ...
+
+    def confirm_param(self, name: str, *, timeout_s: float) -> bool:
+        """Whether another process holds this process's latest write of ``name``.
+
+        A process that writes and exits at once must know its write outlived it.
+        """
+        ...
+
+    def camera_frame(self, topic: str, size_bytes: int) -> bytes:
+        """A synthetic camera frame of exactly ``size_bytes`` as this transport carries it.
+
+        Over ROS 1 the payload is a serialised message of the topic's declared type, so the size
+        the optimizer sees is the size asked for.
+        """
+        ...
+
+    def close(self) -> None:
+        """Undeclare everything this transport declared, as a process exit would."""
+        ...
+
+    def __enter__(self) -> Self: ...
+
+    def __exit__(self, *_: object) -> None: ...
+
+
+class TransportBase:
+    """The defaults of the optional capabilities, for a store that is complete and synchronous.
+
+    The transports subclass it and override what their middleware needs; ``close`` is theirs.
+    """
+
+    def close(self) -> None:
+        """Release everything this transport declared; implemented by each transport."""
+        raise NotImplementedError
+
+    def wait_for_peers(self, timeout_s: float) -> bool:
+        """Nothing to wait for: the store is complete at once."""
+        return True
+
+    def confirm_param(self, name: str, *, timeout_s: float) -> bool:
+        """Nothing to confirm: a write is everyone's at once."""
+        return True
+
+    def camera_frame(self, topic: str, size_bytes: int) -> bytes:
+        """A synthetic camera frame of ``size_bytes``: raw bytes over this transport."""
+        return bytes(size_bytes)
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.close()
 
 
 class Closer:
@@ -182,6 +280,7 @@ class Closer:
         self._action: Callable[[], None] | None = action
 
     def close(self) -> None:
+        """Run the action, the first time only."""
         action, self._action = self._action, None
         if action is not None:
             action()
@@ -195,23 +294,7 @@ def param_number(value: ParamValue) -> float | None:
 
 
 def check_param_value(value: object) -> ParamValue:
+    """``value`` if a store can hold it (a bool, number, string or ``None``), else an error."""
     if value is not None and not isinstance(value, bool | int | float | str):
         raise TransportError(f"parameter value={value!r} must be a bool, number or string")
     return value
-
-
-def encode_param(value: ParamValue, stamp_ns: int, writer: str) -> bytes:
-    """Wire form of a parameter write: the value, when it was written and by whom."""
-    check_param_value(value)
-    return json.dumps({"v": value, "t": stamp_ns, "w": writer}).encode()
-
-
-def decode_param(data: bytes) -> tuple[ParamValue, int, str]:
-    try:
-        document = json.loads(data)
-        value, stamp, writer = document["v"], int(document["t"]), str(document["w"])
-    except (ValueError, KeyError, TypeError) as err:
-        raise TransportError(f"malformed parameter write {data[:80]!r}") from err
-    if value is not None and not isinstance(value, bool | int | float | str):
-        raise TransportError(f"malformed parameter value {value!r}")
-    return value, stamp, writer

@@ -22,11 +22,13 @@ from dbml.transports.base import (
     ParamValue,
     Role,
     Sample,
+    TransportBase,
     Variant,
     check_param_value,
     check_topic,
     resolve_host,
 )
+from dbml.transports.callbacks import CallbackList
 
 __all__ = ["ManualClock", "MemoryNetwork", "MemoryTransport"]
 
@@ -38,78 +40,56 @@ class ManualClock:
         self._now = start_s
 
     def __call__(self) -> float:
+        """The current time in seconds."""
         return self._now
 
     def advance(self, seconds: float) -> None:
+        """Move the clock forward by ``seconds`` (never back)."""
         if seconds < 0:
             raise ValueError(f"seconds={seconds!r} must be >= 0")
         self._now += seconds
-
-
-@dataclass(eq=False)
-class _Callback:
-    fn: Callable[..., None]
-    closed: bool = False
 
 
 @dataclass
 class MemoryNetwork:
     """The shared medium of memory transports: routes, parameters and graph tokens."""
 
-    routes: dict[str, list[_Callback]] = field(default_factory=dict)
+    routes: dict[str, CallbackList[[Sample]]] = field(default_factory=dict)
     params: dict[str, tuple[ParamValue, int]] = field(default_factory=dict)
-    param_watchers: list[_Callback] = field(default_factory=list)
+    param_watchers: CallbackList[[str, ParamValue]] = field(default_factory=CallbackList)
     tokens: dict[str, GraphEntry] = field(default_factory=dict)
-    graph_watchers: list[_Callback] = field(default_factory=list)
+    graph_watchers: CallbackList[[]] = field(default_factory=CallbackList)
     lock: threading.RLock = field(default_factory=threading.RLock)
     _ids: itertools.count[int] = field(default_factory=itertools.count)
     _stamps: itertools.count[int] = field(default_factory=lambda: itertools.count(1))
 
     def next_id(self) -> int:
+        """A number no other declaration on this network has had."""
         return next(self._ids)
 
     def next_stamp(self) -> int:
+        """The order of a parameter write on this network."""
         return next(self._stamps)
 
-    def fire(self, callbacks: list[_Callback], *args: object) -> None:
+    def route(self, key: str) -> CallbackList[[Sample]]:
+        """The subscribers of one topic variant (created empty on first use)."""
         with self.lock:
-            live = [c for c in callbacks if not c.closed]
-        for callback in live:
-            if not callback.closed:
-                callback.fn(*args)
-
-
-def _register(network: MemoryNetwork, where: list[_Callback], fn: Callable[..., None]) -> Handle:
-    callback = _Callback(fn)
-    with network.lock:
-        where.append(callback)
-
-    def remove() -> None:
-        callback.closed = True
-        with network.lock:
-            if callback in where:
-                where.remove(callback)
-
-    return Closer(remove)
+            return self.routes.setdefault(key, CallbackList())
 
 
 class _MemoryPublisher:
     def __init__(self, transport: MemoryTransport, topic: str, variant: Variant) -> None:
         self.topic = topic
-        self._key = variant.key(topic)
+        self._route = transport.network.route(variant.key(topic))
         self._transport = transport
 
     def put(self, payload: bytes, attachment: bytes | None = None) -> None:
         self._transport._check_open()
-        network = self._transport.network
-        network.fire(
-            network.routes.get(self._key, []), Sample(self.topic, bytes(payload), attachment)
-        )
+        self._route.fire(Sample(self.topic, bytes(payload), attachment))
 
     @property
     def has_subscribers(self) -> bool:
-        with self._transport.network.lock:
-            return any(not c.closed for c in self._transport.network.routes.get(self._key, []))
+        return bool(self._route)
 
     def close(self) -> None:
         pass
@@ -124,7 +104,7 @@ class _MemoryParams:
         network = self._transport.network
         with network.lock:
             network.params[name] = (value, network.next_stamp())
-        network.fire(network.param_watchers, name, value)
+        network.param_watchers.fire(name, value)
 
     def get(self, name: str) -> ParamValue:
         with self._transport.network.lock:
@@ -140,7 +120,7 @@ class _MemoryParams:
             }
 
     def watch(self, callback: Callable[[str, ParamValue], None]) -> Handle:
-        return _register(self._transport.network, self._transport.network.param_watchers, callback)
+        return self._transport.network.param_watchers.add(callback)
 
 
 class _MemoryGraph:
@@ -156,13 +136,13 @@ class _MemoryGraph:
         with network.lock:
             network.tokens[uid] = entry
         transport._tokens.add(uid)
-        network.fire(network.graph_watchers)
+        network.graph_watchers.fire()
 
         def withdraw() -> None:
             with network.lock:
                 network.tokens.pop(uid, None)
             transport._tokens.discard(uid)
-            network.fire(network.graph_watchers)
+            network.graph_watchers.fire()
 
         return Closer(withdraw)
 
@@ -171,10 +151,10 @@ class _MemoryGraph:
             return frozenset(self._transport.network.tokens.values())
 
     def watch(self, callback: Callable[[], None]) -> Handle:
-        return _register(self._transport.network, self._transport.network.graph_watchers, callback)
+        return self._transport.network.graph_watchers.add(callback)
 
 
-class MemoryTransport:
+class MemoryTransport(TransportBase):
     """One process's view of a ``MemoryNetwork`` (a fresh private network if none is given)."""
 
     def __init__(
@@ -198,38 +178,20 @@ class MemoryTransport:
             raise TransportError(f"memory transport of host {self.host!r} is closed")
 
     def now(self) -> float:
+        """The injected clock's seconds (``time.monotonic`` by default)."""
         return self._clock()
 
-    def wait_for_peers(self, timeout_s: float) -> bool:
-        """Nothing to wait for: the store is complete at once."""
-        return True
-
-    def confirm_param(self, name: str, *, timeout_s: float) -> bool:
-        """Nothing to confirm: a write is everyone's at once."""
-        return True
-
-    def __enter__(self) -> MemoryTransport:
-        return self
-
-    def __exit__(self, *_: object) -> None:
-        self.close()
-
-    def camera_frame(self, topic: str, size_bytes: int) -> bytes:
-        """A synthetic camera frame of ``size_bytes``: raw bytes over this transport."""
-        return bytes(size_bytes)
-
     def declare_publisher(self, topic: str, variant: Variant = Variant.FULL) -> _MemoryPublisher:
+        """A publisher whose ``put`` returns after every subscriber's callback ran."""
         self._check_open()
         return _MemoryPublisher(self, check_topic(topic), variant)
 
     def subscribe(
         self, topic: str, callback: Callable[[Sample], None], variant: Variant = Variant.FULL
     ) -> Handle:
+        """Call ``callback`` on the publishing thread for every message of ``topic``."""
         self._check_open()
-        key = variant.key(check_topic(topic))
-        with self.network.lock:
-            route = self.network.routes.setdefault(key, [])
-        handle = _register(self.network, route, callback)
+        handle = self.network.route(variant.key(check_topic(topic))).add(callback)
         self._handles.append(handle)
         return handle
 
@@ -245,4 +207,4 @@ class MemoryTransport:
                 self.network.tokens.pop(uid, None)
         if self._tokens:
             self._tokens.clear()
-            self.network.fire(self.network.graph_watchers)
+            self.network.graph_watchers.fire()

@@ -1,54 +1,170 @@
-"""Transports by name; middleware is imported only when its transport is opened."""
+"""Transports by name; middleware is imported only when its transport is opened.
+
+``TRANSPORTS`` maps each name to a ``TransportEntry``: the factory and what a caller must know
+before choosing it (whether it spans processes, whether its messages carry dbml's metadata,
+whether its parameter store is complete when a process starts). The command line's choices and
+help come from it, in its order, the default first.
+"""
 
 from __future__ import annotations
 
 import importlib
-import os
-from collections.abc import Sequence
+import types
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 from dbml.core.errors import TransportError
 from dbml.transports.base import Transport
-from dbml.transports.memory import MemoryTransport
+from dbml.transports.memory import MemoryNetwork, MemoryTransport
 
-__all__ = ["TRANSPORTS", "open_transport"]
+__all__ = [
+    "DEFAULT_TRANSPORT",
+    "TRANSPORTS",
+    "TransportEntry",
+    "TransportFactory",
+    "open_transport",
+]
 
-TRANSPORTS = ("zenoh", "memory", "ros1")
-"""Registered names; the first is the default."""
+DEFAULT_TRANSPORT = "zenoh"
+"""The transport used when none is named."""
+
+
+class TransportFactory(Protocol):
+    """Opens one transport from ``open_transport``'s options (each rejects what it cannot use)."""
+
+    def __call__(
+        self,
+        *,
+        host: str | None,
+        connect: Sequence[str],
+        listen: Sequence[str],
+        config_file: str | Path | None,
+        network: MemoryNetwork | None,
+    ) -> Transport:
+        """Open the transport; a ``TransportError`` names what is missing or not accepted."""
+        ...
+
+
+@dataclass(frozen=True, slots=True)
+class TransportEntry:
+    """One registered transport: how to open it and what it offers."""
+
+    factory: TransportFactory
+    summary: str
+    """One line for a command's help."""
+    spans_processes: bool
+    """Whether processes (and machines) meet over it; ``memory`` lives in one process."""
+    carries_metadata: bool
+    """Whether messages carry dbml's attachment (send time, sequence), which estimation needs."""
+    params_complete_at_start: bool
+    """Whether a process reads the whole store when it starts (the ROS parameter server), so an
+    optimizer must write the defaults of unset parameters where everyone reads them."""
+
+
+def _no_network(name: str, network: MemoryNetwork | None) -> None:
+    if network is not None:
+        raise TransportError(f"transport={name!r} takes no network: only 'memory' does")
+
+
+def _open_zenoh(
+    *,
+    host: str | None,
+    connect: Sequence[str],
+    listen: Sequence[str],
+    config_file: str | Path | None,
+    network: MemoryNetwork | None,
+) -> Transport:
+    _no_network("zenoh", network)
+    module = importlib.import_module("dbml.transports.zenoh")
+    transport: Transport = module.ZenohTransport(
+        host=host, connect=connect, listen=listen, config_file=config_file
+    )
+    return transport
+
+
+def _open_ros1(
+    *,
+    host: str | None,
+    connect: Sequence[str],
+    listen: Sequence[str],
+    config_file: str | Path | None,
+    network: MemoryNetwork | None,
+) -> Transport:
+    if connect or listen or config_file:
+        raise TransportError(
+            "transport='ros1' takes no endpoints or config file: it uses ROS_MASTER_URI"
+        )
+    _no_network("ros1", network)
+    try:
+        module = importlib.import_module("dbml.transports.ros1")
+    except ImportError as err:
+        raise TransportError(str(err)) from err
+    transport: Transport = module.Ros1Transport(host=host)
+    return transport
+
+
+def _open_memory(
+    *,
+    host: str | None,
+    connect: Sequence[str],
+    listen: Sequence[str],
+    config_file: str | Path | None,
+    network: MemoryNetwork | None,
+) -> Transport:
+    if connect or listen or config_file:
+        raise TransportError("transport='memory' takes no endpoints or config file")
+    return MemoryTransport(network, host=host)
+
+
+TRANSPORTS: Mapping[str, TransportEntry] = types.MappingProxyType(
+    {
+        "zenoh": TransportEntry(
+            factory=_open_zenoh,
+            summary="eclipse-zenoh, peer to peer; loopback with no flags, endpoints across hosts",
+            spans_processes=True,
+            carries_metadata=True,
+            params_complete_at_start=False,
+        ),
+        "ros1": TransportEntry(
+            factory=_open_ros1,
+            summary="rospy topics and the parameter server of the master at ROS_MASTER_URI",
+            spans_processes=True,
+            carries_metadata=False,
+            params_complete_at_start=True,
+        ),
+        "memory": TransportEntry(
+            factory=_open_memory,
+            summary="in one process, synchronous and deterministic (tests, simulations)",
+            spans_processes=False,
+            carries_metadata=True,
+            params_complete_at_start=False,
+        ),
+    }
+)
+"""Registered transports by name, the default first; read-only."""
 
 
 def open_transport(
-    name: str = "zenoh",
+    name: str = DEFAULT_TRANSPORT,
     *,
     host: str | None = None,
     connect: Sequence[str] = (),
     listen: Sequence[str] = (),
     config_file: str | Path | None = None,
+    network: MemoryNetwork | None = None,
 ) -> Transport:
-    """Open a transport by name. ``memory`` gives a private in-process network; ``ros1``
-    joins the ROS master at ``ROS_MASTER_URI`` (``host`` sets ``ROS_HOSTNAME``)."""
-    if name == "memory":
-        if connect or listen or config_file:
-            raise TransportError("transport='memory' takes no endpoints or config file")
-        return MemoryTransport(host=host)
-    if name == "zenoh":
-        module = importlib.import_module("dbml.transports.zenoh")
-        transport: Transport = module.ZenohTransport(
-            host=host, connect=connect, listen=listen, config_file=config_file
-        )
-        return transport
-    if name == "ros1":
-        if connect or listen or config_file:
-            raise TransportError(
-                "transport='ros1' takes no endpoints or config file: it uses ROS_MASTER_URI"
-            )
-        if host is not None:
-            # rospy names this process's host from the environment, before the node starts.
-            os.environ["ROS_HOSTNAME"] = host
-        try:
-            module = importlib.import_module("dbml.transports.ros1")
-        except ImportError as err:
-            raise TransportError(str(err)) from err
-        ros1: Transport = module.Ros1Transport()
-        return ros1
-    raise TransportError(f"transport={name!r} is not one of: {', '.join(TRANSPORTS)}")
+    """Open a transport by name.
+
+    ``memory`` joins ``network`` (a private in-process network if none is given); ``zenoh``
+    meets peers on loopback, or at ``connect`` / ``listen`` endpoints or a zenoh
+    ``config_file``; ``ros1`` joins the ROS master at ``ROS_MASTER_URI``. ``host`` is this
+    process's identity (over ROS 1, the host part of the node's URI, as ``ROS_HOSTNAME`` sets).
+    """
+    entry = TRANSPORTS.get(name)
+    if entry is None:
+        raise TransportError(f"transport={name!r} is not one of: {', '.join(TRANSPORTS)}")
+    return entry.factory(
+        host=host, connect=connect, listen=listen, config_file=config_file, network=network
+    )

@@ -14,8 +14,9 @@
 - No attachments: ROS 1 messages carry none, so subscribers see ``attachment=None`` (no
   per-message latency or loss, hence no bandwidth estimation over ROS 1).
 
-rospy allows one node per process, so there is one ``Ros1Transport`` per process; it reuses a
-node the application already started with ``rospy.init_node``.
+rospy allows one node per process, so there is one ``Ros1Transport`` per process
+(``Ros1Transport.shared()`` opens it on first use); it reuses a node the application already
+started with ``rospy.init_node``.
 """
 
 from __future__ import annotations
@@ -24,10 +25,11 @@ import io
 import logging
 import os
 import struct
+import sys
 import threading
 import time
 from collections.abc import Callable, Mapping
-from typing import Any, TypeVar
+from typing import Any, Final
 from urllib.parse import urlparse
 from xmlrpc.server import SimpleXMLRPCServer
 
@@ -39,10 +41,13 @@ from dbml.transports.base import (
     ParamValue,
     Role,
     Sample,
+    TransportBase,
     Variant,
     check_param_value,
     check_topic,
+    resolve_host,
 )
+from dbml.transports.callbacks import CallbackList
 from dbml.transports.rosapi import CALL_TIMEOUT_S, ROSPY_MISSING, MasterClient
 
 try:
@@ -60,14 +65,57 @@ GRAPH_POLL_S = 0.25
 """How often a watched graph is re-read from the master (one ``getSystemState`` call)."""
 LIVENESS_S = 2.0
 """How long a node's answer to ``getPid`` counts as alive."""
+NODE_PING_TIMEOUT_S = 0.5
+"""How long a node has to answer ``getPid`` before it counts as gone."""
+RECEIVE_BUFFER_BYTES = 1 << 24
+"""rospy's receive buffer per subscription: room for a few large camera frames."""
 _OPTIMIZED = "/" + Variant.OPTIMIZED.value
 _STRING = std_msgs.msg.String
 _SCALARS = (bool, int, float, str)
-_Callback = TypeVar("_Callback", bound=Callable[..., None])
+_FRAME_PREFIX_BYTES = 4
+"""A ``std_msgs/String`` starts with its length (uint32)."""
+_OK: Final = [1, "", 0]
+"""An XML-RPC API's success: code, message, value."""
 
-_active_lock = threading.Lock()
-_active: list[Ros1Transport] = []
-"""The process's transport, if one is open (rospy runs one node per process)."""
+
+class _SlotTakenError(TransportError):
+    """Another ``Ros1Transport`` is open (or opening) in this process."""
+
+
+class _Slot:
+    """The process's one transport (rospy runs one node per process).
+
+    A transport reserves the slot under the lock, starts outside it (XML-RPC to the master and
+    ``init_node`` are slow) and fills it, or releases it if it fails; ``shared()`` waits for a
+    transport being opened instead of opening a second.
+    """
+
+    def __init__(self) -> None:
+        self.changed = threading.Condition()
+        self.opening = False
+        self.transport: Ros1Transport | None = None
+
+    def reserve(self) -> None:
+        with self.changed:
+            if self.opening or self.transport is not None:
+                raise _SlotTakenError("one Ros1Transport per process (rospy runs one node)")
+            self.opening = True
+
+    def settle(self, transport: Ros1Transport | None) -> None:
+        """End a reservation: ``transport`` opened, or None when opening failed."""
+        with self.changed:
+            self.opening = False
+            self.transport = transport
+            self.changed.notify_all()
+
+    def release(self, transport: Ros1Transport) -> None:
+        with self.changed:
+            if self.transport is transport:
+                self.transport = None
+            self.changed.notify_all()
+
+
+_SLOT = _Slot()
 
 
 def serialize(message: Any) -> bytes:
@@ -86,17 +134,16 @@ def _flatten(name: str, value: object, out: dict[str, ParamValue]) -> None:
         out[name] = value  # lists and binary values are not dbml parameters
 
 
-def _listen(lock: threading.Lock, watchers: list[_Callback], callback: _Callback) -> Handle:
-    """Add ``callback`` to ``watchers``; the handle removes it."""
-    with lock:
-        watchers.append(callback)
+def _use_host(host: str) -> None:
+    """Make this process's ROS node take ``host`` as its address, before the node starts.
 
-    def remove() -> None:
-        with lock:
-            if callback in watchers:
-                watchers.remove(callback)
-
-    return Closer(remove)
+    rosgraph reads the override on every use (the node's URI, each topic connection's address,
+    the bind address), from ``__hostname:=`` on the command line first, then ``ROS_HOSTNAME`` /
+    ``ROS_IP``. There is no per-node setting, so it goes where it stays inside this process: the
+    command line's ROS remapping (first, so it wins), not the environment, which every child
+    process would inherit.
+    """
+    sys.argv.insert(1, f"__hostname:={resolve_host(host)}")
 
 
 def _under(name: str, namespace: str) -> bool:
@@ -110,11 +157,13 @@ class _Ros1Params:
         self._master = master
         self._lock = threading.Lock()
         self._mirror: dict[str, ParamValue] = {}
-        self._watchers: list[Callable[[str, ParamValue], None]] = []
+        self._watchers: CallbackList[[str, ParamValue]] = CallbackList()
+        # Pushes that arrive while the subscription call runs, applied after the tree it returns.
+        self._early: list[tuple[str, object]] | None = []
         self._server = SimpleXMLRPCServer((bind, 0), logRequests=False, allow_none=True)
         self._server.register_function(self._param_update, "paramUpdate")  # type: ignore[arg-type]
         self._server.register_function(lambda _caller: [1, "", os.getpid()], "getPid")
-        self._server.register_function(lambda _caller, _msg="": [1, "", 0], "shutdown")
+        self._server.register_function(lambda _caller, _msg="": _OK, "shutdown")
         port = self._server.server_address[1]
         self._api = f"http://{host}:{port}/"
         # A caller id of its own: the master would shut down a node re-registered at another URI.
@@ -123,29 +172,46 @@ class _Ros1Params:
             target=self._server.serve_forever, name="dbml-ros1-params", daemon=True
         )
         self._thread.start()
-        with self._lock:  # pushes after the subscription wait for the tree it returns
+        try:
             tree = self._subscriber.call("subscribeParam", self._api, "/")
+        except TransportError:
+            self._stop_server()
+            raise
+        changes: list[tuple[str, ParamValue]] = []
+        with self._lock:
             _flatten("/", tree, self._mirror)
+            for pushed_key, pushed_value in self._early or []:
+                changes += self._apply(pushed_key, pushed_value)
+            self._early = None
+        self._notify(changes)
 
     def _param_update(self, _caller: str, key: str, value: object) -> list[object]:
         """The master's push: a key (with a trailing ``/``) and its new value; ``{}`` deletes."""
+        with self._lock:
+            if self._early is not None:  # newer than the subscription's tree, which is not in yet
+                self._early.append((key, value))
+                return _OK
+            changes = self._apply(key, value)
+        self._notify(changes)
+        return _OK
+
+    def _apply(self, key: str, value: object) -> list[tuple[str, ParamValue]]:
+        """Update the mirror (under the lock) from one push; the changes, deletions first."""
         namespace = key.rstrip("/") or "/"
         fresh: dict[str, ParamValue] = {}
         _flatten(namespace, value, fresh)
-        with self._lock:
-            gone = [k for k in self._mirror if _under(k, namespace) and k not in fresh]
-            for name in gone:
-                del self._mirror[name]
-            self._mirror.update(fresh)
-            watchers = list(self._watchers)
-        for callback in watchers:
-            for name in gone:
-                callback(name, None)
-            for name, new in fresh.items():
-                callback(name, new)
-        return [1, "", 0]
+        gone = [k for k in self._mirror if _under(k, namespace) and k not in fresh]
+        for name in gone:
+            del self._mirror[name]
+        self._mirror.update(fresh)
+        return [(name, None) for name in gone] + list(fresh.items())
+
+    def _notify(self, changes: list[tuple[str, ParamValue]]) -> None:
+        for name, value in changes:
+            self._watchers.fire(name, value)
 
     def set(self, name: str, value: ParamValue) -> None:
+        """Write on the parameter server; this process reads it back at once."""
         check_param_value(value)
         if value is None:
             self._master.call("deleteParam", name, missing_ok=True)
@@ -158,6 +224,7 @@ class _Ros1Params:
                 self._mirror[name] = value
 
     def get(self, name: str) -> ParamValue:
+        """The mirrored value of ``name`` (no call to the master)."""
         with self._lock:
             return self._mirror.get(name)
 
@@ -169,17 +236,22 @@ class _Ros1Params:
         return out
 
     def watch(self, callback: Callable[[str, ParamValue], None]) -> Handle:
-        return _listen(self._lock, self._watchers, callback)
+        """Call ``callback(name, value)`` on every push (``None`` when deleted)."""
+        return self._watchers.add(callback)
+
+    def _stop_server(self) -> None:
+        self._subscriber.close()
+        self._server.shutdown()
+        self._server.server_close()
+        self._thread.join(timeout=CALL_TIMEOUT_S)
 
     def close(self) -> None:
+        """Unsubscribe from the master and stop the push endpoint."""
         try:
             self._subscriber.call("unsubscribeParam", self._api, "/")
         except TransportError as err:
             log.debug("unsubscribeParam: %s", err)
-        self._subscriber.close()
-        self._server.shutdown()
-        self._server.server_close()
-        self._thread.join(timeout=2.0)
+        self._stop_server()
 
 
 def _split(ros_topic: str) -> tuple[str, Variant]:
@@ -198,7 +270,7 @@ class _Ros1Graph:
         self._entries: frozenset[GraphEntry] | None = None
         self._uris: dict[str, str] = {}
         self._alive: dict[str, float] = {}
-        self._watchers: list[Callable[[], None]] = []
+        self._watchers: CallbackList[[]] = CallbackList()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -218,7 +290,9 @@ class _Ros1Graph:
         now = time.monotonic()
         if now - self._alive.get(node, -LIVENESS_S) >= LIVENESS_S:
             try:
-                with MasterClient(uri, caller_id=self._master.caller_id, timeout_s=0.5) as node_api:
+                with MasterClient(
+                    uri, caller_id=self._master.caller_id, timeout_s=NODE_PING_TIMEOUT_S
+                ) as node_api:
                     node_api.call("getPid")
             except TransportError:
                 self._uris.pop(node, None)
@@ -247,6 +321,7 @@ class _Ros1Graph:
         return changed
 
     def entries(self) -> frozenset[GraphEntry]:
+        """The graph as last read (read now when nobody watches it)."""
         with self._lock:
             cached = self._entries
         if cached is None or self._thread is None:
@@ -257,13 +332,15 @@ class _Ros1Graph:
         return cached
 
     def watch(self, callback: Callable[[], None]) -> Handle:
+        """Call ``callback()`` when the graph changes; the first watch starts the polling."""
+        handle = self._watchers.add(callback)
         with self._lock:
             if self._thread is None:
                 self._thread = threading.Thread(
                     target=self._poll, name="dbml-ros1-graph", daemon=True
                 )
                 self._thread.start()
-        return _listen(self._lock, self._watchers, callback)
+        return handle
 
     def _poll(self) -> None:
         while not self._stop.wait(self._poll_s):
@@ -273,12 +350,10 @@ class _Ros1Graph:
                 log.warning("graph: %s", err)
                 continue
             if changed:
-                with self._lock:
-                    watchers = list(self._watchers)
-                for callback in watchers:
-                    callback()
+                self._watchers.fire()
 
     def close(self) -> None:
+        """Stop the polling."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=CALL_TIMEOUT_S * 2)
@@ -304,6 +379,8 @@ class _Received(rospy.AnyMsg):  # type: ignore[misc]
 
 
 class _Ros1Publisher:
+    """A ROS publisher sending payloads as they are (already serialised)."""
+
     def __init__(self, topic: str, variant: Variant, data_class: type | None, queue: int) -> None:
         self.topic = topic
         self._framed = data_class is None
@@ -323,60 +400,99 @@ class _Ros1Publisher:
         self._publisher.unregister()
 
 
-class Ros1Transport:
-    """dbml over a ROS 1 master. ``node_name`` is used only when no node runs in this process."""
+class Ros1Transport(TransportBase):
+    """dbml over a ROS 1 master; one per process (``shared()`` opens it on first use).
+
+    ``node_name`` is used only when no node runs in this process yet. ``host`` is the address
+    the node gives others (its URI's host, as ``ROS_HOSTNAME`` / ``ROS_IP`` would set it); it
+    can only be chosen before the node starts.
+    """
 
     def __init__(
         self,
         *,
+        host: str | None = None,
         node_name: str = "dbml",
         anonymous: bool = True,
         message_classes: Mapping[str, type] | None = None,
         queue_size: int = 10,
         graph_poll_s: float = GRAPH_POLL_S,
     ) -> None:
-        with _active_lock:
-            if _active:
-                raise TransportError("one Ros1Transport per process (rospy runs one node)")
-            with MasterClient() as master:
-                if not master.reachable():
-                    raise TransportError(
-                        f"no ROS master at ROS_MASTER_URI={master.uri} "
-                        "(start one: rosmaster --core)"
-                    )
-            if rospy.core.is_shutdown_requested() or rospy.is_shutdown():
-                raise TransportError("this process's rospy node has shut down; start a new one")
-            self._owns_node = not rospy.core.is_initialized()
-            if self._owns_node:
-                rospy.init_node(node_name, anonymous=anonymous, disable_signals=True)
-            self.node_name = str(rospy.get_name())
-            uri_host = urlparse(rospy.get_node_uri()).hostname
-            self._host = str(uri_host or rosgraph.network.get_host_name())
-            self._master = MasterClient(master.uri, caller_id=self.node_name)
-            self._params = _Ros1Params(
-                self._master, self.node_name, self._host, rosgraph.network.get_bind_address()
+        self._classes: dict[str, type] = dict(message_classes or {})
+        self._queue_size = queue_size
+        self._handles: list[Handle] = []
+        self._closed = False
+        _SLOT.reserve()
+        try:
+            self._start(host=host, node_name=node_name, anonymous=anonymous, poll_s=graph_poll_s)
+        except BaseException:
+            _SLOT.settle(None)
+            raise
+        _SLOT.settle(self)
+
+    def _start(self, *, host: str | None, node_name: str, anonymous: bool, poll_s: float) -> None:
+        with MasterClient() as master:
+            if not master.reachable():
+                raise TransportError(
+                    f"no ROS master at ROS_MASTER_URI={master.uri} (start one: rosmaster --core)"
+                )
+        if rospy.core.is_shutdown_requested() or rospy.is_shutdown():
+            raise TransportError("this process's rospy node has shut down; start a new one")
+        self._owns_node = not rospy.core.is_initialized()
+        if self._owns_node:
+            if host is not None:
+                _use_host(host)
+            rospy.init_node(node_name, anonymous=anonymous, disable_signals=True)
+        self.node_name = str(rospy.get_name())
+        uri_host = urlparse(rospy.get_node_uri()).hostname
+        self._host = str(uri_host or rosgraph.network.get_host_name())
+        if host is not None and host != self._host:
+            raise TransportError(
+                f"host={host!r} cannot apply: this process's ROS node already runs on "
+                f"{self._host!r} (set ROS_HOSTNAME or ROS_IP before it starts)"
             )
-            self._graph = _Ros1Graph(self._master, graph_poll_s)
-            self._classes: dict[str, type] = dict(message_classes or {})
-            self._queue_size = queue_size
-            self._handles: list[Handle] = []
-            self._closed = False
-            _active.append(self)
+        self._master = MasterClient(master.uri, caller_id=self.node_name)
+        self._params = _Ros1Params(
+            self._master, self.node_name, self._host, rosgraph.network.get_bind_address()
+        )
+        self._graph = _Ros1Graph(self._master, poll_s)
+
+    @classmethod
+    def shared(cls) -> Ros1Transport:
+        """This process's transport, opened on first use (on the rospy node, if one runs).
+
+        A transport being opened by another thread is waited for, never opened twice.
+        """
+        while True:
+            with _SLOT.changed:
+                while _SLOT.opening:
+                    _SLOT.changed.wait()
+                if _SLOT.transport is not None:
+                    return _SLOT.transport
+            try:
+                return cls()
+            except _SlotTakenError:
+                continue  # another thread reserved the slot first: wait for its transport
+
+    @classmethod
+    def current(cls) -> Ros1Transport | None:
+        """This process's open transport, if any."""
+        with _SLOT.changed:
+            return _SLOT.transport
 
     @property
     def host(self) -> str:
+        """The host part of this node's URI: what other nodes connect to."""
         return self._host
 
     @property
-    def master_uri(self) -> str:
-        return self._master.uri
-
-    @property
     def params(self) -> _Ros1Params:
+        """The parameter server, mirrored here."""
         return self._params
 
     @property
     def graph(self) -> _Ros1Graph:
+        """The master's registrations, by host."""
         return self._graph
 
     def use_message_class(self, topic: str, data_class: type) -> None:
@@ -386,27 +502,11 @@ class Ros1Transport:
             raise TransportError(f"data_class={data_class!r} is not a rospy message class")
         self._classes[topic] = data_class
 
-    def message_class(self, topic: str) -> type | None:
-        return self._classes.get(topic)
-
-    def wait_for_peers(self, timeout_s: float) -> bool:
-        """Nothing to wait for: the store is complete at once."""
-        return True
-
-    def confirm_param(self, name: str, *, timeout_s: float) -> bool:
-        """Nothing to confirm: a write is everyone's at once."""
-        return True
-
-    def __enter__(self) -> Ros1Transport:
-        return self
-
-    def __exit__(self, *_: object) -> None:
-        self.close()
-
     def camera_frame(self, topic: str, size_bytes: int) -> bytes:
-        """A serialised ``sensor_msgs/Image`` of exactly ``size_bytes`` (one mono8 row after the
-        header), and ``topic`` carried as that type, so the size the optimizer sees is the one
-        asked for."""
+        """A serialised ``sensor_msgs/Image`` of exactly ``size_bytes``, ``topic`` typed so.
+
+        One mono8 row after the header: the size the optimizer sees is the size asked for.
+        """
         from sensor_msgs.msg import Image
 
         self.use_message_class(topic, Image)
@@ -420,6 +520,7 @@ class Ros1Transport:
         return serialized
 
     def declare_publisher(self, topic: str, variant: Variant = Variant.FULL) -> _Ros1Publisher:
+        """A ROS publisher of the topic's message class (``std_msgs/String`` without one)."""
         self._check_open()
         check_topic(topic)
         return _Ros1Publisher(topic, variant, self._classes.get(topic), self._queue_size)
@@ -427,6 +528,7 @@ class Ros1Transport:
     def subscribe(
         self, topic: str, callback: Callable[[Sample], None], variant: Variant = Variant.FULL
     ) -> Handle:
+        """A ROS subscriber that hands ``callback`` the serialised message as it arrived."""
         self._check_open()
         check_topic(topic)
         typed = topic in self._classes
@@ -434,17 +536,22 @@ class Ros1Transport:
         def deliver(message: _Received) -> None:
             payload: bytes = message._buff
             if not typed and message._connection_header.get("type") == _STRING._type:
-                payload = payload[4:]  # a framed untyped payload: the String's bytes
+                payload = payload[_FRAME_PREFIX_BYTES:]  # a framed untyped payload
             callback(Sample(topic, payload, None))
 
         subscriber = rospy.Subscriber(
-            variant.key(topic), _Received, deliver, buff_size=1 << 24, tcp_nodelay=True
+            variant.key(topic),
+            _Received,
+            deliver,
+            buff_size=RECEIVE_BUFFER_BYTES,
+            tcp_nodelay=True,
         )
         handle = Closer(subscriber.unregister)
         self._handles.append(handle)
         return handle
 
     def now(self) -> float:
+        """Monotonic seconds."""
         return time.monotonic()
 
     def _check_open(self) -> None:
@@ -452,6 +559,7 @@ class Ros1Transport:
             raise TransportError("transport is closed")
 
     def close(self) -> None:
+        """Unregister everything; shut the node down if this transport started it."""
         if self._closed:
             return
         self._closed = True
@@ -461,5 +569,4 @@ class Ros1Transport:
         self._params.close()
         if self._owns_node:
             rospy.signal_shutdown("dbml transport closed")
-        with _active_lock:
-            _active.clear()
+        _SLOT.release(self)

@@ -1,5 +1,7 @@
-"""The ROS master's API, without rospy: plain XML-RPC, so parameters and the graph can be read
-and written from any Python (only topics need rospy)."""
+"""The ROS master's API, without rospy: plain XML-RPC.
+
+Parameters and the graph can so be read and written from any Python (only topics need rospy).
+"""
 
 from __future__ import annotations
 
@@ -11,7 +13,14 @@ from typing import Any
 
 from dbml.core.errors import TransportError
 
-__all__ = ["CALL_TIMEOUT_S", "DEFAULT_MASTER_URI", "ROSPY_MISSING", "MasterClient", "answers"]
+__all__ = [
+    "ANSWER_TIMEOUT_S",
+    "CALL_TIMEOUT_S",
+    "DEFAULT_MASTER_URI",
+    "ROSPY_MISSING",
+    "MasterClient",
+    "answers",
+]
 
 ROSPY_MISSING = (
     "dbml's ROS 1 support needs rospy, which comes from Debian's packages, not PyPI, and imports "
@@ -19,7 +28,11 @@ ROSPY_MISSING = (
 )
 """Why ROS 1 support cannot load here, and what to do (rospy is not on PyPI)."""
 DEFAULT_MASTER_URI = "http://localhost:11311/"
+"""Where a ROS master listens when ``ROS_MASTER_URI`` is not set."""
 CALL_TIMEOUT_S = 2.0
+"""How long one XML-RPC call may take before it counts as failed."""
+ANSWER_TIMEOUT_S = 0.5
+"""How long ``answers`` waits: a live master replies at once."""
 
 
 class _TimeoutTransport(xmlrpc.client.Transport):
@@ -70,6 +83,7 @@ class MasterClient:
         return value
 
     def reachable(self) -> bool:
+        """Whether the API answers at all (``getPid``)."""
         try:
             self.call("getPid")
         except TransportError:
@@ -92,5 +106,5 @@ class MasterClient:
 
 def answers(uri: str) -> bool:
     """Whether a master (or node) answers at ``uri`` within half a second."""
-    with MasterClient(uri, timeout_s=0.5) as client:
+    with MasterClient(uri, timeout_s=ANSWER_TIMEOUT_S) as client:
         return client.reachable()

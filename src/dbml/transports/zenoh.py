@@ -10,7 +10,7 @@ Key layout: topic ``/r1/camera`` is key ``r1/camera`` (and ``r1/camera/optimized
 ``/r1/camera/dbm/priority`` is ``dbml/param/r1/camera/dbm/priority``; graph declarations are
 liveliness tokens ``dbml/graph/<role>/<host>/<uid>/<variant>/<topic>``. Parameters are
 replicated: every session caches every write, answers queries from its cache, and the newest
-write (stamp, then writer) wins.
+write (stamp, then writer) wins (``dbml.transports.paramstore``).
 """
 
 from __future__ import annotations
@@ -21,24 +21,28 @@ import os
 import threading
 import time
 import uuid
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import TypeAlias
 
 from dbml.core.errors import TransportError
 from dbml.transports.base import (
     Closer,
     GraphEntry,
     Handle,
-    ParamValue,
     Role,
     Sample,
+    TransportBase,
     Variant,
-    check_param_value,
     check_topic,
-    decode_param,
-    encode_param,
     resolve_host,
+)
+from dbml.transports.callbacks import CallbackList
+from dbml.transports.paramstore import (
+    PARAM_PREFIX,
+    ReplicatedParams,
+    decode_param,
+    param_key,
 )
 
 try:
@@ -55,17 +59,29 @@ log = logging.getLogger("dbml.zenoh")
 DEFAULT_PORT = 17447
 """The loopback rendezvous port of the no-flags mode; ``DBML_ZENOH_PORT`` overrides it."""
 
-_PARAM = "dbml/param"
+CONFIRM_QUERY_S = 0.5
+"""The longest one query of ``confirm_param`` waits for replies before it asks again."""
+CONFIRM_POLL_S = 0.05
+"""The pause between two queries of ``confirm_param``."""
+
 _GRAPH = "dbml/graph"
 _NODE = "dbml/node"
+_GRAPH_KEY_SPLITS = 6
+"""``dbml/graph/<role>/<host>/<uid>/<variant>/<topic...>``: the topic keeps its slashes."""
+
+_Undeclarable: TypeAlias = (
+    "zenoh.Subscriber[None] | zenoh.Queryable[None] | zenoh.LivelinessToken"
+    " | zenoh.Publisher | zenoh.MatchingListener[None]"
+)
+"""A zenoh object that ``undeclare()`` withdraws from the network."""
+_Declaration: TypeAlias = (
+    "zenoh.Subscriber[None] | zenoh.Queryable[None] | zenoh.LivelinessToken | _ZenohPublisher"
+)
+"""Anything the session declared for this transport, kept alive until it is closed."""
 
 
 def _data_key(topic: str, variant: Variant) -> str:
     return variant.key(check_topic(topic))[1:]
-
-
-def _param_key(name: str) -> str:
-    return _PARAM + check_topic(name)
 
 
 def _config(
@@ -75,7 +91,7 @@ def _config(
     config_file: str | Path | None,
     shared_memory: bool,
     port: int,
-) -> Any:
+) -> zenoh.Config:
     connect, listen = list(connect), list(listen)
     try:
         config = zenoh.Config.from_file(str(config_file)) if config_file else zenoh.Config()
@@ -117,45 +133,35 @@ def _json_list(items: list[str]) -> str:
     return "[" + ", ".join(f'"{item}"' for item in items) + "]"
 
 
-class _Watchers:
-    """Callbacks to notify, safe to add and remove from any thread."""
+def _undeclare(declared: _Undeclarable) -> None:
+    """Undeclare ``declared``; quietly when the session is closed already (it undeclared all)."""
+    with contextlib.suppress(zenoh.ZError):
+        declared.undeclare()  # type: ignore[no-untyped-call]  # the stubs leave it unannotated
 
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._items: list[Callable[..., None]] = []
 
-    def add(self, fn: Callable[..., None]) -> Handle:
-        with self._lock:
-            self._items.append(fn)
+def _is_matching(status: object) -> bool:
+    """Whether a publisher has subscribers, from what its matching status gives.
 
-        def remove() -> None:
-            with self._lock:
-                if fn in self._items:
-                    self._items.remove(fn)
-
-        return Closer(remove)
-
-    def fire(self, *args: object) -> None:
-        with self._lock:
-            items = list(self._items)
-        for fn in items:
-            try:
-                fn(*args)
-            except Exception:
-                log.exception("watcher %r failed", fn)
+    The stubs type ``Publisher.matching_status`` as a bool while the library returns a
+    ``MatchingStatus``; this reads either.
+    """
+    return bool(getattr(status, "matching", status))
 
 
 class _ZenohPublisher:
-    def __init__(self, session: Any, topic: str, variant: Variant) -> None:
+    def __init__(
+        self, session: zenoh.Session, topic: str, variant: Variant, on_close: Callable[[], None]
+    ) -> None:
         self.topic = topic
         self._publisher = session.declare_publisher(
             _data_key(topic, variant), congestion_control=zenoh.CongestionControl.DROP
         )
-        self._matching = bool(self._publisher.matching_status.matching)
+        self._matching = _is_matching(self._publisher.matching_status)
         self._listener = self._publisher.declare_matching_listener(self._on_matching)
+        self._on_close = on_close
 
-    def _on_matching(self, status: Any) -> None:
-        self._matching = bool(status.matching)
+    def _on_matching(self, status: zenoh.MatchingStatus) -> None:
+        self._matching = status.matching
 
     def put(self, payload: bytes, attachment: bytes | None = None) -> None:
         self._publisher.put(payload, attachment=attachment)
@@ -165,99 +171,9 @@ class _ZenohPublisher:
         return self._matching
 
     def close(self) -> None:
-        with contextlib.suppress(zenoh.ZError):  # the session may be closed already
-            self._listener.undeclare()
-            self._publisher.undeclare()
-
-
-class _ZenohParams:
-    def __init__(self, transport: ZenohTransport) -> None:
-        self._transport = transport
-        self._lock = threading.Lock()
-        self._values: dict[str, tuple[ParamValue, int, str]] = {}
-        self.watchers = _Watchers()
-        self._replier = transport.node_id.encode()
-
-    def _merge(self, name: str, value: ParamValue, stamp: int, writer: str) -> bool:
-        with self._lock:
-            old = self._values.get(name)
-            if old is not None and (old[1], old[2]) >= (stamp, writer):
-                return False
-            self._values[name] = (value, stamp, writer)
-        return True
-
-    def set(self, name: str, value: ParamValue) -> None:
-        check_param_value(value)
-        key = _param_key(name)
-        stamp = time.time_ns()
-        writer = self._transport.node_id
-        self._merge(name, value, stamp, writer)
-        # Control traffic: never dropped behind bulk data (which uses DROP), and sent ahead of it.
-        self._transport.session.put(
-            key,
-            encode_param(value, stamp, writer),
-            congestion_control=zenoh.CongestionControl.BLOCK,
-            priority=zenoh.Priority.INTERACTIVE_HIGH,
-        )
-        self.watchers.fire(name, value)
-
-    def get(self, name: str) -> ParamValue:
-        with self._lock:
-            entry = self._values.get(name)
-        return None if entry is None else entry[0]
-
-    def stamp(self, name: str) -> tuple[int, str] | None:
-        with self._lock:
-            entry = self._values.get(name)
-        return None if entry is None else (entry[1], entry[2])
-
-    def snapshot(self, prefix: str = "/") -> dict[str, ParamValue]:
-        with self._lock:
-            return {
-                name: value
-                for name, (value, _, _) in self._values.items()
-                if name.startswith(prefix) and value is not None
-            }
-
-    def watch(self, callback: Callable[[str, ParamValue], None]) -> Handle:
-        return self.watchers.add(callback)
-
-    # -- the wire -----------------------------------------------------------------------------
-
-    def on_sample(self, sample: Any) -> None:
-        self._accept(str(sample.key_expr), sample.payload.to_bytes(), notify=True)
-
-    def _accept(self, key: str, data: bytes, *, notify: bool) -> None:
-        try:
-            value, stamp, writer = decode_param(data)
-        except TransportError as err:
-            log.warning("ignoring %s: %s", key, err)
-            return
-        if writer == self._transport.node_id:
-            return  # our own write, already applied in set()
-        name = key[len(_PARAM) :]
-        if self._merge(name, value, stamp, writer) and notify:
-            self.watchers.fire(name, value)
-
-    def on_query(self, query: Any) -> None:
-        with self._lock:
-            values = list(self._values.items())
-        for name, (value, stamp, writer) in values:
-            key = _PARAM + name
-            if query.key_expr.intersects(zenoh.KeyExpr(key)):
-                query.reply(key, encode_param(value, stamp, writer), attachment=self._replier)
-
-    def sync(self, timeout_s: float = 2.0) -> None:
-        """Fetch every parameter the reachable sessions hold (newest wins)."""
-        replies = self._transport.session.get(
-            f"{_PARAM}/**",
-            target=zenoh.QueryTarget.ALL,
-            consolidation=zenoh.ConsolidationMode.NONE,
-            timeout=timeout_s,
-        )
-        for reply in replies:
-            if reply.ok is not None:
-                self._accept(str(reply.ok.key_expr), reply.ok.payload.to_bytes(), notify=True)
+        _undeclare(self._listener)
+        _undeclare(self._publisher)
+        self._on_close()
 
 
 class _ZenohGraph:
@@ -265,8 +181,9 @@ class _ZenohGraph:
         self._transport = transport
         self._lock = threading.Lock()
         self._entries: dict[str, GraphEntry] = {}
-        self._tokens: dict[str, Any] = {}  # a dropped token is undeclared: keep them until closed
-        self.watchers = _Watchers()
+        # A dropped token is undeclared: keep each until it is withdrawn.
+        self._tokens: dict[str, zenoh.LivelinessToken] = {}
+        self.watchers: CallbackList[[]] = CallbackList()
         self._count = 0
 
     def announce(self, role: Role, topic: str, variant: Variant) -> Handle:
@@ -277,7 +194,7 @@ class _ZenohGraph:
             uid = f"{transport.node_id}.{self._count}"
         key = f"{_GRAPH}/{role.value}/{transport.host}/{uid}/{variant.value}{topic}"
         entry = GraphEntry(role, transport.host, topic, variant, uid)
-        token: Any = transport.session.liveliness().declare_token(key)
+        token = transport.session.liveliness().declare_token(key)
         with self._lock:
             self._entries[key] = entry
             self._tokens[key] = token
@@ -287,8 +204,7 @@ class _ZenohGraph:
             with self._lock:
                 self._entries.pop(key, None)
                 self._tokens.pop(key, None)
-            with contextlib.suppress(zenoh.ZError):  # the session may be closed already
-                token.undeclare()
+            _undeclare(token)
             self.watchers.fire()
 
         return Closer(withdraw)
@@ -300,9 +216,9 @@ class _ZenohGraph:
     def watch(self, callback: Callable[[], None]) -> Handle:
         return self.watchers.add(callback)
 
-    def on_sample(self, sample: Any) -> None:
+    def on_sample(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
-        parts = key.split("/", 6)  # dbml graph role host uid variant topic...
+        parts = key.split("/", _GRAPH_KEY_SPLITS)  # dbml graph role host uid variant topic...
         try:
             entry = GraphEntry(
                 Role(parts[2]), parts[3], "/" + parts[6], Variant(parts[5]), parts[4]
@@ -320,9 +236,12 @@ class _ZenohGraph:
         self.watchers.fire()
 
 
-class ZenohTransport:
-    """A zenoh session wrapped as a dbml transport. Always ``close()`` it (or use ``with``):
-    zenoh's callback threads keep the interpreter alive otherwise."""
+class ZenohTransport(TransportBase):
+    """A zenoh session wrapped as a dbml transport.
+
+    Always ``close()`` it (or use ``with``): zenoh's callback threads keep the interpreter alive
+    otherwise.
+    """
 
     def __init__(
         self,
@@ -346,31 +265,62 @@ class ZenohTransport:
             port=port,
         )
         try:
-            self.session: Any = zenoh.open(config)
+            self.session: zenoh.Session = zenoh.open(config)
         except zenoh.ZError as err:
             raise TransportError(f"zenoh: cannot open a session: {err}") from err
         self._closed = False
         self._lock = threading.Lock()
-        self._declared: list[Any] = []
+        # Each declaration until it is closed: a dropped zenoh object is undeclared.
+        self._declared: set[_Declaration] = set()
         self._peers = threading.Event()
-        self.params = _ZenohParams(self)
+        self._replier = self.node_id.encode()
+        self.params = ReplicatedParams(self.node_id, publish=self._publish, fetch=self._fetch)
         self.graph = _ZenohGraph(self)
         session = self.session
-        self._declared += [
-            session.declare_subscriber(f"{_PARAM}/**", self.params.on_sample),
-            session.declare_queryable(f"{_PARAM}/**", self.params.on_query),
+        self._declared |= {
+            session.declare_subscriber(f"{PARAM_PREFIX}/**", self._on_param),
+            session.declare_queryable(f"{PARAM_PREFIX}/**", self._on_query),
             session.liveliness().declare_subscriber(
                 f"{_GRAPH}/**", self.graph.on_sample, history=True
             ),
             session.liveliness().declare_subscriber(f"{_NODE}/**", self._on_node, history=True),
             session.liveliness().declare_token(f"{_NODE}/{self.node_id}"),
-        ]
+        }
         # zenoh's callback threads are not daemons: close the session before they are joined.
         register = getattr(threading, "_register_atexit", None)
         if register is not None:
             register(self.close)
 
-    def _on_node(self, sample: Any) -> None:
+    # -- the parameter store's wire -----------------------------------------------------------
+
+    def _publish(self, key: str, data: bytes) -> None:
+        # Control traffic: never dropped behind bulk data (which uses DROP), and sent ahead of it.
+        self.session.put(
+            key,
+            data,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            priority=zenoh.Priority.INTERACTIVE_HIGH,
+        )
+
+    def _fetch(self, timeout_s: float) -> Iterator[tuple[str, bytes]]:
+        replies = self.session.get(
+            f"{PARAM_PREFIX}/**",
+            target=zenoh.QueryTarget.ALL,
+            consolidation=zenoh.ConsolidationMode.NONE,
+            timeout=timeout_s,
+        )
+        for reply in replies:
+            if reply.ok is not None:
+                yield str(reply.ok.key_expr), reply.ok.payload.to_bytes()
+
+    def _on_param(self, sample: zenoh.Sample) -> None:
+        self.params.on_write(str(sample.key_expr), sample.payload.to_bytes())
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        for key, data in self.params.replies(query.key_expr.intersects):
+            query.reply(key, data, attachment=self._replier)
+
+    def _on_node(self, sample: zenoh.Sample) -> None:
         node = str(sample.key_expr).rsplit("/", 1)[-1]
         if node == self.node_id or sample.kind != zenoh.SampleKind.PUT:
             return
@@ -400,43 +350,50 @@ class ZenohTransport:
         deadline = time.monotonic() + timeout_s
         while (left := deadline - time.monotonic()) > 0:
             replies = self.session.get(
-                _param_key(name),
+                param_key(name),
                 target=zenoh.QueryTarget.ALL,
                 consolidation=zenoh.ConsolidationMode.NONE,
-                timeout=min(0.5, left),
+                timeout=min(CONFIRM_QUERY_S, left),
             )
             for reply in replies:
                 sample = reply.ok
                 if sample is None or sample.attachment is None:
                     continue
-                if sample.attachment.to_bytes() == self.node_id.encode():
+                if sample.attachment.to_bytes() == self._replier:
                     continue  # our own cache answering
                 _, stamp, writer = decode_param(sample.payload.to_bytes())
                 if (stamp, writer) == mine:
                     return True
-            time.sleep(min(0.05, max(0.0, deadline - time.monotonic())))
+            time.sleep(min(CONFIRM_POLL_S, max(0.0, deadline - time.monotonic())))
         return False
 
+    # -- topics -------------------------------------------------------------------------------
+
     def now(self) -> float:
+        """Monotonic seconds."""
         return time.monotonic()
 
-    def camera_frame(self, topic: str, size_bytes: int) -> bytes:
-        """A synthetic camera frame of ``size_bytes``: raw bytes over this transport."""
-        return bytes(size_bytes)
+    def _forget(self, declaration: _Declaration) -> None:
+        with self._lock:
+            self._declared.discard(declaration)
 
     def declare_publisher(self, topic: str, variant: Variant = Variant.FULL) -> _ZenohPublisher:
+        """A publisher of ``topic``; bulk data, dropped rather than queued under congestion."""
         check_topic(topic)
-        publisher = _ZenohPublisher(self.session, topic, variant)
+        publisher = _ZenohPublisher(
+            self.session, topic, variant, on_close=lambda: self._forget(publisher)
+        )
         with self._lock:
-            self._declared.append(publisher)
+            self._declared.add(publisher)
         return publisher
 
     def subscribe(
         self, topic: str, callback: Callable[[Sample], None], variant: Variant = Variant.FULL
     ) -> Handle:
+        """Call ``callback`` on zenoh's thread for every sample of ``topic`` in ``variant``."""
         key = _data_key(topic, variant)
 
-        def on_sample(sample: Any) -> None:
+        def on_sample(sample: zenoh.Sample) -> None:
             attachment = sample.attachment
             callback(
                 Sample(
@@ -446,28 +403,24 @@ class ZenohTransport:
                 )
             )
 
-        subscriber: Any = self.session.declare_subscriber(key, on_sample)
+        subscriber = self.session.declare_subscriber(key, on_sample)
         with self._lock:
-            self._declared.append(subscriber)
+            self._declared.add(subscriber)
 
         def undeclare() -> None:
-            with contextlib.suppress(zenoh.ZError):  # the session may be closed already
-                subscriber.undeclare()
+            _undeclare(subscriber)
+            self._forget(subscriber)
 
         return Closer(undeclare)
 
     def close(self) -> None:
+        """Close the session, which undeclares everything it declared."""
         with self._lock:
             if self._closed:
                 return
             self._closed = True
+            self._declared.clear()
         try:
-            self.session.close()
+            self.session.close()  # type: ignore[no-untyped-call]  # unannotated in the stubs
         except zenoh.ZError as err:
             log.warning("zenoh close: %s", err)
-
-    def __enter__(self) -> ZenohTransport:
-        return self
-
-    def __exit__(self, *_: object) -> None:
-        self.close()

@@ -1,0 +1,122 @@
+"""The demo's and the testbed's ``--json`` documents, built from their typed results.
+
+The keys are a contract (scripts and the README read them): change them only with care.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict
+from typing import Any
+
+from dbml.demo.runner import DemoResult
+from dbml.experiment.analysis import LinkChange, SeriesPoint, StepResult, Window
+from dbml.scenarios.teleop import LINK_MBIT
+from dbml.testbed.runner import TestbedResult
+
+__all__ = ["demo_document", "testbed_document"]
+
+
+def demo_document(result: DemoResult) -> dict[str, Any]:
+    """``dbml demo teleop --json``."""
+    steps = [
+        {
+            "step": step.step.step,
+            "robots": [
+                {
+                    "robot": robot.measured.robot,
+                    "topic": robot.topic,
+                    "tc_s": None if math.isinf(robot.tc_s) else robot.tc_s,
+                    "priority": robot.priority,
+                    "allocated_hz": robot.measured.allocated_hz,
+                    "measured_hz": robot.measured.delivered_hz,
+                    "variant": robot.measured.variant,
+                    "within_tolerance": robot.within_tolerance,
+                    "table2_hz": robot.table2_hz,
+                    "matches_table2": robot.matches_table2,
+                }
+                for robot in step.robots
+            ],
+            "total_mbit": step.total_mbit,
+            "budget_mbit": LINK_MBIT,
+        }
+        for step in result.steps
+    ]
+    return {
+        "scenario": "teleop",
+        "transport": result.options.transport,
+        "step_seconds": result.options.step_seconds,
+        "budget_mbit": LINK_MBIT,
+        "steps": steps,
+        "ok": result.ok,
+        "interrupted": result.interrupted,
+    }
+
+
+def _window(window: Window, *, drop: tuple[str, ...]) -> dict[str, Any]:
+    return {k: v for k, v in asdict(window).items() if k not in drop}
+
+
+def _step(step: StepResult) -> dict[str, Any]:
+    return {
+        "step": step.step,
+        "robots": [_window(r, drop=("variant",)) for r in step.robots],
+        "goodput_mbit": step.goodput_mbit,
+        "budget_mbit": step.budget_mbit,
+        "estimate_mbit": step.estimate_mbit,
+        "link_mbit": step.link_mbit,
+    }
+
+
+def _point(point: SeriesPoint) -> dict[str, Any]:
+    return {
+        "t": point.t_s,
+        "robots": [_window(r, drop=("variant", "latency_p50_ms")) for r in point.robots],
+        "budget_mbit": point.budget_mbit,
+        "estimator": point.estimator,
+        "goodput_mbit": point.goodput_mbit,
+        "link_mbit": point.link_mbit,
+    }
+
+
+def _change(change: LinkChange) -> dict[str, Any]:
+    rise = ("budget_recovery_s",)
+    drop = ("recovery_s", "max_latency_p95_ms", "lost_after")
+    return {k: v for k, v in asdict(change).items() if k not in (rise if change.drop else drop)}
+
+
+def testbed_document(result: TestbedResult) -> dict[str, Any]:
+    """``dbml testbed teleop --json``."""
+    options, summary = result.options, result.summary()
+    summary_document: dict[str, Any] = {
+        "steps": summary.steps,
+        "max_rate_error": summary.max_rate_error,
+        "latency_p50_ms_max": summary.latency_p50_ms_max,
+        "latency_p95_ms_max": summary.latency_p95_ms_max,
+        "lost": summary.lost,
+        "goodput_mbit_mean": summary.goodput_mbit_mean,
+        "goodput_fraction_mean": summary.goodput_fraction_mean,
+        "goodput_fraction_min": summary.goodput_fraction_min,
+        "changes": [_change(c) for c in result.changes],
+    }
+    for uplink in summary.uplinks:
+        summary_document[f"uplink_{uplink.robot}"] = {
+            "capacity_mbit": uplink.capacity_mbit,
+            "goodput_mbit_max": uplink.goodput_mbit_max,
+        }
+    summary_document["targets"] = dict(summary.targets)
+    return {
+        "policy": options.policy,
+        "strategy": options.strategy,
+        "link_mbit": options.link_mbit,
+        "link_schedule": [list(entry) for entry in options.link_schedule],
+        "uplinks_mbit": dict(options.uplinks_mbit),
+        "estimate": options.estimate,
+        "utilization": options.utilization,
+        "step_seconds": options.step_seconds,
+        "run_id": result.run_id,
+        "interrupted": result.interrupted,
+        "steps": [_step(s) for s in result.steps],
+        "summary": summary_document,
+        "series": [_point(p) for p in result.series],
+    }

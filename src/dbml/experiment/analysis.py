@@ -1,0 +1,411 @@
+"""What an experiment measured: per step and robot, over time, and after each link change.
+
+Pure: it takes the frames the operator received and the parameters it saw (``Arrival`` and
+``Tick``), and computes per window the allocated and delivered rate, one-way latency
+percentiles, losses (sequence gaps) and goodput; per step (after ``settle_s``), as a rolling
+time series, and the recovery after each change of the link's rate. The thresholds that judge
+a run are named here, once.
+"""
+
+from __future__ import annotations
+
+import bisect
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from dbml.core.spec import bytes_per_s_to_mbit
+
+__all__ = [
+    "BUDGET_BACK_FRACTION",
+    "BUDGET_BACK_S",
+    "GOODPUT_FRACTION",
+    "LIVE_FRAMES",
+    "LIVE_WINDOW_S",
+    "MAX_P95_MS",
+    "RATE_TOLERANCE",
+    "RATE_TOLERANCE_HZ",
+    "RECOVERED_P95_MS",
+    "RECOVERY_S",
+    "WINDOW_S",
+    "WINDOW_STEP_S",
+    "Analysis",
+    "Arrival",
+    "LinkChange",
+    "SeriesPoint",
+    "StepResult",
+    "Tick",
+    "Window",
+    "analyse",
+    "latest",
+    "link_at",
+    "rate_hz",
+    "settle_s",
+]
+
+RATE_TOLERANCE = 0.05
+"""A delivered rate within 5 % of the allocation is the allocation (the paper's claim)."""
+RATE_TOLERANCE_HZ = 0.3
+"""The demo's floor on the tolerance: a few-Hz stream in a short step has few frames to time."""
+MAX_P95_MS = 200.0
+"""A steady link keeps every robot's one-way p95 latency under this (teleoperation's limit)."""
+RECOVERED_P95_MS = 250.0
+"""After a drop, a window whose p95 is under this (and loses nothing) counts as recovered."""
+RECOVERY_S = 3.0
+"""After a drop, latency and losses are back within this (the estimator's promise)."""
+GOODPUT_FRACTION = 0.9
+"""On a steady link with no capped uplink, dbml's goodput is at least this share of the link."""
+BUDGET_BACK_FRACTION = 0.9
+"""After a rise, the budget counts as back once it reaches this share of the new link."""
+BUDGET_BACK_S = 10.0
+"""After a rise, the estimated budget is back within this."""
+WINDOW_S = 1.0
+"""Rolling windows of the time series and the recovery measurement."""
+WINDOW_STEP_S = 0.25
+"""One point of the time series every this many seconds."""
+LIVE_WINDOW_S = 2.0
+"""A live view's readings cover this long: smoother than one second, still current."""
+LIVE_FRAMES = 400
+"""A live view reads at most this many of the newest frames (all of ``LIVE_WINDOW_S``)."""
+_MS_PER_S = 1000.0
+_EDGE_S = 1e-9
+
+
+@dataclass(frozen=True, slots=True)
+class Arrival:
+    """One frame as the operator received it (wall-clock times; the hosts share a clock)."""
+
+    robot: int
+    seq: int | None
+    """The publisher's sequence number (None: no metadata, as over ROS 1)."""
+    sent_s: float | None
+    arrival_s: float
+    size_bytes: int
+    rate_hz: float | None
+    """The rate the publisher applied when it sent this frame."""
+
+
+@dataclass(frozen=True, slots=True)
+class Tick:
+    """The parameters the operator saw at ``t_s`` (wall clock)."""
+
+    t_s: float
+    allocated_hz: tuple[float | None, ...]
+    budget_mbit: float | None
+    estimate_mbit: float | None
+    estimator: str | None = None
+    """The estimator's state (phase, receive rate, queueing, losses), when one runs."""
+    variants: tuple[str, ...] = ()
+    """The copy each robot's subscriber takes (``full`` or ``optimized``)."""
+
+
+@dataclass(frozen=True, slots=True)
+class Window:
+    """One robot over one window: the measured part of a step, or one point of the series."""
+
+    robot: str
+    allocated_hz: float | None
+    delivered_hz: float
+    latency_p50_ms: float | None
+    latency_p95_ms: float | None
+    lost: int
+    goodput_mbit: float
+    variant: str | None = None
+
+    def within_rate(self, *, floor_hz: float = 0.0) -> bool:
+        """Delivered within ``RATE_TOLERANCE`` of the allocation (or ``floor_hz``)."""
+        if not self.allocated_hz:
+            return False
+        tolerance = max(RATE_TOLERANCE * self.allocated_hz, floor_hz)
+        return abs(self.delivered_hz - self.allocated_hz) <= tolerance
+
+
+@dataclass(frozen=True, slots=True)
+class StepResult:
+    """One step: every robot's window and the budget and link at its end."""
+
+    step: int
+    robots: tuple[Window, ...]
+    budget_mbit: float | None
+    estimate_mbit: float | None
+    link_mbit: float
+
+    @property
+    def goodput_mbit(self) -> float:
+        """What all robots delivered."""
+        return sum(r.goodput_mbit for r in self.robots)
+
+
+@dataclass(frozen=True, slots=True)
+class SeriesPoint:
+    """The ``WINDOW_S`` ending ``t_s`` seconds after step 1 started."""
+
+    t_s: float
+    robots: tuple[Window, ...]
+    budget_mbit: float | None
+    estimator: str | None
+    link_mbit: float
+
+    @property
+    def goodput_mbit(self) -> float:
+        """What all robots delivered."""
+        return sum(r.goodput_mbit for r in self.robots)
+
+
+@dataclass(frozen=True, slots=True)
+class LinkChange:
+    """A change of the link's rate and how the system followed it."""
+
+    t_s: float
+    from_mbit: float
+    to_mbit: float
+    recovery_s: float | None = None
+    """A drop: from when on every window had p95 < ``RECOVERED_P95_MS`` and no loss."""
+    max_latency_p95_ms: float | None = None
+    lost_after: int = 0
+    budget_recovery_s: float | None = None
+    """A rise: when the budget reached ``BUDGET_BACK_FRACTION`` of the new rate."""
+
+    @property
+    def drop(self) -> bool:
+        """Whether the link got slower."""
+        return self.to_mbit < self.from_mbit
+
+
+@dataclass(frozen=True, slots=True)
+class Analysis:
+    """Everything measured in one run."""
+
+    steps: tuple[StepResult, ...] = ()
+    series: tuple[SeriesPoint, ...] = ()
+    changes: tuple[LinkChange, ...] = ()
+
+
+def settle_s(step_s: float) -> float:
+    """Time after a step starts before it is measured: the new rates take effect.
+
+    One old period at worst, 1 s at the 1 Hz minimum.
+    """
+    return min(1.0, step_s / 3)
+
+
+def link_at(schedule: Sequence[tuple[float, float]], t_s: float, default: float) -> float:
+    """The shaped rate in force ``t_s`` seconds after the start."""
+    rate = default
+    for at, mbit in schedule:
+        if at <= t_s:
+            rate = mbit
+    return rate
+
+
+def rate_hz(times: Sequence[float], start: float, end: float) -> float:
+    """Frames per second in ``[start, end)`` from sorted arrival times.
+
+    From inter-arrival times, counting the gap from the frame before the window: exact even
+    when a slow stream (1.48 Hz) has one or two frames in a short window. Without a gap to
+    time, the count over the window.
+    """
+    first, stop = bisect.bisect_left(times, start), bisect.bisect_left(times, end)
+    timed_from = max(first, 1)
+    if stop > timed_from and times[stop - 1] > times[timed_from - 1]:
+        return (stop - timed_from) / (times[stop - 1] - times[timed_from - 1])
+    return (stop - first) / (end - start)
+
+
+def _percentile_ms(latencies: list[float], q: float) -> float | None:
+    return None if not latencies else float(np.percentile(latencies, q)) * _MS_PER_S
+
+
+def _losses(frames: Sequence[Arrival]) -> list[tuple[float, int]]:
+    """(arrival time, frames missing before this one) for every sequence gap of one robot."""
+    last: int | None = None
+    gaps = []
+    for frame in frames:
+        if frame.seq is None:
+            continue
+        if last is not None and frame.seq > last + 1:
+            gaps.append((frame.arrival_s, frame.seq - last - 1))
+        if last is None or frame.seq > last:
+            last = frame.seq
+    return gaps
+
+
+class _Robot:
+    """One robot's frames, sorted by arrival, with what every window needs."""
+
+    def __init__(self, name: str, index: int, frames: Sequence[Arrival]) -> None:
+        self.name, self.index = name, index
+        self.frames = sorted((f for f in frames if f.robot == index), key=lambda f: f.arrival_s)
+        self.times = [f.arrival_s for f in self.frames]
+        self.gaps = _losses(self.frames)
+
+    def window(
+        self, start: float, end: float, allocated_hz: float | None, *, lost_from: float
+    ) -> Window:
+        inside = self.frames[
+            bisect.bisect_left(self.times, start) : bisect.bisect_left(self.times, end)
+        ]
+        latencies = [f.arrival_s - f.sent_s for f in inside if f.sent_s is not None]
+        delivered = rate_hz(self.times, start, end)
+        mean_size = sum(f.size_bytes for f in inside) / len(inside) if inside else 0.0
+        return Window(
+            robot=self.name,
+            allocated_hz=allocated_hz,
+            delivered_hz=delivered,
+            latency_p50_ms=_percentile_ms(latencies, 50),
+            latency_p95_ms=_percentile_ms(latencies, 95),
+            lost=sum(n for at, n in self.gaps if lost_from <= at < end),
+            goodput_mbit=bytes_per_s_to_mbit(delivered * mean_size),
+        )
+
+    def applied_hz(self, at: float) -> float | None:
+        """The rate the publisher applied, from the last frame that arrived by ``at``."""
+        applied = [f.rate_hz for f in self.frames[: bisect.bisect_right(self.times, at)]]
+        return next((r for r in reversed(applied) if r is not None), None)
+
+
+def analyse(
+    frames: Sequence[Arrival],
+    ticks: Sequence[Tick],
+    *,
+    robots: Sequence[str],
+    t0: float,
+    step_s: float,
+    steps: int,
+    link_mbit: float,
+    schedule: Sequence[tuple[float, float]] = (),
+) -> Analysis:
+    """Steps, time series and the recovery after every link change."""
+    streams = [_Robot(name, i, frames) for i, name in enumerate(robots)]
+    ordered = sorted(ticks, key=lambda t: t.t_s)
+    tick_times = [t.t_s for t in ordered]
+
+    def seen(at: float) -> Tick | None:
+        index = bisect.bisect_right(tick_times, at)
+        return ordered[index - 1] if index else None
+
+    def allocated(stream: _Robot, at: float) -> float | None:
+        tick = seen(at)
+        value = tick.allocated_hz[stream.index] if tick is not None else None
+        return stream.applied_hz(at) if value is None else value  # unmanaged: what it applied
+
+    step_rows = []
+    for k in range(steps):
+        start, end = t0 + k * step_s, t0 + (k + 1) * step_s
+        tick = seen(end)
+        rows = []
+        for stream in streams:
+            window = stream.window(
+                start + settle_s(step_s), end, allocated(stream, end), lost_from=start
+            )
+            variant = tick.variants[stream.index] if tick is not None and tick.variants else None
+            rows.append(replace(window, variant=variant))
+        step_rows.append(
+            StepResult(
+                step=k + 1,
+                robots=tuple(rows),
+                budget_mbit=None if tick is None else tick.budget_mbit,
+                estimate_mbit=None if tick is None else tick.estimate_mbit,
+                link_mbit=link_at(schedule, end - t0 - _EDGE_S, link_mbit),
+            )
+        )
+
+    series = []
+    t = t0 + WINDOW_S
+    while t <= t0 + steps * step_s + _EDGE_S:
+        tick = seen(t)
+        series.append(
+            SeriesPoint(
+                t_s=t - t0,
+                robots=tuple(
+                    s.window(t - WINDOW_S, t, allocated(s, t), lost_from=t - WINDOW_S)
+                    for s in streams
+                ),
+                budget_mbit=None if tick is None else tick.budget_mbit,
+                estimator=None if tick is None else tick.estimator,
+                link_mbit=link_at(schedule, t - t0, link_mbit),
+            )
+        )
+        t += WINDOW_STEP_S
+    changes = _changes(
+        series, ordered, streams, schedule, t0=t0, end_s=steps * step_s, link_mbit=link_mbit
+    )
+    return Analysis(tuple(step_rows), tuple(series), changes)
+
+
+def _changes(
+    series: Sequence[SeriesPoint],
+    ticks: Sequence[Tick],
+    streams: Sequence[_Robot],
+    schedule: Sequence[tuple[float, float]],
+    *,
+    t0: float,
+    end_s: float,
+    link_mbit: float,
+) -> tuple[LinkChange, ...]:
+    """How the run followed each change of the link rate.
+
+    After a drop: when latency and losses recovered; after a rise: when the budget grew back.
+    """
+    changes = []
+    rates = [(0.0, link_mbit), *[(at, mbit) for at, mbit in schedule if at > 0]]
+    for k in range(1, len(rates)):
+        at, mbit = rates[k]
+        before = rates[k - 1][1]
+        until = rates[k + 1][0] if k + 1 < len(rates) else end_s
+        if at >= end_s:
+            break
+        if mbit >= before:
+            reached = next(
+                (
+                    t.t_s - t0 - at
+                    for t in ticks
+                    if at <= t.t_s - t0 <= until
+                    and t.budget_mbit is not None
+                    and t.budget_mbit >= BUDGET_BACK_FRACTION * mbit
+                ),
+                None,
+            )
+            changes.append(LinkChange(at, before, mbit, budget_recovery_s=reached))
+            continue
+        # windows that start after the change: from which one on are all of them good?
+        after = [p for p in series if p.t_s - WINDOW_S >= at and p.t_s <= until]
+        recovered: float | None = None
+        for point in reversed(after):
+            good = all(
+                (r.latency_p95_ms is None or r.latency_p95_ms < RECOVERED_P95_MS) and r.lost == 0
+                for r in point.robots
+            )
+            if not good:
+                break
+            recovered = point.t_s - at
+        p95 = [r.latency_p95_ms for p in after for r in p.robots if r.latency_p95_ms is not None]
+        lost = sum(n for s in streams for t, n in s.gaps if t0 + at < t <= t0 + until)
+        changes.append(
+            LinkChange(
+                at,
+                before,
+                mbit,
+                recovery_s=recovered,
+                max_latency_p95_ms=max(p95, default=None),
+                lost_after=lost,
+            )
+        )
+    return tuple(changes)
+
+
+def latest(
+    arrivals: Sequence[Arrival], ticks: Sequence[Tick], *, robots: Sequence[str]
+) -> tuple[Window, ...]:
+    """Every robot over the ``LIVE_WINDOW_S`` before the newest tick: a live view's reading."""
+    if not ticks:
+        return ()
+    now, tick = ticks[-1].t_s, ticks[-1]
+    recent = arrivals[-LIVE_FRAMES:]
+    return tuple(
+        _Robot(name, i, recent).window(
+            now - LIVE_WINDOW_S, now, tick.allocated_hz[i], lost_from=now - LIVE_WINDOW_S
+        )
+        for i, name in enumerate(robots)
+    )

@@ -1,0 +1,310 @@
+"""The roles of the teleoperation experiment: one set for the demo and the testbed.
+
+- ``optimizer``: the optimizer node with the scenario's budget (the testbed's links and
+  estimator when asked for).
+- ``r1``/``r2``: a robot publishing its camera's frames. Managed, through a publisher whose
+  priority follows Table 2's replayed events (eq. 6-7); unmanaged (the testbed's baseline), a
+  plain publisher at the camera's maximum rate, as without dbml.
+- ``operator``: receives both cameras (managed subscribers, or plain ones when unmanaged) and
+  reports, every ``TICK_S``, the frames that arrived (robot, sequence number, send and arrival
+  time, size, the rate the publisher applied) and the parameters in force (allocation, budget,
+  estimate, the variant each subscriber takes). The runner analyses them.
+
+As a process (``python -m dbml.experiment.roles ROLE SPEC_JSON``) a role opens its transport,
+prints ``{"type": "ready"}``, waits for ``start <t0>`` on stdin and ends at the last step, on
+``stop``, stdin EOF, SIGINT or SIGTERM. Over the memory transport the runner calls
+:func:`run_role` in a thread instead.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+from dbml.core.allocation import Strategy
+from dbml.core.config import DbmSettings
+from dbml.core.errors import TransportError
+from dbml.core.spec import LinkSpec
+from dbml.harness.processes import Emit, emit_json, serve_role
+from dbml.runtime import names
+from dbml.runtime.metadata import MessageMeta, pack_meta
+from dbml.runtime.nodes import run_optimizer, stop_on_signals
+from dbml.runtime.params import ParamView
+from dbml.runtime.priority import collision_priority_source
+from dbml.runtime.publisher import ManagedPublisher
+from dbml.runtime.rate import Rate
+from dbml.runtime.reception import ReceptionReporter
+from dbml.runtime.subscriber import ManagedSubscriber
+from dbml.scenarios.teleop import LINK_MBIT, MAX_RATE_HZ, MIN_RATE_HZ, ROBOTS, STEPS
+from dbml.transports.base import Handle, Sample, Transport, Variant
+from dbml.transports.registry import open_transport
+
+__all__ = [
+    "HOSTS",
+    "ROLES",
+    "TAIL_S",
+    "TICK_S",
+    "RoleSpec",
+    "main",
+    "robot_index",
+    "run_role",
+    "wait_until",
+]
+
+log = logging.getLogger("dbml.experiment")
+
+ROLES = ("operator", "optimizer", *(camera.robot.lower() for camera in ROBOTS))
+"""Every role, in the order they start: listeners before those that connect to them."""
+HOSTS = {"operator": "operator", "optimizer": "base-station", "r1": "robot-r1", "r2": "robot-r2"}
+"""Each role's host identity: four hosts, so every robot-to-operator stream is managed."""
+TICK_S = 0.2
+"""How often the operator reports what arrived."""
+TAIL_S = 1.0
+"""The operator and optimizer run this long after the last step, for frames still in flight."""
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class RoleSpec:
+    """Everything a role needs, passed to a role process as one JSON argument."""
+
+    step_s: float
+    transport: str = "zenoh"
+    host: str | None = None
+    """The zenoh or memory host identity (ROS 1 takes ROS_IP/ROS_HOSTNAME)."""
+    listen: tuple[str, ...] = ()
+    connect: tuple[str, ...] = ()
+    managed: bool = True
+    """False: the robots publish at their maximum and no optimizer runs (the testbed's baseline)."""
+    link_mbit: float = LINK_MBIT
+    utilization: float = 1.0
+    strategy: str = Strategy.PAPER.value
+    estimate: bool = False
+    uplinks_mbit: dict[str, float] = field(default_factory=dict)
+    peer_wait_s: float = 10.0
+
+    def to_json(self) -> str:
+        """The spec as one JSON object (the role process's argument)."""
+        return json.dumps(asdict(self))
+
+    @classmethod
+    def from_json(cls, text: str) -> RoleSpec:
+        """The spec ``to_json`` wrote."""
+        document: dict[str, Any] = json.loads(text)
+        document["listen"] = tuple(document.get("listen", ()))
+        document["connect"] = tuple(document.get("connect", ()))
+        return cls(**document)
+
+    @property
+    def duration_s(self) -> float:
+        """All steps, from step 1's start."""
+        return len(STEPS) * self.step_s
+
+
+def robot_index(role: str) -> int:
+    """The camera of a robot role (``"r2"`` -> 1)."""
+    return [camera.robot.lower() for camera in ROBOTS].index(role)
+
+
+def wait_until(wall_s: float, stop: threading.Event) -> bool:
+    """Sleep until a wall-clock time; False if ``stop`` was set first."""
+    return not stop.wait(max(0.0, wall_s - time.time()))
+
+
+def _optimizer(transport: Transport, t0: float, spec: RoleSpec, stop: threading.Event) -> None:
+    settings = DbmSettings(spec.link_mbit, spec.utilization, 1.0, Strategy(spec.strategy))
+    topics = {camera.robot: camera.topic for camera in ROBOTS}
+    links = tuple(
+        LinkSpec(f"uplink-{robot}", mbit, (topics[robot],))
+        for robot, mbit in sorted(spec.uplinks_mbit.items())
+    )
+    run_optimizer(
+        transport,
+        settings=settings,
+        links=links,
+        stop=stop,
+        duration_s=t0 + spec.duration_s + TAIL_S - time.time(),
+        estimate=spec.estimate,
+    )
+
+
+def _managed_robot(
+    transport: Transport, index: int, t0: float, spec: RoleSpec, stop: threading.Event
+) -> None:
+    camera = ROBOTS[index]
+    frame = transport.camera_frame(camera.topic, camera.size_bytes)  # first: it may set the type
+    publisher = ManagedPublisher(
+        transport, camera.topic, min_rate_hz=MIN_RATE_HZ, max_rate_hz=MAX_RATE_HZ
+    )
+    priority = collision_priority_source(transport, camera.topic)
+    # The robot's own end, not ``stop``: threads over the memory transport share ``stop``, and a
+    # robot done with its last frame must not end the operator before its last report.
+    finished = threading.Event()
+
+    def replay_events() -> None:
+        for k, step in enumerate(STEPS):
+            if not wait_until(t0 + k * spec.step_s, finished) or stop.is_set():
+                return
+            event = step.events[index]
+            priority.update(event.distance_m, event.speed_m_per_s)
+
+    events = threading.Thread(target=replay_events, name=f"events-{camera.robot}", daemon=True)
+    try:
+        publisher.publish(frame)  # the first frame makes the size known before step 1
+        events.start()
+        wait_until(t0, stop)
+        publisher.rate.reset()
+        while not stop.is_set() and time.time() < t0 + spec.duration_s:
+            publisher.rate.sleep()
+            publisher.publish(frame)
+    finally:
+        finished.set()
+        if events.is_alive():
+            events.join(timeout=2)
+        publisher.close()
+
+
+def _unmanaged_robot(
+    transport: Transport, index: int, t0: float, spec: RoleSpec, stop: threading.Event
+) -> None:
+    """What a robot does without dbml: publish every frame at the camera's maximum rate."""
+    camera = ROBOTS[index]
+    frame = transport.camera_frame(camera.topic, camera.size_bytes)
+    publisher = transport.declare_publisher(camera.topic, Variant.FULL)
+    rate = Rate(lambda: MAX_RATE_HZ)
+    seq = 0
+    try:
+        wait_until(t0, stop)
+        rate.reset()
+        while not stop.is_set() and time.time() < t0 + spec.duration_s:
+            rate.sleep()
+            publisher.put(frame, pack_meta(seq, time.time_ns(), MAX_RATE_HZ))
+            seq += 1
+    finally:
+        publisher.close()
+
+
+def _operator(
+    transport: Transport, t0: float, spec: RoleSpec, stop: threading.Event, emit: Emit
+) -> None:
+    lock = threading.Lock()
+    rows: list[list[Any]] = []
+
+    def receiver(index: int) -> Callable[[Sample], None]:
+        def on_sample(sample: Sample) -> None:
+            arrival_s = time.time()
+            try:
+                meta: MessageMeta | None = MessageMeta.decode(sample.attachment)
+            except TransportError:
+                meta = None  # no metadata (ROS 1 messages carry none)
+            row = [
+                index,
+                None if meta is None else meta.seq,
+                None if meta is None else meta.sent_ns / 1e9,
+                arrival_s,
+                len(sample.payload),
+                None if meta is None else meta.rate_hz,
+            ]
+            with lock:
+                rows.append(row)
+
+        return on_sample
+
+    view = ParamView(transport.params)
+    reporter = ReceptionReporter(transport).start() if spec.estimate else None
+    handles: list[Handle] = []
+    subscribers: list[ManagedSubscriber] = []
+    for i, camera in enumerate(ROBOTS):
+        if spec.managed:
+            subscriber = ManagedSubscriber(transport, camera.topic, receiver(i), reporter=reporter)
+            subscribers.append(subscriber)
+            handles.append(subscriber)
+        else:
+            handles.append(transport.subscribe(camera.topic, receiver(i), Variant.FULL))
+
+    unmanaged = [Variant.FULL.value for _ in ROBOTS]
+
+    def tick() -> dict[str, Any]:
+        dbm = view.dbm()
+        state = view.get(names.ESTIMATOR_STATE)
+        with lock:
+            batch, rows[:] = list(rows), []
+        return {
+            "type": "tick",
+            "t": time.time(),
+            "frames": batch,
+            "allocated_hz": [view.channel(c.topic).current_rate_hz for c in ROBOTS],
+            "budget_mbit": dbm.budget_mbit,
+            "estimate_mbit": dbm.estimate_mbit,
+            "estimator": state if isinstance(state, str) else None,
+            "variants": [s.variant.value for s in subscribers] or unmanaged,
+        }
+
+    try:
+        while not stop.is_set() and time.time() < t0 + spec.duration_s + TAIL_S:
+            stop.wait(TICK_S)
+            emit(tick())
+        emit({"type": "done"})
+    finally:
+        for handle in handles:
+            handle.close()
+        if reporter is not None:
+            reporter.close()
+        view.close()
+
+
+def run_role(
+    role: str, transport: Transport, spec: RoleSpec, *, t0: float, stop: threading.Event, emit: Emit
+) -> None:
+    """Run ``role`` from ``t0`` (wall clock of step 1) to its end; reports go to ``emit``."""
+    if role == "operator":
+        _operator(transport, t0, spec, stop, emit)
+    elif role == "optimizer":
+        _optimizer(transport, t0, spec, stop)
+    elif spec.managed:
+        _managed_robot(transport, robot_index(role), t0, spec, stop)
+    else:
+        _unmanaged_robot(transport, robot_index(role), t0, spec, stop)
+
+
+def _open(role: str, spec: RoleSpec) -> Transport:
+    if spec.transport == "ros1":
+        from dbml.transports.ros1 import Ros1Transport
+
+        return Ros1Transport(node_name=f"dbml_{role}")
+    return open_transport(spec.transport, host=spec.host, listen=spec.listen, connect=spec.connect)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """One role as an OS process, driven over stdin and stdout by the experiment runner."""
+    parser = argparse.ArgumentParser(prog="python -m dbml.experiment.roles")
+    parser.add_argument("role", choices=ROLES)
+    parser.add_argument("spec", help="the RoleSpec as JSON")
+    args = parser.parse_args(argv)
+    role, spec = args.role, RoleSpec.from_json(args.spec)
+    with stop_on_signals() as stop:
+        transport = _open(role, spec)
+        # After the node starts: rospy replaces the root handlers with its own log file.
+        logging.basicConfig(
+            force=True, level=logging.WARNING, format=f"{role}: %(name)s: %(message)s"
+        )
+        try:
+            transport.wait_for_peers(spec.peer_wait_s)
+            serve_role(
+                role,
+                stop,
+                lambda t0: run_role(role, transport, spec, t0=t0, stop=stop, emit=emit_json),
+            )
+        finally:
+            transport.close()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

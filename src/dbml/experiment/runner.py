@@ -1,0 +1,266 @@
+"""One experiment runner: start the roles, give them one start time, collect what they report.
+
+The demo and the testbed differ only in where the roles run: OS processes on loopback (zenoh,
+ROS 1), OS processes inside network namespaces (the caller's ``command`` wraps the argv), or
+threads over one in-process memory network. The runner starts them, waits until every one is
+ready, sends step 1's wall-clock time, pumps the operator's reports until it is done (or a
+deadline passes), hands a :class:`Snapshot` to the observer after each report (progress, live
+view) and returns a :class:`Recording`. Every process it started is ended by PID on the way
+out, also on error, Ctrl-C and SIGTERM (raised here as ``KeyboardInterrupt``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import queue
+import signal
+import sys
+import threading
+import time
+import traceback
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from types import FrameType
+
+from dbml.core.errors import DbmlError
+from dbml.experiment.analysis import Arrival, Tick
+from dbml.experiment.roles import RoleSpec, run_role
+from dbml.harness.processes import Message, RoleProcesses, wait_ready
+from dbml.scenarios.teleop import STEPS
+from dbml.transports.memory import MemoryNetwork, MemoryTransport
+
+__all__ = [
+    "READY_TIMEOUT_S",
+    "START_MARGIN_S",
+    "Command",
+    "Observer",
+    "Recording",
+    "RoleThreads",
+    "Snapshot",
+    "run_experiment",
+    "sigterm_as_interrupt",
+]
+
+READY_TIMEOUT_S = 60.0
+"""How long the roles may take to open their transports and find their peers."""
+START_MARGIN_S = 1.5
+"""Step 1 starts this long after every role is ready: each has heard ``start`` by then, and a
+robot's first frame (sent at once, at the 1 Hz minimum, to make its size known) is more than a
+period old, so the rate limiter lets step 1's frames through at the allocated rate."""
+REPORT_DEADLINE_S = 30.0
+"""The operator's last report may come this long after the last step, then the run fails."""
+
+Command = Callable[[str, list[str]], tuple[list[str], Mapping[str, str] | None]]
+"""A role and the argv that runs it -> the argv and environment to start (netns exec, env)."""
+
+
+@dataclass(frozen=True, slots=True)
+class Snapshot:
+    """What the operator reported so far (the lists grow; do not keep them)."""
+
+    t0: float
+    elapsed_s: float
+    step: int
+    arrivals: Sequence[Arrival]
+    ticks: Sequence[Tick]
+
+
+Observer = Callable[[Snapshot], None]
+
+
+@dataclass(frozen=True, slots=True)
+class Recording:
+    """What one run collected; ``t0`` is None when it never started."""
+
+    t0: float | None
+    arrivals: tuple[Arrival, ...]
+    ticks: tuple[Tick, ...]
+    interrupted: bool
+
+    def steps_done(self, step_s: float) -> int:
+        """The steps the operator saw to their end."""
+        if self.t0 is None:
+            return 0
+        if not self.interrupted:
+            return len(STEPS)
+        last = max((t.t_s for t in self.ticks), default=self.t0)
+        return max(0, min(len(STEPS), int((last - self.t0) // step_s)))
+
+
+class RoleThreads:
+    """The roles as threads sharing one in-process memory network."""
+
+    def __init__(self) -> None:
+        self.messages: queue.Queue[Message] = queue.Queue()
+        self._network = MemoryNetwork()
+        self._stop = threading.Event()
+        self._started = threading.Event()
+        self._t0 = 0.0
+        self._threads: list[threading.Thread] = []
+        self._errors: dict[str, str] = {}
+
+    def spawn(self, role: str, spec: RoleSpec) -> None:
+        """Start ``role`` on its own host of the memory network."""
+        transport = MemoryTransport(self._network, host=spec.host)
+
+        def emit(message: dict[str, object]) -> None:
+            self.messages.put((role, message))
+
+        def body() -> None:
+            try:
+                emit({"type": "ready", "role": role})
+                self._started.wait()
+                if not self._stop.is_set():
+                    run_role(role, transport, spec, t0=self._t0, stop=self._stop, emit=emit)
+            except Exception:
+                self._errors[role] = traceback.format_exc()
+            finally:
+                transport.close()
+                self.messages.put((role, None))
+
+        thread = threading.Thread(target=body, name=f"role-{role}", daemon=True)
+        thread.start()
+        self._threads.append(thread)
+
+    def start(self, t0: float) -> None:
+        """Every role starts step 1 at ``t0``."""
+        self._t0 = t0
+        self._started.set()
+
+    def log_tail(self, role: str) -> str:
+        """The traceback of a role that failed."""
+        return self._errors.get(role, "")
+
+    def close(self) -> None:
+        """Stop every role and wait for it."""
+        self._stop.set()
+        self._started.set()
+        for thread in self._threads:
+            thread.join(timeout=5.0)
+
+
+@contextlib.contextmanager
+def sigterm_as_interrupt() -> Iterator[None]:
+    """SIGTERM unwinds like Ctrl-C, so every process and namespace is removed either way."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(_sig: int, _frame: FrameType | None) -> None:
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _exited_early(what: str, role: str, tail: str) -> DbmlError:
+    """One line: the role and the last lines of its log."""
+    lines = " | ".join(tail.strip().splitlines()[-3:])
+    return DbmlError(f"{what} role {role} exited early{': ' + lines if lines else ''}")
+
+
+def run_experiment(
+    specs: Mapping[str, RoleSpec],
+    *,
+    what: str,
+    command: Command | None,
+    observe: Observer | None = None,
+    on_start: Callable[[float, threading.Event], None] | None = None,
+) -> Recording:
+    """Run the roles of ``specs`` (processes through ``command``, or threads when it is None).
+
+    ``what`` names the experiment in errors; ``on_start(t0, stop)`` runs in a thread from step
+    1's start until the run ends (the testbed's link changes).
+    """
+    step_s = next(iter(specs.values())).step_s
+    total_s = len(STEPS) * step_s
+    roles = RoleThreads() if command is None else RoleProcesses()
+    arrivals: list[Arrival] = []
+    ticks: list[Tick] = []
+    t0: float | None = None
+    stop = threading.Event()
+    with sigterm_as_interrupt():
+        try:
+            for role, spec in specs.items():
+                if isinstance(roles, RoleThreads):
+                    roles.spawn(role, spec)
+                else:
+                    assert command is not None
+                    argv = [sys.executable, "-m", "dbml.experiment.roles", role, spec.to_json()]
+                    argv, env = command(role, argv)
+                    roles.spawn(role, argv, env=env)
+            try:
+                ended = wait_ready(roles.messages, set(specs), timeout_s=READY_TIMEOUT_S)
+            except queue.Empty:
+                raise DbmlError(f"{what} roles did not get ready in time") from None
+            if ended is not None:
+                raise _exited_early(what, ended, roles.log_tail(ended))
+            t0 = time.time() + START_MARGIN_S
+            roles.start(t0)
+            if on_start is not None:
+                threading.Thread(target=on_start, args=(t0, stop), daemon=True).start()
+            while True:
+                try:
+                    role, message = roles.messages.get(timeout=0.5)
+                except queue.Empty:
+                    if time.time() > t0 + total_s + REPORT_DEADLINE_S:
+                        raise DbmlError(f"{what} timed out waiting for the operator") from None
+                    continue
+                if message is None:
+                    if role == "operator":
+                        break
+                    if time.time() < t0 + total_s:
+                        raise _exited_early(what, role, roles.log_tail(role))
+                    continue
+                if message.get("type") == "done":
+                    break
+                if message.get("type") == "tick":
+                    _take(message, arrivals, ticks)
+                    if observe is not None:
+                        elapsed = min(max(0.0, ticks[-1].t_s - t0), total_s)
+                        step = min(len(STEPS), int(elapsed // step_s) + 1)
+                        observe(Snapshot(t0, elapsed, step, arrivals, ticks))
+        except KeyboardInterrupt:
+            return Recording(t0, tuple(arrivals), tuple(ticks), interrupted=True)
+        finally:
+            stop.set()
+            roles.close()
+    return Recording(t0, tuple(arrivals), tuple(ticks), interrupted=False)
+
+
+def _take(message: dict[str, object], arrivals: list[Arrival], ticks: list[Tick]) -> None:
+    """One operator tick, from its JSON form."""
+    rows = message["frames"]
+    assert isinstance(rows, list)
+    arrivals.extend(
+        Arrival(
+            robot=int(r[0]),
+            seq=None if r[1] is None else int(r[1]),
+            sent_s=None if r[2] is None else float(r[2]),
+            arrival_s=float(r[3]),
+            size_bytes=int(r[4]),
+            rate_hz=None if r[5] is None else float(r[5]),
+        )
+        for r in rows
+    )
+    ticks.append(
+        Tick(
+            t_s=_number(message["t"]) or 0.0,
+            allocated_hz=tuple(_number(a) for a in _list(message["allocated_hz"])),
+            budget_mbit=_number(message["budget_mbit"]),
+            estimate_mbit=_number(message["estimate_mbit"]),
+            estimator=message["estimator"] if isinstance(message["estimator"], str) else None,
+            variants=tuple(str(v) for v in _list(message["variants"])),
+        )
+    )
+
+
+def _number(value: object) -> float | None:
+    return float(value) if isinstance(value, int | float) else None
+
+
+def _list(value: object) -> list[object]:
+    return value if isinstance(value, list) else []

@@ -1,0 +1,74 @@
+"""Transports by name: the mapping, its order and flags, and opening by name."""
+
+from __future__ import annotations
+
+import pytest
+
+from dbml import MemoryNetwork, open_transport
+from dbml.core.errors import TransportError
+from dbml.transports import DEFAULT_TRANSPORT, TRANSPORTS, MemoryTransport, Transport
+
+
+def test_names_are_in_one_order_with_the_default_first() -> None:
+    assert list(TRANSPORTS) == ["zenoh", "ros1", "memory"]
+    assert next(iter(TRANSPORTS)) == DEFAULT_TRANSPORT
+
+
+def test_the_registry_is_read_only() -> None:
+    with pytest.raises(TypeError):
+        TRANSPORTS["x"] = TRANSPORTS["memory"]  # type: ignore[index]
+
+
+def test_entries_say_what_a_caller_must_know() -> None:
+    spans = {name for name, entry in TRANSPORTS.items() if entry.spans_processes}
+    assert spans == {"zenoh", "ros1"}
+    assert not TRANSPORTS["ros1"].carries_metadata
+    assert TRANSPORTS["zenoh"].carries_metadata
+    assert TRANSPORTS["memory"].carries_metadata
+    complete = {name for name, entry in TRANSPORTS.items() if entry.params_complete_at_start}
+    assert complete == {"ros1"}
+    for entry in TRANSPORTS.values():
+        assert entry.summary
+        assert "\n" not in entry.summary
+
+
+def test_an_unknown_name_lists_the_known_ones() -> None:
+    with pytest.raises(TransportError, match=r"transport='x' is not one of: zenoh, ros1, memory"):
+        open_transport("x")
+
+
+def test_memory_joins_a_given_network() -> None:
+    network = MemoryNetwork()
+    with (
+        open_transport("memory", network=network, host="robot1") as robot,
+        open_transport("memory", network=network, host="operator") as operator,
+    ):
+        assert isinstance(robot, MemoryTransport)
+        assert robot.host == "robot1"
+        robot.params.set("/dbm/strategy", "fair")
+        assert operator.params.get("/dbm/strategy") == "fair"
+
+
+def test_memory_alone_is_private() -> None:
+    with open_transport("memory", host="a") as a, open_transport("memory", host="b") as b:
+        a.params.set("/x", 1)
+        assert b.params.get("/x") is None
+
+
+def test_options_a_transport_cannot_use_are_refused() -> None:
+    with pytest.raises(TransportError, match=r"transport='memory' takes no endpoints or config"):
+        open_transport("memory", connect=["tcp/127.0.0.1:7447"])
+    with pytest.raises(TransportError, match=r"transport='ros1' takes no endpoints or config"):
+        open_transport("ros1", listen=["tcp/127.0.0.1:7447"])
+    with pytest.raises(TransportError, match=r"transport='zenoh' takes no network"):
+        open_transport("zenoh", network=MemoryNetwork())
+
+
+def test_optional_capabilities_have_defaults_on_every_transport() -> None:
+    transport: Transport = open_transport("memory", host="h")
+    with transport:
+        assert transport.wait_for_peers(0.0) is True
+        assert transport.confirm_param("/x", timeout_s=0.0) is True
+        assert transport.camera_frame("/r1/camera", 12) == bytes(12)
+    with pytest.raises(TransportError, match="is closed"):
+        transport.declare_publisher("/t")
