@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from typing import Any, cast
 
 import pytest
@@ -21,7 +22,7 @@ from dbml.runtime.params import (
     valid_values,
 )
 from dbml.transports import MemoryNetwork, MemoryTransport
-from dbml.transports.base import ParamValue
+from dbml.transports.base import Closer, Handle, ParamValue
 from tests.conftest import wait_for
 
 CAMERA = "/r1/camera"
@@ -83,9 +84,8 @@ def test_the_view_keeps_the_last_good_value_and_reports_the_bad_one_once(
     writer = MemoryTransport(network, host="peer")
     writer.params.set(names.BANDWIDTH, 11)
     changes: list[tuple[str, ParamValue]] = []
-    view = ParamView(
-        MemoryTransport(network, host="me").params, on_change=lambda *c: changes.append(c)
-    )
+    view = ParamView.of(MemoryTransport(network, host="me").params)
+    view.watch(lambda *c: changes.append(c))
     assert view.dbm().bandwidth_mbit == 11.0
     with caplog.at_level(logging.WARNING, logger="dbml.params"):
         for _ in range(3):
@@ -186,3 +186,34 @@ def test_an_estimate_written_by_a_peer_is_not_the_optimizers_budget() -> None:
     MemoryTransport(network, host="hostile").params.set(names.ESTIMATE, 1e5)
     assert optimizer.optimize().budget_mbit == 4.0
     assert camera.current_rate_hz() == pytest.approx(500_000 / 84_000)
+
+
+def test_one_view_per_store_and_a_write_during_the_first_read_is_not_lost() -> None:
+    network = MemoryNetwork()
+    store = MemoryTransport(network, host="me").params
+    assert ParamView.of(store) is ParamView.of(store)
+
+    class Racing:
+        """A store whose snapshot is taken before a write that is notified during the read."""
+
+        def __init__(self) -> None:
+            self.watchers: list[Callable[[str, ParamValue], None]] = []
+
+        def watch(self, callback: Callable[[str, ParamValue], None]) -> Handle:
+            self.watchers.append(callback)
+            return Closer(lambda: None)
+
+        def snapshot(self, prefix: str = "/") -> dict[str, ParamValue]:
+            old: dict[str, ParamValue] = {names.BANDWIDTH: 11.0}
+            for callback in self.watchers:
+                callback(names.BANDWIDTH, 5.0)  # newer, pushed while the snapshot travels
+            return old
+
+        def set(self, name: str, value: ParamValue) -> None:
+            raise AssertionError("not written")
+
+        def get(self, name: str) -> ParamValue:
+            raise AssertionError("not read")
+
+    view = ParamView(Racing())
+    assert view.dbm().bandwidth_mbit == 5.0

@@ -1,8 +1,10 @@
 import sys
 import threading
 
+from dbml.core.errors import TransportError
 from dbml.runtime import ManagedPublisher, ManagedSubscriber
 from dbml.transports import MemoryNetwork, MemoryTransport, Role, Sample, Variant
+from dbml.transports.base import GraphEntry
 
 
 def test_local_publisher_means_full_rate_remote_means_optimized() -> None:
@@ -84,3 +86,23 @@ def test_two_subscribers_switching_at_once_from_two_threads_do_not_deadlock() ->
         (e.topic, e.variant) for e in operator.graph.entries() if e.role is Role.SUBSCRIBER
     )
     assert tokens == [("/a", Variant.OPTIMIZED), ("/b", Variant.OPTIMIZED)]
+
+
+def test_a_failed_graph_read_does_not_freeze_the_subscriber() -> None:
+    network = MemoryNetwork()
+    operator = MemoryTransport(network, host="op")
+    subscriber = ManagedSubscriber(operator, "/cam", lambda s: None)
+    entries = operator.graph.entries
+    failures = [TransportError("master unreachable")]
+
+    def flaky() -> frozenset[GraphEntry]:
+        if failures:
+            raise failures.pop()
+        return entries()
+
+    operator.graph.entries = flaky  # type: ignore[method-assign]
+    robot = MemoryTransport(network, host="r9")
+    ManagedPublisher(robot, "/other", min_rate_hz=1, max_rate_hz=16)  # a graph event that fails
+    assert not failures
+    ManagedPublisher(operator, "/cam", min_rate_hz=1, max_rate_hz=16)  # the next one switches
+    assert subscriber.variant is Variant.FULL

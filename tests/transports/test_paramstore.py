@@ -161,3 +161,17 @@ def test_a_failing_watcher_does_not_stop_the_others(caplog: pytest.LogCaptureFix
         store.set("/x", 1)
     assert seen == [("/x", 1)]
     assert "boom" in caplog.text
+
+
+def test_a_write_supersedes_one_stamped_ahead_of_the_clock() -> None:
+    wire = Wire()
+    a, b = wire.join("a"), wire.join("b")
+    ahead = 2**62  # a peer whose clock runs far ahead (or lies)
+    a.on_write(param_key("/r1/camera/dbm/priority"), encode_param(0.9, ahead, "z"))
+    b.on_write(param_key("/r1/camera/dbm/priority"), encode_param(0.9, ahead, "z"))
+    seen = record(b)
+    a.set("/r1/camera/dbm/priority", 0.1)
+    assert a.get("/r1/camera/dbm/priority") == 0.1
+    assert b.get("/r1/camera/dbm/priority") == 0.1  # the others take it too
+    assert seen == [("/r1/camera/dbm/priority", 0.1)]
+    assert decode_param(wire.sent[-1][1])[1] == ahead + 1

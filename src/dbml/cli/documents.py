@@ -29,7 +29,7 @@ def demo_document(result: DemoResult) -> dict[str, Any]:
                     "tc_s": None if math.isinf(robot.tc_s) else robot.tc_s,
                     "priority": robot.priority,
                     "allocated_hz": robot.measured.allocated_hz,
-                    "measured_hz": robot.measured.delivered_hz,
+                    "measured_hz": robot.measured.delivered_hz or None,  # nothing arrived: null
                     "variant": robot.measured.variant,
                     "within_tolerance": robot.within_tolerance,
                     "table2_hz": robot.table2_hz,

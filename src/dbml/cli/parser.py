@@ -129,8 +129,9 @@ def build_parser() -> argparse.ArgumentParser:
     demo_cmd.add_argument(
         "--transport",
         choices=list(TRANSPORTS),
-        default="zenoh",
-        help="zenoh (default), ros1 (a real ROS master, started if none answers) or memory",
+        default=DEFAULT_TRANSPORT,
+        help=f"default {DEFAULT_TRANSPORT}; ros1 uses the master at $ROS_MASTER_URI or starts one; "
+        + "; ".join(f"{name}: {entry.summary}" for name, entry in TRANSPORTS.items()),
     )
 
     testbed_cmd = commands.add_parser(

@@ -29,19 +29,47 @@ import yaml
 
 from dbml.core.allocation import Strategy
 from dbml.core.errors import ConfigError, SpecError
-from dbml.core.spec import ChannelSpec, LinkSpec, Problem, check_number
+from dbml.core.spec import (
+    MAX_BANDWIDTH_MBIT,
+    MAX_PERIOD_S,
+    MIN_PERIOD_S,
+    ChannelSpec,
+    LinkSpec,
+    Problem,
+    check_number,
+)
 
 __all__ = ["Config", "DbmSettings", "load_config", "parse_config"]
 
 
+_POSITIVE: dict[str, Any] = {"minimum": 0, "exclusive_minimum": True}
+_FRACTION: dict[str, Any] = {"minimum": 0, "maximum": 1, "exclusive_minimum": True}
+
+
 @dataclass(frozen=True, slots=True)
 class DbmSettings:
-    """The ``dbm:`` section: budget, optimisation period and strategy."""
+    """The ``dbm:`` section: budget, optimisation period and strategy (validated here)."""
 
     max_bandwidth_mbit: float
     utilization: float = 1.0
     optimization_period_s: float = 1.0
     strategy: Strategy = Strategy.PAPER
+
+    def __post_init__(self) -> None:
+        owner = "dbm"
+        field = "max_bandwidth_in_mbit"
+        bandwidth = check_number(self.max_bandwidth_mbit, field=field, owner=owner, **_POSITIVE)
+        check_number(bandwidth, field=field, owner=owner, maximum=MAX_BANDWIDTH_MBIT)
+        utilization = check_number(
+            self.utilization, field="max_bandwidth_utilization", owner=owner, **_FRACTION
+        )
+        field = "optimization_rate_in_seconds"
+        period = check_number(self.optimization_period_s, field=field, owner=owner, **_POSITIVE)
+        check_number(period, field=field, owner=owner, minimum=MIN_PERIOD_S, maximum=MAX_PERIOD_S)
+        object.__setattr__(self, "max_bandwidth_mbit", bandwidth)
+        object.__setattr__(self, "utilization", utilization)
+        object.__setattr__(self, "optimization_period_s", period)
+        object.__setattr__(self, "strategy", _strategy(f"{owner}: strategy", self.strategy))
 
 
 @dataclass(frozen=True, slots=True)
@@ -85,10 +113,6 @@ def _number(where: str, field: str, value: object, **bounds: Any) -> float:
         raise ConfigError(str(err)) from None
 
 
-_POSITIVE: dict[str, Any] = {"minimum": 0, "exclusive_minimum": True}
-_FRACTION: dict[str, Any] = {"minimum": 0, "maximum": 1, "exclusive_minimum": True}
-
-
 def _dbm(value: object) -> DbmSettings:
     where = "dbm"
     data = _mapping(
@@ -102,21 +126,15 @@ def _dbm(value: object) -> DbmSettings:
         },
         {"max_bandwidth_in_mbit"},
     )
-    bandwidth = _number(where, "max_bandwidth_in_mbit", data["max_bandwidth_in_mbit"], **_POSITIVE)
-    utilization = _number(
-        where,
-        "max_bandwidth_utilization",
-        data.get("max_bandwidth_utilization", 1.0),
-        **_FRACTION,
-    )
-    period = _number(
-        where,
-        "optimization_rate_in_seconds",
-        data.get("optimization_rate_in_seconds", 1.0),
-        **_POSITIVE,
-    )
-    strategy = _strategy(f"{where}: strategy", data.get("strategy", Strategy.PAPER.value))
-    return DbmSettings(bandwidth, utilization, period, strategy)
+    try:
+        return DbmSettings(
+            data["max_bandwidth_in_mbit"],
+            data.get("max_bandwidth_utilization", 1.0),
+            data.get("optimization_rate_in_seconds", 1.0),
+            data.get("strategy", Strategy.PAPER.value),
+        )
+    except SpecError as err:
+        raise ConfigError(str(err)) from None
 
 
 def _strategy(field: str, value: object) -> Strategy:

@@ -27,10 +27,10 @@ from collections import deque
 from dataclasses import dataclass
 
 from dbml.core.errors import SpecError
+from dbml.core.spec import bytes_per_s_to_mbit
 
 __all__ = ["Arrival", "BandwidthEstimator", "Estimate", "EstimatorSettings", "Phase"]
 
-_BITS_PER_BYTE_MBIT = 8e-6
 _TREND_FRAMES = 3
 _RATE_FRAMES = 4
 _SPARSE_WINDOWS = 4
@@ -293,7 +293,7 @@ def _busy_rate_mbit(ordered: list[tuple[float, float, int]], queued_s: float) ->
         if queue > queued_s and t > t_prev:
             size += frame
             gap += t - t_prev
-    return size * _BITS_PER_BYTE_MBIT / gap if gap > 0 else None
+    return bytes_per_s_to_mbit(size / gap) if gap > 0 else None
 
 
 def _receive_rate_mbit(
@@ -307,4 +307,4 @@ def _receive_rate_mbit(
         inside = ordered[len(ordered) - keep :] if keep else []
         start = ordered[len(ordered) - keep - 1][0]
     span = now_s - start
-    return sum(size for *_, size in inside) * _BITS_PER_BYTE_MBIT / span if span > 0 else 0.0
+    return bytes_per_s_to_mbit(sum(size for *_, size in inside) / span) if span > 0 else 0.0

@@ -16,11 +16,17 @@ from dbml.core.errors import SpecError
 
 __all__ = [
     "BYTES_PER_S_PER_MBIT",
+    "MAX_BANDWIDTH_MBIT",
+    "MAX_PERIOD_S",
+    "MAX_RATE_HZ",
+    "MAX_SIZE_BYTES",
+    "MIN_PERIOD_S",
     "ChannelSpec",
     "LinkSpec",
     "Problem",
     "bytes_per_s_to_mbit",
     "check_number",
+    "check_priority",
     "mbit_to_bytes_per_s",
 ]
 
@@ -39,6 +45,17 @@ def bytes_per_s_to_mbit(bytes_per_s: float) -> float:
 
 
 FloatArray = npt.NDArray[np.float64]
+
+MAX_BANDWIDTH_MBIT = 1e6
+"""1 Tbit/s: above any link a fleet shares; a larger budget is a mistake or an attack."""
+MAX_RATE_HZ = 1e4
+"""10 kHz: above any sensor stream's rate."""
+MAX_SIZE_BYTES = 1e9
+"""1 GB: above any single message; a larger size would starve every other channel."""
+MIN_PERIOD_S = 0.01
+"""The shortest optimisation period: shorter ones only flood the store with heartbeats."""
+MAX_PERIOD_S = 3600.0
+"""The longest optimisation period: an hour without a heartbeat leaves no fail-safe."""
 
 
 def check_number(
@@ -76,6 +93,11 @@ def check_number(
     return number
 
 
+def check_priority(value: object, *, field: str = "priority", owner: str | None = None) -> float:
+    """A raw priority: a number in [0, 1] (the one rule, wherever a priority enters)."""
+    return check_number(value, field=field, owner=owner, minimum=0, maximum=1)
+
+
 def _range(minimum: float | None, maximum: float | None, *, exclusive_minimum: bool) -> str:
     if minimum is not None and maximum is not None:
         return f"within {'(' if exclusive_minimum else '['}{minimum:g}, {maximum:g}]"
@@ -101,8 +123,8 @@ class ChannelSpec:
         fmin = check_number(self.min_rate_hz, field="frequency.min", owner=owner)
         fmax = check_number(self.max_rate_hz, field="frequency.max", owner=owner)
         size = check_number(self.size_bytes, field="message_size_in_bytes", owner=owner)
-        priority = check_number(self.priority, field="priority", owner=owner)
         check_number(fmin, field="frequency.min", owner=owner, minimum=0, exclusive_minimum=True)
+        check_number(fmax, field="frequency.max", owner=owner, maximum=MAX_RATE_HZ)
         if fmin > fmax:
             raise SpecError(
                 f"{owner}: frequency.min={self.min_rate_hz!r} exceeds "
@@ -111,7 +133,8 @@ class ChannelSpec:
         check_number(
             size, field="message_size_in_bytes", owner=owner, minimum=0, exclusive_minimum=True
         )
-        check_number(priority, field="priority", owner=owner, minimum=0, maximum=1)
+        check_number(size, field="message_size_in_bytes", owner=owner, maximum=MAX_SIZE_BYTES)
+        priority = check_priority(self.priority, owner=owner)
         object.__setattr__(self, "min_rate_hz", fmin)
         object.__setattr__(self, "max_rate_hz", fmax)
         object.__setattr__(self, "size_bytes", size)

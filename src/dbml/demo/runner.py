@@ -159,7 +159,7 @@ def run_teleop_demo(options: DemoOptions, *, observe: Observer | None = None) ->
         recording = run_experiment(
             specs,
             what="demo",
-            command=None if options.transport == "memory" else _command(master),
+            command=_command(master) if TRANSPORTS[options.transport].spans_processes else None,
             observe=observe,
         )
     finally:

@@ -67,6 +67,10 @@ HOSTS = {"operator": "operator", "optimizer": "base-station", "r1": "robot-r1", 
 TICK_S = 0.2
 """How often the operator reports what arrived."""
 TAIL_S = 1.0
+PERIOD_S = 1.0
+"""The optimisation period (the paper's 1 s): the publishers' heartbeat."""
+PEER_WAIT_S = 10.0
+"""How long a role waits to reach the others before it reports ready."""
 """The operator and optimizer run this long after the last step, for frames still in flight."""
 
 
@@ -87,7 +91,7 @@ class RoleSpec:
     strategy: str = Strategy.PAPER.value
     estimate: bool = False
     uplinks_mbit: dict[str, float] = field(default_factory=dict)
-    peer_wait_s: float = 10.0
+    peer_wait_s: float = PEER_WAIT_S
 
     def to_json(self) -> str:
         """The spec as one JSON object (the role process's argument)."""
@@ -118,7 +122,7 @@ def wait_until(wall_s: float, stop: threading.Event) -> bool:
 
 
 def _optimizer(transport: Transport, t0: float, spec: RoleSpec, stop: threading.Event) -> None:
-    settings = DbmSettings(spec.link_mbit, spec.utilization, 1.0, Strategy(spec.strategy))
+    settings = DbmSettings(spec.link_mbit, spec.utilization, PERIOD_S, Strategy(spec.strategy))
     topics = {camera.robot: camera.topic for camera in ROBOTS}
     links = tuple(
         LinkSpec(f"uplink-{robot}", mbit, (topics[robot],))
@@ -216,7 +220,7 @@ def _operator(
 
         return on_sample
 
-    view = ParamView(transport.params)
+    view = ParamView.of(transport.params)
     reporter = ReceptionReporter(transport).start() if spec.estimate else None
     handles: list[Handle] = []
     subscribers: list[ManagedSubscriber] = []
@@ -256,7 +260,6 @@ def _operator(
             handle.close()
         if reporter is not None:
             reporter.close()
-        view.close()
 
 
 def run_role(

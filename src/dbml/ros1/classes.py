@@ -21,7 +21,7 @@ from dbml.core.config import DbmSettings
 from dbml.core.errors import SpecError
 from dbml.core.spec import LinkSpec
 from dbml.runtime.optimizer import OptimizerNode, Round
-from dbml.runtime.publisher import ManagedPublisher
+from dbml.runtime.publisher import FAILSAFE_PERIODS, ManagedPublisher
 from dbml.runtime.subscriber import ManagedSubscriber
 from dbml.transports.base import Sample, Variant, check_topic
 from dbml.transports.ros1 import Ros1Transport, serialize
@@ -64,7 +64,7 @@ class DBMPublisher:
         max_frequency: float,
         *,
         priority: float | None = None,
-        failsafe_periods: float = 3.0,
+        failsafe_periods: float = FAILSAFE_PERIODS,
     ) -> None:
         self._type = _message_type(data_class)
         self.data_class = data_class

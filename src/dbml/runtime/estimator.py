@@ -57,7 +57,7 @@ class LinkEstimator:
         self._estimator: BandwidthEstimator | None = None
         self._offsets: dict[str, float] = {}
         self._published: tuple[float, str] | None = None
-        self._view = ParamView(transport.params)
+        self._view = ParamView.of(transport.params)
         self._worker = PeriodicWorker(
             self.tick, interval_s=interval_s, name="dbml-estimator", log=log
         )
@@ -140,7 +140,6 @@ class LinkEstimator:
         """Stop and withdraw the estimate, so nobody reads a stale one."""
         self._worker.stop()
         self._subscription.close()
-        self._view.close()
         if self._published is not None:
             self._transport.params.set(names.ESTIMATE, None)
             self._transport.params.set(names.ESTIMATOR_STATE, None)

@@ -3,10 +3,17 @@
 from __future__ import annotations
 
 __all__ = [
+    "APPLIED_FIELD",
     "BANDWIDTH",
+    "CURRENT_FIELD",
     "ESTIMATE",
     "ESTIMATOR_STATE",
+    "MANAGED_FIELD",
+    "MAX_FIELD",
+    "MIN_FIELD",
     "PERIOD",
+    "PRIORITY_FIELD",
+    "SIZE_FIELD",
     "STATUS",
     "STATUS_MESSAGE",
     "STRATEGY",
@@ -35,40 +42,48 @@ ESTIMATOR_STATE = "/dbm/estimator_state"
 
 _CHANNEL = "/dbm/"
 
+MIN_FIELD = "frequency/min"
+MAX_FIELD = "frequency/max"
+SIZE_FIELD = "message_size_in_bytes"
+PRIORITY_FIELD = "priority"
+CURRENT_FIELD = "frequency/current_value"
+APPLIED_FIELD = "frequency/applied_value"
+MANAGED_FIELD = "managed"
+
 
 def min_rate(topic: str) -> str:
     """The channel's declared minimum rate (Hz)."""
-    return f"{topic}/dbm/frequency/min"
+    return f"{topic}{_CHANNEL}{MIN_FIELD}"
 
 
 def max_rate(topic: str) -> str:
     """The channel's declared maximum rate (Hz)."""
-    return f"{topic}/dbm/frequency/max"
+    return f"{topic}{_CHANNEL}{MAX_FIELD}"
 
 
 def size(topic: str) -> str:
     """The serialised size of the channel's messages, as the publisher measures it."""
-    return f"{topic}/dbm/message_size_in_bytes"
+    return f"{topic}{_CHANNEL}{SIZE_FIELD}"
 
 
 def priority(topic: str) -> str:
     """The channel's raw priority in [0, 1]."""
-    return f"{topic}/dbm/priority"
+    return f"{topic}{_CHANNEL}{PRIORITY_FIELD}"
 
 
 def current_value(topic: str) -> str:
     """The allocated rate, pushed by the optimizer to the publisher."""
-    return f"{topic}/dbm/frequency/current_value"
+    return f"{topic}{_CHANNEL}{CURRENT_FIELD}"
 
 
 def applied(topic: str) -> str:
     """The rate the publisher is applying: its acknowledgement of ``current_value``."""
-    return f"{topic}/dbm/frequency/applied_value"
+    return f"{topic}{_CHANNEL}{APPLIED_FIELD}"
 
 
 def managed(topic: str) -> str:
     """Whether the optimizer manages the channel (a remote host subscribes)."""
-    return f"{topic}/dbm/managed"
+    return f"{topic}{_CHANNEL}{MANAGED_FIELD}"
 
 
 def topic_of(name: str) -> tuple[str, str] | None:

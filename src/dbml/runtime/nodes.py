@@ -19,8 +19,7 @@ from dataclasses import dataclass
 from typing import TextIO
 
 from dbml.core.config import DbmSettings
-from dbml.core.errors import SpecError
-from dbml.core.spec import LinkSpec, check_number
+from dbml.core.spec import MAX_SIZE_BYTES, LinkSpec, check_number, check_priority
 from dbml.runtime import names
 from dbml.runtime.estimator import LinkEstimator
 from dbml.runtime.monitor import MonitorView, monitor_view
@@ -116,8 +115,8 @@ def run_publisher(
     duration_s: float | None = None,
 ) -> int:
     """``dbml publish``: a managed publisher of synthetic frames, paced by its rate."""
-    if size_bytes <= 0:
-        raise SpecError(f"--size-bytes={size_bytes!r} must be > 0")
+    check_number(size_bytes, field="--size-bytes", minimum=0, exclusive_minimum=True)
+    check_number(size_bytes, field="--size-bytes", maximum=MAX_SIZE_BYTES)
     transport.wait_for_peers(PEER_WAIT_S)
     payload = transport.camera_frame(topic, size_bytes)  # first: it may set the ROS type
     publisher = ManagedPublisher(
@@ -198,7 +197,7 @@ def run_subscriber(
 
 def set_priority(transport: Transport, topic: str, value: float) -> int:
     """``dbml priority``: write a channel's raw priority and wait for a peer to hold it."""
-    priority = check_number(value, field="priority", minimum=0, maximum=1)
+    priority = check_priority(value)
     if not transport.wait_for_peers(PEER_WAIT_S):
         log.warning("no running dbml process reached; the value is set for none to read")
     transport.params.set(names.priority(topic), priority)

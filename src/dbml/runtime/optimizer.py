@@ -25,7 +25,13 @@ from dbml.core.errors import DbmlError
 from dbml.core.spec import LinkSpec, Problem
 from dbml.runtime import names
 from dbml.runtime.graph import is_managed, published_topics
-from dbml.runtime.params import ChannelParams, DbmParams, ParamView, write_settings
+from dbml.runtime.params import (
+    ChannelParams,
+    DbmParams,
+    ParamView,
+    channel_params,
+    write_settings,
+)
 from dbml.runtime.worker import PeriodicWorker
 from dbml.transports.base import Handle, ParamValue, Transport
 
@@ -33,14 +39,15 @@ __all__ = ["ChannelState", "OptimizerNode", "Round"]
 
 log = logging.getLogger("dbml.optimizer")
 
-_TRIGGERS = frozenset({"frequency/min", "frequency/max", "message_size_in_bytes", "priority"})
+_TRIGGERS = frozenset({names.MIN_FIELD, names.MAX_FIELD, names.SIZE_FIELD, names.PRIORITY_FIELD})
 """Channel parameters whose change re-allocates at once."""
 _GLOBAL_TRIGGERS = frozenset({names.BANDWIDTH, names.UTILIZATION, names.PERIOD, names.STRATEGY})
 _DEFAULTS: dict[str, ParamValue] = {
-    names.UTILIZATION: 1.0,
-    names.PERIOD: 1.0,
-    names.STRATEGY: Strategy.PAPER.value,
+    names.UTILIZATION: DbmParams().utilization,
+    names.PERIOD: DbmParams().period_s,
+    names.STRATEGY: DbmParams().strategy.value,
 }
+"""What ``write_defaults`` writes: ``DbmParams``'s own defaults."""
 ACK_TIMEOUT_S = 0.25
 """How long increases wait for publishers to acknowledge the decreases pushed before them."""
 COALESCE_S = 0.002
@@ -109,7 +116,7 @@ class OptimizerNode:
             for name, default in _DEFAULTS.items():
                 if params.get(name) is None:
                     params.set(name, default)
-        self._view = ParamView(params, on_change=self._on_param)
+        self._view = ParamView.of(params)
         self._worker = PeriodicWorker(
             self._round,
             interval_s=lambda: self._view.dbm().period_s,
@@ -119,7 +126,10 @@ class OptimizerNode:
             immediate=True,
             clock=transport.now,
         )
-        self._handles: list[Handle] = [transport.graph.watch(self.poke)]
+        self._handles: list[Handle] = [
+            self._view.watch(self._on_param),
+            transport.graph.watch(self.poke),
+        ]
 
     def _round(self) -> None:
         self.optimize()  # looked up per round, so a wrapped ``optimize`` is the one that runs
@@ -140,7 +150,7 @@ class OptimizerNode:
             return
         if split[1] in _TRIGGERS:
             self.poke()
-        elif split[1] == "frequency/applied_value":
+        elif split[1] == names.APPLIED_FIELD:
             with self._acks:
                 self._acks.notify_all()
 
@@ -170,9 +180,10 @@ class OptimizerNode:
     def channels(self) -> tuple[ChannelState, ...]:
         """Every live channel whose publisher declared valid bounds, by topic."""
         entries = self._transport.graph.entries()
+        values = self._view.values()  # one copy for the round, not one per channel
         states = []
         for topic in sorted(published_topics(entries)):
-            params = self._view.channel(topic)
+            params = channel_params(values, topic)
             if params.bounded:  # else a publisher that has not declared valid bounds yet
                 states.append(ChannelState(params, is_managed(entries, topic)))
         return tuple(states)
@@ -238,7 +249,7 @@ class OptimizerNode:
 
         def running(topic: str) -> float | None:
             """What the publisher acknowledged running, else what we last pushed."""
-            applied = self._view.channel(topic).applied_rate_hz
+            applied = self._applied_hz(topic)
             return applied if applied is not None else self._pushed.get(topic)
 
         before = {t: running(t) for t in rates}
@@ -252,13 +263,16 @@ class OptimizerNode:
                 params.set(names.current_value(topic), rate)  # also the periodic heartbeat
         self._pushed = dict(rates)
 
+    def _applied_hz(self, topic: str) -> float | None:
+        """The rate the publisher acknowledged (validated by the view)."""
+        value = self._view.get(names.applied(topic))
+        return value if isinstance(value, float) else None
+
     def _await_acks(self, decreases: dict[str, float]) -> None:
         """Wait until publishers apply the decreases (bounded), so increases come after them."""
 
         def late() -> list[str]:
-            return sorted(
-                t for t, r in decreases.items() if self._view.channel(t).applied_rate_hz != r
-            )
+            return sorted(t for t, r in decreases.items() if self._applied_hz(t) != r)
 
         with self._acks:
             if not self._acks.wait_for(lambda: not late(), timeout=self._ack_timeout_s):
@@ -296,4 +310,3 @@ class OptimizerNode:
         for handle in self._handles:
             handle.close()
         self._handles.clear()
-        self._view.close()

@@ -17,24 +17,30 @@ from __future__ import annotations
 
 import logging
 import threading
+import weakref
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 from dbml.core.allocation import Status, Strategy
 from dbml.core.config import DbmSettings
 from dbml.core.errors import SpecError
-from dbml.core.spec import ChannelSpec, check_number
+from dbml.core.spec import (
+    MAX_BANDWIDTH_MBIT,
+    MAX_PERIOD_S,
+    MAX_RATE_HZ,
+    MAX_SIZE_BYTES,
+    MIN_PERIOD_S,
+    ChannelSpec,
+    check_number,
+    check_priority,
+)
 from dbml.runtime import names
 from dbml.transports.base import Handle, ParamStore, ParamValue
+from dbml.transports.callbacks import CallbackList
 
 __all__ = [
-    "MAX_BANDWIDTH_MBIT",
-    "MAX_PERIOD_S",
-    "MAX_RATE_HZ",
-    "MAX_SIZE_BYTES",
     "MAX_TEXT_CHARS",
-    "MIN_PERIOD_S",
     "ChannelParams",
     "DbmParams",
     "ParamError",
@@ -48,16 +54,6 @@ __all__ = [
 
 log = logging.getLogger("dbml.params")
 
-MAX_BANDWIDTH_MBIT = 1e6
-"""1 Tbit/s: above any radio a fleet shares; a larger budget is a mistake or an attack."""
-MAX_RATE_HZ = 1e4
-"""10 kHz: above any sensor stream's rate."""
-MAX_SIZE_BYTES = 1e9
-"""1 GB: above any single message; a larger size would starve every other channel."""
-MIN_PERIOD_S = 0.01
-"""The shortest optimisation period: shorter ones only flood the store with heartbeats."""
-MAX_PERIOD_S = 3600.0
-"""The longest optimisation period: one hour without a heartbeat is no fail-safe at all."""
 MAX_TEXT_CHARS = 10_000
 """Status and estimator texts longer than this are not status lines."""
 
@@ -69,12 +65,11 @@ _RULES: dict[str, dict[str, Any]] = {
     names.PERIOD: {"minimum": MIN_PERIOD_S, "maximum": MAX_PERIOD_S},
 }
 _CHANNEL_RULES: dict[str, dict[str, Any]] = {
-    "frequency/min": {**_POSITIVE, "maximum": MAX_RATE_HZ},
-    "frequency/max": {**_POSITIVE, "maximum": MAX_RATE_HZ},
-    "frequency/current_value": {**_POSITIVE, "maximum": MAX_RATE_HZ},
-    "frequency/applied_value": {**_POSITIVE, "maximum": MAX_RATE_HZ},
-    "message_size_in_bytes": {**_POSITIVE, "maximum": MAX_SIZE_BYTES},
-    "priority": {"minimum": 0.0, "maximum": 1.0},
+    names.MIN_FIELD: {**_POSITIVE, "maximum": MAX_RATE_HZ},
+    names.MAX_FIELD: {**_POSITIVE, "maximum": MAX_RATE_HZ},
+    names.CURRENT_FIELD: {**_POSITIVE, "maximum": MAX_RATE_HZ},
+    names.APPLIED_FIELD: {**_POSITIVE, "maximum": MAX_RATE_HZ},
+    names.SIZE_FIELD: {**_POSITIVE, "maximum": MAX_SIZE_BYTES},
 }
 _SHORT_CHARS = 80
 """A value longer than this is cut in messages: a 10 MB value is not logged whole."""
@@ -118,7 +113,9 @@ def _check(name: str, value: bool | int | float | str) -> ParamValue:
     field = None if split is None else split[1]
     if field in _CHANNEL_RULES:
         return check_number(value, field=name, **_CHANNEL_RULES[field])
-    if field == "managed" and not isinstance(value, bool):
+    if field == names.PRIORITY_FIELD:
+        return check_priority(value, field=name)
+    if field == names.MANAGED_FIELD and not isinstance(value, bool):
         return _not(name, value)
     return value
 
@@ -220,25 +217,46 @@ def write_settings(store: ParamStore, settings: DbmSettings) -> None:
 class ParamView:
     """The last good value of every parameter, kept current from the store's notifications.
 
-    ``on_change(name, value)`` runs after a valid value is taken in (on the store's thread);
-    a bad value does not call it. Reading never touches the middleware.
+    One view per store and process (``ParamView.of``), so every value is checked, and a bad one
+    logged, once. ``watch(callback)`` is called with ``(name, value)`` after a valid value is
+    taken in (on the store's thread); a bad value calls nothing. Reading never touches the
+    middleware.
     """
 
-    def __init__(
-        self,
-        store: ParamStore,
-        *,
-        on_change: Callable[[str, ParamValue], None] | None = None,
-    ) -> None:
+    _shared: ClassVar[weakref.WeakKeyDictionary[ParamStore, ParamView]] = (
+        weakref.WeakKeyDictionary()
+    )
+    _shared_lock: ClassVar[threading.Lock] = threading.Lock()
+
+    @classmethod
+    def of(cls, store: ParamStore) -> ParamView:
+        """The view of ``store`` that every reader in this process shares."""
+        with cls._shared_lock:
+            view = cls._shared.get(store)
+            if view is None:
+                view = cls._shared[store] = cls(store)
+        return view
+
+    def __init__(self, store: ParamStore) -> None:
         self._lock = threading.Lock()
         self._values: dict[str, ParamValue] = {}
         self._problems: dict[str, str] = {}
-        self._on_change = on_change
-        self._watch: Handle = store.watch(self._take)
-        for name, value in store.snapshot().items():  # after the watch: nothing falls between
-            self._take(name, value, notify=False)
+        self._listeners: CallbackList[[str, ParamValue]] = CallbackList()
+        self._notified: set[str] | None = set()
+        self._watch: Handle = store.watch(self._take)  # for the store's life, as the view
+        # After the watch, so nothing falls between; a name notified meanwhile is newer than
+        # what the snapshot says of it (over ROS 1 the snapshot is a slow XML-RPC call).
+        for name, value in store.snapshot().items():
+            self._take(name, value, from_snapshot=True)
+        with self._lock:
+            self._notified = None
 
-    def _take(self, name: str, value: ParamValue, *, notify: bool = True) -> None:
+    def _take(self, name: str, value: ParamValue, *, from_snapshot: bool = False) -> None:
+        with self._lock:
+            if self._notified is not None:
+                if from_snapshot and name in self._notified:
+                    return
+                self._notified.add(name)
         try:
             good = check_param(name, value)
         except ParamError as err:
@@ -254,8 +272,12 @@ class ParamView:
                 self._values.pop(name, None)
             else:
                 self._values[name] = good
-        if notify and self._on_change is not None:
-            self._on_change(name, good)
+        if not from_snapshot:
+            self._listeners.fire(name, good)
+
+    def watch(self, callback: Callable[[str, ParamValue], object]) -> Handle:
+        """Call ``callback(name, value)`` for every valid value taken in from now on."""
+        return self._listeners.add(callback)
 
     def get(self, name: str) -> ParamValue:
         """The last good value of ``name`` (None: unset)."""
@@ -279,10 +301,6 @@ class ParamView:
     def channel(self, topic: str) -> ChannelParams:
         """One channel's parameters."""
         return channel_params(self.values(), topic)
-
-    def close(self) -> None:
-        """Stop following the store."""
-        self._watch.close()
 
 
 def _float(values: Mapping[str, ParamValue], name: str) -> float | None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from dbml.core.priority import collision_priority, time_to_collision_s
-from dbml.core.spec import check_number
+from dbml.core.spec import check_priority
 from dbml.runtime import names
 from dbml.transports.base import Transport, check_topic
 
@@ -27,9 +27,7 @@ class PrioritySource:
 
     def set(self, priority: float) -> float:
         """Set the priority directly (validated as the core validates it)."""
-        value = check_number(
-            priority, field="priority", owner=f"channel {self.topic!r}", minimum=0, maximum=1
-        )
+        value = check_priority(priority, owner=f"channel {self.topic!r}")
         if value != self._last:
             self._last = value
             self._transport.params.set(names.priority(self.topic), value)

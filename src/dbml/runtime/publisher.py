@@ -15,8 +15,7 @@ import threading
 import time
 from collections.abc import Callable
 
-from dbml.core.errors import SpecError
-from dbml.core.spec import ChannelSpec
+from dbml.core.spec import ChannelSpec, check_number
 from dbml.runtime import names
 from dbml.runtime.metadata import pack_meta
 from dbml.runtime.params import ParamView
@@ -59,8 +58,7 @@ class ManagedPublisher:
         check_topic(topic)
         # Validates the bounds with the same rules and messages as the allocation core.
         ChannelSpec(topic, min_rate_hz, max_rate_hz, 1.0, 0.0 if priority is None else priority)
-        if failsafe_periods <= 0:
-            raise SpecError(f"failsafe_periods={failsafe_periods!r} must be > 0")
+        check_number(failsafe_periods, field="failsafe_periods", minimum=0, exclusive_minimum=True)
         self.topic = topic
         self.min_rate_hz = float(min_rate_hz)
         self.max_rate_hz = float(max_rate_hz)
@@ -80,8 +78,9 @@ class ManagedPublisher:
         self.rate = Rate(self.current_rate_hz, clock=transport.now)
 
         params = transport.params
-        self._view = ParamView(params, on_change=self._on_param)
+        self._view = ParamView.of(params)
         self._period_s = self._view.dbm().period_s
+        self._view_watch = self._view.watch(self._on_param)
         params.set(names.min_rate(topic), self.min_rate_hz)
         params.set(names.max_rate(topic), self.max_rate_hz)
         if priority is not None:  # otherwise keep what was set (the optimizer reads none as 0)
@@ -182,6 +181,6 @@ class ManagedPublisher:
         for handle in self._handles:
             handle.close()
         self._handles.clear()
-        self._view.close()
+        self._view_watch.close()
         self._full.close()
         self._optimized.close()

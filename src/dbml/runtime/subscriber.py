@@ -12,11 +12,15 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable
 
+from dbml.core.errors import TransportError
 from dbml.runtime.graph import publisher_hosts
 from dbml.runtime.reception import ReceptionReporter
 from dbml.transports.base import Handle, Role, Sample, Transport, Variant, check_topic
 
-__all__ = ["ManagedSubscriber"]
+__all__ = ["FIRST_SWITCH_TIMEOUT_S", "ManagedSubscriber"]
+
+FIRST_SWITCH_TIMEOUT_S = 10.0
+"""How long the constructor waits for the first subscription another thread is making."""
 
 
 class ManagedSubscriber:
@@ -43,8 +47,15 @@ class ManagedSubscriber:
         self._pending = False
         self._updating = False
         self._closed = False
+        self._subscribed = threading.Event()
         self._graph_watch = transport.graph.watch(self._update)
         self._update()
+        # Another thread may be doing the first switch (a graph event since the watch began):
+        # return subscribed all the same.
+        if not self._subscribed.wait(timeout=FIRST_SWITCH_TIMEOUT_S):
+            raise TransportError(
+                f"subscriber of {topic!r}: no subscription after {FIRST_SWITCH_TIMEOUT_S:g} s"
+            )
 
     @property
     def variant(self) -> Variant:
@@ -68,16 +79,22 @@ class ManagedSubscriber:
             if self._updating or self._closed:
                 return
             self._updating = True
-        while True:
+        try:
+            while True:
+                with self._lock:  # "nothing pending" and "no longer updating" in one step
+                    if not self._pending or self._closed:
+                        self._updating = False
+                        return
+                    self._pending = False
+                    current = self._variant
+                wanted = self._wanted()
+                if wanted is not current:
+                    self._switch(wanted)
+        except BaseException:
             with self._lock:
-                if not self._pending or self._closed:
-                    self._updating = False
-                    return
-                self._pending = False
-                current = self._variant
-            wanted = self._wanted()
-            if wanted is not current:
-                self._switch(wanted)
+                self._updating = False
+                self._pending = True  # a failed read or switch: the next graph event retries
+            raise
 
     def _switch(self, wanted: Variant) -> None:
         # Subscribe to the new copy before leaving the old one, so nothing is missed.
@@ -92,6 +109,7 @@ class ManagedSubscriber:
                 old = [subscription, token]
             else:
                 self._variant, self._subscription, self._token = wanted, subscription, token
+                self._subscribed.set()
         for handle in old:
             if handle is not None:
                 handle.close()

@@ -42,7 +42,6 @@ __all__ = [
     "Variant",
     "check_param_value",
     "check_topic",
-    "param_number",
     "resolve_host",
 ]
 
@@ -284,13 +283,6 @@ class Closer:
         action, self._action = self._action, None
         if action is not None:
             action()
-
-
-def param_number(value: ParamValue) -> float | None:
-    """A parameter as a number, or None when it is unset or not a number (booleans are not)."""
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        return None
-    return float(value)
 
 
 def check_param_value(value: object) -> ParamValue:

@@ -169,7 +169,7 @@ class MemoryTransport(TransportBase):
         self.params = _MemoryParams(self)
         self.graph = _MemoryGraph(self)
         self._clock = clock
-        self._handles: list[Handle] = []
+        self._handles: set[Handle] = set()
         self._tokens: set[str] = set()
         self._closed = False
 
@@ -191,8 +191,14 @@ class MemoryTransport(TransportBase):
     ) -> Handle:
         """Call ``callback`` on the publishing thread for every message of ``topic``."""
         self._check_open()
-        handle = self.network.route(variant.key(check_topic(topic))).add(callback)
-        self._handles.append(handle)
+        route = self.network.route(variant.key(check_topic(topic))).add(callback)
+
+        def unsubscribe() -> None:
+            route.close()
+            self._handles.discard(handle)  # a closed subscription is not kept until exit
+
+        handle = Closer(unsubscribe)
+        self._handles.add(handle)
         return handle
 
     def close(self) -> None:
@@ -200,7 +206,7 @@ class MemoryTransport(TransportBase):
         if self._closed:
             return
         self._closed = True
-        for handle in self._handles:
+        for handle in list(self._handles):
             handle.close()
         with self.network.lock:
             for uid in self._tokens:

@@ -106,8 +106,12 @@ class ReplicatedParams:
         """Write ``name`` here, send the write to every peer, then notify this process."""
         check_param_value(value)
         key = param_key(name)
-        stamp = self._clock_ns()
-        self._merge(name, value, stamp, self.node_id)
+        with self._lock:
+            # A write supersedes every write known here, also one stamped ahead of our clock
+            # (a peer's fast clock), so what this process sets is what it and its watchers see.
+            old = self._values.get(name)
+            stamp = self._clock_ns() if old is None else max(self._clock_ns(), old[1] + 1)
+            self._values[name] = (value, stamp, self.node_id)
         self._publish(key, encode_param(value, stamp, self.node_id))
         self.watchers.fire(name, value)
 

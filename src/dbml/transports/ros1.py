@@ -420,7 +420,7 @@ class Ros1Transport(TransportBase):
     ) -> None:
         self._classes: dict[str, type] = dict(message_classes or {})
         self._queue_size = queue_size
-        self._handles: list[Handle] = []
+        self._handles: set[Handle] = set()
         self._closed = False
         _SLOT.reserve()
         try:
@@ -447,6 +447,8 @@ class Ros1Transport(TransportBase):
         uri_host = urlparse(rospy.get_node_uri()).hostname
         self._host = str(uri_host or rosgraph.network.get_host_name())
         if host is not None and host != self._host:
+            if self._owns_node:  # ours, and of no use: do not leave it running without an owner
+                rospy.signal_shutdown("dbml transport failed to start")
             raise TransportError(
                 f"host={host!r} cannot apply: this process's ROS node already runs on "
                 f"{self._host!r} (set ROS_HOSTNAME or ROS_IP before it starts)"
@@ -546,8 +548,13 @@ class Ros1Transport(TransportBase):
             buff_size=RECEIVE_BUFFER_BYTES,
             tcp_nodelay=True,
         )
-        handle = Closer(subscriber.unregister)
-        self._handles.append(handle)
+
+        def unsubscribe() -> None:
+            subscriber.unregister()
+            self._handles.discard(handle)  # a closed subscription is not kept until exit
+
+        handle = Closer(unsubscribe)
+        self._handles.add(handle)
         return handle
 
     def now(self) -> float:
@@ -563,7 +570,7 @@ class Ros1Transport(TransportBase):
         if self._closed:
             return
         self._closed = True
-        for handle in self._handles:
+        for handle in list(self._handles):
             handle.close()
         self._graph.close()
         self._params.close()
