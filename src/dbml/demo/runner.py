@@ -20,7 +20,6 @@ from dbml.experiment.analysis import (
     SeriesPoint,
     StepResult,
     Window,
-    analyse,
 )
 from dbml.experiment.roles import HOSTS, RoleSpec
 from dbml.experiment.runner import Command, Observer, run_experiment
@@ -167,15 +166,7 @@ def run_teleop_demo(options: DemoOptions, *, observe: Observer | None = None) ->
             master.stop()
     if recording.t0 is None:
         return DemoResult(options, interrupted=recording.interrupted)
-    analysis = analyse(
-        recording.arrivals,
-        recording.ticks,
-        robots=[camera.robot for camera in ROBOTS],
-        t0=recording.t0,
-        step_s=options.step_seconds,
-        steps=recording.steps_done(options.step_seconds),
-        link_mbit=LINK_MBIT,
-    )
+    analysis = recording.analyse(step_s=options.step_seconds, link_mbit=LINK_MBIT)
     return DemoResult(
         options,
         tuple(_judge(step) for step in analysis.steps),

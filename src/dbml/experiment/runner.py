@@ -23,10 +23,10 @@ from dataclasses import dataclass
 from types import FrameType
 
 from dbml.core.errors import DbmlError
-from dbml.experiment.analysis import Arrival, Tick
+from dbml.experiment.analysis import Analysis, Arrival, Tick, analyse
 from dbml.experiment.roles import RoleSpec, run_role
 from dbml.harness.processes import Message, RoleProcesses, wait_ready
-from dbml.scenarios.teleop import STEPS
+from dbml.scenarios.teleop import ROBOTS, STEPS
 from dbml.transports.memory import MemoryNetwork, MemoryTransport
 
 __all__ = [
@@ -85,6 +85,22 @@ class Recording:
             return len(STEPS)
         last = max((t.t_s for t in self.ticks), default=self.t0)
         return max(0, min(len(STEPS), int((last - self.t0) // step_s)))
+
+    def analyse(
+        self, *, step_s: float, link_mbit: float, schedule: Sequence[tuple[float, float]] = ()
+    ) -> Analysis:
+        """Every step the operator saw, the time series and the link changes (see ``analyse``)."""
+        assert self.t0 is not None, "a run that never started has nothing to analyse"
+        return analyse(
+            self.arrivals,
+            self.ticks,
+            robots=[camera.robot for camera in ROBOTS],
+            t0=self.t0,
+            step_s=step_s,
+            steps=self.steps_done(step_s),
+            link_mbit=link_mbit,
+            schedule=schedule,
+        )
 
 
 class RoleThreads:

@@ -29,7 +29,6 @@ from dbml.experiment.analysis import (
     LinkChange,
     SeriesPoint,
     StepResult,
-    analyse,
     link_at,
 )
 from dbml.experiment.roles import HOSTS, RoleSpec
@@ -359,14 +358,7 @@ def run_teleop_testbed(
     result = TestbedResult(options, network.run_id, interrupted=recording.interrupted)
     if recording.t0 is None:
         return result
-    analysis = analyse(
-        recording.arrivals,
-        recording.ticks,
-        robots=[c.robot for c in ROBOTS],
-        t0=recording.t0,
-        step_s=options.step_seconds,
-        steps=recording.steps_done(options.step_seconds),
-        link_mbit=options.link_mbit,
-        schedule=options.link_schedule,
+    analysis = recording.analyse(
+        step_s=options.step_seconds, link_mbit=options.link_mbit, schedule=options.link_schedule
     )
     return replace(result, steps=analysis.steps, series=analysis.series, changes=analysis.changes)
