@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import math
 import signal
 from pathlib import Path
 
 import pytest
 
 from dbml.runtime import names
+from dbml.transports.base import ParamValue
 from tests.conftest import wait_for
 from tests.integration.procs import fleet, publish_argv
 
@@ -159,3 +161,49 @@ def test_an_estimating_optimizer_shows_its_estimate_in_the_monitor(tmp_path: Pat
         assert row["estimate_mbit"] == pytest.approx(11.0)  # never above the configured
         assert row["estimator"].split(":")[0] in {"increase", "hold", "decrease"}
         assert "received" in row["estimator"]
+
+
+def test_bad_values_from_a_peer_are_ignored_and_the_wire_keeps_the_budget(
+    tmp_path: Path,
+) -> None:
+    """Garbage written by any peer is refused where it enters each process.
+
+    Nothing crashes, no channel drops out, the rate on the wire stays the allocated one.
+    """
+    budget = 4 * 125_000  # 4 Mbit/s: 5.95 Hz of 84,000-byte frames
+    with fleet() as f:
+        optimizer = f.start("optimizer", "--config", config(tmp_path, mbit=4), "--host", "base")
+        camera = f.start(*publisher())
+        viewer = f.start("subscribe", CAMERA, "--json", "--host", "operator")
+        wait_for(
+            lambda: allocated(f) == pytest.approx(budget / 84_000),
+            timeout_s=15,
+            what="the allocation",
+        )
+        hostile = f.probe.params
+        writes: list[tuple[str, ParamValue]] = [
+            (names.max_rate(CAMERA), -1),  # once dropped the live channel from the allocation
+            (names.max_rate(CAMERA), "x"),
+            (names.current_value(CAMERA), math.nan),  # once killed the publisher
+            (names.current_value(CAMERA), 1e12),  # once gave thousands of frames at once
+            (names.PERIOD, math.inf),  # once killed the optimizer's thread
+            (names.priority(CAMERA), 10**400),
+            (names.BANDWIDTH, 1e300),
+        ]
+        for name, value in writes:
+            hostile.set(name, value)
+        wait_for(
+            lambda: "ignored: " in str(f.param(names.STATUS_MESSAGE)),
+            timeout_s=10,
+            what="the bad values reported in /dbm/status_message",
+        )
+        rates = [
+            line["bytes_per_s"]
+            for line, _ in zip(viewer.json_lines(timeout_s=8), range(5), strict=False)
+        ]
+        assert len(rates) == 5
+        assert max(rates) <= 1.1 * budget  # whole frames per 1-s window: at most one extra
+        assert min(rates) >= 0.75 * budget  # still sending: nothing dropped out
+        for proc in (optimizer, camera, viewer):
+            assert proc.popen.poll() is None, proc.stderr()
+        assert "Traceback" not in optimizer.stderr() + camera.stderr()
