@@ -9,7 +9,7 @@ import pytest
 
 from dbml.cli import main
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 CONFIG = """\
 dbm:
   max_bandwidth_in_mbit: {mbit}
