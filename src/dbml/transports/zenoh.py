@@ -21,6 +21,7 @@ import os
 import threading
 import time
 import uuid
+import weakref
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import TypeAlias
@@ -55,6 +56,21 @@ except ImportError as err:  # pragma: no cover - eclipse-zenoh is a declared dep
 __all__ = ["DEFAULT_PORT", "ZenohTransport"]
 
 log = logging.getLogger("dbml.zenoh")
+
+_OPEN: weakref.WeakSet[ZenohTransport] = weakref.WeakSet()
+"""Transports not closed yet; a closed (or forgotten) one is not kept alive for the exit hook."""
+
+
+def _close_open_transports() -> None:
+    for transport in list(_OPEN):
+        transport.close()
+
+
+# zenoh's callback threads are not daemons: close the sessions before the interpreter joins its
+# threads at exit (``atexit`` would run too late; this private hook runs first, where it exists).
+_register = getattr(threading, "_register_atexit", None)
+if _register is not None:
+    _register(_close_open_transports)
 
 DEFAULT_PORT = 17447
 """The loopback rendezvous port of the no-flags mode; ``DBML_ZENOH_PORT`` overrides it."""
@@ -286,10 +302,7 @@ class ZenohTransport(TransportBase):
             session.liveliness().declare_subscriber(f"{_NODE}/**", self._on_node, history=True),
             session.liveliness().declare_token(f"{_NODE}/{self.node_id}"),
         }
-        # zenoh's callback threads are not daemons: close the session before they are joined.
-        register = getattr(threading, "_register_atexit", None)
-        if register is not None:
-            register(self.close)
+        _OPEN.add(self)
 
     # -- the parameter store's wire -----------------------------------------------------------
 
@@ -420,6 +433,7 @@ class ZenohTransport(TransportBase):
                 return
             self._closed = True
             self._declared.clear()
+        _OPEN.discard(self)
         try:
             self.session.close()  # type: ignore[no-untyped-call]  # unannotated in the stubs
         except zenoh.ZError as err:
