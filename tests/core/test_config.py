@@ -1,8 +1,10 @@
 import textwrap
+from pathlib import Path
 
 import pytest
 
 from dbml.core import ConfigError, Strategy, parse_config
+from dbml.core.config import load_config
 
 VALID = """
 dbm:
@@ -161,3 +163,39 @@ def test_validation_errors_name_field_and_value(text: str, message: str) -> None
 def test_error_source_names_the_file() -> None:
     with pytest.raises(ConfigError, match=r"^config 'x.yaml': missing required key 'dbm'"):
         parse_config(textwrap.dedent("channels: []"), source="config 'x.yaml'")
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        (
+            "a: &a [1, 2]\nb: [*a, *a]\ndbm: {max_bandwidth_in_mbit: 11}\n",
+            r"^<config>: YAML aliases \(\*a\) are not allowed$",
+        ),
+        ("dbm: " + "[" * 50_000 + "]" * 50_000 + "\n", r"^<config>: nested deeper than 16 levels$"),
+        (
+            "dbm:\n  max_bandwidth_in_mbit: 11\n  max_bandwidth_in_mbit: 5\n",
+            r"invalid YAML at line 3, column 3: key 'max_bandwidth_in_mbit' is given twice$",
+        ),
+        (
+            "dbm: {max_bandwidth_in_mbit: 1" + "0" * 400 + "}\n",
+            r"^dbm: max_bandwidth_in_mbit=1000+\.\.\. is not finite$",
+        ),
+        (
+            "dbm: {max_bandwidth_in_mbit: 11, optimization_rate_in_seconds: 0.001}\n",
+            r"optimization_rate_in_seconds=0.001 must be within \[0.01, 3600\]$",
+        ),
+    ],
+)
+def test_hostile_yaml_is_one_error_not_a_hang_or_a_traceback(text: str, message: str) -> None:
+    with pytest.raises(ConfigError, match=message):
+        parse_config(text, require_channels=False)
+
+
+def test_an_oversized_or_endless_file_is_refused_unread(tmp_path: Path) -> None:
+    big = tmp_path / "big.yaml"
+    big.write_text("#" * (2 << 20))
+    with pytest.raises(ConfigError, match=r"big.yaml': larger than 1,048,576 bytes$"):
+        load_config(big)
+    with pytest.raises(ConfigError, match=r"^config '/dev/zero': larger than 1,048,576 bytes$"):
+        load_config("/dev/zero")

@@ -12,8 +12,9 @@ from typing import Any, cast
 
 import pytest
 
-from dbml.core import DbmSettings, Strategy
+from dbml.core import DbmSettings, Strategy, TransportError
 from dbml.runtime import ManagedPublisher, ManagedSubscriber, OptimizerNode, names
+from dbml.runtime.nodes import set_priority
 from dbml.runtime.params import (
     DbmParams,
     ParamError,
@@ -217,3 +218,17 @@ def test_one_view_per_store_and_a_write_during_the_first_read_is_not_lost() -> N
 
     view = ParamView(Racing())
     assert view.dbm().bandwidth_mbit == 5.0
+
+
+@pytest.mark.parametrize(
+    "topic", ["/r1/camera/optimized", "/dbm/priority", "/r1/camera/dbm/x", "/dbm"]
+)
+def test_reserved_names_are_not_channels(topic: str) -> None:
+    transport = MemoryTransport()
+    with pytest.raises(TransportError, match=rf"^topic='{topic}' is reserved"):
+        ManagedPublisher(transport, topic, min_rate_hz=1, max_rate_hz=2)
+    with pytest.raises(TransportError, match="is reserved"):
+        ManagedSubscriber(transport, topic, lambda s: None)
+    with pytest.raises(TransportError, match="is reserved"):
+        set_priority(transport, topic, 0.5)
+    assert transport.graph.entries() == frozenset()  # nothing was declared

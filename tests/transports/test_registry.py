@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import pytest
 
 from dbml import MemoryNetwork, open_transport
@@ -72,3 +74,20 @@ def test_optional_capabilities_have_defaults_on_every_transport() -> None:
         assert transport.camera_frame("/r1/camera", 12) == bytes(12)
     with pytest.raises(TransportError, match="is closed"):
         transport.declare_publisher("/t")
+
+
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        ({"connect": ["tcp/127.0.0.1:99999"]}, r"port must be 1-65535"),
+        ({"connect": ["tcp/127.0.0.1:0"]}, r"port must be 1-65535"),
+        ({"listen": ["tcp/127.0.0.1:x"]}, r"port must be 0-65535"),
+        ({"connect": ["127.0.0.1:7447"]}, r"must look like 'tcp/192.168.1.2:7447'"),
+        ({"host": ""}, r"^host='' must be letters"),
+    ],
+)
+def test_bad_endpoints_and_hosts_are_refused_before_a_session_opens(
+    options: dict[str, Any], message: str
+) -> None:
+    with pytest.raises(TransportError, match=message):
+        open_transport("zenoh", **options)

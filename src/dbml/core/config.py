@@ -39,7 +39,19 @@ from dbml.core.spec import (
     check_number,
 )
 
-__all__ = ["Config", "DbmSettings", "load_config", "parse_config"]
+__all__ = [
+    "MAX_CONFIG_BYTES",
+    "MAX_CONFIG_DEPTH",
+    "Config",
+    "DbmSettings",
+    "load_config",
+    "parse_config",
+]
+
+MAX_CONFIG_BYTES = 1 << 20
+"""1 MiB: far above any fleet's config; a larger file is not a config."""
+MAX_CONFIG_DEPTH = 16
+"""The deepest nesting a config may have (it needs 4)."""
 
 
 _POSITIVE: dict[str, Any] = {"minimum": 0, "exclusive_minimum": True}
@@ -193,6 +205,46 @@ def _link(index: int, value: object) -> LinkSpec:
         raise ConfigError(f"links[{index}] {err}") from None
 
 
+class _StrictLoader(yaml.SafeLoader):
+    """A safe loader that refuses a key given twice (YAML would keep the last silently)."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        seen: set[object] = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"key {key!r} is given twice", key_node.start_mark
+                )
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
+def _load_yaml(text: str, source: str) -> object:
+    """The document, after a pass over its events that refuses aliases and deep nesting.
+
+    A config needs neither; an alias bomb or 50,000 nested lists would otherwise exhaust memory
+    or the stack before any field is checked.
+    """
+    try:
+        depth = 0
+        for event in yaml.parse(text, Loader=yaml.SafeLoader):
+            if isinstance(event, yaml.AliasEvent):
+                raise ConfigError(f"{source}: YAML aliases (*{event.anchor}) are not allowed")
+            if isinstance(event, yaml.CollectionStartEvent):
+                depth += 1
+                if depth > MAX_CONFIG_DEPTH:
+                    raise ConfigError(f"{source}: nested deeper than {MAX_CONFIG_DEPTH} levels")
+            elif isinstance(event, yaml.CollectionEndEvent):
+                depth -= 1
+        return yaml.load(text, Loader=_StrictLoader)  # a SafeLoader: no arbitrary objects
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        at = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        reason = getattr(err, "problem", None) or type(err).__name__
+        raise ConfigError(f"{source}: invalid YAML{at}: {reason}") from None
+
+
 def parse_config(
     text: str,
     *,
@@ -206,13 +258,7 @@ def parse_config(
     whose channels are announced live by the publishers. ``strategy`` overrides
     ``dbm.strategy`` (the CLI's ``--strategy``) before the links are checked against it.
     """
-    try:
-        document = yaml.safe_load(text)
-    except yaml.YAMLError as err:
-        mark = getattr(err, "problem_mark", None)
-        at = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
-        reason = getattr(err, "problem", None) or type(err).__name__
-        raise ConfigError(f"{source}: invalid YAML{at}: {reason}") from None
+    document = _load_yaml(text, source)
     top = _mapping(source, document, {"dbm", "channels", "links"}, {"dbm"})
     dbm = _dbm(top["dbm"])
     if strategy is not None:
@@ -259,7 +305,11 @@ def load_config(
 ) -> Config:
     """Read and validate a YAML config; an unreadable file is a ``ConfigError`` naming the path."""
     try:
-        text = Path(path).read_text(encoding="utf-8")
+        with Path(path).open("rb") as file:
+            data = file.read(MAX_CONFIG_BYTES + 1)  # /dev/zero must not fill the memory
+        if len(data) > MAX_CONFIG_BYTES:
+            raise ConfigError(f"config {str(path)!r}: larger than {MAX_CONFIG_BYTES:,} bytes")
+        text = data.decode("utf-8")
     except (OSError, UnicodeDecodeError) as err:
         reason = err.strerror if isinstance(err, OSError) and err.strerror else str(err)
         raise ConfigError(f"config {str(path)!r}: cannot read: {reason}") from None

@@ -21,6 +21,7 @@ __all__ = [
     "MAX_RATE_HZ",
     "MAX_SIZE_BYTES",
     "MIN_PERIOD_S",
+    "SHORT_REPR_CHARS",
     "ChannelSpec",
     "LinkSpec",
     "Problem",
@@ -28,6 +29,7 @@ __all__ = [
     "check_number",
     "check_priority",
     "mbit_to_bytes_per_s",
+    "short_repr",
 ]
 
 BYTES_PER_S_PER_MBIT = 125_000.0
@@ -58,6 +60,16 @@ MAX_PERIOD_S = 3600.0
 """The longest optimisation period: an hour without a heartbeat leaves no fail-safe."""
 
 
+SHORT_REPR_CHARS = 80
+"""Values are cut to this many characters in messages: a 400-digit number is no one-liner."""
+
+
+def short_repr(value: object) -> str:
+    """``repr(value)``, cut to ``SHORT_REPR_CHARS`` with ``...``."""
+    text = repr(value)
+    return text if len(text) <= SHORT_REPR_CHARS else f"{text[: SHORT_REPR_CHARS - 3]}..."
+
+
 def check_number(
     value: object,
     *,
@@ -76,20 +88,22 @@ def check_number(
     """
     where = f"{owner}: " if owner else ""
     if isinstance(value, bool) or not isinstance(value, int | float):
-        raise SpecError(f"{where}{field}={value!r} is not a number")
+        raise SpecError(f"{where}{field}={short_repr(value)} is not a number")
     try:
         number = float(value)
     except OverflowError:  # an int too large for a float (10**400)
-        raise SpecError(f"{where}{field}={value!r} is not finite") from None
+        raise SpecError(f"{where}{field}={short_repr(value)} is not finite") from None
     if math.isnan(number):
-        raise SpecError(f"{where}{field}={value!r} is {'not finite' if finite else 'not a number'}")
+        raise SpecError(
+            f"{where}{field}={short_repr(value)} is {'not finite' if finite else 'not a number'}"
+        )
     if finite and math.isinf(number):
-        raise SpecError(f"{where}{field}={value!r} is not finite")
+        raise SpecError(f"{where}{field}={short_repr(value)} is not finite")
     low_ok = minimum is None or (number > minimum if exclusive_minimum else number >= minimum)
     high_ok = maximum is None or number <= maximum
     if not (low_ok and high_ok):
         bounds = _range(minimum, maximum, exclusive_minimum=exclusive_minimum)
-        raise SpecError(f"{where}{field}={value!r} must be {bounds}")
+        raise SpecError(f"{where}{field}={short_repr(value)} must be {bounds}")
     return number
 
 

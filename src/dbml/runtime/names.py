@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from dbml.core.errors import TransportError
+from dbml.transports.base import Variant, check_topic
+
 __all__ = [
     "APPLIED_FIELD",
     "BANDWIDTH",
@@ -19,6 +22,7 @@ __all__ = [
     "STRATEGY",
     "UTILIZATION",
     "applied",
+    "check_channel",
     "current_value",
     "managed",
     "max_rate",
@@ -41,6 +45,7 @@ ESTIMATOR_STATE = "/dbm/estimator_state"
 """What the estimator sees: phase, receive rate, queueing delay, losses."""
 
 _CHANNEL = "/dbm/"
+_RESERVED_SEGMENT = "dbm"
 
 MIN_FIELD = "frequency/min"
 MAX_FIELD = "frequency/max"
@@ -84,6 +89,22 @@ def applied(topic: str) -> str:
 def managed(topic: str) -> str:
     """Whether the optimizer manages the channel (a remote host subscribes)."""
     return f"{topic}{_CHANNEL}{MANAGED_FIELD}"
+
+
+def check_channel(topic: str) -> str:
+    """A channel's topic: a valid topic that no dbml name reserves.
+
+    ``[topic]/optimized`` is a channel's managed copy and ``.../dbm/...`` its parameters (and
+    ``/dbm/...`` dbml's own); a publisher declared there would mix into another channel.
+    """
+    check_topic(topic)
+    segments = topic.split("/")
+    if segments[-1] == Variant.OPTIMIZED.value or _RESERVED_SEGMENT in segments:
+        raise TransportError(
+            f"topic={topic!r} is reserved: '.../{Variant.OPTIMIZED.value}' and "
+            f"'.../{_RESERVED_SEGMENT}/...' are dbml's own names, not channels"
+        )
+    return topic
 
 
 def topic_of(name: str) -> tuple[str, str] | None:

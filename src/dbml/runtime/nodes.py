@@ -197,6 +197,7 @@ def run_subscriber(
 
 def set_priority(transport: Transport, topic: str, value: float) -> int:
     """``dbml priority``: write a channel's raw priority and wait for a peer to hold it."""
+    names.check_channel(topic)
     priority = check_priority(value)
     if not transport.wait_for_peers(PEER_WAIT_S):
         log.warning("no running dbml process reached; the value is set for none to read")

@@ -34,6 +34,7 @@ from dbml.core.spec import (
     ChannelSpec,
     check_number,
     check_priority,
+    short_repr,
 )
 from dbml.runtime import names
 from dbml.transports.base import Handle, ParamStore, ParamValue
@@ -71,8 +72,6 @@ _CHANNEL_RULES: dict[str, dict[str, Any]] = {
     names.APPLIED_FIELD: {**_POSITIVE, "maximum": MAX_RATE_HZ},
     names.SIZE_FIELD: {**_POSITIVE, "maximum": MAX_SIZE_BYTES},
 }
-_SHORT_CHARS = 80
-"""A value longer than this is cut in messages: a 10 MB value is not logged whole."""
 _TEXTS = frozenset({names.STATUS_MESSAGE, names.ESTIMATOR_STATE})
 
 
@@ -95,7 +94,7 @@ def check_param(name: str, value: ParamValue) -> ParamValue:
     except SpecError as err:
         raise ParamError(str(err)) from None
     except ValueError:  # an enum that does not know the value
-        raise ParamError(f"{name}={_short(value)} is not valid") from None
+        raise ParamError(f"{name}={short_repr(value)} is not valid") from None
 
 
 def _check(name: str, value: bool | int | float | str) -> ParamValue:
@@ -121,12 +120,7 @@ def _check(name: str, value: bool | int | float | str) -> ParamValue:
 
 
 def _not(name: str, value: object) -> ParamValue:
-    raise ParamError(f"{name}={_short(value)} is not valid")
-
-
-def _short(value: object) -> str:
-    text = repr(value)
-    return text if len(text) <= _SHORT_CHARS else f"{text[: _SHORT_CHARS - 3]}..."
+    raise ParamError(f"{name}={short_repr(value)} is not valid")
 
 
 @dataclass(frozen=True, slots=True)

@@ -7,7 +7,7 @@ from collections.abc import Callable
 from dbml.core.priority import collision_priority, time_to_collision_s
 from dbml.core.spec import check_priority
 from dbml.runtime import names
-from dbml.transports.base import Transport, check_topic
+from dbml.transports.base import Transport
 
 __all__ = ["PrioritySource", "collision_priority_source"]
 
@@ -20,7 +20,7 @@ class PrioritySource:
     """
 
     def __init__(self, transport: Transport, topic: str, function: Callable[..., float]) -> None:
-        self.topic = check_topic(topic)
+        self.topic = names.check_channel(topic)
         self._transport = transport
         self._function = function
         self._last: float | None = None

@@ -20,7 +20,7 @@ from dbml.runtime import names
 from dbml.runtime.metadata import pack_meta
 from dbml.runtime.params import ParamView
 from dbml.runtime.rate import Rate, RateLimiter
-from dbml.transports.base import Handle, ParamValue, Role, Transport, Variant, check_topic
+from dbml.transports.base import Handle, ParamValue, Role, Transport, Variant
 
 __all__ = ["FAILSAFE_PERIODS", "SIZE_CHANGE", "ManagedPublisher"]
 
@@ -55,7 +55,7 @@ class ManagedPublisher:
         failsafe_periods: float = FAILSAFE_PERIODS,
         wall_clock_ns: Callable[[], int] = time.time_ns,
     ) -> None:
-        check_topic(topic)
+        names.check_channel(topic)
         # Validates the bounds with the same rules and messages as the allocation core.
         ChannelSpec(topic, min_rate_hz, max_rate_hz, 1.0, 0.0 if priority is None else priority)
         check_number(failsafe_periods, field="failsafe_periods", minimum=0, exclusive_minimum=True)

@@ -13,9 +13,10 @@ import threading
 from collections.abc import Callable
 
 from dbml.core.errors import TransportError
+from dbml.runtime import names
 from dbml.runtime.graph import publisher_hosts
 from dbml.runtime.reception import ReceptionReporter
-from dbml.transports.base import Handle, Role, Sample, Transport, Variant, check_topic
+from dbml.transports.base import Handle, Role, Sample, Transport, Variant
 
 __all__ = ["FIRST_SWITCH_TIMEOUT_S", "ManagedSubscriber"]
 
@@ -34,7 +35,7 @@ class ManagedSubscriber:
         *,
         reporter: ReceptionReporter | None = None,
     ) -> None:
-        self.topic = check_topic(topic)
+        self.topic = names.check_channel(topic)
         self._transport = transport
         self._callback = callback
         self._reporter = reporter

@@ -66,7 +66,7 @@ def resolve_host(host: str | None = None) -> str:
 
     Test hosts on one machine share a hostname, so the identity must be settable.
     """
-    chosen = host or os.environ.get("DBML_HOST") or socket.gethostname()
+    chosen = host if host is not None else os.environ.get("DBML_HOST") or socket.gethostname()
     if not _HOST.match(chosen):
         raise TransportError(f"host={chosen!r} must be letters, digits and _-.~ only")
     return chosen

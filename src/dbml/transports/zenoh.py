@@ -122,7 +122,7 @@ def _config(
         put("transport/shared_memory/enabled", "true" if shared_memory else "false")
         if connect or listen:
             if listen:
-                put("listen/endpoints", _json_list(listen))
+                put("listen/endpoints", _json_list(listen, listening=True))
             if connect:
                 put("connect/endpoints", _json_list(connect))
                 put("connect/exit_on_failure", "false")
@@ -130,7 +130,7 @@ def _config(
                 put("connect/retry", "{period_init_ms: 100, period_max_ms: 1000}")
         elif not config_file:
             rendezvous = f"tcp/127.0.0.1:{port}"
-            put("listen/endpoints", _json_list([rendezvous, "tcp/127.0.0.1:0"]))
+            put("listen/endpoints", _json_list([rendezvous, "tcp/127.0.0.1:0"], listening=True))
             put("listen/exit_on_failure", "false")
             put("listen/timeout_ms", "0")  # never retry a listen: close() would hang 10 s
             put("connect/endpoints", _json_list([rendezvous]))
@@ -142,10 +142,29 @@ def _config(
     return config
 
 
-def _json_list(items: list[str]) -> str:
+_PORTED = frozenset({"tcp", "udp", "tls", "quic", "ws"})
+"""Endpoint protocols whose address ends in ``:PORT``."""
+_MAX_PORT = 65_535
+
+
+def _json_list(items: list[str], *, listening: bool = False) -> str:
+    """Endpoints as a JSON list, each checked.
+
+    A malformed one, or a port out of range, is refused here rather than leaving a session that
+    silently reaches no one.
+    """
     for item in items:
-        if "/" not in item or '"' in item:
+        protocol, slash, address = item.partition("/")
+        if not slash or not address or '"' in item:
             raise TransportError(f"endpoint={item!r} must look like 'tcp/192.168.1.2:7447'")
+        if protocol in _PORTED:
+            _, colon, port = address.rpartition(":")
+            lowest = 0 if listening else 1  # port 0: any free port, for a listener only
+            if not colon or not port.isdigit() or not lowest <= int(port) <= _MAX_PORT:
+                raise TransportError(
+                    f"endpoint={item!r}: the port must be {lowest}-{_MAX_PORT}, "
+                    "as in 'tcp/192.168.1.2:7447'"
+                )
     return "[" + ", ".join(f'"{item}"' for item in items) + "]"
 
 
