@@ -122,3 +122,16 @@ def test_failsafe_after_three_silent_periods_and_recovery(
         assert publisher.current_rate_hz() == 9.0
         assert not publisher.failsafe
         assert "allocation heard again" in caplog.text
+
+
+def test_without_any_allocation_it_says_so_after_three_periods(
+    network: MemoryNetwork, clock: ManualClock, caplog: pytest.LogCaptureFixture
+) -> None:
+    publisher = robot(network, clock)
+    clock.advance(2.9)
+    assert not publisher.failsafe
+    with caplog.at_level(logging.WARNING, logger="dbml.publisher"):
+        clock.advance(0.2)  # 3.1 s > 3 periods of the default 1 s
+        assert publisher.current_rate_hz() == 1.0
+        assert publisher.failsafe
+    assert "fail-safe: minimum 1.000 Hz" in caplog.text

@@ -72,7 +72,6 @@ class ManagedPublisher:
         self._size_bytes = -1
         self._allocated_hz: float | None = None
         self._last_heard = transport.now()
-        self._deadline = self._last_heard  # the fail-safe time of the allocation in force
         self._failsafe_noted = False
         self._limiter = RateLimiter(self.min_rate_hz)
         self.rate = Rate(self.current_rate_hz, clock=transport.now)
@@ -80,6 +79,8 @@ class ManagedPublisher:
         params = transport.params
         self._view = ParamView.of(params)
         self._period_s = self._view.dbm().period_s
+        # Until then an allocation is expected; after it, fail-safe (also when none ever came).
+        self._deadline = self._last_heard + failsafe_periods * self._period_s
         self._view_watch = self._view.watch(self._on_param)
         params.set(names.min_rate(topic), self.min_rate_hz)
         params.set(names.max_rate(topic), self.max_rate_hz)
@@ -119,15 +120,13 @@ class ManagedPublisher:
         return self._rate_at(self._now())
 
     def _rate_at(self, now: float) -> float:
-        allocated = self._allocated_hz
-        if allocated is not None and now <= self._deadline:
-            return allocated
-        if allocated is not None:
-            self._note_failsafe(now)
+        if now <= self._deadline:
+            return self._allocated_hz or self.min_rate_hz
+        self._note_failsafe(now)
         return self.min_rate_hz
 
     def _note_failsafe(self, now: float) -> None:
-        """Log once that the allocation went stale (nothing else changes: the rate is derived)."""
+        """Log once that no allocation is heard (nothing else changes: the rate is derived)."""
         with self._lock:
             if self._failsafe_noted:
                 return
@@ -142,8 +141,8 @@ class ManagedPublisher:
 
     @property
     def failsafe(self) -> bool:
-        """Whether an allocation was heard but has gone stale."""
-        return self._allocated_hz is not None and self._now() > self._deadline
+        """Whether no allocation was heard for ``failsafe_periods`` periods."""
+        return self._now() > self._deadline
 
     # -- publishing ---------------------------------------------------------------------------
 
