@@ -232,3 +232,16 @@ def test_reserved_names_are_not_channels(topic: str) -> None:
     with pytest.raises(TransportError, match="is reserved"):
         set_priority(transport, topic, 0.5)
     assert transport.graph.entries() == frozenset()  # nothing was declared
+
+
+def test_a_publisher_reasserts_its_real_size() -> None:
+    network = MemoryNetwork()
+    camera = ManagedPublisher(
+        MemoryTransport(network, host="r1"), CAMERA, min_rate_hz=1, max_rate_hz=16
+    )
+    camera.publish(bytes(84_000))
+    peer = MemoryTransport(network, host="hostile")
+    peer.params.set(names.size(CAMERA), 1)  # once gave 1.64 x the budget while it stood
+    assert peer.params.get(names.size(CAMERA)) == 1
+    camera.publish(bytes(84_000))
+    assert peer.params.get(names.size(CAMERA)) == 84_000

@@ -11,6 +11,7 @@ import pytest
 from dbml.core.errors import TransportError
 from dbml.transports.base import ParamValue
 from dbml.transports.paramstore import (
+    MAX_CLOCK_AHEAD_NS,
     PARAM_PREFIX,
     ReplicatedParams,
     decode_param,
@@ -110,7 +111,7 @@ def test_deletion_hides_a_name_from_the_snapshot_but_keeps_its_stamp() -> None:
     assert a.snapshot("/dbm/") == {"/dbm/max_bandwidth_in_mbit": 11}
     assert a.snapshot() == {"/dbm/max_bandwidth_in_mbit": 11, "/r1/camera/dbm/managed": True}
     assert a.get("/dbm/strategy") is None
-    assert a.stamp("/dbm/strategy") == (1_003, "b")
+    assert a.stamp("/dbm/strategy") == (decode_param(wire.sent[-1][1])[1], "b")  # b's delete
     assert a.stamp("/nope") is None
 
 
@@ -166,12 +167,31 @@ def test_a_failing_watcher_does_not_stop_the_others(caplog: pytest.LogCaptureFix
 def test_a_write_supersedes_one_stamped_ahead_of_the_clock() -> None:
     wire = Wire()
     a, b = wire.join("a"), wire.join("b")
-    ahead = 2**62  # a peer whose clock runs far ahead (or lies)
+    ahead = next(wire.clock) + MAX_CLOCK_AHEAD_NS // 2  # a peer whose clock runs ahead
     a.on_write(param_key("/r1/camera/dbm/priority"), encode_param(0.9, ahead, "z"))
     b.on_write(param_key("/r1/camera/dbm/priority"), encode_param(0.9, ahead, "z"))
+    assert a.get("/r1/camera/dbm/priority") == 0.9
     seen = record(b)
     a.set("/r1/camera/dbm/priority", 0.1)
     assert a.get("/r1/camera/dbm/priority") == 0.1
     assert b.get("/r1/camera/dbm/priority") == 0.1  # the others take it too
     assert seen == [("/r1/camera/dbm/priority", 0.1)]
     assert decode_param(wire.sent[-1][1])[1] == ahead + 1
+
+
+@pytest.mark.parametrize("ahead_ns", [MAX_CLOCK_AHEAD_NS + 10, 3600 * 10**9, 2**62])
+def test_a_write_stamped_too_far_ahead_is_refused(
+    ahead_ns: int, caplog: pytest.LogCaptureFixture
+) -> None:
+    wire = Wire()
+    a = wire.join("a")
+    a.set("/dbm/max_bandwidth_in_mbit", 11)
+    seen = record(a)
+    stamp = next(wire.clock) + ahead_ns
+    with caplog.at_level(logging.WARNING, logger="dbml.zenoh"):
+        a.on_write(param_key("/dbm/max_bandwidth_in_mbit"), encode_param(100, stamp, "z"))
+    assert a.get("/dbm/max_bandwidth_in_mbit") == 11  # not pinned by a future stamp
+    assert seen == []
+    assert "ahead of this clock" in caplog.text
+    a.set("/dbm/max_bandwidth_in_mbit", 5)  # and the next honest write wins as ever
+    assert a.get("/dbm/max_bandwidth_in_mbit") == 5

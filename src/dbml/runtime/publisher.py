@@ -40,8 +40,8 @@ class ManagedPublisher:
     arrive on the transport's thread. The rate in force is derived in one place,
     ``current_rate_hz()``: the last allocation while it is fresh, else the minimum (before the
     first allocation, and in fail-safe once ``failsafe_periods`` periods pass without one). A
-    pushed rate above the declared maximum is clamped to it: the publisher is the authority on
-    its own bounds.
+    pushed rate above the declared maximum is clamped to it, and a size written by anyone else is
+    overwritten by the real one: the publisher is the authority on its own bounds and size.
     """
 
     def __init__(
@@ -100,6 +100,15 @@ class ManagedPublisher:
             with self._lock:
                 self._period_s = value
                 self._deadline = self._last_heard + self._failsafe_periods * value
+            return
+        if name == names.size(self.topic):
+            if value != self._size_bytes and self._size_bytes > 0:
+                # Someone else's size for our channel: the next publish re-asserts the real one
+                # (on the publishing thread, never a blocking write on this callback thread).
+                log.warning(
+                    "%s: %s=%r is not the real size %d", self.topic, name, value, self._size_bytes
+                )
+                self._size_bytes = -1
             return
         if name != names.current_value(self.topic) or not isinstance(value, float):
             return

@@ -25,6 +25,7 @@ from dbml.transports.base import Handle, ParamValue, check_param_value, check_to
 from dbml.transports.callbacks import CallbackList
 
 __all__ = [
+    "MAX_CLOCK_AHEAD_NS",
     "PARAM_PREFIX",
     "ReplicatedParams",
     "decode_param",
@@ -38,6 +39,10 @@ PARAM_PREFIX = "dbml/param"
 """Where parameter writes live in the key space; the parameter's name follows."""
 SYNC_TIMEOUT_S = 2.0
 """How long a fetch of the peers' caches waits for their replies."""
+MAX_CLOCK_AHEAD_NS = 30 * 1_000_000_000
+"""A write stamped further ahead of this process's clock is refused: a peer's wrong clock (or a
+lie) must not make its value win every comparison for good. Fleet clocks agree far better."""
+_NS_PER_S = 1e9
 _MALFORMED_SHOWN_BYTES = 80
 """How much of a malformed write an error message quotes."""
 
@@ -154,6 +159,17 @@ class ReplicatedParams:
             return
         if writer == self.node_id:
             return  # our own write, already applied in set()
+        ahead_ns = stamp - self._clock_ns()
+        if ahead_ns > MAX_CLOCK_AHEAD_NS:
+            # "Newest stamp wins" must not let a writer's clock (or a lie) pin a value for good.
+            log.warning(
+                "ignoring %s from %s: stamped %.0f s ahead of this clock (more than %.0f s)",
+                key,
+                writer[:16],
+                ahead_ns / _NS_PER_S,
+                MAX_CLOCK_AHEAD_NS / _NS_PER_S,
+            )
+            return
         name = key[len(PARAM_PREFIX) :]
         if self._merge(name, value, stamp, writer) and notify:
             self.watchers.fire(name, value)
