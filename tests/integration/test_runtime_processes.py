@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import math
 import signal
+import time
 from pathlib import Path
 
 import pytest
 
 from dbml.runtime import names
 from dbml.transports.base import ParamValue
+from dbml.transports.paramstore import encode_param, param_key
 from tests.conftest import wait_for
 from tests.integration.procs import fleet, publish_argv
 
@@ -192,6 +194,11 @@ def test_bad_values_from_a_peer_are_ignored_and_the_wire_keeps_the_budget(
         ]
         for name, value in writes:
             hostile.set(name, value)
+        # A budget stamped an hour ahead: newest-stamp-wins once pinned such a write for good.
+        future_ns = time.time_ns() + 3600 * 10**9
+        f.probe.session.put(
+            param_key(names.BANDWIDTH), encode_param(100.0, future_ns, "not-a-clock")
+        )
         wait_for(
             lambda: "ignored: " in str(f.param(names.STATUS_MESSAGE)),
             timeout_s=10,
@@ -204,6 +211,7 @@ def test_bad_values_from_a_peer_are_ignored_and_the_wire_keeps_the_budget(
         assert len(rates) == 5
         assert max(rates) <= 1.1 * budget  # whole frames per 1-s window: at most one extra
         assert min(rates) >= 0.75 * budget  # still sending: nothing dropped out
+        assert f.param(names.current_value(CAMERA)) == pytest.approx(budget / 84_000)
         for proc in (optimizer, camera, viewer):
             assert proc.popen.poll() is None, proc.stderr()
         assert "Traceback" not in optimizer.stderr() + camera.stderr()
