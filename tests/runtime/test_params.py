@@ -29,6 +29,25 @@ from tests.conftest import wait_for
 CAMERA = "/r1/camera"
 
 
+def camera_on(network: MemoryNetwork) -> ManagedPublisher:
+    """R1's 84,000-byte camera (1-16 Hz) on its own host, its size already known."""
+    camera = ManagedPublisher(
+        MemoryTransport(network, host="r1"), CAMERA, min_rate_hz=1, max_rate_hz=16
+    )
+    camera.publish(bytes(84_000))
+    return camera
+
+
+def managed_fleet(network: MemoryNetwork) -> tuple[ManagedPublisher, OptimizerNode]:
+    """The camera, a remote subscriber (so it is managed) and an optimizer with 4 Mbit/s."""
+    camera = camera_on(network)
+    ManagedSubscriber(MemoryTransport(network, host="op"), CAMERA, lambda s: None)
+    optimizer = OptimizerNode(
+        MemoryTransport(network, host="base"), settings=DbmSettings(4.0, 1.0, 1.0, Strategy.PAPER)
+    )
+    return camera, optimizer
+
+
 @pytest.mark.parametrize(
     ("name", "value", "message"),
     [
@@ -104,14 +123,7 @@ def test_the_view_keeps_the_last_good_value_and_reports_the_bad_one_once(
 
 def test_bad_writes_never_widen_the_budget_nor_drop_a_live_channel() -> None:
     network = MemoryNetwork()
-    camera = ManagedPublisher(
-        MemoryTransport(network, host="r1"), CAMERA, min_rate_hz=1, max_rate_hz=16
-    )
-    camera.publish(bytes(84_000))
-    ManagedSubscriber(MemoryTransport(network, host="op"), CAMERA, lambda s: None)
-    optimizer = OptimizerNode(
-        MemoryTransport(network, host="base"), settings=DbmSettings(4.0, 1.0, 1.0, Strategy.PAPER)
-    )
+    _camera, optimizer = managed_fleet(network)
     assert optimizer.optimize().rates_hz[CAMERA] == pytest.approx(500_000 / 84_000)
     peer = MemoryTransport(network, host="hostile")
     writes: list[tuple[str, ParamValue]] = [
@@ -152,15 +164,9 @@ def test_a_publisher_ignores_a_bad_push_and_clamps_to_its_maximum() -> None:
 
 def test_an_optimizer_thread_survives_an_absurd_period() -> None:
     network = MemoryNetwork()
-    camera = ManagedPublisher(
-        MemoryTransport(network, host="r1"), CAMERA, min_rate_hz=1, max_rate_hz=16
-    )
-    camera.publish(bytes(84_000))
-    ManagedSubscriber(MemoryTransport(network, host="op"), CAMERA, lambda s: None)
+    camera, optimizer = managed_fleet(network)
     peer = MemoryTransport(network, host="hostile")
-    optimizer = OptimizerNode(
-        MemoryTransport(network, host="base"), settings=DbmSettings(4.0, 1.0, 1.0, Strategy.PAPER)
-    ).start()
+    optimizer.start()
     try:
         peer.params.set(names.PERIOD, math.inf)
         peer.params.set(names.PERIOD, 10**400)
@@ -176,14 +182,7 @@ def test_an_optimizer_thread_survives_an_absurd_period() -> None:
 
 def test_an_estimate_written_by_a_peer_is_not_the_optimizers_budget() -> None:
     network = MemoryNetwork()
-    camera = ManagedPublisher(
-        MemoryTransport(network, host="r1"), CAMERA, min_rate_hz=1, max_rate_hz=16
-    )
-    camera.publish(bytes(84_000))
-    ManagedSubscriber(MemoryTransport(network, host="op"), CAMERA, lambda s: None)
-    optimizer = OptimizerNode(
-        MemoryTransport(network, host="base"), settings=DbmSettings(4.0, 1.0, 1.0, Strategy.PAPER)
-    )
+    camera, optimizer = managed_fleet(network)
     MemoryTransport(network, host="hostile").params.set(names.ESTIMATE, 1e5)
     assert optimizer.optimize().budget_mbit == 4.0
     assert camera.current_rate_hz() == pytest.approx(500_000 / 84_000)
@@ -236,10 +235,7 @@ def test_reserved_names_are_not_channels(topic: str) -> None:
 
 def test_a_publisher_reasserts_its_real_size() -> None:
     network = MemoryNetwork()
-    camera = ManagedPublisher(
-        MemoryTransport(network, host="r1"), CAMERA, min_rate_hz=1, max_rate_hz=16
-    )
-    camera.publish(bytes(84_000))
+    camera = camera_on(network)
     peer = MemoryTransport(network, host="hostile")
     peer.params.set(names.size(CAMERA), 1)  # once gave 1.64 x the budget while it stood
     assert peer.params.get(names.size(CAMERA)) == 1
