@@ -36,20 +36,14 @@ def test_a_decrease_applies_from_the_next_message_without_a_burst() -> None:
     assert all(gap >= 0.5 - 1e-9 for gap in gaps)
 
 
-def test_a_change_never_sends_sooner_than_the_old_or_the_new_rate() -> None:
-    slower = RateLimiter(10)
-    assert slower.allow(0.0)
-    slower.set_rate(1)  # a decrease acts at once: nothing more at 10 Hz
-    assert not slower.allow(0.1)
-    assert not slower.allow(0.99)
-    assert slower.allow(1.0)
-    faster = RateLimiter(1)
-    assert faster.allow(0.0)
-    faster.set_rate(10)  # an increase waits for the frame already due at the old rate
-    assert not faster.allow(0.5)
-    assert faster.allow(1.0)
-    assert not faster.allow(1.05)
-    assert faster.allow(1.1)
+def test_an_increase_applies_from_the_last_message_not_after_the_old_period() -> None:
+    limiter = RateLimiter(1)
+    assert limiter.allow(0.0)
+    limiter.set_rate(10)  # the allocation arrives: 10 Hz, not one more second at 1 Hz
+    assert not limiter.allow(0.05)
+    assert limiter.allow(0.1)
+    assert not limiter.allow(0.15)
+    assert limiter.allow(0.2)
 
 
 def test_rate_sleep_keeps_absolute_deadlines() -> None:

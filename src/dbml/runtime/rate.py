@@ -16,8 +16,8 @@ class RateLimiter:
     """``allow(now)`` is True when a message may go out at ``rate_hz``.
 
     A message is due every period; a source faster than the rate gets exactly the rate on
-    average, and after a pause at most one extra message goes out early. A change of rate never
-    sends sooner than the old or the new rate would.
+    average, and after a pause at most one extra message goes out early. A new rate applies
+    from the last message on.
     """
 
     def __init__(self, rate_hz: float) -> None:
@@ -30,16 +30,13 @@ class RateLimiter:
         return 1.0 / self._period
 
     def set_rate(self, rate_hz: float) -> None:
-        """Apply a new rate without ever sending sooner than either rate allows.
+        """Apply a new rate from the last message on: the next is due one new period after it.
 
-        A decrease applies from the last message on (the next is due one new, longer period
-        after it); an increase from the next message on (the one already due keeps its time).
-        So a change never puts more on the wire than the old or the new rate would, which is
-        what lets the optimizer lower some rates before it raises others.
+        So a faster allocation takes effect at once instead of after the old, slower period.
         """
         period = 1.0 / rate_hz
         if period != self._period:
-            self._due += max(0.0, period - self._period)  # -inf (nothing sent yet) stays -inf
+            self._due += period - self._period  # -inf (nothing sent yet) stays -inf
             self._period = period
 
     def allow(self, now: float) -> bool:
