@@ -50,8 +50,9 @@ FloatArray = npt.NDArray[np.float64]
 
 MAX_BANDWIDTH_MBIT = 1e6
 """1 Tbit/s: above any link a fleet shares; a larger budget is a mistake or an attack."""
-MAX_RATE_HZ = 1e4
-"""10 kHz: above any sensor stream's rate."""
+MAX_RATE_HZ = 1e6
+"""1 MHz: far above any stream's rate (and above what one publisher can send), yet it refuses
+the 1e12 or infinity that would turn off the rate limit."""
 MAX_SIZE_BYTES = 1e9
 """1 GB: above any single message; a larger size would starve every other channel."""
 MIN_PERIOD_S = 0.01

@@ -2,7 +2,7 @@
 
 Every value dbml reads from a parameter store crosses the network first, so it is untrusted:
 ``check_param`` is the single place that decides whether a value of a known name is valid (a
-rate in (0, 10 kHz], a size in (0, 1 GB], a priority in [0, 1], a strategy by name, ...).
+rate in (0, 1 MHz], a size in (0, 1 GB], a priority in [0, 1], a strategy by name, ...).
 ``ParamView`` keeps, per name, the last good value and ignores a bad one: it logs it once with
 the key and the value and lists it in ``problems()`` (the optimizer appends those to
 ``/dbm/status_message``), so a bad write never raises in the optimizer's or a publisher's
