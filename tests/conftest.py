@@ -14,6 +14,23 @@ if TYPE_CHECKING:
     from tests.ros1.rosnet import RosNet
 
 
+MONITOR_JSON_KEYS = frozenset(
+    {
+        "topic",
+        "host",
+        "managed",
+        "priority",
+        "size_bytes",
+        "allocated_hz",
+        "share",
+        "status",
+        "estimate_mbit",
+        "estimator",
+    }
+)
+"""``dbml monitor --json``: the keys of each line (a contract scripts read)."""
+
+
 def require(problem: str | None, *, what: str) -> None:
     """Skip with ``problem`` when something a test needs is missing; in CI (CI=true) fail."""
     if problem is None:

@@ -12,7 +12,7 @@ import pytest
 from dbml.runtime import names
 from dbml.transports.base import ParamValue
 from dbml.transports.paramstore import encode_param, param_key
-from tests.conftest import wait_for
+from tests.conftest import MONITOR_JSON_KEYS, wait_for
 from tests.integration.procs import fleet, publish_argv
 
 pytestmark = pytest.mark.integration
@@ -127,18 +127,7 @@ def test_monitor_json_lists_every_channel(tmp_path: Path) -> None:
         rows = [row for row in monitor.json_lines(timeout_s=20) if row["topic"] == CAMERA]
         assert rows, monitor.stderr()
         row = rows[-1]
-        assert set(row) == {
-            "topic",
-            "host",
-            "managed",
-            "priority",
-            "size_bytes",
-            "allocated_hz",
-            "share",
-            "status",
-            "estimate_mbit",
-            "estimator",
-        }
+        assert set(row) == MONITOR_JSON_KEYS
         assert row["estimate_mbit"] is None  # this optimizer does not estimate
         assert row["host"] == "robot1"
         assert row["managed"] is True

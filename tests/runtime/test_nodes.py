@@ -11,6 +11,7 @@ from dbml.runtime import ManagedPublisher, ManagedSubscriber, OptimizerNode, nam
 from dbml.runtime.monitor import MonitorView, channel_rows
 from dbml.runtime.nodes import run_monitor, run_subscriber, set_priority
 from dbml.transports import MemoryNetwork, MemoryTransport
+from tests.conftest import MONITOR_JSON_KEYS
 
 
 @pytest.mark.parametrize(
@@ -72,18 +73,7 @@ def test_monitor_rows_and_json() -> None:
     )
     lines = [json.loads(json.dumps(row.as_json())) for view in views for row in view.rows]
     assert {line["topic"] for line in lines} == {"/r1/camera", "/r2/scan"}
-    assert set(lines[0]) == {
-        "topic",
-        "host",
-        "managed",
-        "priority",
-        "size_bytes",
-        "allocated_hz",
-        "share",
-        "status",
-        "estimate_mbit",
-        "estimator",
-    }
+    assert set(lines[0]) == MONITOR_JSON_KEYS
 
 
 def test_subscriber_reports_variant_rate_and_bytes() -> None:
