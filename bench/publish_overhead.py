@@ -34,7 +34,7 @@ from rich.console import Console
 from rich.table import Table
 
 from dbml.core.spec import MAX_RATE_HZ
-from dbml.runtime import ManagedPublisher
+from dbml.runtime import ManagedPublisher, names
 from dbml.transports.zenoh import ZenohTransport
 
 PAYLOADS = (64, 84_000)
@@ -225,8 +225,8 @@ def measure(seconds: float, repeat: int) -> list[dict[str, Any]]:
             raws[size] = session.declare_publisher(
                 raw_key(size), congestion_control=zenoh.CongestionControl.DROP
             )
-            # No optimizer runs here: a managed publisher runs at its minimum, so min = max.
-            # The fail-safe (no allocation heard) keeps the same rate; it is only kept quiet.
+            # No optimizer runs here: the allocation is written as one would (min = max), and
+            # the fail-safe (no allocation heard again) is kept quiet.
             manageds[size] = ManagedPublisher(
                 transport,
                 managed_topic(size),
@@ -234,6 +234,7 @@ def measure(seconds: float, repeat: int) -> list[dict[str, Any]]:
                 max_rate_hz=UNLIMITED_HZ,
                 failsafe_periods=1e9,
             )
+            transport.params.set(names.current_value(managed_topic(size)), UNLIMITED_HZ)
             wait_matching(session, raw_key(size), raws[size])
             wait_matching(session, optimized_key(size))
 

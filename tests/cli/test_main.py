@@ -220,3 +220,34 @@ def test_strategy_flag_overrides_the_config_before_links_are_checked(
     assert document["strategy"] == "lp"
     r1 = next(c for c in document["channels"] if c["topic"] == "/r1/camera")
     assert r1["bytes_per_s"] == pytest.approx(4 * 125_000)  # the link, not the 11 Mbit budget
+
+
+HZ = ("--min-hz", "1", "--max-hz", "16")
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (
+            ["publish", "/r1/camera", "--size-bytes", "10000000000", *HZ],
+            "--size-bytes=10000000000 must be <= 1e+09",
+        ),
+        (["publish", "/r1/camera/optimized", "--size-bytes", "10", *HZ], "is reserved"),
+        (["publish", "/dbm/x", "--size-bytes", "10", *HZ], "is reserved"),
+        (["priority", "", "0.5"], "topic=''"),
+        (["priority", "/r1/camera", "nan"], "priority=nan"),
+        (["priority", "/r1/camera", "1e400"], "priority=inf"),
+        (["priority", "/r1/camera", "0.5", "--host", ""], "host=''"),
+        (["priority", "/r1/camera", "0.5", "--connect", "tcp/127.0.0.1:99999"], "99999"),
+    ],
+)
+def test_bad_command_lines_are_one_line_exit_2(
+    capsys: pytest.CaptureFixture[str], argv: list[str], message: str
+) -> None:
+    """Each of these once gave a traceback, ran isolated with exit 0, or wrote a bad name."""
+    code, out, err = run(capsys, *argv)
+    assert code == 2
+    assert out == ""
+    assert message in err
+    assert err.count("\n") == 1
+    assert "Traceback" not in err

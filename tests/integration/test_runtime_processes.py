@@ -204,3 +204,44 @@ def test_bad_values_from_a_peer_are_ignored_and_the_wire_keeps_the_budget(
         for proc in (optimizer, camera, viewer):
             assert proc.popen.poll() is None, proc.stderr()
         assert "Traceback" not in optimizer.stderr() + camera.stderr()
+
+
+def test_a_forged_graph_token_neither_pulls_the_full_stream_nor_unmanages(
+    tmp_path: Path,
+) -> None:
+    """A plain session claims "/r1/camera is published on host operator".
+
+    The operator's subscriber once took the full-rate stream from r1 over the network for it,
+    and the optimizer stopped managing the channel: 1.59 x B.
+    """
+    budget = 4 * 125_000
+    with fleet() as f:
+        f.start("optimizer", "--config", config(tmp_path, mbit=4), "--host", "base")
+        f.start(*publisher())
+        viewer = f.start("subscribe", CAMERA, "--json", "--host", "operator")
+        wait_for(
+            lambda: allocated(f) == pytest.approx(budget / 84_000),
+            timeout_s=15,
+            what="the allocation",
+        )
+        forged = f.probe.session.liveliness().declare_token(
+            f"dbml/graph/pub/operator/forged.1/full{CAMERA}"
+        )
+        try:
+            wait_for(
+                lambda: any(
+                    e.host == "operator" and e.uid == "forged.1" for e in f.probe.graph.entries()
+                ),
+                timeout_s=10,
+                what="the forged token in the graph",
+            )
+            lines = [
+                line for line, _ in zip(viewer.json_lines(timeout_s=8), range(5), strict=False)
+            ]
+        finally:
+            forged.undeclare()  # type: ignore[no-untyped-call]
+        assert len(lines) == 5
+        assert {line["variant"] for line in lines} == {"optimized"}
+        assert max(line["bytes_per_s"] for line in lines) <= 1.1 * budget
+        assert f.param(names.managed(CAMERA)) is True
+        assert f.param(names.current_value(CAMERA)) == pytest.approx(budget / 84_000)

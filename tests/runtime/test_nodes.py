@@ -1,5 +1,6 @@
 import io
 import json
+import logging
 import subprocess
 import sys
 import threading
@@ -9,7 +10,7 @@ import pytest
 from dbml.core import DbmSettings, SpecError
 from dbml.runtime import ManagedPublisher, ManagedSubscriber, OptimizerNode, names
 from dbml.runtime.monitor import MonitorView, channel_rows
-from dbml.runtime.nodes import run_monitor, run_subscriber, set_priority
+from dbml.runtime.nodes import run_monitor, run_optimizer, run_subscriber, set_priority
 from dbml.transports import MemoryNetwork, MemoryTransport
 from tests.conftest import MONITOR_JSON_KEYS
 
@@ -81,6 +82,7 @@ def test_subscriber_reports_variant_rate_and_bytes() -> None:
     camera = ManagedPublisher(
         MemoryTransport(network, host="robot1"), "/cam", min_rate_hz=100, max_rate_hz=100
     )
+    MemoryTransport(network, host="base").params.set(names.current_value("/cam"), 100.0)
     out = io.StringIO()
     stop = threading.Event()
 
@@ -121,3 +123,22 @@ def test_cli_bad_priority_is_one_line_exit_2() -> None:
     assert result.returncode == 2
     assert result.stderr.strip().endswith("priority=3.0 must be within [0, 1]")
     assert result.stderr.count("\n") == 1
+
+
+def test_the_optimizer_command_exits_non_zero_when_its_worker_dies(
+    caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A process that looks alive while its optimizer thread is gone helps nobody."""
+
+    def die(_self: OptimizerNode) -> None:
+        raise SystemExit("gone")  # ends a thread silently, unlike an Exception
+
+    monkeypatch.setattr(OptimizerNode, "optimize", die)
+    transport = MemoryTransport(MemoryNetwork(), host="base")
+    with caplog.at_level(logging.CRITICAL, logger="dbml"):
+        code = run_optimizer(
+            transport, settings=None, links=(), stop=threading.Event(), duration_s=10.0
+        )
+    assert code == 1
+    assert "the thread died" in caplog.text
+    assert "exiting so a supervisor restarts" in caplog.text

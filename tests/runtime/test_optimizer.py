@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import logging
 import threading
+from collections.abc import Mapping
 
 import pytest
 
 from dbml.core import DbmSettings, LinkSpec, Status, Strategy
 from dbml.runtime import ManagedPublisher, ManagedSubscriber, OptimizerNode, Round, names
-from dbml.transports import MemoryNetwork, MemoryTransport
+from dbml.transports import MemoryNetwork, MemoryTransport, ParamValue, Role, Variant
 from tests.conftest import wait_for
 
 R1, R2 = "/r1/camera", "/r2/camera"
@@ -221,3 +222,64 @@ def test_a_restarted_optimizer_orders_changes_by_what_publishers_run() -> None:
     successor.optimize()
     # It has pushed nothing yet, but the publishers' acknowledgements say R2 must go down first.
     assert [topic for topic, _ in fleet.writes] == [R2, R1]
+
+
+def test_a_round_pushes_one_batch_of_what_changed_and_a_heartbeat() -> None:
+    fleet = Fleet()
+    fleet.watch_remotely(R1)
+    fleet.watch_remotely(R2)
+    batches: list[dict[str, object]] = []
+    store = fleet.optimizer._transport.params
+    set_many = store.set_many
+
+    def spy(values: Mapping[str, ParamValue]) -> None:
+        batches.append(dict(values))
+        set_many(values)
+
+    store.set_many = spy  # type: ignore[method-assign]
+    fleet.optimizer.optimize()
+    assert len(batches) == 1
+    assert batches[0][names.current_value(R1)] == fleet.rates()[R1]
+    assert batches[0][names.managed(R2)] is True
+    assert batches[0][names.STATUS] == "optimal"
+    fleet.writes.clear()
+    for _ in range(3):  # nothing changes: only the heartbeat goes out
+        fleet.optimizer.optimize()
+    assert batches[1:] == [{names.ROUND: 2}, {names.ROUND: 3}, {names.ROUND: 4}]
+    assert fleet.writes == []
+
+
+def test_a_restarted_publisher_hears_its_unchanged_rate_again() -> None:
+    fleet = Fleet()
+    fleet.watch_remotely(R1)
+    fleet.watch_remotely(R2)
+    fleet.optimizer.optimize()
+    allocated = fleet.rates()[R1]
+    assert allocated < 16
+    fleet.robots[R1].close()
+    restarted = ManagedPublisher(
+        MemoryTransport(fleet.network, host="r1"), R1, min_rate_hz=1, max_rate_hz=16
+    )
+    restarted.publish(b"\0" * SIZES[R1])
+    assert restarted.current_rate_hz() == 1.0  # a new channel starts at its minimum
+    fleet.optimizer.optimize()
+    assert restarted.current_rate_hz() == allocated
+
+
+def test_a_forged_publisher_on_the_operators_host_changes_nothing() -> None:
+    """A token saying "/r1/camera is published on your host" beside the real one on r1.
+
+    It once switched the operator to the full-rate stream and unmanaged the channel (1.59 x B).
+    """
+    fleet = Fleet(mbit=5)
+    subscriber = fleet.watch_remotely(R1)
+    fleet.watch_remotely(R2)
+    fleet.optimizer.optimize()
+    allocated = fleet.rates()
+    forger = MemoryTransport(fleet.network, host="operator")
+    forger.graph.announce(Role.PUBLISHER, R1, Variant.FULL)
+    fleet.optimizer.optimize()
+    assert subscriber.variant is Variant.OPTIMIZED
+    assert fleet.optimizer.last_round is not None
+    assert {c.topic for c in fleet.optimizer.last_round.channels if c.managed} == {R1, R2}
+    assert fleet.rates() == allocated

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any, cast
 
 import pytest
@@ -210,6 +210,9 @@ def test_one_view_per_store_and_a_write_during_the_first_read_is_not_lost() -> N
             return old
 
         def set(self, name: str, value: ParamValue) -> None:
+            raise AssertionError("not written")
+
+        def set_many(self, values: Mapping[str, ParamValue]) -> None:
             raise AssertionError("not written")
 
         def get(self, name: str) -> ParamValue:

@@ -85,6 +85,7 @@ def test_no_full_rate_copy_without_a_local_reader(
     network: MemoryNetwork, clock: ManualClock
 ) -> None:
     publisher = robot(network, clock)
+    MemoryTransport(network, host="op").params.set(names.current_value("/r1/camera"), 5.0)
     assert not publisher._full.has_subscribers  # nothing would be sent on [topic]
     assert publisher.publish(b"x")
 
@@ -135,3 +136,77 @@ def test_without_any_allocation_it_says_so_after_three_periods(
         assert publisher.current_rate_hz() == 1.0
         assert publisher.failsafe
     assert "fail-safe: minimum 1.000 Hz" in caplog.text
+
+
+def test_the_optimizers_heartbeat_keeps_an_unchanged_allocation(
+    network: MemoryNetwork, clock: ManualClock
+) -> None:
+    """An unchanged rate is not pushed again: the round counter alone says it still stands."""
+    publisher = robot(network, clock)
+    optimizer = MemoryTransport(network, host="op", clock=clock)
+    optimizer.params.set(names.current_value("/r1/camera"), 12.0)
+    for round_ in range(1, 11):  # ten periods of 1 s, the rate never rewritten
+        clock.advance(1.0)
+        optimizer.params.set(names.ROUND, round_)
+    assert publisher.current_rate_hz() == 12.0
+    assert not publisher.failsafe
+    clock.advance(3.1)  # the optimizer gone: no heartbeat
+    assert publisher.current_rate_hz() == 1.0
+    optimizer.params.set(names.ROUND, 11)  # back, its allocation unchanged
+    assert publisher.current_rate_hz() == 12.0
+
+
+def test_a_heartbeat_alone_allocates_nothing(network: MemoryNetwork, clock: ManualClock) -> None:
+    publisher = robot(network, clock)
+    optimizer = MemoryTransport(network, host="op", clock=clock)
+    for round_ in range(1, 5):
+        clock.advance(1.0)
+        optimizer.params.set(names.ROUND, round_)
+    assert publisher.current_rate_hz() == 1.0  # still waiting for a first allocation
+    assert publisher.failsafe
+
+
+def test_a_pushed_rate_above_the_maximum_is_clamped(
+    network: MemoryNetwork, clock: ManualClock
+) -> None:
+    publisher = robot(network, clock)
+    operator = MemoryTransport(network, host="op", clock=clock)
+    remote: list[Sample] = []
+    operator.subscribe("/r1/camera", remote.append, Variant.OPTIMIZED)
+    operator.params.set(names.current_value("/r1/camera"), 1e6)
+    for _ in range(1000):  # one second of a 1 kHz source
+        publisher.publish(b"x")
+        clock.advance(0.001)
+    assert publisher.current_rate_hz() == 16.0
+    assert len(remote) <= 16 + 1
+
+
+def test_a_new_channel_sends_nothing_remote_until_allocated(
+    network: MemoryNetwork, clock: ManualClock
+) -> None:
+    """Frames nobody allocated would break the budget on the wire while the others run full."""
+    publisher = robot(network, clock)
+    operator = MemoryTransport(network, host="op", clock=clock)
+    remote: list[Sample] = []
+    operator.subscribe("/r1/camera", remote.append, Variant.OPTIMIZED)
+    for _ in range(32):  # two seconds of a 16 Hz sensor, no allocation yet
+        assert not publisher.publish(b"x" * 1000)
+        clock.advance(1 / 16)
+    assert remote == []
+    assert operator.params.get(names.size("/r1/camera")) == 1000  # but its size is known
+    operator.params.set(names.current_value("/r1/camera"), 4.0)
+    assert publisher.publish(b"x" * 1000)
+    assert len(remote) == 1
+
+
+def test_without_any_optimizer_a_new_channel_runs_at_its_minimum_after_the_deadline(
+    network: MemoryNetwork, clock: ManualClock
+) -> None:
+    publisher = robot(network, clock)
+    sent = []
+    for i in range(16 * 6):  # six seconds of a 16 Hz sensor
+        if publisher.publish(b"x"):
+            sent.append(i / 16)
+        clock.advance(1 / 16)
+    assert sent[0] >= 3.0  # silent for three periods, waiting for an allocation
+    assert len(sent) == pytest.approx(3, abs=1)  # then 1 Hz

@@ -1,6 +1,8 @@
 import itertools
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from dbml.runtime import Rate, RateLimiter
 from dbml.transports import ManualClock
@@ -28,7 +30,7 @@ def test_a_slower_source_loses_nothing() -> None:
 def test_a_decrease_applies_from_the_next_message_without_a_burst() -> None:
     limiter = RateLimiter(16)
     sent = [t / 100 for t in range(100) if limiter.allow(t / 100)]  # one second at 16 Hz
-    limiter.set_rate(2)
+    limiter.set_rate(2, 1.0)
     later = [1 + t / 100 for t in range(200) if limiter.allow(1 + t / 100)]
     assert len(sent) == 16
     assert len(later) <= 5  # 2 Hz over two seconds, plus at most the one already due
@@ -39,7 +41,7 @@ def test_a_decrease_applies_from_the_next_message_without_a_burst() -> None:
 def test_an_increase_applies_from_the_last_message_not_after_the_old_period() -> None:
     limiter = RateLimiter(1)
     assert limiter.allow(0.0)
-    limiter.set_rate(10)  # the allocation arrives: 10 Hz, not one more second at 1 Hz
+    limiter.set_rate(10, 0.0)  # the allocation arrives: 10 Hz, not one more second at 1 Hz
     assert not limiter.allow(0.05)
     assert limiter.allow(0.1)
     assert not limiter.allow(0.15)
@@ -93,3 +95,65 @@ def test_a_new_rate_applies_during_a_long_wait() -> None:
     rate.sleep()
     rate.sleep()
     assert clock() == pytest.approx(0.2, abs=0.06)  # not 1.0
+
+
+def test_brief_increases_earn_only_their_share() -> None:
+    """Churn: 1 Hz with a 16 Hz allocation for 5 ms ten times a second.
+
+    The rate in force averages 1.75 Hz; a limiter that applied each new rate from the last
+    message on sent at about 10 Hz, once per increase (priority churn put 1.25 x B on the wire).
+    """
+    limiter = RateLimiter(1)
+    sent = 0
+    for step in range(1000):  # 10 s in 10 ms steps, a source at 100 Hz
+        now = step / 100
+        if step % 10 == 0:
+            limiter.set_rate(16, now)
+        elif step % 10 == 1:
+            limiter.set_rate(1, now - 0.005)
+        sent += limiter.allow(now)
+    assert sent <= 10 * 1.75 + 2
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.lists(
+        st.tuples(st.floats(0.001, 0.5), st.floats(0.5, 40.0)),
+        min_size=1,
+        max_size=40,
+    ),
+    st.floats(5.0, 200.0),
+)
+def test_what_goes_out_never_exceeds_the_integral_of_the_rate(
+    changes: list[tuple[float, float]], source_hz: float
+) -> None:
+    """In every window: messages <= integral of the rate in force + the two banked frames."""
+    limiter = RateLimiter(changes[0][1])
+    segments = []  # (start_s, rate_hz) of the rate in force
+    t = 0.0
+    for gap_s, rate_hz in changes:
+        segments.append((t, rate_hz))
+        t += gap_s
+    end_s = t
+    sent: list[float] = []
+    tick = 0
+    index = 0
+    while (now := tick / source_hz) < end_s:
+        while index + 1 < len(segments) and segments[index + 1][0] <= now:
+            index += 1
+            limiter.set_rate(segments[index][1], segments[index][0])
+        if limiter.allow(now):
+            sent.append(now)
+        tick += 1
+
+    def integral(a: float, b: float) -> float:
+        total = 0.0
+        for i, (start, rate) in enumerate(segments):
+            stop = segments[i + 1][0] if i + 1 < len(segments) else end_s
+            total += max(0.0, min(b, stop) - max(a, start)) * rate
+        return total
+
+    for i, start in enumerate(sent):
+        for window_s in (0.25, 1.0):
+            count = sum(1 for s in sent[i:] if s < start + window_s)
+            assert count <= integral(start, start + window_s) + 2 + 1e-6

@@ -2,7 +2,7 @@ import sys
 import threading
 
 from dbml.core.errors import TransportError
-from dbml.runtime import ManagedPublisher, ManagedSubscriber
+from dbml.runtime import ManagedPublisher, ManagedSubscriber, names
 from dbml.transports import MemoryNetwork, MemoryTransport, Role, Sample, Variant
 from dbml.transports.base import GraphEntry
 
@@ -36,6 +36,7 @@ def test_switches_when_the_publisher_moves() -> None:
         MemoryTransport(network, host="r9"), "/cam", min_rate_hz=1, max_rate_hz=16
     )
     assert variant() is Variant.OPTIMIZED
+    operator.params.set(names.current_value("/cam"), 16.0)  # the optimizer's allocation
     elsewhere.publish(b"frame")
     assert [s.payload for s in got] == [b"frame"]
     tokens = [e for e in operator.graph.entries() if e.role is Role.SUBSCRIBER]

@@ -20,7 +20,7 @@ import subprocess
 import sys
 import tempfile
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
@@ -188,6 +188,10 @@ class _PeerParams:
 
     def set(self, name: str, value: ParamValue) -> None:
         self._peer.call("set", name, value)
+
+    def set_many(self, values: Mapping[str, ParamValue]) -> None:
+        for name, value in values.items():
+            self.set(name, value)
 
     def get(self, name: str) -> ParamValue:
         value: ParamValue = self._peer.call("get", name)

@@ -1,19 +1,22 @@
-"""The replicated parameter store without a network: writes and queries are plain calls."""
+"""The parameter store without a network: what is sent and served are plain calls."""
 
 from __future__ import annotations
 
 import itertools
 import logging
-from collections.abc import Iterator
+import threading
+import time
 
 import pytest
 
 from dbml.core.errors import TransportError
 from dbml.transports.base import ParamValue
 from dbml.transports.paramstore import (
+    BATCH_KEY,
     MAX_CLOCK_AHEAD_NS,
-    PARAM_PREFIX,
+    MAX_WRITE_BYTES,
     ReplicatedParams,
+    decode_batch,
     decode_param,
     encode_param,
     param_key,
@@ -21,32 +24,49 @@ from dbml.transports.paramstore import (
 
 
 class Wire:
-    """Every store's writes go to every other store, synchronously; fetch asks them all."""
+    """Every store's writes go to every other connected store, from its sender thread."""
 
     def __init__(self) -> None:
         self.stores: list[ReplicatedParams] = []
         self.sent: list[tuple[str, bytes]] = []
         self.clock = itertools.count(1_000)
-        self.fetches: list[float] = []
+        self.gone: set[str] = set()
 
     def join(self, node_id: str, *, connected: bool = True) -> ReplicatedParams:
-        def publish(key: str, data: bytes) -> None:
+        def send(key: str, data: bytes) -> None:
             self.sent.append((key, data))
             for other in self.stores:
                 if other is not store:
-                    other.on_write(key, data)
+                    if key == BATCH_KEY:
+                        other.on_batch(data)
+                    else:
+                        other.on_write(key, data)
 
-        def fetch(timeout_s: float) -> Iterator[tuple[str, bytes]]:
-            self.fetches.append(timeout_s)
-            for other in self.stores:
-                yield from other.replies(lambda key: key.startswith(PARAM_PREFIX + "/"))
-
-        store = ReplicatedParams(
-            node_id, publish=publish, fetch=fetch, clock_ns=lambda: next(self.clock)
-        )
+        store = ReplicatedParams(node_id, send=send, clock_ns=lambda: next(self.clock))
         if connected:
             self.stores.append(store)
         return store
+
+    def settle(self) -> None:
+        """Every queued write delivered."""
+        for store in self.stores:
+            assert store.flush(timeout_s=5.0)
+
+    def is_live(self, node_id: str) -> bool:
+        return node_id not in self.gone
+
+    def meet(self, newcomer: ReplicatedParams) -> int:
+        """What a session does on meeting the others: ask each for what it owns."""
+        answers = 0
+        for owner in self.stores:
+            for name, data in owner.owned(self.is_live):
+                newcomer.on_value(name, data)
+                answers += 1
+        return answers
+
+
+def quiet(node_id: str = "me") -> ReplicatedParams:
+    return ReplicatedParams(node_id, send=lambda _k, _d: None)
 
 
 def record(store: ReplicatedParams) -> list[tuple[str, ParamValue]]:
@@ -61,6 +81,7 @@ def test_a_write_is_applied_sent_and_notified_here_and_there() -> None:
     seen_a, seen_b = record(a), record(b)
     a.set("/r1/camera/dbm/priority", 0.5)
     assert a.get("/r1/camera/dbm/priority") == 0.5
+    wire.settle()
     assert b.get("/r1/camera/dbm/priority") == 0.5
     assert seen_a == seen_b == [("/r1/camera/dbm/priority", 0.5)]
     assert wire.sent == [
@@ -70,7 +91,7 @@ def test_a_write_is_applied_sent_and_notified_here_and_there() -> None:
 
 
 def test_the_newest_write_wins_by_stamp_then_writer() -> None:
-    store = ReplicatedParams("me", publish=lambda _k, _d: None, fetch=lambda _t: ())
+    store = quiet()
     seen = record(store)
     key = param_key("/x")
     store.on_write(key, encode_param(1, 10, "b"))
@@ -83,7 +104,7 @@ def test_the_newest_write_wins_by_stamp_then_writer() -> None:
 
 
 def test_its_own_write_echoed_back_is_ignored() -> None:
-    store = ReplicatedParams("me", publish=lambda _k, _d: None, fetch=lambda _t: ())
+    store = quiet()
     store.set("/x", 1)
     seen = record(store)
     store.on_write(param_key("/x"), encode_param(2, 2**62, "me"))
@@ -92,13 +113,13 @@ def test_its_own_write_echoed_back_is_ignored() -> None:
 
 
 def test_a_malformed_write_is_logged_and_ignored(caplog: pytest.LogCaptureFixture) -> None:
-    store = ReplicatedParams("me", publish=lambda _k, _d: None, fetch=lambda _t: ())
+    store = quiet()
     with caplog.at_level(logging.WARNING, logger="dbml.zenoh"):
         store.on_write(param_key("/x"), b"{not json")
         store.on_write(param_key("/y"), b'{"v": [1], "t": 1, "w": "w"}')
     assert store.snapshot() == {}
-    assert "ignoring dbml/param/x: malformed parameter write" in caplog.text
-    assert "ignoring dbml/param/y: malformed parameter value [1]" in caplog.text
+    assert "ignoring /x: malformed parameter write" in caplog.text
+    assert "ignoring /y: malformed parameter value [1]" in caplog.text
 
 
 def test_deletion_hides_a_name_from_the_snapshot_but_keeps_its_stamp() -> None:
@@ -108,6 +129,7 @@ def test_deletion_hides_a_name_from_the_snapshot_but_keeps_its_stamp() -> None:
     a.set("/dbm/max_bandwidth_in_mbit", 11)
     a.set("/r1/camera/dbm/managed", True)
     b.set("/dbm/strategy", None)
+    wire.settle()
     assert a.snapshot("/dbm/") == {"/dbm/max_bandwidth_in_mbit": 11}
     assert a.snapshot() == {"/dbm/max_bandwidth_in_mbit": 11, "/r1/camera/dbm/managed": True}
     assert a.get("/dbm/strategy") is None
@@ -115,29 +137,105 @@ def test_deletion_hides_a_name_from_the_snapshot_but_keeps_its_stamp() -> None:
     assert a.stamp("/nope") is None
 
 
-def test_a_late_joiner_syncs_what_the_others_hold() -> None:
+def test_a_newcomer_learns_each_value_once_from_its_owner() -> None:
+    """Each value is served by its writer alone: a join costs one answer per value.
+
+    (Every session once answered with its whole cache: replies grew with sessions x values.)
+    """
     wire = Wire()
-    a = wire.join("a")
-    a.set("/r1/camera/dbm/frequency/min", 1.0)
+    stores = [wire.join(f"s{i}") for i in range(10)]
+    for i, store in enumerate(stores):
+        store.set(f"/r{i}/camera/dbm/frequency/min", 1.0)
+        store.set(f"/r{i}/camera/dbm/frequency/max", 16.0)
+    wire.settle()
     late = wire.join("late", connected=False)
     seen = record(late)
-    late.sync()
-    assert late.get("/r1/camera/dbm/frequency/min") == 1.0
-    assert seen == [("/r1/camera/dbm/frequency/min", 1.0)]
-    assert wire.fetches == [2.0]
-    late.sync(0.5)  # nothing newer: no second notification
-    assert seen == [("/r1/camera/dbm/frequency/min", 1.0)]
-    assert wire.fetches == [2.0, 0.5]
+    assert wire.meet(late) == 20  # not 10 sessions x 20 values
+    assert late.get("/r3/camera/dbm/frequency/max") == 16.0
+    assert len(seen) == 20
+    assert wire.meet(late) == 20
+    assert len(seen) == 20  # nothing newer: no second notification
 
 
-def test_replies_hold_only_the_keys_the_query_matches() -> None:
+def test_a_value_whose_writer_left_is_served_by_whoever_holds_it() -> None:
     wire = Wire()
-    a = wire.join("a")
-    a.set("/dbm/strategy", "paper")
-    a.set("/r1/camera/dbm/priority", 0.25)
-    replies = a.replies(lambda key: key == "dbml/param/dbm/strategy")
-    assert replies == [("dbml/param/dbm/strategy", encode_param("paper", 1_000, "a"))]
-    assert decode_param(replies[0][1]) == ("paper", 1_000, "a")
+    a, b = wire.join("a"), wire.join("b")
+    cli = wire.join("cli")
+    cli.set("/dbm/max_bandwidth_in_mbit", 11.0)  # `dbml priority`, say, which then exits
+    wire.settle()
+    wire.stores.remove(cli)
+    wire.gone.add("cli")
+    late = wire.join("late", connected=False)
+    assert wire.meet(late) == 2  # a and b both hold it; its writer is gone
+    assert late.get("/dbm/max_bandwidth_in_mbit") == 11.0
+    assert late.stamp("/dbm/max_bandwidth_in_mbit") == a.stamp("/dbm/max_bandwidth_in_mbit")
+    assert b.held("/dbm/max_bandwidth_in_mbit") == a.held("/dbm/max_bandwidth_in_mbit")
+
+
+def test_a_batch_is_one_message_that_every_store_applies() -> None:
+    wire = Wire()
+    a, b = wire.join("a"), wire.join("b")
+    seen = record(b)
+    a.set_many({"/r1/camera/dbm/frequency/current_value": 4.0, "/dbm/round": 7})
+    wire.settle()
+    assert [key for key, _ in wire.sent] == [BATCH_KEY]
+    assert b.get("/r1/camera/dbm/frequency/current_value") == 4.0
+    assert sorted(seen) == [("/dbm/round", 7), ("/r1/camera/dbm/frequency/current_value", 4.0)]
+    values, stamp, writer = decode_batch(wire.sent[0][1])
+    assert (values["/dbm/round"], writer) == (7, "a")
+    assert b.stamp("/dbm/round") == (stamp, "a")
+    a.set_many({})  # nothing to say: nothing sent
+    wire.settle()
+    assert len(wire.sent) == 1
+
+
+@pytest.mark.parametrize(
+    "data",
+    [
+        b"[1, 2]",
+        b'{"vs": [1], "t": 1, "w": "x"}',
+        b'{"vs": {"/x": {"deep": 1}}, "t": 1, "w": "x"}',
+        b'{"vs": {"not a topic": 1}, "t": 1, "w": "x"}',
+        b'{"vs": {"/x": 1}, "t": "soon", "w": "x"}',
+        b"[" * 100_000,
+    ],
+)
+def test_a_malformed_batch_changes_nothing(data: bytes) -> None:
+    store = quiet()
+    store.on_batch(data)
+    assert store.snapshot() == {}
+
+
+def test_an_oversized_write_is_refused_unread(caplog: pytest.LogCaptureFixture) -> None:
+    store = quiet()
+    huge = encode_param("x" * (MAX_WRITE_BYTES + 1), 1, "w")
+    with caplog.at_level(logging.WARNING, logger="dbml.zenoh"):
+        store.on_write(param_key("/x"), huge)
+        store.on_write(param_key("/x"), huge)
+    assert store.get("/x") is None
+    assert caplog.text.count("more than") == 1  # logged once per key, not per write
+
+
+def test_a_write_never_waits_for_the_network() -> None:
+    """``set`` may run on a middleware callback thread: it queues, the sender thread sends."""
+    release = threading.Event()
+    sent: list[str] = []
+
+    def send(key: str, _data: bytes) -> None:
+        release.wait(10)
+        sent.append(key)
+
+    store = ReplicatedParams("me", send=send)
+    started = time.monotonic()
+    for i in range(100):
+        store.set(f"/x{i}", i)
+    assert time.monotonic() - started < 1.0
+    assert store.get("/x99") == 99  # applied here at once
+    assert not store.flush(timeout_s=0.05)
+    release.set()
+    assert store.flush(timeout_s=5.0)
+    assert sent == [param_key(f"/x{i}") for i in range(100)]  # in order
+    store.close()
 
 
 def test_bad_values_and_names_are_rejected_before_anything_is_sent() -> None:
@@ -147,11 +245,15 @@ def test_bad_values_and_names_are_rejected_before_anything_is_sent() -> None:
         a.set("/x", [1])  # type: ignore[arg-type]
     with pytest.raises(TransportError, match=r"topic='x' must look like '/robot/sensor'"):
         a.set("x", 1)
+    with pytest.raises(TransportError, match=r"topic='x' must look like '/robot/sensor'"):
+        a.set_many({"/ok": 1, "x": 1})
+    wire.settle()
     assert wire.sent == []
+    assert a.get("/ok") is None
 
 
 def test_a_failing_watcher_does_not_stop_the_others(caplog: pytest.LogCaptureFixture) -> None:
-    store = ReplicatedParams("me", publish=lambda _k, _d: None, fetch=lambda _t: ())
+    store = quiet()
 
     def fail(_name: str, _value: ParamValue) -> None:
         raise RuntimeError("boom")
@@ -174,6 +276,7 @@ def test_a_write_supersedes_one_stamped_ahead_of_the_clock() -> None:
     seen = record(b)
     a.set("/r1/camera/dbm/priority", 0.1)
     assert a.get("/r1/camera/dbm/priority") == 0.1
+    wire.settle()
     assert b.get("/r1/camera/dbm/priority") == 0.1  # the others take it too
     assert seen == [("/r1/camera/dbm/priority", 0.1)]
     assert decode_param(wire.sent[-1][1])[1] == ahead + 1

@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import threading
+from collections.abc import Callable
+
 from dbml.harness.processes import free_port
-from dbml.transports import Variant
+from dbml.transports import ParamValue, Variant
 from dbml.transports.zenoh import ZenohTransport
+from tests.conftest import wait_for
 
 
 def test_closed_declarations_are_forgotten() -> None:
@@ -20,3 +24,85 @@ def test_closed_declarations_are_forgotten() -> None:
         kept.close()
         assert len(transport._declared) == baseline
     assert transport._declared == set()
+
+
+def mesh(port: int, *hosts: str) -> list[ZenohTransport]:
+    return [ZenohTransport(host=host, port=port) for host in hosts]
+
+
+def close_all(transports: list[ZenohTransport]) -> None:
+    for transport in transports:
+        transport.close()
+
+
+def test_writes_from_callbacks_under_a_flood_never_stall() -> None:
+    """Every received write is acknowledged by a write made on zenoh's callback thread.
+
+    A blocking put there, looped back into the session's own full callback queue, once
+    deadlocked a fleet of 40: this floods both ways and asserts progress to the end.
+    """
+    port = free_port()
+    flooder, acker = sessions = mesh(port, "base", "r1")
+    try:
+        assert acker.wait_for_peers(10)
+        assert flooder.wait_for_peers(10)
+        writes = 3_000
+        acked = threading.Event()
+
+        def ack(name: str, value: ParamValue) -> None:
+            if name.startswith("/flood/") and isinstance(value, int):
+                acker.params.set(f"/ack/{name.rsplit('/', 1)[-1]}", value)  # callback thread
+
+        acker.params.watch(ack)
+        flooder.params.watch(lambda name, _v: acked.set() if name == f"/ack/{writes - 1}" else None)
+        for i in range(writes):
+            flooder.params.set(f"/flood/{i}", i)
+        assert acked.wait(60), "the acknowledgements stalled"
+        wait_for(
+            lambda: len(flooder.params.snapshot("/ack/")) == writes,
+            timeout_s=30,
+            what="every acknowledgement",
+        )
+    finally:
+        close_all(sessions)
+
+
+def test_a_newcomer_costs_each_session_one_answer_of_its_own_values() -> None:
+    """Joining asks each session once for what it owns; nobody answers with its whole cache."""
+    port = free_port()
+    old = mesh(port, *(f"r{i}" for i in range(5)))
+    try:
+        for i, transport in enumerate(old):
+            for field in ("frequency/min", "frequency/max", "priority"):
+                transport.params.set(f"/r{i}/camera/dbm/{field}", 1.0)
+        wait_for(
+            lambda: all(
+                len(t.params.snapshot()) == 15 and len(t._live) == 4 and t._fetching == 0
+                for t in old
+            ),
+            timeout_s=20,
+            what="every session holding every value, done meeting the others",
+        )
+        answered: list[int] = []
+        for transport in old:
+            owned = transport.params.owned
+
+            def counting(
+                is_live: Callable[[str], bool],
+                owned: Callable[..., list[tuple[str, bytes]]] = owned,
+            ) -> list[tuple[str, bytes]]:
+                answer = owned(is_live)
+                answered.append(len(answer))
+                return answer
+
+            transport.params.owned = counting  # type: ignore[method-assign]
+        with ZenohTransport(host="late", port=port) as late:
+            assert late.wait_for_peers(10)
+            wait_for(
+                lambda: len(late.params.snapshot()) == 15,
+                timeout_s=20,
+                what="the newcomer holding every value",
+            )
+            assert answered == [3] * 5  # one answer per session, its own three values
+    finally:
+        close_all(old)

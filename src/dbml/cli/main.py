@@ -312,6 +312,34 @@ def _cmd_testbed(args: argparse.Namespace) -> int:
     return EXIT_INTERRUPTED if result.interrupted else EXIT_OK
 
 
+def _cmd_secure(args: argparse.Namespace) -> int:
+    from dbml.secure import fleet_from_flags, init_fleet
+
+    fleet = fleet_from_flags(
+        optimizer=args.optimizer,
+        robots=args.robots,
+        operators=args.operators,
+        endpoints=args.endpoint,
+        sans=args.san,
+        base_port=args.base_port,
+    )
+    written = init_fleet(
+        args.directory,
+        fleet,
+        force=args.force,
+        days=args.days,
+        install_dir=args.install_dir,
+    )
+    for file in written:
+        print(f"wrote {file.path}{' (0600)' if file.secret else ''}: {file.description}")
+    config = Path(args.install_dir or Path(args.directory).resolve())
+    print(
+        f"run a node as: dbml ... --zenoh-config {config}/NAME.json5 --host NAME "
+        "(the host identity must be the node's name)"
+    )
+    return EXIT_OK
+
+
 _HANDLERS: dict[str, Callable[[argparse.Namespace], int]] = {
     "allocate": _cmd_allocate,
     "reproduce": _cmd_reproduce,
@@ -322,6 +350,7 @@ _HANDLERS: dict[str, Callable[[argparse.Namespace], int]] = {
     "monitor": _cmd_monitor,
     "demo": _cmd_demo,
     "testbed": _cmd_testbed,
+    "secure": _cmd_secure,
 }
 
 

@@ -9,6 +9,7 @@ from typing import NoReturn
 from dbml.core.allocation import Strategy
 from dbml.core.errors import SpecError
 from dbml.core.spec import check_number
+from dbml.secure import DEFAULT_BASE_PORT, DEFAULT_DAYS
 from dbml.transports.registry import DEFAULT_TRANSPORT, TRANSPORTS
 
 __all__ = ["EXIT_USAGE", "build_parser"]
@@ -162,4 +163,50 @@ def build_parser() -> argparse.ArgumentParser:
     )
     testbed_cmd.add_argument("--json", action="store_true", help="one JSON object on stdout")
     testbed_cmd.add_argument("--plot", metavar="FILE.png", help="rates, latency and budget")
+
+    secure_cmd = commands.add_parser(
+        "secure", help="mutual TLS and access control per role for a fleet across machines"
+    )
+    secure_commands = secure_cmd.add_subparsers(
+        dest="secure_command", required=True, parser_class=_Parser
+    )
+    init_cmd = secure_commands.add_parser(
+        "init", help="write a fleet CA, and a key, certificate and zenoh config per node"
+    )
+    init_cmd.add_argument("directory", metavar="DIR", help="where the files go")
+    init_cmd.add_argument("--optimizer", required=True, metavar="NAME", help="the optimizer")
+    init_cmd.add_argument("--robots", required=True, metavar="R1,R2", help="the robots' names")
+    init_cmd.add_argument(
+        "--operators", default="", metavar="OP1,OP2", help="who may set budget and priorities"
+    )
+    init_cmd.add_argument(
+        "--endpoint",
+        action="append",
+        default=[],
+        metavar="NAME=ENDPOINT",
+        help="where a node listens and the others connect, e.g. r1=tls/10.0.0.5:7447 "
+        "(repeatable; default tls/127.0.0.1:<base port + index>)",
+    )
+    init_cmd.add_argument(
+        "--san",
+        action="append",
+        default=[],
+        metavar="[NAME=]ADDRESS",
+        help="one more IP or DNS name in every certificate, or in NAME's (repeatable)",
+    )
+    init_cmd.add_argument(
+        "--base-port", type=int, default=DEFAULT_BASE_PORT, help=f"default {DEFAULT_BASE_PORT}"
+    )
+    init_cmd.add_argument(
+        "--days",
+        type=int,
+        default=DEFAULT_DAYS,
+        help=f"certificate validity, default {DEFAULT_DAYS}",
+    )
+    init_cmd.add_argument(
+        "--install-dir",
+        metavar="PATH",
+        help="where the files will be on the nodes, as the configs name them (default: DIR)",
+    )
+    init_cmd.add_argument("--force", action="store_true", help="replace existing files")
     return parser

@@ -131,6 +131,11 @@ class LinkEstimator:
         if self.on_change is not None:
             self.on_change()
 
+    @property
+    def alive(self) -> bool:
+        """False once its thread died (the command then exits non-zero)."""
+        return self._worker.alive
+
     def start(self) -> LinkEstimator:
         """Judge the link every interval on a thread of its own."""
         self._worker.start()

@@ -16,6 +16,7 @@ __all__ = [
     "MIN_FIELD",
     "PERIOD",
     "PRIORITY_FIELD",
+    "ROUND",
     "SIZE_FIELD",
     "STATUS",
     "STATUS_MESSAGE",
@@ -39,6 +40,9 @@ STRATEGY = "/dbm/strategy"
 STATUS = "/dbm/status"
 """``optimal`` or ``infeasible``, written by the optimizer after every allocation."""
 STATUS_MESSAGE = "/dbm/status_message"
+ROUND = "/dbm/round"
+"""The optimizer's round counter, written every round: its heartbeat, the one value that changes
+when nothing else does (unchanged rates are not rewritten)."""
 ESTIMATE = "/dbm/estimated_bandwidth_in_mbit"
 """The bandwidth estimator's current estimate (the budget in use), when one runs."""
 ESTIMATOR_STATE = "/dbm/estimator_state"

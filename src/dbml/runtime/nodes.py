@@ -95,6 +95,9 @@ def run_optimizer(
     done = _until(stop, duration_s)
     try:
         while not done():
+            if not node.alive or (estimator is not None and not estimator.alive):
+                log.critical("a worker thread died (see above); exiting so a supervisor restarts")
+                return 1
             stop.wait(0.1)
     finally:
         node.stop()
@@ -175,6 +178,9 @@ def run_subscriber(
     done = _until(stop, duration_s)
     try:
         while not done():
+            if not reporter.alive:
+                log.critical("the reception reporter died (see above); exiting")
+                return 1
             stop.wait(1.0)
             rate_hz, bytes_per_s = meter.window(1.0)
             variant = subscriber.variant.value

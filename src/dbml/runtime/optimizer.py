@@ -3,9 +3,12 @@
 It reads channels, priorities, sizes and the budget from the parameter store and the live graph,
 allocates, and pushes each publisher its rate through ``[topic]/dbm/frequency/current_value``:
 
-- every ``/dbm/optimization_rate_in_seconds`` (which doubles as the publishers' heartbeat), and
+- every ``/dbm/optimization_rate_in_seconds``, and
 - at once when a priority, a size, a bound, the budget or the graph changes, coalescing bursts.
 
+A round pushes one batch (``set_many``) holding only what changed: rates, ``managed`` flags,
+the status, and ``/dbm/round``, the heartbeat that tells publishers their rate still stands. A
+rate is pushed again when its channel's publishers change (a restarted publisher heard nothing).
 Only channels with a subscriber to ``[topic]/optimized`` on another host are managed; the others
 run at their maximum. Decreases are pushed first and acknowledged before increases go out, so the
 budget is not exceeded while rates change. Infeasibility is logged and written to ``/dbm/status``
@@ -22,9 +25,9 @@ from dataclasses import dataclass, replace
 from dbml.core.allocation import Allocation, Status, Strategy, allocate
 from dbml.core.config import DbmSettings
 from dbml.core.errors import DbmlError
-from dbml.core.spec import LinkSpec, Problem
+from dbml.core.spec import LinkSpec, Problem, short_repr
 from dbml.runtime import names
-from dbml.runtime.graph import is_managed, published_topics
+from dbml.runtime.graph import summarize
 from dbml.runtime.params import (
     ChannelParams,
     DbmParams,
@@ -60,6 +63,8 @@ class ChannelState:
 
     params: ChannelParams
     managed: bool
+    publishers: frozenset[str] = frozenset()
+    """The channel's publisher declarations: when they change, its rate is pushed again."""
 
     @property
     def topic(self) -> str:
@@ -104,9 +109,10 @@ class OptimizerNode:
         self._links = tuple(links)
         self._ack_timeout_s = ack_timeout_s
         self._estimate = budget_mbit
-        self._pushed: dict[str, float] = {}
-        self._managed: dict[str, bool] = {}
-        self._status: tuple[str, str] | None = None
+        self._pushed: dict[str, tuple[float, frozenset[str]]] = {}
+        self._owned: dict[str, ParamValue] = {}
+        """What this node last wrote of the values it owns (rates, managed flags, status)."""
+        self._rounds = 0
         self._acks = threading.Condition()
         self.last_round: Round | None = None
         params = transport.params
@@ -128,6 +134,7 @@ class OptimizerNode:
         )
         self._handles: list[Handle] = [
             self._view.watch(self._on_param),
+            params.watch(self._on_written),
             transport.graph.watch(self.poke),
         ]
 
@@ -154,6 +161,13 @@ class OptimizerNode:
             with self._acks:
                 self._acks.notify_all()
 
+    def _on_written(self, name: str, value: ParamValue) -> None:
+        """Any write, valid or not: one over a value this node owns is undone at once."""
+        owned = self._owned
+        if name in owned and owned[name] != value:
+            log.warning("%s=%s written by another node; re-asserting it", name, short_repr(value))
+            self.poke()
+
     # -- reading the world --------------------------------------------------------------------
 
     def dbm(self) -> DbmParams:
@@ -179,13 +193,14 @@ class OptimizerNode:
 
     def channels(self) -> tuple[ChannelState, ...]:
         """Every live channel whose publisher declared valid bounds, by topic."""
-        entries = self._transport.graph.entries()
+        graph = summarize(self._transport.graph.entries())  # one pass, not one per channel
         values = self._view.values()  # one copy for the round, not one per channel
         states = []
-        for topic in sorted(published_topics(entries)):
+        for topic in sorted(graph.publishers):
             params = channel_params(values, topic)
             if params.bounded:  # else a publisher that has not declared valid bounds yet
-                states.append(ChannelState(params, is_managed(entries, topic)))
+                managed = topic in graph.managed
+                states.append(ChannelState(params, managed, graph.publishers[topic]))
         return tuple(states)
 
     # -- one round ----------------------------------------------------------------------------
@@ -200,8 +215,9 @@ class OptimizerNode:
         if budget is None:
             return floors, Status.INFEASIBLE, f"no budget: set {names.BANDWIDTH}", None
         specs = [spec for c in managed if (spec := c.spec()) is not None]
-        # Channels that have not sent a message yet have no size: they stay at their minimum.
-        rates = {t: r for t, r in floors.items() if t not in {s.topic for s in specs}}
+        # Channels that have not sent a message yet have no size: nothing is pushed to them, so
+        # they send nothing on [topic]/optimized until there is room for them (or fail-safe).
+        rates: dict[str, float] = {}
         if not specs:
             return rates, Status.OPTIMAL, "waiting for the first message sizes", None
         topics = {s.topic for s in specs}
@@ -237,31 +253,61 @@ class OptimizerNode:
         problems = self._view.problems()
         if problems:
             message = f"{message}; ignored: {'; '.join(problems)}"
-        self._report_managed(channels)
-        self._push(rates)
-        self._report_status(status, message)
+        owned: dict[str, ParamValue] = {names.managed(c.topic): c.managed for c in channels}
+        owned |= {names.STATUS: status.value, names.STATUS_MESSAGE: message}
+        params = self._transport.params
+        updates = {name: value for name, value in owned.items() if params.get(name) != value}
+        if names.STATUS_MESSAGE in updates and status is Status.INFEASIBLE:
+            log.warning("infeasible: %s", message)
+        elif names.STATUS_MESSAGE in updates:
+            log.info("%s", message)
+        publishers = {c.topic: c.publishers for c in channels}
+        self._owned = owned | {names.current_value(t): r for t, r in rates.items()}
+        self._push(rates, publishers, updates)
         result = Round(channels, rates, status, message, dbm.budget_mbit, allocation)
         self.last_round = result
         return result
 
-    def _push(self, rates: dict[str, float]) -> None:
+    def _push(
+        self,
+        rates: dict[str, float],
+        publishers: dict[str, frozenset[str]],
+        updates: dict[str, ParamValue],
+    ) -> None:
+        """Push what changed: decreases first (acknowledged), then the rest and the heartbeat."""
         params = self._transport.params
+        # Changed, or for new publishers (a restarted one heard nothing), or overwritten by
+        # another node (the store is not ours alone): pushed; an unchanged rate is not.
+        changed = {
+            t: r
+            for t, r in rates.items()
+            if self._pushed.get(t) != (r, publishers.get(t))
+            or params.get(names.current_value(t)) != r
+        }
 
         def running(topic: str) -> float | None:
             """What the publisher acknowledged running, else what we last pushed."""
             applied = self._applied_hz(topic)
-            return applied if applied is not None else self._pushed.get(topic)
+            if applied is not None:
+                return applied
+            pushed = self._pushed.get(topic)
+            return None if pushed is None else pushed[0]
 
-        before = {t: running(t) for t in rates}
-        decreases = {t: r for t, r in rates.items() if (b := before[t]) is None or r < b}
-        for topic, rate in decreases.items():
-            params.set(names.current_value(topic), rate)
-        if decreases and any((b := before[t]) is not None and r > b for t, r in rates.items()):
+        before = {t: running(t) for t in changed}
+        # A channel nobody pushed to yet sends nothing: it rises from zero, after the decreases.
+        decreases = {t: r for t, r in changed.items() if (b := before[t]) is not None and r < b}
+        increases = {t: r for t, r in changed.items() if t not in decreases}
+        if decreases and increases:
+            params.set_many({names.current_value(t): r for t, r in decreases.items()})
             self._await_acks(decreases)
-        for topic, rate in rates.items():
-            if topic not in decreases:
-                params.set(names.current_value(topic), rate)  # also the periodic heartbeat
-        self._pushed = dict(rates)
+            decreases = {}
+        self._rounds += 1
+        params.set_many(
+            {names.current_value(t): r for t, r in (decreases | increases).items()}
+            | updates
+            | {names.ROUND: self._rounds}
+        )
+        self._pushed = {t: (r, publishers.get(t, frozenset())) for t, r in rates.items()}
 
     def _applied_hz(self, topic: str) -> float | None:
         """The rate the publisher acknowledged (validated by the view)."""
@@ -280,24 +326,12 @@ class OptimizerNode:
                     "no acknowledgement of a decrease from %s; raising others anyway", late()
                 )
 
-    def _report_managed(self, channels: tuple[ChannelState, ...]) -> None:
-        for channel in channels:
-            if self._managed.get(channel.topic) != channel.managed:
-                self._managed[channel.topic] = channel.managed
-                self._transport.params.set(names.managed(channel.topic), channel.managed)
-
-    def _report_status(self, status: Status, message: str) -> None:
-        params = self._transport.params
-        if self._status != (status.value, message):
-            self._status = (status.value, message)
-            params.set(names.STATUS, status.value)
-            params.set(names.STATUS_MESSAGE, message)
-            if status is Status.INFEASIBLE:
-                log.warning("infeasible: %s", message)
-            else:
-                log.info("%s", message)
-
     # -- the loop -----------------------------------------------------------------------------
+
+    @property
+    def alive(self) -> bool:
+        """False once its thread died (the command then exits non-zero)."""
+        return self._worker.alive
 
     def start(self) -> OptimizerNode:
         """Optimise now, then every period and on every trigger, until ``stop()``."""

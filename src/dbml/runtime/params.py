@@ -64,6 +64,7 @@ _RULES: dict[str, dict[str, Any]] = {
     names.ESTIMATE: {**_POSITIVE, "maximum": MAX_BANDWIDTH_MBIT},
     names.UTILIZATION: {**_POSITIVE, "maximum": 1.0},
     names.PERIOD: {"minimum": MIN_PERIOD_S, "maximum": MAX_PERIOD_S},
+    names.ROUND: {"minimum": 0.0},
 }
 _CHANNEL_RULES: dict[str, dict[str, Any]] = {
     names.MIN_FIELD: {**_POSITIVE, "maximum": MAX_RATE_HZ},

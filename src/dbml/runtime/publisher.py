@@ -3,9 +3,12 @@
 Every message goes to ``[topic]`` for local consumers (only when someone subscribes there) and,
 throttled to the allocated rate, to ``[topic]/optimized`` for remote ones. The allocated rate is
 pushed by the optimizer through ``[topic]/dbm/frequency/current_value``; the publisher applies it,
-acknowledges it in ``[topic]/dbm/frequency/applied_value`` and never polls. A new channel runs at
-its minimum until allocated; hearing no allocation for ``failsafe_periods`` optimisation periods
-sends it back to its minimum (fail-safe), and the next allocation takes over again.
+acknowledges it in ``[topic]/dbm/frequency/applied_value`` and never polls. A new channel sends
+nothing on ``[topic]/optimized`` until its first allocation, which comes once the optimizer knows
+its size and has made room for it (bytes nobody allocated would break the budget on the wire);
+if none comes within ``failsafe_periods`` periods it runs at its minimum. Hearing neither an
+allocation nor the optimizer's heartbeat (``/dbm/round``) for ``failsafe_periods`` optimisation
+periods sends it back to its minimum (fail-safe), and the next one takes over again.
 """
 
 from __future__ import annotations
@@ -101,6 +104,12 @@ class ManagedPublisher:
                 self._period_s = value
                 self._deadline = self._last_heard + self._failsafe_periods * value
             return
+        if name == names.ROUND:
+            # The optimizer's heartbeat: an unchanged allocation is not pushed again, and stands.
+            with self._lock:
+                if self._allocated_hz is not None:
+                    self._heard_locked(self._allocated_hz)
+            return
         if name == names.size(self.topic):
             if value != self._size_bytes and self._size_bytes > 0:
                 # Someone else's size for our channel: the next publish re-asserts the real one
@@ -114,15 +123,20 @@ class ManagedPublisher:
             return
         rate = min(value, self.max_rate_hz)
         with self._lock:
-            self._last_heard = self._now()
-            self._deadline = self._last_heard + self._failsafe_periods * self._period_s
-            if self._failsafe_noted:
-                log.warning("%s: allocation heard again; running at %.3f Hz", self.topic, rate)
-                self._failsafe_noted = False
             changed = rate != self._allocated_hz
             self._allocated_hz = rate
-        if changed:
+            self._heard_locked(rate)
+        if changed:  # a non-blocking write: this may be the middleware's callback thread
             self._transport.params.set(names.applied(self.topic), rate)
+
+    def _heard_locked(self, rate: float) -> None:
+        """An allocation (or the heartbeat that keeps it) was heard now: it is in force."""
+        self._last_heard = now = self._now()
+        self._deadline = now + self._failsafe_periods * self._period_s
+        if self._failsafe_noted:
+            log.warning("%s: allocation heard again; running at %.3f Hz", self.topic, rate)
+            self._failsafe_noted = False
+        self._limiter.set_rate(rate, now)  # from now, exactly: credit is the rate's integral
 
     def current_rate_hz(self) -> float:
         """The rate in force: the allocation while it is fresh, else the minimum."""
@@ -177,8 +191,12 @@ class ManagedPublisher:
         if self._full.has_subscribers:
             self._full_seq += 1
             self._full.put(payload, pack_meta(self._full_seq, sent_ns, rate))
-        self._limiter.set_rate(rate)
-        if not self._limiter.allow(now):
+        with self._lock:
+            # A new channel waits for its first allocation (bounded by the fail-safe deadline).
+            waiting = self._allocated_hz is None and now <= self._deadline
+            self._limiter.set_rate(rate, now)
+            allowed = self._limiter.allow(now) and not waiting
+        if not allowed:
             return False
         self._optimized_seq += 1
         self._optimized.put(payload, pack_meta(self._optimized_seq, sent_ns, rate))

@@ -1,7 +1,12 @@
 """Rate control: a limiter that drops what exceeds a rate, and a loop pacer (the paper's DBMRate).
 
-The limiter drops what exceeds the rate; the pacer sleeps to absolute deadlines, so a sensor loop
-runs at the rate without drift and does not even capture what would be dropped.
+Both count credit: frames earned at the rate in force over time, the integral of the rate. A
+message (or a loop tick) spends one frame. So what goes out in any window is at most what the
+rates in force over that window allowed, plus the frames banked at its start, however often the
+rate changes: a rate that is high for an instant earns an instant's worth, not a whole period's
+(a scheme that only remembers the last message's time would let every brief increase send at
+once). Where a change is seen late (at the next call), the time since the last look counts at
+the lower of the old and the new rate, so a late-seen decrease never earns at the old rate.
 """
 
 from __future__ import annotations
@@ -11,49 +16,78 @@ from collections.abc import Callable
 
 __all__ = ["Rate", "RateLimiter"]
 
+_EPSILON_FRAMES = 1e-9
+"""Rounding slack, so a message exactly one period later is never refused."""
+
+
+class _Credit:
+    """Frames earned at the rate in force since the last look, capped at ``cap_frames``."""
+
+    def __init__(self, rate_hz: float, *, cap_frames: float) -> None:
+        self.rate_hz = rate_hz
+        self._cap = cap_frames
+        self.frames = 1.0  # the first message goes at once
+        self._seen: float | None = None
+
+    def look(self, now: float, rate_hz: float | None = None) -> None:
+        """Earn up to ``now``; a new rate counts from the last look at the lower of the two."""
+        earning = self.rate_hz if rate_hz is None else min(self.rate_hz, rate_hz)
+        if self._seen is not None and now > self._seen:
+            self.frames = min(self.frames + (now - self._seen) * earning, self._cap)
+        self._seen = now if self._seen is None else max(self._seen, now)
+        if rate_hz is not None:
+            self.rate_hz = rate_hz
+
+    def spend(self) -> bool:
+        if self.frames < 1.0 - _EPSILON_FRAMES:
+            return False
+        self.frames = max(self.frames - 1.0, 0.0)
+        return True
+
+    def wait_s(self) -> float:
+        """Seconds until one frame is earned at the rate in force."""
+        return max(0.0, (1.0 - self.frames) / self.rate_hz)
+
 
 class RateLimiter:
-    """``allow(now)`` is True when a message may go out at ``rate_hz``.
+    """``allow(now)`` is True when a message may go out at the rate in force.
 
-    A message is due every period; a source faster than the rate gets exactly the rate on
-    average, and after a pause at most one extra message goes out early. A new rate applies
-    from the last message on.
+    A source faster than the rate gets exactly the rate on average; after a pause at most one
+    extra message goes out early (two frames of credit at most).
     """
 
+    BANKED_FRAMES = 2.0
+    """The most credit kept: a source that called late may catch up one message, no more."""
+
     def __init__(self, rate_hz: float) -> None:
-        self._period = 1.0 / rate_hz
-        self._due = -float("inf")
+        self._credit = _Credit(rate_hz, cap_frames=self.BANKED_FRAMES)
 
     @property
     def rate_hz(self) -> float:
         """The rate in force."""
-        return 1.0 / self._period
+        return self._credit.rate_hz
 
-    def set_rate(self, rate_hz: float) -> None:
-        """Apply a new rate from the last message on: the next is due one new period after it.
+    def set_rate(self, rate_hz: float, now: float) -> None:
+        """Apply ``rate_hz`` from ``now``; what was earned until ``now`` is kept.
 
-        So a faster allocation takes effect at once instead of after the old, slower period.
+        So a faster allocation takes effect at once (the part of a period already waited
+        counts), and a brief one earns only its share.
         """
-        period = 1.0 / rate_hz
-        if period != self._period:
-            self._due += period - self._period  # -inf (nothing sent yet) stays -inf
-            self._period = period
+        self._credit.look(now, rate_hz)
 
     def allow(self, now: float) -> bool:
         """Whether a message may go out at ``now``; if so it counts as sent."""
-        if now < self._due:
-            return False
-        first = self._due == -float("inf")
-        self._due = now + self._period if first else max(self._due + self._period, now)
-        return True
+        self._credit.look(now)
+        return self._credit.spend()
 
 
 class Rate:
     """``sleep()`` blocks until the next tick of a loop running at ``rate_hz()``.
 
-    The deadline is one period after the previous tick, with the period of the rate in force
-    while waiting: a new allocation applies within ``poll_s``, even in the middle of a long
-    period. Falling behind by more than a period restarts the schedule instead of bursting.
+    The loop earns one tick per period of the rate in force, read every ``poll_s`` while
+    waiting, so a new allocation applies within ``poll_s`` even in the middle of a long period.
+    Ticks keep absolute deadlines (loop work does not add to the period); falling behind by more
+    than a period restarts the schedule instead of bursting.
     """
 
     def __init__(
@@ -68,23 +102,22 @@ class Rate:
         self._clock = clock
         self._sleep = sleep
         self._poll_s = poll_s
-        self._last: float | None = None
+        self._credit: _Credit | None = None
 
     def sleep(self) -> None:
         """Block until the loop's next tick."""
-        now = self._clock()
-        if self._last is None:  # the loop's first tick is now
-            self._last = now
+        if self._credit is None:  # the loop's first tick is now
+            self._credit = _Credit(self._rate_hz(), cap_frames=1.0)
+            self._credit.look(self._clock())
+            self._credit.spend()
             return
+        credit = self._credit
         while True:
-            period = 1.0 / self._rate_hz()
-            deadline = self._last + period
-            now = self._clock()
-            if now >= deadline:
-                break
-            self._sleep(min(deadline - now, self._poll_s))
-        self._last = deadline if now - deadline < period else now
+            credit.look(self._clock(), self._rate_hz())
+            if credit.spend():
+                return
+            self._sleep(min(credit.wait_s(), self._poll_s))
 
     def reset(self) -> None:
         """Start the schedule again at the next ``sleep()``."""
-        self._last = None
+        self._credit = None

@@ -114,6 +114,11 @@ class ReceptionReporter:
         self._publisher.put(report.encode())
         return len(frames)
 
+    @property
+    def alive(self) -> bool:
+        """False once its thread died (the command then exits non-zero)."""
+        return self._worker.alive
+
     def start(self) -> ReceptionReporter:
         """Flush every interval on a thread of its own."""
         self._worker.start()

@@ -1,10 +1,10 @@
 """The managed subscriber (the paper's DBMSubscriber).
 
-It receives ``[topic]`` when the topic is published on its own host and ``[topic]/optimized``
-otherwise, and switches when the publisher moves. Until a publisher is seen it takes the
-optimized copy, the one that is safe to receive over a network. Its graph announcement is what
-makes the optimizer manage the channel. With a reporter, what arrives over the network is
-also reported for bandwidth estimation.
+It receives ``[topic]`` when the topic is published on its own host only and
+``[topic]/optimized`` otherwise, and switches when the publisher moves. Until a publisher is
+seen it takes the optimized copy, the one that is safe to receive over a network. Its graph
+announcement is what makes the optimizer manage the channel. With a reporter, what arrives over
+the network is also reported for bandwidth estimation.
 """
 
 from __future__ import annotations
@@ -66,8 +66,10 @@ class ManagedSubscriber:
             return self._variant
 
     def _wanted(self) -> Variant:
+        # Full rate only when every publisher is here: a forged "publisher on this host" beside
+        # a real remote one must not pull the full-rate stream across the network.
         hosts = publisher_hosts(self._transport.graph.entries(), self.topic)
-        return Variant.FULL if self._transport.host in hosts else Variant.OPTIMIZED
+        return Variant.FULL if hosts == {self._transport.host} else Variant.OPTIMIZED
 
     def _update(self) -> None:
         """Follow the graph.

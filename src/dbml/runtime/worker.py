@@ -2,7 +2,10 @@
 
 The optimizer (every period and at once on a trigger), the estimator (every 0.1 s) and the
 reception reporter (every 0.1 s) share it: a tick that raises is logged and the next one retries,
-so a bad input can never end the thread while the process stays alive.
+so a bad input can never end the thread while the process stays alive. Should the thread end all
+the same (a ``SystemExit`` in a tick, say), it logs why and ``alive`` turns False: the node's
+command then exits non-zero, so a supervisor restarts it instead of a process that looks alive
+and does nothing.
 """
 
 from __future__ import annotations
@@ -44,8 +47,21 @@ class PeriodicWorker:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
+    FALLBACK_INTERVAL_S = 1.0
+    """The wait used when reading the interval fails."""
+
     def _interval(self) -> float:
-        return self._interval_s() if callable(self._interval_s) else self._interval_s
+        try:
+            return self._interval_s() if callable(self._interval_s) else self._interval_s
+        except Exception:
+            self._log.exception("%s: reading the interval failed", self._name)
+            return self.FALLBACK_INTERVAL_S
+
+    @property
+    def alive(self) -> bool:
+        """False once the thread has ended without ``stop()`` (it died)."""
+        thread = self._thread
+        return self._stop.is_set() or thread is None or thread.is_alive()
 
     def wake(self) -> None:
         """Run a tick as soon as possible."""
@@ -59,6 +75,12 @@ class PeriodicWorker:
         return self
 
     def _run(self) -> None:
+        try:
+            self._loop()
+        except BaseException:  # the thread ends here: say why, and ``alive`` tells the node
+            self._log.critical("%s: the thread died", self._name, exc_info=True)
+
+    def _loop(self) -> None:
         next_at = self._clock() + (0.0 if self._immediate else self._interval())
         while not self._stop.is_set():
             woken = self._wake.wait(timeout=max(0.0, next_at - self._clock()))

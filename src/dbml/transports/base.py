@@ -21,7 +21,7 @@ import enum
 import os
 import re
 import socket
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Protocol, Self, TypeAlias, runtime_checkable
 
@@ -146,6 +146,13 @@ class ParamStore(Protocol):
 
     def set(self, name: str, value: ParamValue) -> None:
         """Write ``name`` (``None`` deletes it)."""
+        ...
+
+    def set_many(self, values: Mapping[str, ParamValue]) -> None:
+        """Write several names as one update: one message where the middleware allows.
+
+        The optimizer pushes a round's allocation this way, not one write per channel.
+        """
         ...
 
     def get(self, name: str) -> ParamValue:

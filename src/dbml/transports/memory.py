@@ -11,7 +11,7 @@ from __future__ import annotations
 import itertools
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 from dbml.core.errors import TransportError
@@ -105,6 +105,16 @@ class _MemoryParams:
         with network.lock:
             network.params[name] = (value, network.next_stamp())
         network.param_watchers.fire(name, value)
+
+    def set_many(self, values: Mapping[str, ParamValue]) -> None:
+        for value in values.values():
+            check_param_value(value)
+        network = self._transport.network
+        with network.lock:
+            for name, value in values.items():
+                network.params[name] = (value, network.next_stamp())
+        for name, value in values.items():
+            network.param_watchers.fire(name, value)
 
     def get(self, name: str) -> ParamValue:
         with self._transport.network.lock:

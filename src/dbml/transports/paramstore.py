@@ -1,23 +1,34 @@
-"""The replicated parameter store: every process caches every write, the newest write wins.
+"""The parameter store over a pub/sub network: every process caches, each value's owner serves it.
 
 A write is published as ``{"v": value, "t": stamp_ns, "w": writer}`` under the key
-``dbml/param/<name>`` (``/r1/camera/dbm/priority`` is ``dbml/param/r1/camera/dbm/priority``).
-Each process keeps the newest write per name, ordered by (stamp, writer), answers queries from
-that cache and, when it meets a new peer, fetches every peer's cache, so a late joiner sees what
-was written before it started.
+``dbml/param/<name>`` (``/r1/camera/dbm/priority`` is ``dbml/param/r1/camera/dbm/priority``),
+and every process that listens caches the newest write per name, ordered by (stamp, writer). A
+batch (``set_many``: the optimizer's allocation of a round) is one message under ``dbml/batch``.
 
-The store knows nothing of the middleware: it is given a function that publishes one write and a
-function that fetches the peers' caches, and is fed received writes and queries. The zenoh
-transport wires it to a session; the unit tests drive it with plain functions.
+Ownership keeps a join cheap: the writer of a value's newest write owns it and is the one that
+serves it to a newcomer; values whose writer has left (a ``dbml priority`` that exited) are served
+by everyone who holds them. A newcomer asks each live process once for what it owns, so a join
+costs every other process one query and one answer of its own values, whatever the fleet's size
+(the store this replaces answered every query with its whole cache, from every process, for every
+process met: replies grew with the cube of the fleet).
+
+Writes are sent by the store's own sender thread, in order: ``set`` never blocks its caller,
+which may be a middleware callback (a blocking send from there once deadlocked a fleet of 40).
+No writer's clock can pin a value: a write stamped more than ``MAX_CLOCK_AHEAD_NS`` ahead of the
+receiver's clock is refused, and a local write always supersedes what is held.
+
+The store knows nothing of the middleware: it is given a function that sends one message and is
+fed what arrives. The zenoh transport wires it to a session; the unit tests use plain functions.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import queue
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Mapping
 from typing import TypeAlias
 
 from dbml.core.errors import TransportError
@@ -25,10 +36,14 @@ from dbml.transports.base import Handle, ParamValue, check_param_value, check_to
 from dbml.transports.callbacks import CallbackList
 
 __all__ = [
+    "BATCH_KEY",
     "MAX_CLOCK_AHEAD_NS",
+    "MAX_WRITE_BYTES",
     "PARAM_PREFIX",
     "ReplicatedParams",
+    "decode_batch",
     "decode_param",
+    "encode_batch",
     "encode_param",
     "param_key",
 ]
@@ -37,19 +52,25 @@ log = logging.getLogger("dbml.zenoh")
 
 PARAM_PREFIX = "dbml/param"
 """Where parameter writes live in the key space; the parameter's name follows."""
-SYNC_TIMEOUT_S = 2.0
-"""How long a fetch of the peers' caches waits for their replies."""
+BATCH_KEY = "dbml/batch"
+"""Where a batch of writes (one optimisation round's allocation) is published."""
 MAX_CLOCK_AHEAD_NS = 30 * 1_000_000_000
 """A write stamped further ahead of this process's clock is refused: a peer's wrong clock (or a
 lie) must not make its value win every comparison for good. Fleet clocks agree far better."""
+MAX_WRITE_BYTES = 1 << 20
+"""A received message larger than this is not a parameter write (nor a batch of them)."""
+FLUSH_TIMEOUT_S = 2.0
+"""How long ``close`` waits for queued writes to be sent."""
 _NS_PER_S = 1e9
 _MALFORMED_SHOWN_BYTES = 80
 """How much of a malformed write an error message quotes."""
+_WARNED_KEYS = 1_000
+"""Malformed writes are logged once per key, for this many keys (a flood must not flood logs)."""
 
-Publish: TypeAlias = Callable[[str, bytes], None]
-"""Sends one encoded write under its key to every peer."""
-Fetch: TypeAlias = Callable[[float], Iterable[tuple[str, bytes]]]
-"""Asks every peer for its whole cache, waiting up to the given seconds: (key, write) pairs."""
+Send: TypeAlias = Callable[[str, bytes], None]
+"""Sends one encoded message under its key to every peer; may block (on the sender thread)."""
+_Entry: TypeAlias = tuple[ParamValue, int, str]
+"""A held write: value, stamp, writer."""
 
 
 def param_key(name: str) -> str:
@@ -63,62 +84,162 @@ def encode_param(value: ParamValue, stamp_ns: int, writer: str) -> bytes:
     return json.dumps({"v": value, "t": stamp_ns, "w": writer}).encode()
 
 
-def decode_param(data: bytes) -> tuple[ParamValue, int, str]:
-    """A write's value, stamp and writer; a malformed one raises ``TransportError``."""
+def encode_batch(values: Mapping[str, ParamValue], stamp_ns: int, writer: str) -> bytes:
+    """Wire form of several writes with one stamp: ``{"vs": {name: value}, "t", "w"}``."""
+    for name, value in values.items():
+        check_topic(name)
+        check_param_value(value)
+    return json.dumps({"vs": dict(values), "t": stamp_ns, "w": writer}).encode()
+
+
+def _malformed(data: bytes, what: str = "parameter write") -> TransportError:
+    return TransportError(f"malformed {what} {data[:_MALFORMED_SHOWN_BYTES]!r}")
+
+
+def _scalar(value: object) -> ParamValue:
+    if value is not None and not isinstance(value, bool | int | float | str):
+        raise TransportError(f"malformed parameter value {short(value)}")
+    return value
+
+
+def short(value: object) -> str:
+    """``repr`` of ``value``, cut to what a log line can hold."""
+    text = repr(value)
+    return text if len(text) <= _MALFORMED_SHOWN_BYTES else text[:_MALFORMED_SHOWN_BYTES] + "..."
+
+
+def _document(data: bytes, what: str) -> dict[str, object]:
+    if len(data) > MAX_WRITE_BYTES:
+        raise TransportError(f"{what} of {len(data)} bytes (more than {MAX_WRITE_BYTES})")
     try:
         document = json.loads(data)
-        value, stamp, writer = document["v"], int(document["t"]), str(document["w"])
-    except (ValueError, KeyError, TypeError) as err:
-        shown = data[:_MALFORMED_SHOWN_BYTES]
-        raise TransportError(f"malformed parameter write {shown!r}") from err
-    if value is not None and not isinstance(value, bool | int | float | str):
-        raise TransportError(f"malformed parameter value {value!r}")
-    return value, stamp, writer
+    except (ValueError, RecursionError) as err:
+        raise _malformed(data, what) from err
+    if not isinstance(document, dict):
+        raise _malformed(data, what)
+    return document
+
+
+def _stamp_and_writer(document: dict[str, object], data: bytes, what: str) -> tuple[int, str]:
+    stamp, writer = document.get("t"), document.get("w")
+    if not isinstance(stamp, int) or isinstance(stamp, bool) or not isinstance(writer, str):
+        raise _malformed(data, what)
+    return stamp, writer
+
+
+def decode_param(data: bytes) -> tuple[ParamValue, int, str]:
+    """A write's value, stamp and writer; a malformed one raises ``TransportError``."""
+    document = _document(data, "parameter write")
+    if "v" not in document:
+        raise _malformed(data)
+    stamp, writer = _stamp_and_writer(document, data, "parameter write")
+    return _scalar(document["v"]), stamp, writer
+
+
+def decode_batch(data: bytes) -> tuple[dict[str, ParamValue], int, str]:
+    """A batch's values by name, stamp and writer; a malformed one raises ``TransportError``."""
+    document = _document(data, "batch")
+    values = document.get("vs")
+    if not isinstance(values, dict):
+        raise _malformed(data, "batch")
+    stamp, writer = _stamp_and_writer(document, data, "batch")
+    checked = {check_topic(name): _scalar(value) for name, value in values.items()}
+    return checked, stamp, writer
 
 
 class ReplicatedParams:
     """One process's replica of the parameters (a ``ParamStore``), identified by ``node_id``.
 
-    ``publish`` sends this process's writes; ``fetch`` is used by ``sync``; ``clock_ns`` stamps
-    writes (wall-clock nanoseconds, so writers on different machines compare).
+    ``send`` puts one message on the network (called on the store's sender thread only);
+    ``clock_ns`` stamps writes (wall-clock nanoseconds, so writers on different machines compare).
     """
 
     def __init__(
         self,
         node_id: str,
         *,
-        publish: Publish,
-        fetch: Fetch,
+        send: Send,
         clock_ns: Callable[[], int] = time.time_ns,
     ) -> None:
         self.node_id = node_id
-        self._publish = publish
-        self._fetch = fetch
+        self._send = send
         self._clock_ns = clock_ns
         self._lock = threading.Lock()
-        self._values: dict[str, tuple[ParamValue, int, str]] = {}
+        self._values: dict[str, _Entry] = {}
+        self._warned: set[str] = set()
         self.watchers: CallbackList[[str, ParamValue]] = CallbackList()
+        self._outbox: queue.SimpleQueue[tuple[str, bytes] | None] = queue.SimpleQueue()
+        self._idle = threading.Condition()
+        self._queued = 0
+        self._sender = threading.Thread(target=self._send_loop, name="dbml-param-send", daemon=True)
+        self._sender.start()
 
-    def _merge(self, name: str, value: ParamValue, stamp: int, writer: str) -> bool:
-        with self._lock:
+    # -- writing ------------------------------------------------------------------------------
+
+    def _stamp_locked(self, names: list[str]) -> int:
+        """A stamp newer than this clock and than every write held of ``names``."""
+        stamp = self._clock_ns()
+        for name in names:
             old = self._values.get(name)
-            if old is not None and (old[1], old[2]) >= (stamp, writer):
-                return False
-            self._values[name] = (value, stamp, writer)
-        return True
+            if old is not None:
+                stamp = max(stamp, old[1] + 1)
+        return stamp
 
     def set(self, name: str, value: ParamValue) -> None:
-        """Write ``name`` here, send the write to every peer, then notify this process."""
+        """Write ``name`` here, queue the write for every peer, then notify this process.
+
+        A write supersedes every write known here, also one stamped ahead of our clock (a peer's
+        fast clock), so what this process sets is what it and its watchers see.
+        """
         check_param_value(value)
         key = param_key(name)
         with self._lock:
-            # A write supersedes every write known here, also one stamped ahead of our clock
-            # (a peer's fast clock), so what this process sets is what it and its watchers see.
-            old = self._values.get(name)
-            stamp = self._clock_ns() if old is None else max(self._clock_ns(), old[1] + 1)
+            stamp = self._stamp_locked([name])
             self._values[name] = (value, stamp, self.node_id)
-        self._publish(key, encode_param(value, stamp, self.node_id))
+        self._queue(key, encode_param(value, stamp, self.node_id))
         self.watchers.fire(name, value)
+
+    def set_many(self, values: Mapping[str, ParamValue]) -> None:
+        """Write several names as one message (one stamp), then notify each change."""
+        if not values:
+            return
+        with self._lock:
+            stamp = self._stamp_locked(list(values))
+            data = encode_batch(values, stamp, self.node_id)  # checks every name and value
+            for name, value in values.items():
+                self._values[name] = (value, stamp, self.node_id)
+        self._queue(BATCH_KEY, data)
+        for name, value in values.items():
+            self.watchers.fire(name, value)
+
+    def _queue(self, key: str, data: bytes) -> None:
+        with self._idle:
+            self._queued += 1
+        self._outbox.put((key, data))
+
+    def _send_loop(self) -> None:
+        while (item := self._outbox.get()) is not None:
+            try:
+                self._send(*item)
+            except Exception as err:  # a closed session or a network error: keep sending
+                log.warning("parameter write %s not sent: %s", item[0], err)
+            finally:
+                with self._idle:
+                    self._queued -= 1
+                    self._idle.notify_all()
+
+    def flush(self, timeout_s: float = FLUSH_TIMEOUT_S) -> bool:
+        """Wait until every queued write was handed to the network; False after ``timeout_s``."""
+        with self._idle:
+            return self._idle.wait_for(lambda: self._queued == 0, timeout=timeout_s)
+
+    def close(self, timeout_s: float = FLUSH_TIMEOUT_S) -> None:
+        """Send what is queued (bounded), then stop the sender thread."""
+        if not self.flush(timeout_s):
+            log.warning("closing with parameter writes unsent after %.1f s", timeout_s)
+        self._outbox.put(None)
+
+    # -- reading ------------------------------------------------------------------------------
 
     def get(self, name: str) -> ParamValue:
         """The newest value known of ``name``; None when unset or deleted."""
@@ -145,47 +266,85 @@ class ReplicatedParams:
         """Call ``callback(name, value)`` on every change, local or remote."""
         return self.watchers.add(callback)
 
-    # -- the wire -----------------------------------------------------------------------------
+    # -- what arrives -------------------------------------------------------------------------
 
     def on_write(self, key: str, data: bytes) -> None:
-        """A write received from a peer: merged if newer, and watchers notified."""
-        self._accept(key, data, notify=True)
+        """A write received under ``key`` (``dbml/param/<name>``): merged if newer, notified."""
+        if not key.startswith(PARAM_PREFIX + "/"):
+            self._warn(key, "not a parameter key")
+            return
+        self.on_value(key[len(PARAM_PREFIX) :], data)
 
-    def _accept(self, key: str, data: bytes, *, notify: bool) -> None:
+    def on_value(self, name: str, data: bytes) -> None:
+        """A write of ``name`` received (published, or an owner's answer): merged if newer."""
         try:
+            check_topic(name)
             value, stamp, writer = decode_param(data)
         except TransportError as err:
-            log.warning("ignoring %s: %s", key, err)
+            self._warn(name, str(err))
             return
+        if self._accepts(name, stamp, writer) and self._merge(name, value, stamp, writer):
+            self.watchers.fire(name, value)
+
+    def on_batch(self, data: bytes) -> None:
+        """A batch received: each name merged if newer, and each change notified."""
+        try:
+            values, stamp, writer = decode_batch(data)
+        except TransportError as err:
+            self._warn(BATCH_KEY, str(err))
+            return
+        if not self._accepts(BATCH_KEY, stamp, writer):
+            return
+        for name, value in values.items():
+            if self._merge(name, value, stamp, writer):
+                self.watchers.fire(name, value)
+
+    def _accepts(self, name: str, stamp: int, writer: str) -> bool:
         if writer == self.node_id:
-            return  # our own write, already applied in set()
+            return False  # our own write, already applied when it was made
         ahead_ns = stamp - self._clock_ns()
         if ahead_ns > MAX_CLOCK_AHEAD_NS:
             # "Newest stamp wins" must not let a writer's clock (or a lie) pin a value for good.
-            log.warning(
-                "ignoring %s from %s: stamped %.0f s ahead of this clock (more than %.0f s)",
-                key,
-                writer[:16],
-                ahead_ns / _NS_PER_S,
-                MAX_CLOCK_AHEAD_NS / _NS_PER_S,
+            self._warn(
+                name,
+                f"from {short(writer)} stamped {ahead_ns / _NS_PER_S:.0f} s ahead of this clock "
+                f"(more than {MAX_CLOCK_AHEAD_NS / _NS_PER_S:.0f} s)",
             )
-            return
-        name = key[len(PARAM_PREFIX) :]
-        if self._merge(name, value, stamp, writer) and notify:
-            self.watchers.fire(name, value)
+            return False
+        return True
 
-    def replies(self, matches: Callable[[str], bool]) -> list[tuple[str, bytes]]:
-        """The answer to a query: every cached write whose key ``matches`` the query."""
+    def _merge(self, name: str, value: ParamValue, stamp: int, writer: str) -> bool:
         with self._lock:
-            values = list(self._values.items())
-        replies = []
-        for name, (value, stamp, writer) in values:
-            key = PARAM_PREFIX + name
-            if matches(key):
-                replies.append((key, encode_param(value, stamp, writer)))
-        return replies
+            old = self._values.get(name)
+            if old is not None and (old[1], old[2]) >= (stamp, writer):
+                return False
+            self._values[name] = (value, stamp, writer)
+        return True
 
-    def sync(self, timeout_s: float = SYNC_TIMEOUT_S) -> None:
-        """Fetch every parameter the reachable peers hold (newest wins)."""
-        for key, data in self._fetch(timeout_s):
-            self._accept(key, data, notify=True)
+    def _warn(self, key: str, reason: str) -> None:
+        with self._lock:
+            if key in self._warned or len(self._warned) >= _WARNED_KEYS:
+                return
+            self._warned.add(key)
+        log.warning("ignoring %s: %s", key, reason)
+
+    # -- serving ------------------------------------------------------------------------------
+
+    def owned(self, is_live: Callable[[str], bool]) -> list[tuple[str, bytes]]:
+        """What this process serves: its own newest writes, and those whose writer left.
+
+        Deletions are served too, so a newcomer does not revive a deleted value.
+        """
+        with self._lock:
+            entries = list(self._values.items())
+        return [
+            (name, encode_param(value, stamp, writer))
+            for name, (value, stamp, writer) in entries
+            if writer == self.node_id or not is_live(writer)
+        ]
+
+    def held(self, name: str) -> bytes | None:
+        """The newest write of ``name`` held here, whoever owns it (for a write's confirmation)."""
+        with self._lock:
+            entry = self._values.get(name)
+        return None if entry is None else encode_param(*entry)

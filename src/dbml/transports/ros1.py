@@ -223,6 +223,11 @@ class _Ros1Params:
             else:
                 self._mirror[name] = value
 
+    def set_many(self, values: Mapping[str, ParamValue]) -> None:
+        """Write each on the parameter server (ROS 1 has no multi-set)."""
+        for name, value in values.items():
+            self.set(name, value)
+
     def get(self, name: str) -> ParamValue:
         """The mirrored value of ``name`` (no call to the master)."""
         with self._lock:

@@ -8,9 +8,11 @@ span machines. Shared memory is off unless asked for: it would bypass any shaped
 
 Key layout: topic ``/r1/camera`` is key ``r1/camera`` (and ``r1/camera/optimized``); parameter
 ``/r1/camera/dbm/priority`` is ``dbml/param/r1/camera/dbm/priority``; graph declarations are
-liveliness tokens ``dbml/graph/<role>/<host>/<uid>/<variant>/<topic>``. Parameters are
-replicated: every session caches every write, answers queries from its cache, and the newest
-write (stamp, then writer) wins (``dbml.transports.paramstore``).
+liveliness tokens ``dbml/graph/<role>/<host>/<uid>/<variant>/<topic>``; each session is a token
+``dbml/node/<node id>``. Parameters: every session caches every write (``dbml/param/**``, and the
+optimizer's batches on ``dbml/batch``) and serves what it owns under ``dbml/own/<node id>/**``;
+a session asks each session it meets, once, for what that one owns
+(``dbml.transports.paramstore``).
 """
 
 from __future__ import annotations
@@ -18,11 +20,12 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import queue
 import threading
 import time
 import uuid
 import weakref
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import TypeAlias
 
@@ -40,10 +43,10 @@ from dbml.transports.base import (
 )
 from dbml.transports.callbacks import CallbackList
 from dbml.transports.paramstore import (
+    BATCH_KEY,
     PARAM_PREFIX,
     ReplicatedParams,
     decode_param,
-    param_key,
 )
 
 try:
@@ -80,8 +83,16 @@ CONFIRM_QUERY_S = 0.5
 CONFIRM_POLL_S = 0.05
 """The pause between two queries of ``confirm_param``."""
 
+SYNC_TIMEOUT_S = 2.0
+"""How long the query for a newly met session's values waits for its answers."""
+
 _GRAPH = "dbml/graph"
 _NODE = "dbml/node"
+_OWN = "dbml/own"
+"""Each session serves what it owns under ``dbml/own/<node id>/<name>``."""
+_OWN_ANY = _OWN + "/*"
+_HELD = "held"
+"""The query parameter asking every session for the one value named, owned or not."""
 _GRAPH_KEY_SPLITS = 6
 """``dbml/graph/<role>/<host>/<uid>/<variant>/<topic...>``: the topic keeps its slashes."""
 
@@ -308,13 +319,20 @@ class ZenohTransport(TransportBase):
         # Each declaration until it is closed: a dropped zenoh object is undeclared.
         self._declared: set[_Declaration] = set()
         self._peers = threading.Event()
+        self._live: set[str] = set()
+        """The dbml sessions met and still alive, by node id."""
+        self._fetching = 0
+        self._synced = threading.Condition(self._lock)
+        self._fetches: queue.SimpleQueue[str | None] = queue.SimpleQueue()
         self._replier = self.node_id.encode()
-        self.params = ReplicatedParams(self.node_id, publish=self._publish, fetch=self._fetch)
+        self.params = ReplicatedParams(self.node_id, send=self._send)
         self.graph = _ZenohGraph(self)
+        threading.Thread(target=self._fetch_loop, name="dbml-param-sync", daemon=True).start()
         session = self.session
         self._declared |= {
             session.declare_subscriber(f"{PARAM_PREFIX}/**", self._on_param),
-            session.declare_queryable(f"{PARAM_PREFIX}/**", self._on_query),
+            session.declare_subscriber(BATCH_KEY, self._on_batch),
+            session.declare_queryable(f"{_OWN}/{self.node_id}/**", self._on_query),
             session.liveliness().declare_subscriber(
                 f"{_GRAPH}/**", self.graph.on_sample, history=True
             ),
@@ -325,8 +343,11 @@ class ZenohTransport(TransportBase):
 
     # -- the parameter store's wire -----------------------------------------------------------
 
-    def _publish(self, key: str, data: bytes) -> None:
-        # Control traffic: never dropped behind bulk data (which uses DROP), and sent ahead of it.
+    def _send(self, key: str, data: bytes) -> None:
+        """Put one parameter write or batch (on the store's sender thread, never a callback's).
+
+        Control traffic: never dropped behind bulk data (which uses DROP), and sent ahead of it.
+        """
         self.session.put(
             key,
             data,
@@ -334,44 +355,87 @@ class ZenohTransport(TransportBase):
             priority=zenoh.Priority.INTERACTIVE_HIGH,
         )
 
-    def _fetch(self, timeout_s: float) -> Iterator[tuple[str, bytes]]:
-        replies = self.session.get(
-            f"{PARAM_PREFIX}/**",
-            target=zenoh.QueryTarget.ALL,
-            consolidation=zenoh.ConsolidationMode.NONE,
-            timeout=timeout_s,
-        )
-        for reply in replies:
-            if reply.ok is not None:
-                yield str(reply.ok.key_expr), reply.ok.payload.to_bytes()
-
     def _on_param(self, sample: zenoh.Sample) -> None:
         self.params.on_write(str(sample.key_expr), sample.payload.to_bytes())
 
+    def _on_batch(self, sample: zenoh.Sample) -> None:
+        self.params.on_batch(sample.payload.to_bytes())
+
+    def _is_live(self, node: str) -> bool:
+        with self._lock:
+            return node == self.node_id or node in self._live
+
     def _on_query(self, query: zenoh.Query) -> None:
-        for key, data in self.params.replies(query.key_expr.intersects):
-            query.reply(key, data, attachment=self._replier)
+        """Serve what this session owns; or, asked ``?held``, the one value named, whoever's."""
+        own = f"{_OWN}/{self.node_id}"
+        if _HELD in str(query.parameters):
+            key = str(query.key_expr)
+            name = key[len(_OWN_ANY) :] if key.startswith(_OWN_ANY + "/") else ""
+            data = self.params.held(name) if name else None
+            if data is not None:
+                query.reply(own + name, data, attachment=self._replier)
+            return
+        for name, data in self.params.owned(self._is_live):
+            reply_key = own + name
+            if query.key_expr.intersects(reply_key):
+                query.reply(reply_key, data, attachment=self._replier)
 
     def _on_node(self, sample: zenoh.Sample) -> None:
         node = str(sample.key_expr).rsplit("/", 1)[-1]
-        if node == self.node_id or sample.kind != zenoh.SampleKind.PUT:
+        if node == self.node_id:
             return
+        with self._lock:
+            if sample.kind != zenoh.SampleKind.PUT:
+                self._live.discard(node)
+                return
+            if node in self._live:
+                return
+            self._live.add(node)
+            self._fetching += 1
         self._peers.set()
-        # A session we had not seen: fetch what it knows, off the callback thread.
-        threading.Thread(target=self._sync, name="dbml-param-sync", daemon=True).start()
+        # A session we had not met: ask it (and it alone) what it owns, off this thread.
+        self._fetches.put(node)
 
-    def _sync(self) -> None:
-        try:
-            self.params.sync()
-        except zenoh.ZError as err:
-            if not self._closed:
-                log.warning("parameter sync failed: %s", err)
+    def _fetch_loop(self) -> None:
+        """Ask each newly met session for its values; answers arrive on zenoh's threads."""
+        while (node := self._fetches.get()) is not None:
+            prefix = f"{_OWN}/{node}"
+
+            def on_reply(reply: zenoh.Reply, prefix: str = prefix) -> None:
+                sample = reply.ok
+                if sample is None:
+                    return
+                key = str(sample.key_expr)
+                if key.startswith(prefix + "/"):
+                    self.params.on_value(key[len(prefix) :], sample.payload.to_bytes())
+
+            try:
+                self.session.get(
+                    f"{prefix}/**",
+                    zenoh.handlers.Callback(on_reply, self._fetched),
+                    target=zenoh.QueryTarget.ALL,
+                    consolidation=zenoh.ConsolidationMode.NONE,
+                    timeout=SYNC_TIMEOUT_S,
+                )
+            except zenoh.ZError as err:
+                self._fetched()
+                if not self._closed:
+                    log.warning("parameter sync with %s failed: %s", node, err)
+
+    def _fetched(self) -> None:
+        with self._lock:
+            self._fetching -= 1
+            self._synced.notify_all()
 
     def wait_for_peers(self, timeout_s: float) -> bool:
-        """Wait until another dbml session is reachable (and its parameters fetched)."""
+        """Wait until another dbml session is reachable and what the sessions met own is here."""
+        deadline = time.monotonic() + timeout_s
         if not self._peers.wait(timeout_s):
             return False
-        self.params.sync(timeout_s)
+        with self._lock:
+            self._synced.wait_for(
+                lambda: self._fetching == 0, timeout=max(0.0, deadline - time.monotonic())
+            )
         return True
 
     def confirm_param(self, name: str, *, timeout_s: float) -> bool:
@@ -379,10 +443,13 @@ class ZenohTransport(TransportBase):
         mine = self.params.stamp(name)
         if mine is None:
             return False
+        check_topic(name)
         deadline = time.monotonic() + timeout_s
+        if not self.params.flush(timeout_s):
+            return False
         while (left := deadline - time.monotonic()) > 0:
             replies = self.session.get(
-                param_key(name),
+                f"{_OWN_ANY}{name}?{_HELD}",
                 target=zenoh.QueryTarget.ALL,
                 consolidation=zenoh.ConsolidationMode.NONE,
                 timeout=min(CONFIRM_QUERY_S, left),
@@ -393,7 +460,10 @@ class ZenohTransport(TransportBase):
                     continue
                 if sample.attachment.to_bytes() == self._replier:
                     continue  # our own cache answering
-                _, stamp, writer = decode_param(sample.payload.to_bytes())
+                try:
+                    _, stamp, writer = decode_param(sample.payload.to_bytes())
+                except TransportError:
+                    continue
                 if (stamp, writer) == mine:
                     return True
             time.sleep(min(CONFIRM_POLL_S, max(0.0, deadline - time.monotonic())))
@@ -446,11 +516,14 @@ class ZenohTransport(TransportBase):
         return Closer(undeclare)
 
     def close(self) -> None:
-        """Close the session, which undeclares everything it declared."""
+        """Send the queued parameter writes (bounded), then close the session."""
         with self._lock:
             if self._closed:
                 return
             self._closed = True
+        self.params.close()
+        self._fetches.put(None)
+        with self._lock:
             self._declared.clear()
         _OPEN.discard(self)
         try:

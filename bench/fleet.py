@@ -1,0 +1,954 @@
+"""Fleet: dbml's control plane at fleet size, R robots x C channels, as real processes.
+
+On a private loopback zenoh mesh (``DBML_ZENOH_PORT``, shared memory off): one optimizer
+(``python -m dbml optimizer --config FILE --host base``), one operator process with a
+``ManagedSubscriber`` per channel (host ``operator``, so every channel is managed), and robots,
+each its own zenoh session and host (``r1``, ``r2``, ...) with C channels ``/rK/ch0..`` of
+84,000 / 21,000 / 8,000 / 1,000 bytes (cycling) at 1-16 Hz, up to 10 robots per worker process
+(this script with ``--worker``), one pacing thread per robot. Budget: 60 % of the sum of max rate
+x size, strategy ``paper``. A probe session (host ``bench``) reads the parameters. Per size:
+
+- ``converge_s``: from the spawn of the last robot process (interpreter start included) until
+  ``/dbm/status`` is ``optimal`` and every channel is managed, has a ``current_value`` within 2 %
+  of the fleet's ``allocate()`` and an ``applied_value`` equal to it (the publisher applied it);
+  null if not within 60 s, and the rest is still measured.
+- ``reaction_p50_ms`` / ``reaction_p99_ms``: 50 priority writes by the probe to random channels,
+  each drawn to change that channel's allocated rate, timed from ``params.set`` to the arrival of
+  that channel's ``applied_value`` at a new value; no ack within 2 s counts as 2000 ms (a lower
+  bound). The fleet settles on the new allocation before the next change.
+- ``control_msgs_per_s`` / ``control_bytes_per_s``: payloads on ``dbml/**`` (parameter writes and
+  batches; liveliness and queries are not puts, not counted) over the steady state
+  (``--seconds``, default 5, after convergence); ``optimizer_cpu_pct``: the optimizer's utime +
+  stime over it (100 = one core); ``fleet_cpu_pct`` / ``host_cpu_pct``: every process of the run /
+  the whole machine (other workloads included), for context.
+- ``delivered_over_budget``: the worst sliding 1-s window of ``**/optimized`` payload bytes (a
+  ``WireSniffer`` in the operator's session) over the budget, from convergence to the end of the
+  reactions; ``..._steady`` over the steady state only; ``delivered_mean_over_budget``: its mean;
+  ``delivered_ideal_over_budget``: the same window over perfectly periodic publishers at the
+  allocated rates, which reads above 1 too (a window holds whole messages): the metric's floor.
+- ``failsafe_events``: warnings containing ``fail-safe`` logged in the robot processes, from start
+  to teardown. ``sessions``: robots + operator + optimizer + probe.
+
+    python bench/fleet.py [--robots R] [--channels C] [--seconds S] [--json]
+
+Default sizes 2x4, 10x4, 20x4, 40x4, 80x4. Targets (for 40x4): converge <= 5 s, reaction p99
+<= 50 ms, no fail-safe event, delivered <= budget, control bytes <= 1 % of the budget. Before the
+runtime's rewrite: 20x4 converged in 6.3 s with reaction p99 64.7 ms and 34 fail-safe warnings;
+40x4 never converged.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import logging
+import math
+import os
+import queue
+import random
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Callable
+from functools import partial
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+from rich.console import Console
+from rich.table import Table
+
+from dbml import ChannelSpec, Problem, allocate
+from dbml.core.allocation import Status
+from dbml.harness.processes import RoleProcesses, emit_json, end_process, free_port
+from dbml.harness.sniffer import WireSniffer, window_stats
+from dbml.runtime import names
+from dbml.runtime.publisher import ManagedPublisher
+from dbml.runtime.subscriber import ManagedSubscriber
+from dbml.transports.base import ParamValue, Sample
+from dbml.transports.zenoh import ZenohTransport
+
+SIZES_BYTES = (84_000, 21_000, 8_000, 1_000)
+MIN_HZ, MAX_HZ = 1.0, 16.0
+BUDGET_SHARE = 0.6
+"""Of the sum of max rate x size: the floors fit and the big channels compete."""
+STRATEGY = "paper"
+DEFAULT_SIZES = ((2, 4), (10, 4), (20, 4), (40, 4), (80, 4))
+ROBOTS_PER_WORKER = 10
+STEADY_S = 5.0
+CHANGES = 50
+PRIORITY_STEPS = (0.0, 0.25, 0.5, 0.75, 1.0)
+DRAWS = 1000
+"""Bound on the random draws looking for a priority change that changes the allocation."""
+SEED = 1
+
+RATE_TOL = 0.02
+CONVERGE_S = 60.0
+READY_S = 60.0
+"""Each robot's session and publishers are set up within this."""
+OPERATOR_READY_S = 120.0
+"""The operator's subscribers (one per channel) are set up within this."""
+CHANGE_TIMEOUT_S = 2.0
+SETTLE_S = 5.0
+REACTIONS_S = 120.0
+"""Wall-clock bound on the whole series of changes."""
+PEER_WAIT_S = 2.0
+"""As ``dbml publish`` / ``dbml subscribe`` wait for a peer before declaring anything."""
+POLL_S = 0.05
+"""Longest a pacing thread or a waiter sleeps before looking again (as ``Rate`` polls)."""
+CHECK_S = 0.02
+"""Shortest interval between two evaluations of a whole-fleet predicate."""
+STOP_S = 10.0
+
+TARGET_SIZE = (40, 4)
+TARGETS: dict[str, Any] = {
+    "robots": TARGET_SIZE[0],
+    "channels": TARGET_SIZE[1],
+    "converge_s_max": 5.0,
+    "reaction_p99_ms_max": 50.0,
+    "failsafe_events_max": 0,
+    "delivered_over_budget_max": 1.0,
+    "control_share_of_budget_max": 0.01,
+    "before": {
+        "20x4": {"converge_s": 6.3, "reaction_p99_ms": 64.7, "failsafe_events": 34},
+        "40x4": {"converge_s": None, "note": "never converged"},
+    },
+}
+FAILSAFE_TEXT = "fail-safe"
+"""In the publisher's warning: 'no allocation heard for ... ; fail-safe: minimum ... Hz'."""
+
+_started = time.monotonic()
+
+
+def note(message: str) -> None:
+    """Progress on stderr, so ``--json`` keeps stdout to the document."""
+    print(f"[fleet {time.monotonic() - _started:7.1f}s] {message}", file=sys.stderr, flush=True)
+
+
+class Channel(NamedTuple):
+    topic: str
+    size_bytes: int
+    host: str
+
+
+def fleet_channels(robots: int, channels: int) -> list[Channel]:
+    return [
+        Channel(f"/r{r}/ch{c}", SIZES_BYTES[c % len(SIZES_BYTES)], f"r{r}")
+        for r in range(1, robots + 1)
+        for c in range(channels)
+    ]
+
+
+def expected_rates(
+    channels: list[Channel], priorities: dict[str, float], budget_mbit: float
+) -> dict[str, float] | None:
+    """The optimizer's allocation for these priorities; None when infeasible.
+
+    The optimizer declares its channels by topic, and the ``paper`` strategy gives ties (equal
+    size and priority) in declaration order: so do we, or /r10/ch0 and /r2/ch0 swap rates.
+    """
+    specs = tuple(
+        ChannelSpec(c.topic, MIN_HZ, MAX_HZ, float(c.size_bytes), priorities.get(c.topic, 0.0))
+        for c in sorted(channels)
+    )
+    allocation = allocate(Problem(specs, bandwidth_mbit=budget_mbit), strategy=STRATEGY)
+    if allocation.status is not Status.OPTIMAL:
+        return None
+    return allocation.rates_by_topic()
+
+
+def close_to(value: ParamValue, rate_hz: float) -> bool:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return False
+    return math.isclose(value, rate_hz, rel_tol=RATE_TOL)
+
+
+def cpu_ticks(pid: int) -> int | None:
+    """The user + system CPU time of ``pid`` in clock ticks; None once it is gone."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    fields = stat.rsplit(")", 1)[1].split()  # after "pid (comm)": state is field 3
+    return int(fields[11]) + int(fields[12])  # fields 14 and 15
+
+
+def host_busy_ticks() -> tuple[int, int]:
+    """All cores' busy and total clock ticks so far (``/proc/stat``)."""
+    fields = [int(f) for f in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
+    total = sum(fields[:8])  # user nice system idle iowait irq softirq steal (guest is in user)
+    return total - fields[3] - fields[4], total
+
+
+def ideal_delivered(
+    channels: list[Channel], rates_hz: dict[str, float], budget_bps: float, seconds: float
+) -> float:
+    """The worst 1-s window over the budget for perfectly periodic publishers at ``rates_hz``.
+
+    Random phases, no jitter, no overspend: what the window metric reads anyway, because a
+    window holds whole messages (a 7.3 Hz channel puts 8 of them in some windows).
+    """
+    rng = random.Random(SEED)
+    arrivals = []
+    for channel in channels:
+        period = 1.0 / rates_hz[channel.topic]
+        first = rng.uniform(0.0, period)
+        count = int((max(seconds, 2.0) - first) / period) + 1
+        arrivals += [(first + k * period, channel.size_bytes) for k in range(count)]
+    return round(window_stats(arrivals, limit_bytes=budget_bps).worst_bytes / budget_bps, 4)
+
+
+def percentile(values: list[float], q: float) -> float | None:
+    return round(float(np.percentile(values, q)), 3) if values else None
+
+
+# -- worker processes (robots, operator) ------------------------------------------------------
+
+
+class Emitter:
+    """JSON lines on stdout from any thread."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+
+    def __call__(self, message: dict[str, Any]) -> None:
+        with self._lock, contextlib.suppress(OSError, ValueError):
+            emit_json(message)
+
+
+class FailsafeCounter(logging.Handler):
+    """Reports each fail-safe warning as it is logged (the pacing threads log it)."""
+
+    def __init__(self, emit: Emitter) -> None:
+        super().__init__(logging.WARNING)
+        self._emit = emit
+
+    def emit(self, record: logging.LogRecord) -> None:
+        message = record.getMessage()
+        if FAILSAFE_TEXT in message:
+            self._emit({"type": "failsafe", "message": message})
+
+
+def read_commands(commands: queue.Queue[str], stop: threading.Event) -> None:
+    """Lines of stdin into ``commands``; ``stop`` or EOF (the parent gone) ends the worker."""
+    try:
+        for line in sys.stdin:
+            if line.startswith("stop"):
+                break
+            commands.put(line.strip())
+    finally:
+        stop.set()
+
+
+def ignore_sample(_sample: Sample) -> None:
+    """The operator keeps nothing: the operator's sniffer counts the bytes."""
+
+
+def run_operator(
+    spec: dict[str, Any], emit: Emitter, commands: queue.Queue[str], stop: threading.Event
+) -> int:
+    transport = ZenohTransport(host="operator", port=spec["port"])
+    subscribers: list[ManagedSubscriber] = []
+    sniffer: WireSniffer | None = None
+    try:
+        transport.wait_for_peers(PEER_WAIT_S)
+        sniffer = WireSniffer(transport.session, "**/optimized")
+        for topic in spec["topics"]:
+            if stop.is_set():
+                return 0
+            subscribers.append(ManagedSubscriber(transport, topic, ignore_sample))
+        emit({"type": "ready", "subscribers": len(subscribers)})
+        while not stop.is_set():
+            try:
+                command = commands.get(timeout=POLL_S * 10)
+            except queue.Empty:
+                continue
+            words = command.split()
+            if words[:1] == ["stats"] and len(words) == 4:
+                since_s, until_s, limit = (float(w) for w in words[1:])
+                arrivals = [a for a in sniffer.arrivals(since_s=since_s) if a[0] <= until_s]
+                stats = window_stats(arrivals, limit_bytes=limit)
+                emit(
+                    {
+                        "type": "stats",
+                        "samples": len(arrivals),
+                        "bytes": sum(n for _, n in arrivals),
+                        "windows": stats.windows,
+                        "worst_bytes": stats.worst_bytes,
+                        "over_share": stats.over_share,
+                    }
+                )
+    finally:
+        for subscriber in subscribers:
+            subscriber.close()
+        if sniffer is not None:
+            sniffer.close()
+        transport.close()
+    return 0
+
+
+class Robot(threading.Thread):
+    """One robot: its own session and host, its channels paced from this one thread.
+
+    Each channel is published when one period of its current rate has passed since its last
+    tick (``Rate.sleep``'s schedule, for several channels at once: a new rate applies within
+    ``POLL_S``); ``publish`` then rate-limits ``[topic]/optimized`` itself.
+    """
+
+    def __init__(
+        self,
+        host: str,
+        channels: list[tuple[str, int]],
+        port: int,
+        stop: threading.Event,
+        done: Callable[[str, str | None], None],
+    ) -> None:
+        super().__init__(name=f"robot-{host}", daemon=True)
+        self.host = host
+        self._channels = channels
+        self._port = port
+        self._stop_event = stop
+        self._done = done
+
+    def run(self) -> None:
+        try:
+            transport = ZenohTransport(host=self.host, port=self._port)
+        except Exception as err:
+            self._done(self.host, f"session: {err}")
+            return
+        publishers: list[ManagedPublisher] = []
+        try:
+            transport.wait_for_peers(PEER_WAIT_S)
+            payloads = [bytes(size) for _, size in self._channels]
+            for topic, _ in self._channels:
+                publishers.append(
+                    ManagedPublisher(transport, topic, min_rate_hz=MIN_HZ, max_rate_hz=MAX_HZ)
+                )
+            self._done(self.host, None)
+            self._pace(publishers, payloads)
+        except Exception as err:
+            logging.getLogger("fleet").exception("robot %s failed", self.host)
+            self._done(self.host, f"{type(err).__name__}: {err}")
+        finally:
+            for publisher in publishers:
+                with contextlib.suppress(Exception):
+                    publisher.close()
+            transport.close()
+
+    def _pace(self, publishers: list[ManagedPublisher], payloads: list[bytes]) -> None:
+        last: list[float | None] = [None] * len(publishers)
+        stop = self._stop_event
+        while not stop.is_set():
+            now = time.monotonic()
+            next_s = now + POLL_S
+            for i, publisher in enumerate(publishers):
+                period = 1.0 / publisher.current_rate_hz()
+                tick = last[i]
+                due = now if tick is None else tick + period
+                if now >= due:
+                    publisher.publish(payloads[i])
+                    # On schedule, unless behind by a period or more: then restart from now.
+                    tick = due if tick is not None and now - due < period else now
+                    last[i] = tick
+                    due = tick + period
+                next_s = min(next_s, due)
+            stop.wait(max(0.0, next_s - time.monotonic()))
+
+
+def run_robots(
+    spec: dict[str, Any], emit: Emitter, commands: queue.Queue[str], stop: threading.Event
+) -> int:
+    cond = threading.Condition()
+    outcomes: dict[str, str | None] = {}
+
+    def done(host: str, failure: str | None) -> None:
+        with cond:
+            outcomes.setdefault(host, failure)
+            cond.notify_all()
+
+    robots = [
+        Robot(r["host"], [(t, int(s)) for t, s in r["channels"]], spec["port"], stop, done)
+        for r in spec["robots"]
+    ]
+    for robot in robots:
+        robot.start()
+    with cond:
+        cond.wait_for(lambda: len(outcomes) == len(robots) or stop.is_set(), timeout=READY_S)
+        failed = {h: f for h, f in outcomes.items() if f is not None}
+        missing = [r.host for r in robots if r.host not in outcomes]
+    emit({"type": "ready", "robots": len(robots), "failed": failed, "not_ready": missing})
+    while not stop.wait(POLL_S * 10):
+        with contextlib.suppress(queue.Empty):
+            commands.get_nowait()  # robots take no commands but stop
+    deadline = time.monotonic() + STOP_S / 2
+    for robot in robots:
+        robot.join(timeout=max(0.0, deadline - time.monotonic()))
+    return 0
+
+
+def worker_main(spec_text: str) -> int:
+    spec: dict[str, Any] = json.loads(spec_text)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    logging.basicConfig(
+        level=logging.WARNING,
+        format="%(asctime)s %(threadName)s %(name)s: %(message)s",
+        stream=sys.stderr,
+    )
+    emit = Emitter()
+    logging.getLogger().addHandler(FailsafeCounter(emit))
+    commands: queue.Queue[str] = queue.Queue()
+    threading.Thread(target=read_commands, args=(commands, stop), daemon=True).start()
+    if spec["role"] == "operator":
+        return run_operator(spec, emit, commands, stop)
+    return run_robots(spec, emit, commands, stop)
+
+
+# -- the bench's side -------------------------------------------------------------------------
+
+
+class Fleet:
+    """The processes of one size, each ended by its PID, and what they report."""
+
+    def __init__(self, port: int, workdir: Path) -> None:
+        self._env = dict(os.environ, DBML_ZENOH_PORT=str(port))
+        self._workdir = workdir
+        self.roles = RoleProcesses()
+        self.optimizer: subprocess.Popen[bytes] | None = None
+        self._cond = threading.Condition()
+        self.ready: dict[str, dict[str, Any]] = {}
+        self.ended: set[str] = set()
+        self._failsafe = 0
+        self._counting = True
+        self.stats: queue.Queue[dict[str, Any]] = queue.Queue()
+        self._closing = threading.Event()
+        self._inbox = threading.Thread(target=self._pump, name="inbox", daemon=True)
+        self._inbox.start()
+
+    def _pump(self) -> None:
+        while not self._closing.is_set():
+            try:
+                role, message = self.roles.messages.get(timeout=POLL_S * 4)
+            except queue.Empty:
+                continue
+            with self._cond:
+                if message is None:
+                    self.ended.add(role)
+                elif message.get("type") == "ready":
+                    self.ready[role] = message
+                elif message.get("type") == "failsafe" and self._counting:
+                    self._failsafe += 1
+                elif message.get("type") == "stats":
+                    self.stats.put(message)
+                self._cond.notify_all()
+
+    def start_optimizer(self, config: Path) -> None:
+        log = self._workdir / "optimizer.log"
+        argv = [sys.executable, "-m", "dbml", "optimizer", "--config", str(config)]
+        with log.open("wb") as err:
+            self.optimizer = subprocess.Popen(
+                [*argv, "--host", "base"],
+                stdin=subprocess.DEVNULL,
+                stdout=subprocess.DEVNULL,
+                stderr=err,
+                env=self._env,
+            )
+
+    def spawn(self, role: str, spec: dict[str, Any]) -> None:
+        argv = [sys.executable, str(Path(__file__).resolve()), "--worker", json.dumps(spec)]
+        self.roles.spawn(role, argv, env=self._env)
+
+    def wait_ready(self, roles: list[str], timeout_s: float) -> bool:
+        with self._cond:
+            return self._cond.wait_for(
+                lambda: all(r in self.ready or r in self.ended for r in roles), timeout=timeout_s
+            ) and all(r in self.ready for r in roles)
+
+    def dead(self) -> list[str]:
+        """The processes that ended (none should before teardown)."""
+        gone = sorted(self.ended)
+        if self.optimizer is not None and self.optimizer.poll() is not None:
+            gone.append(f"optimizer (exit {self.optimizer.returncode})")
+        return gone
+
+    def watch_window(self, seconds: float) -> None:
+        """Let ``seconds`` pass, or less if a process ends."""
+        deadline = time.monotonic() + seconds
+        with self._cond:
+            while (left := deadline - time.monotonic()) > 0 and not self.dead():
+                self._cond.wait(timeout=min(left, POLL_S * 4))
+
+    def failsafe_events(self, *, freeze: bool = False) -> int:
+        with self._cond:
+            if freeze:
+                self._counting = False
+            return self._failsafe
+
+    def operator_stats(self, since_s: float, until_s: float, limit: float) -> dict[str, Any] | None:
+        with contextlib.suppress(queue.Empty):
+            while True:
+                self.stats.get_nowait()  # a late answer to an earlier question
+        child = self.roles.children.get("operator")
+        if child is None or child.poll() is not None or child.stdin is None:
+            return None
+        try:
+            child.stdin.write(f"stats {since_s!r} {until_s!r} {limit!r}\n")
+            child.stdin.flush()
+        except OSError:
+            return None
+        deadline = time.monotonic() + STOP_S
+        while child.poll() is None and time.monotonic() < deadline:
+            with contextlib.suppress(queue.Empty):
+                return self.stats.get(timeout=POLL_S * 4)
+        return None
+
+    def pids(self) -> list[int]:
+        """This process and every process started here."""
+        children = [c.pid for c in self.roles.children.values()]
+        return [os.getpid(), *([] if self.optimizer is None else [self.optimizer.pid]), *children]
+
+    def robot_failures(self, workers: list[str], robots: int) -> int:
+        """Robots whose session or publishers were not set up (all of a silent worker's)."""
+        with self._cond:
+            reports = [self.ready.get(w) for w in workers]
+        up = sum(int(r["robots"]) - len(r["failed"]) - len(r["not_ready"]) for r in reports if r)
+        return robots - up
+
+    def tail(self, role: str) -> str:
+        if role == "optimizer":
+            return (self._workdir / "optimizer.log").read_text(errors="replace")[-2000:]
+        return self.roles.log_tail(role)
+
+    def close(self) -> None:
+        try:
+            self.roles.close()  # stop, then SIGTERM, then SIGKILL: by PID
+        finally:
+            if self.optimizer is not None:
+                end_process(self.optimizer, timeout_s=STOP_S)
+            self._closing.set()
+            self._inbox.join(timeout=STOP_S)
+
+
+class Probe:
+    """The bench's session: every parameter change wakes waiters; stamps awaited acks."""
+
+    def __init__(self, transport: ZenohTransport) -> None:
+        self.params = transport.params
+        self._cond = threading.Condition()
+        self._version = 0
+        self._awaited: str | None = None
+        self._before: ParamValue = None
+        self._arrived: tuple[float, ParamValue] | None = None
+        self._handle = transport.params.watch(self._on_param)
+
+    def _on_param(self, name: str, value: ParamValue) -> None:
+        now = time.perf_counter()
+        with self._cond:
+            self._version += 1
+            if name == self._awaited and self._arrived is None and value != self._before:
+                self._arrived = (now, value)
+            self._cond.notify_all()
+
+    def arm(self, name: str) -> None:
+        before = self.params.get(name)  # outside our lock: the store may call us under its own
+        with self._cond:
+            self._awaited, self._before, self._arrived = name, before, None
+
+    def arrival(self, timeout_s: float) -> tuple[float, ParamValue] | None:
+        """When the armed parameter took a new value (perf_counter) and that value."""
+        with self._cond:
+            self._cond.wait_for(lambda: self._arrived is not None, timeout=timeout_s)
+            self._awaited = None
+            return self._arrived
+
+    def wait_until(
+        self, predicate: Callable[[], bool], timeout_s: float, abort: Callable[[], bool]
+    ) -> bool:
+        """Evaluate ``predicate`` after parameter changes (at most every ``CHECK_S``)."""
+        deadline = time.monotonic() + timeout_s
+        seen, checked = -1, 0.0
+        while True:
+            with self._cond:
+                version = self._version
+            if version != seen:
+                seen = version
+                checked = time.monotonic()
+                if predicate():
+                    return True
+            if abort():
+                return False
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return False
+            with self._cond:
+                self._cond.wait_for(partial(self._changed, seen), timeout=min(left, POLL_S))
+            pause = CHECK_S - (time.monotonic() - checked)
+            if pause > 0:
+                time.sleep(min(pause, max(0.0, deadline - time.monotonic())))
+
+    def settled_count(self, expected: dict[str, float]) -> int:
+        """Channels managed, allocated ``expected`` (2 %) and acknowledged by the publisher."""
+        get = self.params.get
+        count = 0
+        for topic, rate in expected.items():
+            current = get(names.current_value(topic))
+            count += (
+                get(names.managed(topic)) is True
+                and close_to(current, rate)
+                and get(names.applied(topic)) == current
+            )
+        return count
+
+    def unsettled(self, expected: dict[str, float], shown: int = 5) -> list[str]:
+        """What the first ``shown`` unsettled channels hold, for a diagnostic."""
+        get = self.params.get
+        found = []
+        for topic, rate in expected.items():
+            held = [get(names.managed(topic)), get(names.current_value(topic))]
+            held.append(get(names.applied(topic)))
+            if not (held[0] is True and close_to(held[1], rate) and held[2] == held[1]):
+                found.append(f"{topic} managed/current/applied={held} expected {rate:.4g}")
+        return found[:shown]
+
+    def settled(self, expected: dict[str, float]) -> bool:
+        if self.params.get(names.STATUS) != Status.OPTIMAL.value:
+            return False
+        return self.settled_count(expected) == len(expected)
+
+    def _changed(self, seen: int) -> bool:
+        return self._version != seen
+
+    def close(self) -> None:
+        self._handle.close()
+
+
+def draw_change(
+    rng: random.Random,
+    channels: list[Channel],
+    priorities: dict[str, float],
+    budget_mbit: float,
+    expected: dict[str, float],
+) -> tuple[str, float, dict[str, float]] | None:
+    """A channel and a priority that change that channel's allocated rate (and stay feasible)."""
+    for _ in range(DRAWS):
+        channel = rng.choice(channels)
+        priority = rng.choice(PRIORITY_STEPS)
+        if priority == priorities[channel.topic]:
+            continue
+        rates = expected_rates(channels, {**priorities, channel.topic: priority}, budget_mbit)
+        old = expected[channel.topic]
+        if rates is not None and not math.isclose(rates[channel.topic], old, rel_tol=RATE_TOL):
+            return channel.topic, priority, rates
+    return None
+
+
+def empty_row(robots: int, channels: int, budget_bytes_per_s: float) -> dict[str, Any]:
+    return {
+        "robots": robots,
+        "channels": channels,
+        "sessions": robots + 3,
+        "budget_bytes_per_s": round(budget_bytes_per_s),
+        "converge_s": None,
+        "reaction_p50_ms": None,
+        "reaction_p99_ms": None,
+        "control_msgs_per_s": None,
+        "control_bytes_per_s": None,
+        "delivered_over_budget": None,
+        "optimizer_cpu_pct": None,
+        "failsafe_events": None,
+        "delivered_over_budget_steady": None,
+        "delivered_mean_over_budget": None,
+        "delivered_ideal_over_budget": None,
+        "fleet_cpu_pct": None,
+        "host_cpu_pct": None,
+        "settled_channels": 0,
+        "reaction_changes": 0,
+        "reaction_misses": 0,
+        "reaction_unsettled": 0,
+        "robot_failures": 0,
+        "error": None,
+    }
+
+
+class Run(NamedTuple):
+    port: int
+    config: Path
+    channels: list[Channel]
+    budget_mbit: float
+    steady_s: float
+
+
+def measure_size(robots: int, per_robot: int, seconds: float) -> dict[str, Any]:
+    """One size: a row with what could be measured (and ``error`` saying what could not)."""
+    channels = fleet_channels(robots, per_robot)
+    budget_bps = BUDGET_SHARE * sum(MAX_HZ * c.size_bytes for c in channels)
+    budget_mbit = budget_bps * 8 / 1e6
+    if expected_rates(channels, {}, budget_mbit) is None:
+        raise SystemExit(f"{robots}x{per_robot}: the floors do not fit the budget")
+    row = empty_row(robots, per_robot, budget_bps)
+    port = free_port()
+    note(f"{robots}x{per_robot}: {len(channels)} channels, port {port}, {budget_mbit:.1f} Mbit/s")
+    with contextlib.ExitStack() as stack:
+        workdir = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="dbml-fleet-")))
+        config = workdir / "dbm.yaml"
+        config.write_text(
+            f"dbm:\n  max_bandwidth_in_mbit: {budget_mbit!r}\n"
+            f"  optimization_rate_in_seconds: 1\n  strategy: {STRATEGY}\n"
+        )
+        try:
+            # This session first, so it holds the rendezvous for the whole run.
+            transport = ZenohTransport(host="bench", port=port)
+            stack.callback(transport.close)
+            control = WireSniffer(transport.session, "dbml/**")
+            stack.callback(control.close)
+            probe = Probe(transport)
+            stack.callback(probe.close)
+            fleet = Fleet(port, workdir)
+            stack.callback(fleet.close)
+            try:
+                run_size(
+                    fleet, probe, control, Run(port, config, channels, budget_mbit, seconds), row
+                )
+            finally:
+                row["failsafe_events"] = fleet.failsafe_events(freeze=True)
+                if row["error"] is not None:
+                    for role in ["optimizer", *sorted(fleet.roles.children)]:
+                        tail = fleet.tail(role).strip().splitlines()[-5:]
+                        if tail:
+                            note(f"--- {role} ---\n" + "\n".join(tail))
+                note(f"{robots}x{per_robot}: stopping")
+        except Exception as err:  # a runtime that fails at this size: report it, go on
+            row["error"] = f"{type(err).__name__}: {err}"
+            note(f"{robots}x{per_robot}: {row['error']}")
+    note(f"{robots}x{per_robot}: {json.dumps(row)}")
+    return row
+
+
+def run_size(
+    fleet: Fleet, probe: Probe, control: WireSniffer, run: Run, row: dict[str, Any]
+) -> None:
+    channels = run.channels
+    budget_bps = run.budget_mbit * 1e6 / 8
+    expected = expected_rates(channels, {}, run.budget_mbit)
+    assert expected is not None
+    fleet.start_optimizer(run.config)
+    topics = [c.topic for c in channels]
+    fleet.spawn("operator", {"role": "operator", "port": run.port, "topics": topics})
+    if not fleet.wait_ready(["operator"], OPERATOR_READY_S):
+        dead = fleet.dead() or "none"
+        row["error"] = f"operator not ready within {OPERATOR_READY_S:g} s (ended: {dead})"
+        return
+    note("operator ready; starting the robots")
+    hosts = list(dict.fromkeys(c.host for c in channels))
+    workers = []
+    for first in range(0, len(hosts), ROBOTS_PER_WORKER):
+        group = hosts[first : first + ROBOTS_PER_WORKER]
+        role = f"robots-{group[0]}-{group[-1]}"
+        robots = [
+            {"host": h, "channels": [[c.topic, c.size_bytes] for c in channels if c.host == h]}
+            for h in group
+        ]
+        fleet.spawn(role, {"role": "robots", "port": run.port, "robots": robots})
+        workers.append(role)
+    t0 = time.monotonic()
+
+    def abort() -> bool:
+        return bool(fleet.dead())
+
+    converged = probe.wait_until(lambda: probe.settled(expected), CONVERGE_S, abort)
+    if converged:
+        row["converge_s"] = round(time.monotonic() - t0, 3)
+        note(f"converged in {row['converge_s']} s")
+    else:
+        dead = fleet.dead()
+        row["error"] = f"not converged within {CONVERGE_S:g} s" + (
+            f" (ended: {dead})" if dead else ""
+        )
+        status = probe.params.get(names.STATUS)
+        note(f"{row['error']}; status {status!r}; " + "; ".join(probe.unsettled(expected)))
+    row["settled_channels"] = probe.settled_count(expected)
+    row["robot_failures"] = fleet.robot_failures(workers, len(hosts))
+
+    # Steady state: control traffic and the optimizer's CPU.
+    assert fleet.optimizer is not None
+    pid = fleet.optimizer.pid
+    pids = fleet.pids()
+    ticks_a, host_a, t_a = cpu_ticks(pid), host_busy_ticks(), time.monotonic()
+    own_a = [cpu_ticks(p) for p in pids]
+    fleet.watch_window(run.steady_s)
+    ticks_b, host_b, t_b = cpu_ticks(pid), host_busy_ticks(), time.monotonic()
+    own_b = [cpu_ticks(p) for p in pids]
+    hz = os.sysconf("SC_CLK_TCK")
+    spent = sum(b - a for a, b in zip(own_a, own_b, strict=True) if a is not None and b is not None)
+    row["fleet_cpu_pct"] = round(100 * spent / hz / (t_b - t_a), 1)
+    if host_b[1] > host_a[1]:
+        busy = (host_b[0] - host_a[0]) / (host_b[1] - host_a[1])
+        row["host_cpu_pct"] = round(100 * busy * (os.cpu_count() or 1), 1)
+    span_s = t_b - t_a
+    arrivals = [a for a in control.arrivals(since_s=t_a) if a[0] <= t_b]
+    row["control_msgs_per_s"] = round(len(arrivals) / span_s, 2)
+    row["control_bytes_per_s"] = round(sum(n for _, n in arrivals) / span_s, 1)
+    if ticks_a is not None and ticks_b is not None:
+        cpu_s = (ticks_b - ticks_a) / hz
+        row["optimizer_cpu_pct"] = round(100 * cpu_s / span_s, 1)
+
+    row["delivered_ideal_over_budget"] = ideal_delivered(
+        channels, expected, budget_bps, run.steady_s
+    )
+    stats = fleet.operator_stats(t_a, t_b, budget_bps)
+    if stats is not None and stats["windows"]:
+        row["delivered_over_budget_steady"] = round(stats["worst_bytes"] / budget_bps, 4)
+        row["delivered_mean_over_budget"] = round(stats["bytes"] / span_s / budget_bps, 4)
+    if converged:
+        react(probe, channels, expected, run.budget_mbit, row=row, abort=abort)
+    stats = fleet.operator_stats(t_a, time.monotonic(), budget_bps)
+    if stats is not None and stats["windows"]:
+        row["delivered_over_budget"] = round(stats["worst_bytes"] / budget_bps, 4)
+    if fleet.dead() and row["error"] is None:
+        row["error"] = f"ended before the teardown: {fleet.dead()}"
+
+
+def react(
+    probe: Probe,
+    channels: list[Channel],
+    expected: dict[str, float],
+    budget_mbit: float,
+    *,
+    row: dict[str, Any],
+    abort: Callable[[], bool],
+) -> None:
+    rng = random.Random(SEED)
+    priorities = {c.topic: 0.0 for c in channels}
+    latencies_ms: list[float] = []
+    misses = unsettled = 0
+    deadline = time.monotonic() + REACTIONS_S
+    for _ in range(CHANGES):
+        if time.monotonic() >= deadline or abort():
+            break
+        change = draw_change(rng, channels, priorities, budget_mbit, expected)
+        if change is None:
+            break
+        topic, priority, expected = change
+        priorities[topic] = priority
+        probe.arm(names.applied(topic))
+        start = time.perf_counter()
+        probe.params.set(names.priority(topic), priority)
+        arrived = probe.arrival(CHANGE_TIMEOUT_S)
+        if arrived is None:
+            misses += 1
+            latencies_ms.append(CHANGE_TIMEOUT_S * 1e3)
+        else:
+            latencies_ms.append((arrived[0] - start) * 1e3)
+        if not probe.wait_until(partial(probe.settled, expected), SETTLE_S, abort):
+            unsettled += 1
+    row["reaction_changes"] = len(latencies_ms)
+    row["reaction_misses"] = misses
+    row["reaction_unsettled"] = unsettled
+    row["reaction_p50_ms"] = percentile(latencies_ms, 50)
+    row["reaction_p99_ms"] = percentile(latencies_ms, 99)
+
+
+def judge(row: dict[str, Any]) -> dict[str, bool]:
+    """Which of the targets (set for 40x4) this row meets; an unmeasured value meets none."""
+
+    def at_most(value: float | None, limit: float) -> bool:
+        return value is not None and value <= limit
+
+    control = row["control_bytes_per_s"]
+    return {
+        "converge": at_most(row["converge_s"], TARGETS["converge_s_max"]),
+        "reaction": at_most(row["reaction_p99_ms"], TARGETS["reaction_p99_ms_max"]),
+        "failsafe": at_most(row["failsafe_events"], TARGETS["failsafe_events_max"]),
+        "delivered": at_most(row["delivered_over_budget"], TARGETS["delivered_over_budget_max"]),
+        "control": at_most(
+            None if control is None else control / row["budget_bytes_per_s"],
+            TARGETS["control_share_of_budget_max"],
+        ),
+    }
+
+
+def render(document: dict[str, Any]) -> None:
+    def show(value: Any) -> str:
+        return "-" if value is None else f"{value:,}" if isinstance(value, int) else f"{value:g}"
+
+    table = Table(title="dbml control plane at fleet size (loopback zenoh, separate processes)")
+    columns = {
+        "size": None,
+        "sessions": "sessions",
+        "budget B/s": "budget_bytes_per_s",
+        "converge s": "converge_s",
+        "react p50 ms": "reaction_p50_ms",
+        "react p99 ms": "reaction_p99_ms",
+        "ctl msg/s": "control_msgs_per_s",
+        "ctl B/s": "control_bytes_per_s",
+        "delivered/budget": "delivered_over_budget",
+        "opt CPU %": "optimizer_cpu_pct",
+        "fail-safe": "failsafe_events",
+        "targets": None,
+    }
+    for name in columns:
+        table.add_column(name, justify="right")
+    for row in document["results"]:
+        cells = [f"{row['robots']}x{row['channels']}"]
+        cells += [show(row[key]) for key in list(columns.values())[1:-1]]
+        missed = [k for k, ok in row["meets_targets"].items() if not ok]
+        cells.append("met" if not missed else "missed: " + ", ".join(missed))
+        table.add_row(*cells)
+    t = document["targets"]
+    table.caption = (
+        f"targets for {t['robots']}x{t['channels']}: converge <= {t['converge_s_max']:g} s, "
+        f"p99 <= {t['reaction_p99_ms_max']:g} ms, no fail-safe, delivered <= budget, "
+        f"control <= {t['control_share_of_budget_max']:.0%} of the budget; before: 20x4 "
+        "6.3 s / 64.7 ms / 34 fail-safe, 40x4 never converged"
+    )
+    console = Console()
+    if not console.is_terminal:
+        console = Console(width=170)
+    console.print(table)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--robots", type=int, help="one size: this many robots")
+    parser.add_argument("--channels", type=int, help="one size: channels per robot (default 4)")
+    parser.add_argument(
+        "--seconds", type=float, default=STEADY_S, help=f"steady state (default {STEADY_S:g})"
+    )
+    parser.add_argument("--json", action="store_true", help="print JSON only")
+    parser.add_argument("--worker", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.worker is not None:
+        raise SystemExit(worker_main(args.worker))
+    if args.robots is not None and args.robots < 1:
+        parser.error("--robots must be >= 1")
+    if args.channels is not None and args.channels < 1:
+        parser.error("--channels must be >= 1")
+    if not args.seconds > 0:
+        parser.error("--seconds must be > 0")
+    if args.robots is None and args.channels is None:
+        sizes = list(DEFAULT_SIZES)
+    else:
+        sizes = [(args.robots or TARGET_SIZE[0], args.channels or TARGET_SIZE[1])]
+    results = []
+    try:
+        for robots, channels in sizes:
+            row = measure_size(robots, channels, args.seconds)
+            row["meets_targets"] = judge(row)
+            row["ok"] = all(row["meets_targets"].values())
+            results.append(row)
+    except KeyboardInterrupt:
+        note("interrupted; every process started here was ended")
+        raise SystemExit(130) from None
+    document = {"benchmark": "fleet", "results": results, "targets": TARGETS}
+    if not args.json:
+        render(document)
+    print(json.dumps(document))
+
+
+if __name__ == "__main__":
+    main()
