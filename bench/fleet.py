@@ -118,6 +118,8 @@ TARGETS: dict[str, Any] = {
         "40x4": {"converge_s": None, "note": "never converged"},
     },
 }
+FAILSAFE_SHOWN = 5
+"""The first fail-safe warnings of a size are shown in the progress log."""
 FAILSAFE_TEXT = "fail-safe"
 """In the publisher's warning: 'no allocation heard for ... ; fail-safe: minimum ... Hz'."""
 
@@ -443,6 +445,8 @@ class Fleet:
                     self.ready[role] = message
                 elif message.get("type") == "failsafe" and self._counting:
                     self._failsafe += 1
+                    if self._failsafe <= FAILSAFE_SHOWN:
+                        note(f"{role}: {message.get('message')}")
                 elif message.get("type") == "stats":
                     self.stats.put(message)
                 self._cond.notify_all()

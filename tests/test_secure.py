@@ -588,12 +588,12 @@ def test_graph_tokens_carry_the_certificate_s_name(
         sessions["r1"].liveliness().declare_token("dbml/elsewhere/x"),
     ]
     allowed = [
-        sessions["r1"].liveliness().declare_token("dbml/node/abc"),
+        sessions["r1"].liveliness().declare_token("dbml/node/abc/def"),
         sessions["op"].liveliness().declare_token("dbml/graph/sub/op/y.2/optimized/r1/camera"),
         sessions["r1"].liveliness().declare_token("dbml/graph/pub/r1/x.2/optimized/r1/camera"),
     ]
     expected = {
-        "dbml/node/abc",
+        "dbml/node/abc/def",
         "dbml/graph/sub/op/y.2/optimized/r1/camera",
         "dbml/graph/pub/r1/x.2/optimized/r1/camera",
     }

@@ -405,7 +405,7 @@ def access_control(fleet: Fleet) -> dict[str, Any]:
     """The ``access_control`` section of every node's zenoh config (the same on all).
 
     Default deny. Every node may subscribe to anything, serve and query ``dbml/own/**``, declare
-    its session token ``dbml/node/*`` and watch ``dbml/**`` liveliness; beyond that each node
+    its session token ``dbml/node/*/*`` and watch ``dbml/**`` liveliness; beyond that each node
     may put and reply only on what its role owns (a robot: its topics' data and its channels'
     parameters except the optimizer's fields; an operator: the budget settings and any
     channel's priority; the optimizer: its batch, status and allocation fields) and declare graph
@@ -422,7 +422,7 @@ def access_control(fleet: Fleet) -> dict[str, Any]:
         },
         _rule("subscribe", ["declare_subscriber"], ["**"]),
         _rule("own-values", ["declare_queryable", "query"], [f"{_OWN}/**"]),
-        _rule("node-token", ["liveliness_token"], [f"{_NODE}/*"]),
+        _rule("node-token", ["liveliness_token"], [f"{_NODE}/*/*"]),
         _rule("liveliness", ["declare_liveliness_subscriber", "liveliness_query"], ["dbml/**"]),
     ]
     rules = list(common)

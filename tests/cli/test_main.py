@@ -239,6 +239,9 @@ HZ = ("--min-hz", "1", "--max-hz", "16")
         (["priority", "/r1/camera", "1e400"], "priority=inf"),
         (["priority", "/r1/camera", "0.5", "--host", ""], "host=''"),
         (["priority", "/r1/camera", "0.5", "--connect", "tcp/127.0.0.1:99999"], "99999"),
+        (["budget", "-3"], "/dbm/max_bandwidth_in_mbit=-3"),
+        (["budget", "1e400"], "/dbm/max_bandwidth_in_mbit=inf"),
+        (["budget", "11", "--utilization", "1.5"], "/dbm/max_bandwidth_utilization=1.5"),
     ],
 )
 def test_bad_command_lines_are_one_line_exit_2(

@@ -10,7 +10,13 @@ import pytest
 from dbml.core import DbmSettings, SpecError
 from dbml.runtime import ManagedPublisher, ManagedSubscriber, OptimizerNode, names
 from dbml.runtime.monitor import MonitorView, channel_rows
-from dbml.runtime.nodes import run_monitor, run_optimizer, run_subscriber, set_priority
+from dbml.runtime.nodes import (
+    run_monitor,
+    run_optimizer,
+    run_subscriber,
+    set_budget,
+    set_priority,
+)
 from dbml.transports import MemoryNetwork, MemoryTransport
 from tests.conftest import MONITOR_JSON_KEYS
 
@@ -142,3 +148,11 @@ def test_the_optimizer_command_exits_non_zero_when_its_worker_dies(
     assert code == 1
     assert "the thread died" in caplog.text
     assert "exiting so a supervisor restarts" in caplog.text
+
+
+def test_budget_writes_bandwidth_and_utilization_for_everyone() -> None:
+    network = MemoryNetwork()
+    reader = MemoryTransport(network, host="base")
+    assert set_budget(MemoryTransport(network, host="op"), 8, utilization=0.9) == 0
+    assert reader.params.get(names.BANDWIDTH) == 8.0
+    assert reader.params.get(names.UTILIZATION) == 0.9

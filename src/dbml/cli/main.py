@@ -200,6 +200,12 @@ def _cmd_priority(args: argparse.Namespace) -> int:
     return _run_node(args, lambda t, _stop: nodes.set_priority(t, args.topic, args.value))
 
 
+def _cmd_budget(args: argparse.Namespace) -> int:
+    return _run_node(
+        args, lambda t, _stop: nodes.set_budget(t, args.mbit, utilization=args.utilization)
+    )
+
+
 def _cmd_monitor(args: argparse.Namespace) -> int:
     if args.json:
 
@@ -347,6 +353,7 @@ _HANDLERS: dict[str, Callable[[argparse.Namespace], int]] = {
     "publish": _cmd_publish,
     "subscribe": _cmd_subscribe,
     "priority": _cmd_priority,
+    "budget": _cmd_budget,
     "monitor": _cmd_monitor,
     "demo": _cmd_demo,
     "testbed": _cmd_testbed,

@@ -115,6 +115,13 @@ def build_parser() -> argparse.ArgumentParser:
     priority_cmd.add_argument("value", type=float, help="raw priority in [0, 1]")
     _transport_options(priority_cmd)
 
+    budget_cmd = commands.add_parser("budget", help="set the link's bandwidth (the budget)")
+    budget_cmd.add_argument("mbit", type=float, help="/dbm/max_bandwidth_in_mbit, e.g. 11")
+    budget_cmd.add_argument(
+        "--utilization", type=float, help="/dbm/max_bandwidth_utilization, in (0, 1]"
+    )
+    _transport_options(budget_cmd)
+
     monitor_cmd = commands.add_parser("monitor", help="a live view of every channel")
     monitor_cmd.add_argument("--json", action="store_true", help="one JSON object per channel")
     monitor_cmd.add_argument("--duration", type=_positive, help="stop after S seconds")

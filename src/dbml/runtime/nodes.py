@@ -1,4 +1,4 @@
-"""The long-running commands behind ``dbml optimizer|publish|subscribe|priority|monitor``.
+"""The commands behind ``dbml optimizer|publish|subscribe|priority|budget|monitor``.
 
 Each opens a transport, runs until its duration ends, SIGINT or SIGTERM, and closes the
 transport on the way out (zenoh sessions must be closed for the process to exit).
@@ -24,10 +24,11 @@ from dbml.runtime import names
 from dbml.runtime.estimator import LinkEstimator
 from dbml.runtime.monitor import MonitorView, monitor_view
 from dbml.runtime.optimizer import OptimizerNode
+from dbml.runtime.params import check_param
 from dbml.runtime.publisher import ManagedPublisher
 from dbml.runtime.reception import ReceptionReporter
 from dbml.runtime.subscriber import ManagedSubscriber
-from dbml.transports.base import Sample, Transport
+from dbml.transports.base import ParamValue, Sample, Transport
 
 __all__ = [
     "PEER_WAIT_S",
@@ -35,6 +36,7 @@ __all__ = [
     "run_optimizer",
     "run_publisher",
     "run_subscriber",
+    "set_budget",
     "set_priority",
     "stop_on_signals",
 ]
@@ -210,6 +212,21 @@ def set_priority(transport: Transport, topic: str, value: float) -> int:
     transport.params.set(names.priority(topic), priority)
     if not transport.confirm_param(names.priority(topic), timeout_s=PEER_WAIT_S):
         log.warning("no other process confirmed %s", names.priority(topic))
+    return 0
+
+
+def set_budget(transport: Transport, mbit: float, *, utilization: float | None = None) -> int:
+    """``dbml budget``: write the link's bandwidth (and utilization) and wait for a peer."""
+    values: dict[str, ParamValue] = {names.BANDWIDTH: check_param(names.BANDWIDTH, mbit)}
+    if utilization is not None:
+        values[names.UTILIZATION] = check_param(names.UTILIZATION, utilization)
+    if not transport.wait_for_peers(PEER_WAIT_S):
+        log.warning("no running dbml process reached; the value is set for none to read")
+    for name, value in values.items():
+        transport.params.set(name, value)
+    for name in values:
+        if not transport.confirm_param(name, timeout_s=PEER_WAIT_S):
+            log.warning("no other process confirmed %s", name)
     return 0
 
 

@@ -176,6 +176,12 @@ class ManagedPublisher:
         if known < 0 or abs(size - known) > SIZE_CHANGE * known:
             self._size_bytes = size
             self._transport.params.set(names.size(self.topic), size)
+            with self._lock:
+                if self._allocated_hz is None and not self._failsafe_noted:
+                    # The optimizer can only make room once it knows the size: the wait for
+                    # the first allocation counts from here, not from the constructor.
+                    self._last_heard = now = self._now()
+                    self._deadline = now + self._failsafe_periods * self._period_s
 
     def publish(self, payload: bytes) -> bool:
         """Send ``payload``; True if it went to ``[topic]/optimized`` (within the rate).

@@ -9,9 +9,11 @@ span machines. Shared memory is off unless asked for: it would bypass any shaped
 Key layout: topic ``/r1/camera`` is key ``r1/camera`` (and ``r1/camera/optimized``); parameter
 ``/r1/camera/dbm/priority`` is ``dbml/param/r1/camera/dbm/priority``; graph declarations are
 liveliness tokens ``dbml/graph/<role>/<host>/<uid>/<variant>/<topic>``; each session is a token
-``dbml/node/<node id>``. Parameters: every session caches every write (``dbml/param/**``, and the
-optimizer's batches on ``dbml/batch``) and serves what it owns under ``dbml/own/<node id>/**``;
-a session asks each session it meets, once, for what that one owns
+``dbml/node/<node id>/<zenoh id>``. Parameters: every session caches every write
+(``dbml/param/**``, and the optimizer's batches on ``dbml/batch``) and serves what it owns under
+``dbml/own/<node id>/**``. Two sessions that meet (see each other's token, and again when their
+direct link comes up) each fetch what the other owns and tell the other to fetch theirs, so
+what one wrote before the other could hear it is not lost; after that, writes reach it
 (``dbml.transports.paramstore``).
 """
 
@@ -21,6 +23,7 @@ import contextlib
 import logging
 import os
 import queue
+import re
 import threading
 import time
 import uuid
@@ -85,6 +88,8 @@ CONFIRM_POLL_S = 0.05
 
 SYNC_TIMEOUT_S = 2.0
 """How long the query for a newly met session's values waits for its answers."""
+LINK_POLL_S = 0.25
+"""How often a session looks for direct links that have just come up."""
 
 _GRAPH = "dbml/graph"
 _NODE = "dbml/node"
@@ -93,6 +98,12 @@ _OWN = "dbml/own"
 _OWN_ANY = _OWN + "/*"
 _HELD = "held"
 """The query parameter asking every session for the one value named, owned or not."""
+_PULL = "pull"
+"""The query parameter telling a session to fetch what the named session owns."""
+_NODE_ID = re.compile(r"[0-9a-f]{16}")
+_NODE_KEY_PARTS = 4
+"""``dbml/node/<node id>/<zenoh id>``."""
+"""A session's node id: 16 hex digits of a random UUID."""
 _GRAPH_KEY_SPLITS = 6
 """``dbml/graph/<role>/<host>/<uid>/<variant>/<topic...>``: the topic keeps its slashes."""
 
@@ -322,8 +333,14 @@ class ZenohTransport(TransportBase):
         self._live: set[str] = set()
         """The dbml sessions met and still alive, by node id."""
         self._fetching = 0
+        self._due: set[str] = set()
+        """Sessions whose values a queued fetch will ask for."""
+        self._zids: dict[str, str] = {}
+        """The live sessions' zenoh ids, to their node ids."""
+        self._linked: set[str] = set()
+        """The zenoh ids this session has a direct link to, as last seen."""
         self._synced = threading.Condition(self._lock)
-        self._fetches: queue.SimpleQueue[str | None] = queue.SimpleQueue()
+        self._fetches: queue.SimpleQueue[tuple[str, bool] | None] = queue.SimpleQueue()
         self._replier = self.node_id.encode()
         self.params = ReplicatedParams(self.node_id, send=self._send)
         self.graph = _ZenohGraph(self)
@@ -337,7 +354,7 @@ class ZenohTransport(TransportBase):
                 f"{_GRAPH}/**", self.graph.on_sample, history=True
             ),
             session.liveliness().declare_subscriber(f"{_NODE}/**", self._on_node, history=True),
-            session.liveliness().declare_token(f"{_NODE}/{self.node_id}"),
+            session.liveliness().declare_token(f"{_NODE}/{self.node_id}/{session.info.zid()}"),
         }
         _OPEN.add(self)
 
@@ -366,14 +383,23 @@ class ZenohTransport(TransportBase):
             return node == self.node_id or node in self._live
 
     def _on_query(self, query: zenoh.Query) -> None:
-        """Serve what this session owns; or, asked ``?held``, the one value named, whoever's."""
+        """Answer a query on this session's own key.
+
+        Plain: what this session owns. ``?held``: the one value named, whoever owns it.
+        ``?pull=<node>``: fetch what that session owns (it has just met this one).
+        """
         own = f"{_OWN}/{self.node_id}"
-        if _HELD in str(query.parameters):
+        parameters = query.parameters
+        if _HELD in parameters:
             key = str(query.key_expr)
             name = key[len(_OWN_ANY) :] if key.startswith(_OWN_ANY + "/") else ""
             data = self.params.held(name) if name else None
             if data is not None:
                 query.reply(own + name, data, attachment=self._replier)
+            return
+        puller = parameters.get(_PULL)
+        if puller is not None:
+            self._schedule_fetch(puller)
             return
         for name, data in self.params.owned(self._is_live):
             reply_key = own + name
@@ -381,25 +407,81 @@ class ZenohTransport(TransportBase):
                 query.reply(reply_key, data, attachment=self._replier)
 
     def _on_node(self, sample: zenoh.Sample) -> None:
-        node = str(sample.key_expr).rsplit("/", 1)[-1]
+        parts = str(sample.key_expr).split("/")
+        if len(parts) != _NODE_KEY_PARTS:
+            log.warning("ignoring malformed session token %s", str(sample.key_expr)[:80])
+            return
+        node, zid = parts[2], parts[3]
         if node == self.node_id:
             return
         with self._lock:
             if sample.kind != zenoh.SampleKind.PUT:
                 self._live.discard(node)
+                if self._zids.get(zid) == node:
+                    del self._zids[zid]
                 return
             if node in self._live:
                 return
             self._live.add(node)
-            self._fetching += 1
+            self._zids[zid] = node
         self._peers.set()
-        # A session we had not met: ask it (and it alone) what it owns, off this thread.
-        self._fetches.put(node)
+        self._meet(node)
+
+    def _meet(self, node: str) -> None:
+        """Tell ``node`` to fetch what we own and fetch what it owns (off zenoh's thread).
+
+        What we wrote before our writes could reach its subscriber is in that fetch; from then
+        on our writes reach it. A token can be known (from a peer's answer) before the link to
+        its session is up, so the meeting is repeated when a direct link to it comes up.
+        """
+        self._fetches.put((node, True))
+        self._schedule_fetch(node)
+
+    def _new_links(self) -> None:
+        """Meet again the sessions whose direct link has just come up."""
+        try:
+            linked = {str(zid) for zid in self.session.info.peers_zid()}
+        except zenoh.ZError:
+            return
+        with self._lock:
+            fresh = [self._zids[z] for z in linked - self._linked if z in self._zids]
+            self._linked = linked
+        for node in fresh:
+            self._meet(node)
+
+    def _schedule_fetch(self, node: str) -> None:
+        """Fetch ``node``'s values soon, once: a fetch already waiting covers this one too."""
+        if not _NODE_ID.fullmatch(node):
+            log.warning("ignoring a fetch request from a malformed node id %s", node[:40])
+            return
+        with self._lock:
+            if node in self._due:
+                return
+            self._due.add(node)
+            self._fetching += 1
+        self._fetches.put((node, False))
 
     def _fetch_loop(self) -> None:
-        """Ask each newly met session for its values; answers arrive on zenoh's threads."""
-        while (node := self._fetches.get()) is not None:
+        """Ask sessions for their values, or to ask for ours; answers arrive on zenoh's threads."""
+        while not self._closed:
+            self._new_links()
+            try:
+                item = self._fetches.get(timeout=LINK_POLL_S)
+            except queue.Empty:
+                continue
+            if item is None:
+                return
+            node, announce = item
             prefix = f"{_OWN}/{node}"
+            if announce:
+                try:
+                    self.session.get(f"{prefix}?{_PULL}={self.node_id}", lambda _reply: None)
+                except zenoh.ZError as err:
+                    if not self._closed:
+                        log.warning("cannot reach %s: %s", node, err)
+                continue
+            with self._lock:
+                self._due.discard(node)
 
             def on_reply(reply: zenoh.Reply, prefix: str = prefix) -> None:
                 sample = reply.ok
