@@ -22,7 +22,11 @@ largest message``, is ratio <= (B + L) / B with B = 11 Mbit/s: after the step th
 (``current_value * size`` over live managed channels, polled every 50 ms) is reported too; a
 poll within 0.25 s after the step is judged against the old budget, which is all it can know.
 
-    python bench/budget_integrity.py [--json] [--runs 3] [--seconds 30]   # ~50 s a run
+The optimizer runs with ``frame_headroom: true`` (one message per channel but the largest kept
+out of the budget, so whole frames cannot add up past B + one message in a window);
+``--without-headroom`` allocates the whole budget instead, to see the quantisation it covers.
+
+    python bench/budget_integrity.py [--json] [--runs 3] [--seconds 30] [--without-headroom]
 """
 
 from __future__ import annotations
@@ -306,11 +310,15 @@ class Rig:
 
 
 def settled(rig: Rig, channels: tuple[Channel, ...], since_ns: int) -> bool:
-    """Every channel managed, allocated after ``since_ns``, acknowledged, and on the wire."""
+    """Every channel managed, allocated by a round after ``since_ns``, acknowledged, on the wire.
+
+    An unchanged rate is not written again: a round's heartbeat (``/dbm/round``) written after
+    ``since_ns`` says the rates in the store are that round's.
+    """
     params = rig.transport.params
     seen = rig.gaps.seen()
+    stamp = params.stamp(names.ROUND)
     for channel in channels:
-        stamp = params.stamp(names.current_value(channel.topic))
         current = number(params.get(names.current_value(channel.topic)))
         applied = number(params.get(names.applied(channel.topic)))
         if (
@@ -491,12 +499,13 @@ def churn_pass(rig: Rig, seconds: float) -> tuple[dict[str, Any], int]:
 
 
 @contextlib.contextmanager
-def rig_for(run: int, seconds: float, workdir: Path) -> Iterator[Rig]:
+def rig_for(run: int, seconds: float, workdir: Path, *, headroom: bool) -> Iterator[Rig]:
     port = free_port()
     config = workdir / "dbm.yaml"
     config.write_text(
         f"dbm:\n  max_bandwidth_in_mbit: {BUDGET_MBIT:g}\n"
         f"  optimization_rate_in_seconds: {PERIOD_S:g}\n"
+        f"  frame_headroom: {'true' if headroom else 'false'}\n"
     )
     # This session first, so it holds the rendezvous for the whole run.
     with contextlib.ExitStack() as stack:
@@ -521,10 +530,10 @@ def rig_for(run: int, seconds: float, workdir: Path) -> Iterator[Rig]:
         yield Rig(fleet, transport, sniffer, gaps, poller, random.Random(SEED + run))
 
 
-def measure_run(run: int, seconds: float) -> dict[str, Any]:
+def measure_run(run: int, seconds: float, *, headroom: bool) -> dict[str, Any]:
     with (
         tempfile.TemporaryDirectory(prefix="dbml-budget-") as tmp,
-        rig_for(run, seconds, Path(tmp)) as rig,
+        rig_for(run, seconds, Path(tmp), headroom=headroom) as rig,
     ):
         if not rig.transport.wait_for_peers(READY_S):
             raise BenchError(f"no dbml process reached\n{rig.fleet.logs()}")
@@ -563,10 +572,11 @@ def measure_run(run: int, seconds: float) -> dict[str, Any]:
     }
 
 
-def measure(runs: int, seconds: float) -> dict[str, Any]:
-    results = [measure_run(run, seconds) for run in range(runs)]
+def measure(runs: int, seconds: float, *, headroom: bool = True) -> dict[str, Any]:
+    results = [measure_run(run, seconds, headroom=headroom) for run in range(runs)]
     return {
         "benchmark": "budget_integrity",
+        "frame_headroom": headroom,
         "runs": results,
         "worst_ratio": max(r["worst_ratio"] for r in results),
         "steady_worst_ratio": max(r["steady_worst_ratio"] for r in results),
@@ -595,6 +605,11 @@ def main() -> None:
     parser.add_argument("--json", action="store_true", help="print JSON only")
     parser.add_argument("--runs", type=int, default=3, help="runs (default 3)")
     parser.add_argument("--seconds", type=float, default=30.0, help="churn pass (default 30)")
+    parser.add_argument(
+        "--without-headroom",
+        action="store_true",
+        help="allocate the whole budget (dbm.frame_headroom false): whole-frame quantisation shows",
+    )
     args = parser.parse_args()
     if args.runs < 1:
         parser.error("--runs must be >= 1")
@@ -602,7 +617,7 @@ def main() -> None:
         parser.error("--seconds must be 5-600")
     signal.signal(signal.SIGTERM, _interrupt)  # the same cleanup as Ctrl-C
     try:
-        document = measure(args.runs, args.seconds)
+        document = measure(args.runs, args.seconds, headroom=not args.without_headroom)
     except BenchError as err:
         raise SystemExit(f"budget_integrity: {err}") from None
     except KeyboardInterrupt:

@@ -114,6 +114,7 @@ _OPERATOR_GLOBALS = (
     "dbm/max_bandwidth_utilization",
     "dbm/optimization_rate_in_seconds",
     "dbm/strategy",
+    "dbm/frame_headroom",
 )
 _OPERATOR_FIELDS = ("dbm/priority",)
 """A channel's fields an operator may set on any robot's channel."""

@@ -1,5 +1,7 @@
 """Invariants of every strategy, checked on random fleets against an independent HiGHS model."""
 
+import random
+
 import numpy as np
 import pytest
 from hypothesis import assume, given, settings
@@ -198,3 +200,54 @@ def test_fair_raises_the_lowest_rates_first(problem: Problem) -> None:
         level = rates[raised].max()
         np.testing.assert_allclose(rates[raised & (rates < fmax * (1 - 1e-9))], level, rtol=1e-9)
         assert np.all((rates >= level * (1 - 1e-9)) | (rates >= fmax * (1 - 1e-9)))
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.lists(
+        st.tuples(st.integers(500, 100_000), st.floats(0.0, 1.0), st.floats(0.0, 1.0)),
+        min_size=2,
+        max_size=8,
+    ),
+    st.floats(2.0, 50.0),
+    st.randoms(use_true_random=False),
+)
+def test_with_frame_headroom_every_window_of_whole_frames_fits_budget_plus_one_message(
+    rows: list[tuple[int, float, float]], mbit: float, rng: random.Random
+) -> None:
+    """Periodic frames at the allocated rates, any phases: no 1-s window over B + max size."""
+    channels = tuple(
+        ChannelSpec(f"/c{i}", 1.0, 16.0, size, priority)
+        for i, (size, priority, _) in enumerate(rows)
+    )
+    problem = Problem(channels, bandwidth_mbit=mbit, frame_headroom=True)
+    allocation = allocate(problem)
+    budget = mbit * 125_000
+    if allocation.status is not Status.OPTIMAL or problem.headroom_bytes_per_s < sum(
+        c.size_bytes for c in channels
+    ) - max(c.size_bytes for c in channels):
+        return  # the headroom is capped (a budget smaller than the frames): no promise
+    horizon_s = 5.0
+    frames: list[tuple[float, float]] = []
+    for channel, rate in zip(channels, allocation.rate_hz, strict=True):
+        phase = rng.random() / rate
+        frames += [(phase + k / rate, channel.size_bytes) for k in range(int(horizon_s * rate) + 1)]
+    frames.sort()
+    largest = max(c.size_bytes for c in channels)
+    for start, _ in frames:
+        window = sum(size for t, size in frames if start <= t < start + 1.0)
+        assert window <= budget + largest + 1e-6
+
+
+def test_frame_headroom_is_off_by_default_and_keeps_back_all_but_the_largest_message() -> None:
+    channels = (
+        ChannelSpec("/a", 1, 16, 84_000, 0.0),
+        ChannelSpec("/b", 1, 16, 21_000, 0.0),
+        ChannelSpec("/c", 1, 16, 8_000, 0.0),
+    )
+    plain = Problem(channels, bandwidth_mbit=11)
+    kept = Problem(channels, bandwidth_mbit=11, frame_headroom=True)
+    assert plain.budget_bytes_per_s == 1_375_000
+    assert kept.headroom_bytes_per_s == 29_000
+    assert kept.budget_bytes_per_s == 1_346_000
+    assert "kept for whole frames" in allocate(kept).message

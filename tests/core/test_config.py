@@ -199,3 +199,13 @@ def test_an_oversized_or_endless_file_is_refused_unread(tmp_path: Path) -> None:
         load_config(big)
     with pytest.raises(ConfigError, match=r"^config '/dev/zero': larger than 1,048,576 bytes$"):
         load_config("/dev/zero")
+
+
+def test_frame_headroom_is_read_and_checked() -> None:
+    text = "dbm: {max_bandwidth_in_mbit: 11, frame_headroom: true}\nchannels: []\n"
+    assert parse_config(text, require_channels=False).dbm.frame_headroom is True
+    with pytest.raises(ConfigError, match=r"dbm: frame_headroom='yes' must be true or false"):
+        parse_config(
+            "dbm: {max_bandwidth_in_mbit: 11, frame_headroom: 'yes'}\nchannels: []\n",
+            require_channels=False,
+        )

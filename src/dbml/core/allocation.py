@@ -348,6 +348,8 @@ def allocate(problem: Problem, *, strategy: Strategy | str = Strategy.PAPER) -> 
     if problem_message is None:
         status = Status.OPTIMAL
         message = f"{_mbit(used)} of a {_mbit(budget)} budget allocated"
+        if problem.frame_headroom:
+            message += f" ({_mbit(problem.headroom_bytes_per_s)} kept for whole frames)"
     else:
         status, message = Status.INFEASIBLE, problem_message
     return Allocation(

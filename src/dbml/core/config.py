@@ -66,6 +66,8 @@ class DbmSettings:
     utilization: float = 1.0
     optimization_period_s: float = 1.0
     strategy: Strategy = Strategy.PAPER
+    frame_headroom: bool = False
+    """Keep one message per channel but the largest out of the budget (``Problem``'s)."""
 
     def __post_init__(self) -> None:
         owner = "dbm"
@@ -82,6 +84,8 @@ class DbmSettings:
         object.__setattr__(self, "utilization", utilization)
         object.__setattr__(self, "optimization_period_s", period)
         object.__setattr__(self, "strategy", _strategy(f"{owner}: strategy", self.strategy))
+        if not isinstance(self.frame_headroom, bool):
+            raise ConfigError(f"dbm: frame_headroom={self.frame_headroom!r} must be true or false")
 
 
 @dataclass(frozen=True, slots=True)
@@ -100,6 +104,7 @@ class Config:
             channels=self.channels,
             bandwidth_mbit=self.dbm.max_bandwidth_mbit,
             utilization=self.dbm.utilization,
+            frame_headroom=self.dbm.frame_headroom,
             links=self.links,
         )
 
@@ -135,6 +140,7 @@ def _dbm(value: object) -> DbmSettings:
             "max_bandwidth_utilization",
             "optimization_rate_in_seconds",
             "strategy",
+            "frame_headroom",
         },
         {"max_bandwidth_in_mbit"},
     )
@@ -144,6 +150,7 @@ def _dbm(value: object) -> DbmSettings:
             data.get("max_bandwidth_utilization", 1.0),
             data.get("optimization_rate_in_seconds", 1.0),
             data.get("strategy", Strategy.PAPER.value),
+            data.get("frame_headroom", False),
         )
     except SpecError as err:
         raise ConfigError(str(err)) from None

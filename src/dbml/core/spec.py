@@ -17,6 +17,7 @@ from dbml.core.errors import SpecError
 __all__ = [
     "BYTES_PER_S_PER_MBIT",
     "MAX_BANDWIDTH_MBIT",
+    "MAX_HEADROOM_SHARE",
     "MAX_PERIOD_S",
     "MAX_RATE_HZ",
     "MAX_SIZE_BYTES",
@@ -59,6 +60,8 @@ MIN_PERIOD_S = 0.01
 """The shortest optimisation period: shorter ones only flood the store with heartbeats."""
 MAX_PERIOD_S = 3600.0
 """The longest optimisation period: an hour without a heartbeat leaves no fail-safe."""
+MAX_HEADROOM_SHARE = 0.5
+"""The most of a budget that ``frame_headroom`` keeps back."""
 
 
 SHORT_REPR_CHARS = 80
@@ -210,12 +213,18 @@ class Problem:
     ``budget_bytes_per_s`` is ``bandwidth_mbit * 125000 * utilization``; utilization below 1
     reserves bandwidth for unmanaged traffic such as commands. ``links`` add per-link limits
     (strategy ``lp`` only); the same utilization applies to each link's capacity.
+
+    ``frame_headroom`` keeps one message of every channel but the largest out of the budget:
+    frames go out whole, so in a 1-s window a channel at rate ``f`` sends up to ``f + 1``
+    messages; with the headroom every window on the wire stays within the budget plus one
+    message, whatever the phases. Off by default (it changes the paper's Table 2).
     """
 
     channels: tuple[ChannelSpec, ...]
     bandwidth_mbit: float
     utilization: float = 1.0
     links: tuple[LinkSpec, ...] = ()
+    frame_headroom: bool = False
     arrays: _Arrays = field(init=False, repr=False, compare=False)
     topics: tuple[str, ...] = field(init=False, repr=False, compare=False)
 
@@ -278,6 +287,19 @@ class Problem:
         return mbit_to_bytes_per_s(self.bandwidth_mbit)
 
     @property
+    def headroom_bytes_per_s(self) -> float:
+        """What ``frame_headroom`` keeps back: one message per channel but the largest.
+
+        At most ``MAX_HEADROOM_SHARE`` of the configured budget, so a budget smaller than the
+        messages themselves still allocates something (and its windows are over, as any are).
+        """
+        if not self.frame_headroom:
+            return 0.0
+        sizes = self.arrays.size_bytes
+        headroom = float(sizes.sum() - sizes.max())
+        return min(headroom, MAX_HEADROOM_SHARE * self.link_bytes_per_s * self.utilization)
+
+    @property
     def budget_bytes_per_s(self) -> float:
-        """What the managed channels may use together."""
-        return self.link_bytes_per_s * self.utilization
+        """What the managed channels may use together (less any frame headroom)."""
+        return self.link_bytes_per_s * self.utilization - self.headroom_bytes_per_s

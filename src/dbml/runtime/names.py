@@ -11,6 +11,7 @@ __all__ = [
     "CURRENT_FIELD",
     "ESTIMATE",
     "ESTIMATOR_STATE",
+    "FRAME_HEADROOM",
     "MANAGED_FIELD",
     "MAX_FIELD",
     "MIN_FIELD",
@@ -37,6 +38,8 @@ BANDWIDTH = "/dbm/max_bandwidth_in_mbit"
 UTILIZATION = "/dbm/max_bandwidth_utilization"
 PERIOD = "/dbm/optimization_rate_in_seconds"
 STRATEGY = "/dbm/strategy"
+FRAME_HEADROOM = "/dbm/frame_headroom"
+"""Whether the optimizer keeps one message per channel but the largest out of the budget."""
 STATUS = "/dbm/status"
 """``optimal`` or ``infeasible``, written by the optimizer after every allocation."""
 STATUS_MESSAGE = "/dbm/status_message"

@@ -44,7 +44,9 @@ log = logging.getLogger("dbml.optimizer")
 
 _TRIGGERS = frozenset({names.MIN_FIELD, names.MAX_FIELD, names.SIZE_FIELD, names.PRIORITY_FIELD})
 """Channel parameters whose change re-allocates at once."""
-_GLOBAL_TRIGGERS = frozenset({names.BANDWIDTH, names.UTILIZATION, names.PERIOD, names.STRATEGY})
+_GLOBAL_TRIGGERS = frozenset(
+    {names.BANDWIDTH, names.UTILIZATION, names.PERIOD, names.STRATEGY, names.FRAME_HEADROOM}
+)
 _DEFAULTS: dict[str, ParamValue] = {
     names.UTILIZATION: DbmParams().utilization,
     names.PERIOD: DbmParams().period_s,
@@ -230,7 +232,11 @@ class OptimizerNode:
             log.error("links are configured but strategy is %s; links ignored", dbm.strategy.value)
             links = ()
         problem = Problem(
-            tuple(specs), bandwidth_mbit=budget[0], utilization=budget[1], links=links
+            tuple(specs),
+            bandwidth_mbit=budget[0],
+            utilization=budget[1],
+            links=links,
+            frame_headroom=dbm.frame_headroom,
         )
         allocation = allocate(problem, strategy=dbm.strategy)
         rates.update(allocation.rates_by_topic())

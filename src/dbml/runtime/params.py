@@ -105,6 +105,8 @@ def _check(name: str, value: bool | int | float | str) -> ParamValue:
         return Strategy(value).value if isinstance(value, str) else _not(name, value)
     if name == names.STATUS:
         return Status(value).value if isinstance(value, str) else _not(name, value)
+    if name == names.FRAME_HEADROOM:
+        return value if isinstance(value, bool) else _not(name, value)
     if name in _TEXTS:
         return (
             value if isinstance(value, str) and len(value) <= MAX_TEXT_CHARS else _not(name, value)
@@ -132,6 +134,7 @@ class DbmParams:
     utilization: float = 1.0
     period_s: float = 1.0
     strategy: Strategy = Strategy.PAPER
+    frame_headroom: bool = False
     estimate_mbit: float | None = None
     """The bandwidth estimator's estimate, when one runs: already the usable budget."""
 
@@ -207,6 +210,7 @@ def write_settings(store: ParamStore, settings: DbmSettings) -> None:
     store.set(names.UTILIZATION, settings.utilization)
     store.set(names.PERIOD, settings.optimization_period_s)
     store.set(names.STRATEGY, settings.strategy.value)
+    store.set(names.FRAME_HEADROOM, settings.frame_headroom)
 
 
 class ParamView:
@@ -311,6 +315,7 @@ def dbm_params(values: Mapping[str, ParamValue]) -> DbmParams:
         utilization=_float(values, names.UTILIZATION) or 1.0,
         period_s=_float(values, names.PERIOD) or 1.0,
         strategy=Strategy(strategy) if isinstance(strategy, str) else Strategy.PAPER,
+        frame_headroom=values.get(names.FRAME_HEADROOM) is True,
         estimate_mbit=_float(values, names.ESTIMATE),
     )
 
