@@ -133,7 +133,13 @@ def test_deletion_hides_a_name_from_the_snapshot_but_keeps_its_stamp() -> None:
     assert a.snapshot("/dbm/") == {"/dbm/max_bandwidth_in_mbit": 11}
     assert a.snapshot() == {"/dbm/max_bandwidth_in_mbit": 11, "/r1/camera/dbm/managed": True}
     assert a.get("/dbm/strategy") is None
-    assert a.stamp("/dbm/strategy") == (decode_param(wire.sent[-1][1])[1], "b")  # b's delete
+    deletes = [
+        decode_param(data)
+        for key, data in wire.sent
+        if key == param_key("/dbm/strategy") and decode_param(data)[2] == "b"
+    ]
+    assert [value for value, _, _ in deletes] == [None]
+    assert a.stamp("/dbm/strategy") == (deletes[0][1], "b")  # b's delete, as b stamped it
     assert a.stamp("/nope") is None
 
 
