@@ -204,6 +204,24 @@ def test_bad_values_from_a_peer_are_ignored_and_the_wire_keeps_the_budget(
         for proc in (optimizer, camera, viewer):
             assert proc.popen.poll() is None, proc.stderr()
         assert "Traceback" not in optimizer.stderr() + camera.stderr()
+        # Good values again: the reports go, and a change is followed as ever.
+        for name, good in [
+            (names.max_rate(CAMERA), 16.0),
+            (names.priority(CAMERA), 0.5),
+            (names.PERIOD, 1.0),
+            (names.BANDWIDTH, 2.0),
+        ]:
+            hostile.set(name, good)
+        wait_for(
+            lambda: "ignored: " not in str(f.param(names.STATUS_MESSAGE)),
+            timeout_s=10,
+            what="no bad value reported any more",
+        )
+        wait_for(
+            lambda: allocated(f) == pytest.approx(2 * 125_000 / 84_000),
+            timeout_s=10,
+            what="the allocation following the good budget",
+        )
 
 
 def test_a_forged_graph_token_neither_pulls_the_full_stream_nor_unmanages(

@@ -10,7 +10,7 @@ import pytest
 
 from dbml.core import DbmSettings, LinkSpec, Status, Strategy
 from dbml.runtime import ManagedPublisher, ManagedSubscriber, OptimizerNode, Round, names
-from dbml.transports import MemoryNetwork, MemoryTransport, ParamValue, Role, Variant
+from dbml.transports import ManualClock, MemoryNetwork, MemoryTransport, ParamValue, Role, Variant
 from tests.conftest import wait_for
 
 R1, R2 = "/r1/camera", "/r2/camera"
@@ -283,3 +283,27 @@ def test_a_forged_publisher_on_the_operators_host_changes_nothing() -> None:
     assert fleet.optimizer.last_round is not None
     assert {c.topic for c in fleet.optimizer.last_round.channels if c.managed} == {R1, R2}
     assert fleet.rates() == allocated
+
+
+def test_a_publisher_seen_without_its_parameters_is_asked_again_once_a_period() -> None:
+    """Its bounds' writes went out before a route to the optimizer existed: ask its process."""
+    network = MemoryNetwork()
+    clock = ManualClock()
+    transport = MemoryTransport(network, host="base", clock=clock)
+    asked: list[str] = []
+    transport.refresh = lambda entry: asked.append(entry.topic)  # type: ignore[method-assign]
+    optimizer = OptimizerNode(transport, settings=DbmSettings(11.0, 1.0, 1.0))
+    MemoryTransport(network, host="r1").graph.announce(Role.PUBLISHER, R1, Variant.FULL)
+    optimizer.optimize()
+    assert asked == []  # just seen: its writes may be on the way
+    clock.advance(1.0)
+    optimizer.optimize()
+    clock.advance(0.5)
+    optimizer.optimize()
+    assert asked == [R1]  # once a period, not once a round
+    MemoryTransport(network, host="r1").params.set(names.min_rate(R1), 1.0)
+    MemoryTransport(network, host="r1").params.set(names.max_rate(R1), 16.0)
+    MemoryTransport(network, host="r1").params.set(names.size(R1), 84_000)
+    clock.advance(5.0)
+    optimizer.optimize()
+    assert asked == [R1]  # complete now: nothing to ask

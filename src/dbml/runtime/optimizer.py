@@ -36,7 +36,7 @@ from dbml.runtime.params import (
     write_settings,
 )
 from dbml.runtime.worker import PeriodicWorker
-from dbml.transports.base import Handle, ParamValue, Transport
+from dbml.transports.base import GraphEntry, Handle, ParamValue, Role, Transport
 
 __all__ = ["ChannelState", "OptimizerNode", "Round"]
 
@@ -115,6 +115,9 @@ class OptimizerNode:
         self._owned: dict[str, ParamValue] = {}
         """What this node last wrote of the values it owns (rates, managed flags, status)."""
         self._rounds = 0
+        self._incomplete_since: dict[str, float] = {}
+        self._asked: dict[str, float] = {}
+        """Publishers seen without parameters: since when, and when they were last asked."""
         self._acks = threading.Condition()
         self.last_round: Round | None = None
         params = transport.params
@@ -195,15 +198,40 @@ class OptimizerNode:
 
     def channels(self) -> tuple[ChannelState, ...]:
         """Every live channel whose publisher declared valid bounds, by topic."""
-        graph = summarize(self._transport.graph.entries())  # one pass, not one per channel
+        entries = self._transport.graph.entries()
+        graph = summarize(entries)  # one pass, not one per channel
         values = self._view.values()  # one copy for the round, not one per channel
         states = []
+        incomplete: set[str] = set()
         for topic in sorted(graph.publishers):
             params = channel_params(values, topic)
             if params.bounded:  # else a publisher that has not declared valid bounds yet
                 managed = topic in graph.managed
                 states.append(ChannelState(params, managed, graph.publishers[topic]))
+            if not params.bounded or params.size_bytes is None:
+                incomplete.add(topic)
+        self._refresh(entries, incomplete)
         return tuple(states)
+
+    def _refresh(self, entries: frozenset[GraphEntry], incomplete: set[str]) -> None:
+        """Ask again, once a period at most, for the parameters of publishers seen without them.
+
+        A publisher writes its bounds before it announces itself, so a channel seen without
+        them for a period lost its writes on the way (a route not yet up): ask its process.
+        """
+        now = self._transport.now()
+        for entry in entries:
+            if entry.role is not Role.PUBLISHER or entry.topic not in incomplete:
+                continue
+            first = self._incomplete_since.setdefault(entry.uid, now)
+            asked = self._asked.get(entry.uid, first)
+            if now - asked >= self._view.dbm().period_s:
+                self._asked[entry.uid] = now
+                log.info("%s: asking again for its parameters", entry.topic)
+                self._transport.refresh(entry)
+        for uid in set(self._incomplete_since) - {e.uid for e in entries if e.topic in incomplete}:
+            self._incomplete_since.pop(uid, None)
+            self._asked.pop(uid, None)
 
     # -- one round ----------------------------------------------------------------------------
 

@@ -233,6 +233,14 @@ class Transport(Protocol):
         """
         ...
 
+    def refresh(self, entry: GraphEntry) -> None:
+        """Ask again for what the process that made ``entry`` wrote (its values are missing).
+
+        A reader that sees a publisher but not its parameters calls it; a no-op where the
+        store is complete.
+        """
+        ...
+
     def camera_frame(self, topic: str, size_bytes: int) -> bytes:
         """A synthetic camera frame of exactly ``size_bytes`` as this transport carries it.
 
@@ -267,6 +275,9 @@ class TransportBase:
     def confirm_param(self, name: str, *, timeout_s: float) -> bool:
         """Nothing to confirm: a write is everyone's at once."""
         return True
+
+    def refresh(self, entry: GraphEntry) -> None:
+        """Nothing to ask again: the store is complete."""
 
     def camera_frame(self, topic: str, size_bytes: int) -> bytes:
         """A synthetic camera frame of ``size_bytes``: raw bytes over this transport."""

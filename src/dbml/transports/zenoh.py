@@ -90,9 +90,13 @@ SYNC_TIMEOUT_S = 2.0
 """How long the query for a newly met session's values waits for its answers."""
 LINK_POLL_S = 0.25
 """How often a session looks for direct links that have just come up."""
+MEET_AGAIN_S = 1.0
+"""When two sessions that met meet once more (writes lost to a route not yet up come back)."""
 
 _GRAPH = "dbml/graph"
 _NODE = "dbml/node"
+_CONTROL = zenoh.Priority.INTERACTIVE_HIGH
+"""Parameter writes, queries and answers go ahead of bulk data (zenoh's DATA priority)."""
 _OWN = "dbml/own"
 """Each session serves what it owns under ``dbml/own/<node id>/<name>``."""
 _OWN_ANY = _OWN + "/*"
@@ -290,6 +294,10 @@ class _ZenohGraph:
                 self._entries[key] = entry
             elif self._entries.pop(key, None) is None:
                 return
+        if sample.kind == zenoh.SampleKind.PUT:
+            # A publisher declares its parameters before it announces itself: what its session
+            # owns now includes them, even if their writes went out before they could reach us.
+            self._transport.fetch_owner_of(entry.uid)
         self.watchers.fire()
 
 
@@ -339,6 +347,8 @@ class ZenohTransport(TransportBase):
         """The live sessions' zenoh ids, to their node ids."""
         self._linked: set[str] = set()
         """The zenoh ids this session has a direct link to, as last seen."""
+        self._meet_again: list[tuple[float, str]] = []
+        """Sessions to meet once more, and when."""
         self._synced = threading.Condition(self._lock)
         self._fetches: queue.SimpleQueue[tuple[str, bool] | None] = queue.SimpleQueue()
         self._replier = self.node_id.encode()
@@ -369,7 +379,7 @@ class ZenohTransport(TransportBase):
             key,
             data,
             congestion_control=zenoh.CongestionControl.BLOCK,
-            priority=zenoh.Priority.INTERACTIVE_HIGH,
+            priority=_CONTROL,
         )
 
     def _on_param(self, sample: zenoh.Sample) -> None:
@@ -427,27 +437,48 @@ class ZenohTransport(TransportBase):
         self._peers.set()
         self._meet(node)
 
-    def _meet(self, node: str) -> None:
+    def _meet(self, node: str, *, again: bool = True) -> None:
         """Tell ``node`` to fetch what we own and fetch what it owns (off zenoh's thread).
 
         What we wrote before our writes could reach its subscriber is in that fetch; from then
-        on our writes reach it. A token can be known (from a peer's answer) before the link to
-        its session is up, so the meeting is repeated when a direct link to it comes up.
+        on our writes reach it. But a session's token can arrive before its subscriber's
+        declaration (or, from a peer's answer, before the link to it is up), so the meeting is
+        repeated once ``MEET_AGAIN_S`` later, and whenever a direct link to it comes up.
         """
         self._fetches.put((node, True))
         self._schedule_fetch(node)
+        if again:
+            with self._lock:
+                self._meet_again.append((time.monotonic() + MEET_AGAIN_S, node))
 
     def _new_links(self) -> None:
-        """Meet again the sessions whose direct link has just come up."""
+        """Meet again the sessions whose direct link has just come up, or whose time came."""
         try:
             linked = {str(zid) for zid in self.session.info.peers_zid()}
         except zenoh.ZError:
             return
+        now = time.monotonic()
         with self._lock:
             fresh = [self._zids[z] for z in linked - self._linked if z in self._zids]
             self._linked = linked
+            due = [node for at, node in self._meet_again if at <= now and node in self._live]
+            self._meet_again = [(at, node) for at, node in self._meet_again if at > now]
         for node in fresh:
             self._meet(node)
+        for node in due:
+            self._meet(node, again=False)
+
+    def fetch_owner_of(self, uid: str) -> None:
+        """Fetch what the session that made graph entry ``uid`` (``<node id>.<n>``) owns."""
+        node = uid.partition(".")[0]
+        if node != self.node_id:
+            self._schedule_fetch(node)
+
+    def refresh(self, entry: GraphEntry) -> None:
+        """Meet the session that made ``entry`` again: both fetch what the other owns."""
+        node = entry.uid.partition(".")[0]
+        if node != self.node_id and _NODE_ID.fullmatch(node):
+            self._meet(node, again=False)
 
     def _schedule_fetch(self, node: str) -> None:
         """Fetch ``node``'s values soon, once: a fetch already waiting covers this one too."""
@@ -462,47 +493,55 @@ class ZenohTransport(TransportBase):
         self._fetches.put((node, False))
 
     def _fetch_loop(self) -> None:
-        """Ask sessions for their values, or to ask for ours; answers arrive on zenoh's threads."""
+        """Ask sessions for their values, or to ask for ours; answers arrive on zenoh's threads.
+
+        A failure is logged and the loop goes on: a dead loop would leave this session deaf to
+        every value written before it could hear it.
+        """
         while not self._closed:
-            self._new_links()
             try:
-                item = self._fetches.get(timeout=LINK_POLL_S)
-            except queue.Empty:
-                continue
-            if item is None:
-                return
-            node, announce = item
-            prefix = f"{_OWN}/{node}"
-            if announce:
+                self._new_links()
                 try:
-                    self.session.get(f"{prefix}?{_PULL}={self.node_id}", lambda _reply: None)
-                except zenoh.ZError as err:
-                    if not self._closed:
-                        log.warning("cannot reach %s: %s", node, err)
-                continue
-            with self._lock:
-                self._due.discard(node)
-
-            def on_reply(reply: zenoh.Reply, prefix: str = prefix) -> None:
-                sample = reply.ok
-                if sample is None:
+                    item = self._fetches.get(timeout=LINK_POLL_S)
+                except queue.Empty:
+                    continue
+                if item is None:
                     return
-                key = str(sample.key_expr)
-                if key.startswith(prefix + "/"):
-                    self.params.on_value(key[len(prefix) :], sample.payload.to_bytes())
-
-            try:
-                self.session.get(
-                    f"{prefix}/**",
-                    zenoh.handlers.Callback(on_reply, self._fetched),
-                    target=zenoh.QueryTarget.ALL,
-                    consolidation=zenoh.ConsolidationMode.NONE,
-                    timeout=SYNC_TIMEOUT_S,
-                )
-            except zenoh.ZError as err:
-                self._fetched()
+                self._fetch_one(*item)
+            except Exception:
                 if not self._closed:
-                    log.warning("parameter sync with %s failed: %s", node, err)
+                    log.exception("parameter sync")
+
+    def _fetch_one(self, node: str, announce: bool) -> None:
+        prefix = f"{_OWN}/{node}"
+        if announce:
+            self.session.get(
+                f"{prefix}?{_PULL}={self.node_id}", lambda _reply: None, priority=_CONTROL
+            )
+            return
+        with self._lock:
+            self._due.discard(node)
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            sample = reply.ok
+            if sample is None:
+                return
+            key = str(sample.key_expr)
+            if key.startswith(prefix + "/"):
+                self.params.on_value(key[len(prefix) :], sample.payload.to_bytes())
+
+        try:
+            self.session.get(
+                f"{prefix}/**",
+                zenoh.handlers.Callback(on_reply, self._fetched),
+                target=zenoh.QueryTarget.ALL,
+                consolidation=zenoh.ConsolidationMode.NONE,
+                timeout=SYNC_TIMEOUT_S,
+                priority=_CONTROL,
+            )
+        except BaseException:
+            self._fetched()
+            raise
 
     def _fetched(self) -> None:
         with self._lock:
