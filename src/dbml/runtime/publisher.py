@@ -199,6 +199,7 @@ class ManagedPublisher:
             self._full.put(payload, pack_meta(self._full_seq, sent_ns, rate))
         with self._lock:
             # A new channel waits for its first allocation (bounded by the fail-safe deadline).
+            # Its credit is spent meanwhile, so the first allocation does not open with a burst.
             waiting = self._allocated_hz is None and now <= self._deadline
             self._limiter.set_rate(rate, now)
             allowed = self._limiter.allow(now) and not waiting
