@@ -25,6 +25,16 @@ def robot(network: MemoryNetwork, clock: ManualClock, **kwargs: float) -> Manage
     return ManagedPublisher(transport, "/r1/camera", **options)
 
 
+def remote_reader(
+    network: MemoryNetwork, clock: ManualClock
+) -> tuple[MemoryTransport, list[Sample]]:
+    """An operator's transport and what it receives of ``/r1/camera/optimized``."""
+    operator = MemoryTransport(network, host="op", clock=clock)
+    remote: list[Sample] = []
+    operator.subscribe("/r1/camera", remote.append, Variant.OPTIMIZED)
+    return operator, remote
+
+
 def test_declares_its_parameters_and_starts_at_minimum(
     network: MemoryNetwork, clock: ManualClock
 ) -> None:
@@ -64,9 +74,7 @@ def test_throttles_the_optimized_copy_and_numbers_each_variant(
     network: MemoryNetwork, clock: ManualClock
 ) -> None:
     publisher = robot(network, clock)
-    operator = MemoryTransport(network, host="op", clock=clock)
-    remote: list[Sample] = []
-    operator.subscribe("/r1/camera", remote.append, Variant.OPTIMIZED)
+    operator, remote = remote_reader(network, clock)
     local: list[Sample] = []
     MemoryTransport(network, host="r1", clock=clock).subscribe("/r1/camera", local.append)
     for i in range(160):  # 10 s of a 16 Hz sensor, with the optimizer's push every second
@@ -170,9 +178,7 @@ def test_a_pushed_rate_above_the_maximum_is_clamped(
     network: MemoryNetwork, clock: ManualClock
 ) -> None:
     publisher = robot(network, clock)
-    operator = MemoryTransport(network, host="op", clock=clock)
-    remote: list[Sample] = []
-    operator.subscribe("/r1/camera", remote.append, Variant.OPTIMIZED)
+    operator, remote = remote_reader(network, clock)
     operator.params.set(names.current_value("/r1/camera"), 1e6)
     for _ in range(1000):  # one second of a 1 kHz source
         publisher.publish(b"x")
@@ -186,9 +192,7 @@ def test_a_new_channel_sends_nothing_remote_until_allocated(
 ) -> None:
     """Frames nobody allocated would break the budget on the wire while the others run full."""
     publisher = robot(network, clock)
-    operator = MemoryTransport(network, host="op", clock=clock)
-    remote: list[Sample] = []
-    operator.subscribe("/r1/camera", remote.append, Variant.OPTIMIZED)
+    operator, remote = remote_reader(network, clock)
     for _ in range(32):  # two seconds of a 16 Hz sensor, no allocation yet
         assert not publisher.publish(b"x" * 1000)
         clock.advance(1 / 16)
