@@ -201,7 +201,8 @@ class ManagedPublisher:
             # A new channel waits for its first allocation (bounded by the fail-safe deadline).
             # Its credit is spent meanwhile, so the first allocation does not open with a burst.
             waiting = self._allocated_hz is None and now <= self._deadline
-            self._limiter.set_rate(rate, now)
+            if rate != self._limiter.rate_hz:  # fail-safe (an allocation applies on arrival)
+                self._limiter.set_rate(rate, now)
             allowed = self._limiter.allow(now) and not waiting
         if not allowed:
             return False
