@@ -73,6 +73,14 @@ class Proc:
             except ValueError:
                 continue
 
+    def drain(self) -> None:
+        """Forget the stdout lines printed so far: what is read next is printed from now on."""
+        while True:
+            try:
+                self.stdout.get_nowait()
+            except queue.Empty:
+                return
+
     def stderr(self) -> str:
         return "".join(self.stderr_lines)
 
