@@ -318,7 +318,7 @@ class Robot(threading.Thread):
 
     def run(self) -> None:
         try:
-            transport = ZenohTransport(host=self.host, port=self._port)
+            transport = ZenohTransport(host=self.host, port=self._port, follow_all_params=False)
         except Exception as err:
             self._done(self.host, f"session: {err}")
             return
@@ -651,12 +651,15 @@ def draw_change(
     return None
 
 
-def empty_row(robots: int, channels: int, budget_bytes_per_s: float) -> dict[str, Any]:
+def empty_row(
+    robots: int, channels: int, budget_bytes_per_s: float, budget_share: float
+) -> dict[str, Any]:
     return {
         "robots": robots,
         "channels": channels,
         "sessions": robots + 3,
         "budget_bytes_per_s": round(budget_bytes_per_s),
+        "budget_share": budget_share,
         "converge_s": None,
         "reaction_p50_ms": None,
         "reaction_p99_ms": None,
@@ -687,14 +690,16 @@ class Run(NamedTuple):
     steady_s: float
 
 
-def measure_size(robots: int, per_robot: int, seconds: float) -> dict[str, Any]:
+def measure_size(
+    robots: int, per_robot: int, seconds: float, *, budget_share: float = BUDGET_SHARE
+) -> dict[str, Any]:
     """One size: a row with what could be measured (and ``error`` saying what could not)."""
     channels = fleet_channels(robots, per_robot)
-    budget_bps = BUDGET_SHARE * sum(MAX_HZ * c.size_bytes for c in channels)
+    budget_bps = budget_share * sum(MAX_HZ * c.size_bytes for c in channels)
     budget_mbit = budget_bps * 8 / 1e6
     if expected_rates(channels, {}, budget_mbit) is None:
         raise SystemExit(f"{robots}x{per_robot}: the floors do not fit the budget")
-    row = empty_row(robots, per_robot, budget_bps)
+    row = empty_row(robots, per_robot, budget_bps, budget_share)
     port = free_port()
     note(f"{robots}x{per_robot}: {len(channels)} channels, port {port}, {budget_mbit:.1f} Mbit/s")
     with contextlib.ExitStack() as stack:
@@ -923,6 +928,12 @@ def main() -> None:
     parser.add_argument(
         "--seconds", type=float, default=STEADY_S, help=f"steady state (default {STEADY_S:g})"
     )
+    parser.add_argument(
+        "--budget-share",
+        type=float,
+        default=BUDGET_SHARE,
+        help=f"budget as a share of the sum of max rate x size (default {BUDGET_SHARE:g})",
+    )
     parser.add_argument("--json", action="store_true", help="print JSON only")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -934,6 +945,8 @@ def main() -> None:
         parser.error("--channels must be >= 1")
     if not args.seconds > 0:
         parser.error("--seconds must be > 0")
+    if not 0 < args.budget_share <= 1:
+        parser.error(f"--budget-share must be in (0, 1], got {args.budget_share!r}")
     if args.robots is None and args.channels is None:
         sizes = list(DEFAULT_SIZES)
     else:
@@ -941,7 +954,7 @@ def main() -> None:
     results = []
     try:
         for robots, channels in sizes:
-            row = measure_size(robots, channels, args.seconds)
+            row = measure_size(robots, channels, args.seconds, budget_share=args.budget_share)
             row["meets_targets"] = judge(row)
             row["ok"] = all(row["meets_targets"].values())
             results.append(row)

@@ -110,3 +110,38 @@ def test_a_newcomer_costs_each_session_answers_of_its_own_values_only() -> None:
             assert len(answered) <= 2 * 5
     finally:
         close_all(old)
+
+
+def test_a_publishing_session_hears_its_own_channels_not_the_fleets_reports() -> None:
+    """``follow_all_params=False``: globals, batches and its own channels' writes arrive.
+
+    Other channels' writes are not delivered to it: each one cost every robot of a fleet a
+    callback (40 acknowledgements per rate change, to 42 sessions, at 40 x 4).
+    """
+    port = free_port()
+    fleet = ZenohTransport(host="base", port=port)
+    robot = ZenohTransport(host="r1", port=port, follow_all_params=False)
+    try:
+        assert robot.wait_for_peers(10)
+        assert fleet.wait_for_peers(10)
+        delivered: list[str] = []
+        on_write = robot.params.on_write
+
+        def record(key: str, data: bytes) -> None:
+            delivered.append(key)
+            on_write(key, data)
+
+        robot.params.on_write = record  # type: ignore[method-assign]
+        robot.params.set("/r1/cam/dbm/frequency/max", 10.0)  # now it hears /r1/cam's parameters
+        wait_for(lambda: fleet.params.get("/r1/cam/dbm/frequency/max") == 10.0, timeout_s=10)
+        fleet.params.set("/r2/cam/dbm/frequency/applied_value", 3.0)  # another robot's report
+        fleet.params.set("/r1/cam/dbm/message_size_in_bytes", 1)  # a write over its own channel
+        fleet.params.set_many({"/r1/cam/dbm/frequency/current_value": 4.0, "/r2/cam/x": 1})
+        fleet.params.set("/dbm/max_bandwidth_in_mbit", 7.0)  # a global, sent last
+        wait_for(lambda: robot.params.get("/dbm/max_bandwidth_in_mbit") == 7.0, timeout_s=10)
+        wait_for(lambda: robot.params.get("/r1/cam/dbm/message_size_in_bytes") == 1, timeout_s=10)
+        assert robot.params.get("/r1/cam/dbm/frequency/current_value") == 4.0  # the batch
+        assert "dbml/param/r2/cam/dbm/frequency/applied_value" not in delivered
+        assert "dbml/param/r1/cam/dbm/message_size_in_bytes" in delivered
+    finally:
+        close_all([robot, fleet])

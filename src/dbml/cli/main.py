@@ -109,13 +109,14 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
     return EXIT_OK if all_match else EXIT_MISMATCH
 
 
-def _open(args: argparse.Namespace) -> Transport:
+def _open(args: argparse.Namespace, *, follow_all_params: bool = True) -> Transport:
     return open_transport(
         args.transport,
         host=args.host,
         connect=args.connect,
         listen=args.listen,
         config_file=args.zenoh_config,
+        follow_all_params=follow_all_params,
     )
 
 
@@ -135,9 +136,14 @@ def _setup_logging(verbose: bool = True) -> None:
     logging.getLogger("rospy").setLevel(logging.WARNING)  # its INFO is its own start-up chatter
 
 
-def _run_node(args: argparse.Namespace, body: Callable[[Transport, threading.Event], int]) -> int:
+def _run_node(
+    args: argparse.Namespace,
+    body: Callable[[Transport, threading.Event], int],
+    *,
+    follow_all_params: bool = True,
+) -> int:
     with stop_on_signals() as stop:
-        transport = _open(args)
+        transport = _open(args, follow_all_params=follow_all_params)
         _setup_logging()
         try:
             return body(transport, stop)
@@ -184,6 +190,7 @@ def _cmd_publish(args: argparse.Namespace) -> int:
             stop=stop,
             duration_s=args.duration,
         ),
+        follow_all_params=False,  # a publisher needs the allocation, not the fleet's reports
     )
 
 

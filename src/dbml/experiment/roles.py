@@ -281,7 +281,13 @@ def _open(role: str, spec: RoleSpec) -> Transport:
         from dbml.transports.ros1 import Ros1Transport
 
         return Ros1Transport(node_name=f"dbml_{role}")
-    return open_transport(spec.transport, host=spec.host, listen=spec.listen, connect=spec.connect)
+    return open_transport(
+        spec.transport,
+        host=spec.host,
+        listen=spec.listen,
+        connect=spec.connect,
+        follow_all_params=role in {"operator", "optimizer"},  # a robot only publishes
+    )
 
 
 def main(argv: list[str] | None = None) -> int:

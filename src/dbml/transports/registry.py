@@ -42,6 +42,7 @@ class TransportFactory(Protocol):
         listen: Sequence[str],
         config_file: str | Path | None,
         network: MemoryNetwork | None,
+        follow_all_params: bool,
     ) -> Transport:
         """Open the transport; a ``TransportError`` names what is missing or not accepted."""
         ...
@@ -75,11 +76,16 @@ def _open_zenoh(
     listen: Sequence[str],
     config_file: str | Path | None,
     network: MemoryNetwork | None,
+    follow_all_params: bool,
 ) -> Transport:
     _no_network("zenoh", network)
     module = importlib.import_module("dbml.transports.zenoh")
     transport: Transport = module.ZenohTransport(
-        host=host, connect=connect, listen=listen, config_file=config_file
+        host=host,
+        connect=connect,
+        listen=listen,
+        config_file=config_file,
+        follow_all_params=follow_all_params,
     )
     return transport
 
@@ -91,6 +97,7 @@ def _open_ros1(
     listen: Sequence[str],
     config_file: str | Path | None,
     network: MemoryNetwork | None,
+    follow_all_params: bool,
 ) -> Transport:
     if connect or listen or config_file:
         raise TransportError(
@@ -112,6 +119,7 @@ def _open_memory(
     listen: Sequence[str],
     config_file: str | Path | None,
     network: MemoryNetwork | None,
+    follow_all_params: bool,
 ) -> Transport:
     if connect or listen or config_file:
         raise TransportError("transport='memory' takes no endpoints or config file")
@@ -154,6 +162,7 @@ def open_transport(
     listen: Sequence[str] = (),
     config_file: str | Path | None = None,
     network: MemoryNetwork | None = None,
+    follow_all_params: bool = True,
 ) -> Transport:
     """Open a transport by name.
 
@@ -161,10 +170,18 @@ def open_transport(
     meets peers on loopback, or at ``connect`` / ``listen`` endpoints or a zenoh
     ``config_file``; ``ros1`` joins the ROS master at ``ROS_MASTER_URI``. ``host`` is this
     process's identity (over ROS 1, the host part of the node's URI, as ``ROS_HOSTNAME`` sets).
+    ``follow_all_params=False`` is for a process that only publishes: over zenoh it then hears
+    the global parameters, the optimizer's allocations and its own channels' parameters, not
+    every other publisher's reports (ROS 1's parameter server and memory hold everything anyway).
     """
     entry = TRANSPORTS.get(name)
     if entry is None:
         raise TransportError(f"transport={name!r} is not one of: {', '.join(TRANSPORTS)}")
     return entry.factory(
-        host=host, connect=connect, listen=listen, config_file=config_file, network=network
+        host=host,
+        connect=connect,
+        listen=listen,
+        config_file=config_file,
+        network=network,
+        follow_all_params=follow_all_params,
     )

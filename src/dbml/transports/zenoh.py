@@ -9,12 +9,15 @@ span machines. Shared memory is off unless asked for: it would bypass any shaped
 Key layout: topic ``/r1/camera`` is key ``r1/camera`` (and ``r1/camera/optimized``); parameter
 ``/r1/camera/dbm/priority`` is ``dbml/param/r1/camera/dbm/priority``; graph declarations are
 liveliness tokens ``dbml/graph/<role>/<host>/<uid>/<variant>/<topic>``; each session is a token
-``dbml/node/<node id>/<zenoh id>``. Parameters: every session caches every write
+``dbml/node/<node id>/<zenoh id>``. Parameters: a session caches every write
 (``dbml/param/**``, and the optimizer's batches on ``dbml/batch``) and serves what it owns under
-``dbml/own/<node id>/**``. Two sessions that meet (see each other's token, and again when their
-direct link comes up) each fetch what the other owns and tell the other to fetch theirs, so
-what one wrote before the other could hear it is not lost; after that, writes reach it
-(``dbml.transports.paramstore``).
+``dbml/own/<node id>/**``. A session opened with ``follow_all_params=False`` (a process that
+only publishes) hears the global parameters (``dbml/param/dbm/**``), the batches, and the
+parameters of the channels it writes to: the reports of a fleet's other publishers (bounds,
+sizes, acknowledgements on every rate change) then cost it nothing. Two sessions that meet
+(see each other's token, and again when their direct link comes up) each fetch what the other
+owns and tell the other to fetch theirs, so what one wrote before the other could hear it is
+not lost; after that, writes reach it (``dbml.transports.paramstore``).
 """
 
 from __future__ import annotations
@@ -97,6 +100,10 @@ _GRAPH = "dbml/graph"
 _NODE = "dbml/node"
 _CONTROL = zenoh.Priority.INTERACTIVE_HIGH
 """Parameter writes, queries and answers go ahead of bulk data (zenoh's DATA priority)."""
+_GLOBALS = "/dbm"
+"""The global parameters' names start with this (``/dbm/max_bandwidth_in_mbit``)."""
+_CHANNEL_PARAMS = "/dbm/"
+"""A channel's parameters are ``<topic>/dbm/<field>``."""
 _OWN = "dbml/own"
 """Each session serves what it owns under ``dbml/own/<node id>/<name>``."""
 _OWN_ANY = _OWN + "/*"
@@ -317,6 +324,7 @@ class ZenohTransport(TransportBase):
         config_file: str | Path | None = None,
         shared_memory: bool = False,
         port: int | None = None,
+        follow_all_params: bool = True,
     ) -> None:
         self.host = resolve_host(host)
         self.node_id = uuid.uuid4().hex[:16]
@@ -352,12 +360,16 @@ class ZenohTransport(TransportBase):
         self._synced = threading.Condition(self._lock)
         self._fetches: queue.SimpleQueue[tuple[str, bool] | None] = queue.SimpleQueue()
         self._replier = self.node_id.encode()
+        self._follow_all = follow_all_params
+        self._followed: set[str] = set()
+        """The channels whose parameters this session hears, when it does not hear them all."""
         self.params = ReplicatedParams(self.node_id, send=self._send)
         self.graph = _ZenohGraph(self)
         threading.Thread(target=self._fetch_loop, name="dbml-param-sync", daemon=True).start()
         session = self.session
+        heard = f"{PARAM_PREFIX}/**" if follow_all_params else f"{PARAM_PREFIX}{_GLOBALS}/**"
         self._declared |= {
-            session.declare_subscriber(f"{PARAM_PREFIX}/**", self._on_param),
+            session.declare_subscriber(heard, self._on_param),
             session.declare_subscriber(BATCH_KEY, self._on_batch),
             session.declare_queryable(f"{_OWN}/{self.node_id}/**", self._on_query),
             session.liveliness().declare_subscriber(
@@ -374,13 +386,33 @@ class ZenohTransport(TransportBase):
         """Put one parameter write or batch (on the store's sender thread, never a callback's).
 
         Control traffic: never dropped behind bulk data (which uses DROP), and sent ahead of it.
+        A session that does not hear every parameter starts hearing a channel's when it first
+        writes one of them (a publisher's bounds): others' writes there are its business.
         """
+        if not self._follow_all:
+            self._follow(key)
         self.session.put(
             key,
             data,
             congestion_control=zenoh.CongestionControl.BLOCK,
             priority=_CONTROL,
         )
+
+    def _follow(self, key: str) -> None:
+        """Hear the parameters of the channel that ``key`` (a parameter write's) belongs to."""
+        if not key.startswith(PARAM_PREFIX + "/"):
+            return
+        end = key.find(_CHANNEL_PARAMS, len(PARAM_PREFIX))
+        if end <= len(PARAM_PREFIX):  # a global parameter (heard already), or not a channel's
+            return
+        channel = key[: end + len(_CHANNEL_PARAMS)] + "**"
+        with self._lock:
+            if channel in self._followed or self._closed:
+                return
+            self._followed.add(channel)
+        subscriber = self.session.declare_subscriber(channel, self._on_param)
+        with self._lock:
+            self._declared.add(subscriber)
 
     def _on_param(self, sample: zenoh.Sample) -> None:
         self.params.on_write(str(sample.key_expr), sample.payload.to_bytes())
