@@ -94,6 +94,7 @@ def test_no_full_rate_copy_without_a_local_reader(
 ) -> None:
     publisher = robot(network, clock)
     MemoryTransport(network, host="op").params.set(names.current_value("/r1/camera"), 5.0)
+    assert publisher._full is not None
     assert not publisher._full.has_subscribers  # nothing would be sent on [topic]
     assert publisher.publish(b"x")
 

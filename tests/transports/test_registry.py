@@ -12,7 +12,7 @@ from dbml.transports import DEFAULT_TRANSPORT, TRANSPORTS, MemoryTransport, Tran
 
 
 def test_names_are_in_one_order_with_the_default_first() -> None:
-    assert list(TRANSPORTS) == ["zenoh", "ros1", "memory"]
+    assert list(TRANSPORTS) == ["zenoh", "ros1", "ros2", "memory"]
     assert next(iter(TRANSPORTS)) == DEFAULT_TRANSPORT
 
 
@@ -23,7 +23,7 @@ def test_the_registry_is_read_only() -> None:
 
 def test_entries_say_what_a_caller_must_know() -> None:
     spans = {name for name, entry in TRANSPORTS.items() if entry.spans_processes}
-    assert spans == {"zenoh", "ros1"}
+    assert spans == {"zenoh", "ros1", "ros2"}
     assert not TRANSPORTS["ros1"].carries_metadata
     assert TRANSPORTS["zenoh"].carries_metadata
     assert TRANSPORTS["memory"].carries_metadata
@@ -35,7 +35,9 @@ def test_entries_say_what_a_caller_must_know() -> None:
 
 
 def test_an_unknown_name_lists_the_known_ones() -> None:
-    with pytest.raises(TransportError, match=r"transport='x' is not one of: zenoh, ros1, memory"):
+    with pytest.raises(
+        TransportError, match=r"transport='x' is not one of: zenoh, ros1, ros2, memory"
+    ):
         open_transport("x")
 
 

@@ -21,9 +21,9 @@ from rich.console import Console
 from rich.live import Live
 
 from dbml.cli import render
-from dbml.cli.parser import EXIT_USAGE, build_parser
+from dbml.cli.parser import DEFAULT_ROUTER_ENDPOINT, EXIT_USAGE, build_parser
 from dbml.core.allocation import Allocation, Status, allocate
-from dbml.core.config import DbmSettings, load_config
+from dbml.core.config import BridgeChannel, DbmSettings, load_bridge_channels, load_config
 from dbml.core.errors import DbmlError
 from dbml.core.spec import LinkSpec
 from dbml.runtime import nodes
@@ -40,6 +40,8 @@ EXIT_MISMATCH = 1
 EXIT_INFEASIBLE = 3
 EXIT_INTERRUPTED = 130
 """What a shell reports for a program ended by Ctrl-C."""
+_ROUTER_POLL_S = 0.5
+"""How often ``dbml router`` looks whether a signal asked it to stop."""
 
 
 def _allocation_json(allocation: Allocation) -> dict[str, Any]:
@@ -117,6 +119,9 @@ def _open(args: argparse.Namespace, *, follow_all_params: bool = True) -> Transp
         listen=args.listen,
         config_file=args.zenoh_config,
         follow_all_params=follow_all_params,
+        domain_id=args.domain_id,
+        ros_distro=args.ros_distro,
+        msg_paths=args.msg_path,
     )
 
 
@@ -201,6 +206,52 @@ def _cmd_subscribe(args: argparse.Namespace) -> int:
             t, args.topic, as_json=args.json, stop=stop, duration_s=args.duration
         ),
     )
+
+
+def _bridge_channels(args: argparse.Namespace) -> tuple[BridgeChannel, ...]:
+    """The channels to bridge: TOPIC with its flags, or ``--config`` (exactly one of them)."""
+    flags = {"--min-hz": args.min_hz, "--max-hz": args.max_hz}
+    extras = {"--priority": args.priority, "--type": args.type}
+    if args.config is not None:
+        given = [
+            f"{name}={value!r}" for name, value in (flags | extras).items() if value is not None
+        ]
+        if args.topic is not None or given:
+            what = f"topic={args.topic!r}" if args.topic is not None else given[0]
+            raise DbmlError(f"--config={args.config!r} and {what}: give one or the other")
+        return load_bridge_channels(args.config)
+    if args.topic is None:
+        raise DbmlError("topic=None: give TOPIC --min-hz A --max-hz B, or --config FILE")
+    for name, value in flags.items():
+        if value is None:
+            raise DbmlError(f"{name}=None: required with topic={args.topic!r}")
+    return (BridgeChannel(args.topic, args.min_hz, args.max_hz, args.priority, args.type),)
+
+
+def _cmd_bridge(args: argparse.Namespace) -> int:
+    channels = _bridge_channels(args)  # bad input exits before any network is opened
+    return _run_node(
+        args,
+        lambda t, stop: nodes.run_bridge(
+            t, channels, stop=stop, duration_s=args.duration, wait_s=args.wait
+        ),
+        follow_all_params=False,  # like a publisher: it needs its allocations only
+    )
+
+
+def _cmd_router(args: argparse.Namespace) -> int:
+    from dbml.transports.zenoh import open_router
+
+    endpoints = args.listen or [DEFAULT_ROUTER_ENDPOINT]
+    with stop_on_signals() as stop:
+        session = open_router(endpoints)
+        try:
+            print(f"zenoh router listening on {', '.join(endpoints)}", flush=True)
+            while not stop.wait(_ROUTER_POLL_S):
+                pass
+        finally:
+            session.close()  # type: ignore[no-untyped-call]  # unannotated in the stubs
+    return EXIT_OK
 
 
 def _cmd_priority(args: argparse.Namespace) -> int:
@@ -362,6 +413,8 @@ _HANDLERS: dict[str, Callable[[argparse.Namespace], int]] = {
     "priority": _cmd_priority,
     "budget": _cmd_budget,
     "monitor": _cmd_monitor,
+    "bridge": _cmd_bridge,
+    "router": _cmd_router,
     "demo": _cmd_demo,
     "testbed": _cmd_testbed,
     "secure": _cmd_secure,

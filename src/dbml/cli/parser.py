@@ -12,10 +12,12 @@ from dbml.core.spec import check_number
 from dbml.secure import DEFAULT_BASE_PORT, DEFAULT_DAYS
 from dbml.transports.registry import DEFAULT_TRANSPORT, TRANSPORTS
 
-__all__ = ["EXIT_USAGE", "build_parser"]
+__all__ = ["DEFAULT_ROUTER_ENDPOINT", "EXIT_USAGE", "build_parser"]
 
 EXIT_USAGE = 2
 """Bad input: one line on stderr naming the field and the value."""
+DEFAULT_ROUTER_ENDPOINT = "tcp/localhost:7447"
+"""Where ``dbml router`` listens by default: where ROS 2's rmw_zenoh looks for its router."""
 
 
 class _Parser(argparse.ArgumentParser):
@@ -57,6 +59,25 @@ def _transport_options(parser: argparse.ArgumentParser) -> None:
         help="zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)",
     )
     group.add_argument("--zenoh-config", metavar="FILE", help="a zenoh JSON5 config file")
+    group.add_argument(
+        "--domain-id",
+        type=int,
+        metavar="N",
+        help="ros2: the ROS 2 domain, 0-232 (default: $ROS_DOMAIN_ID, else 0)",
+    )
+    group.add_argument(
+        "--ros-distro",
+        metavar="NAME",
+        help="ros2: the distro whose message types (and hashes) to use: jazzy (default), "
+        "kilted, lyrical",
+    )
+    group.add_argument(
+        "--msg-path",
+        action="append",
+        default=[],
+        metavar="DIR",
+        help="ros2: a directory of <package>/msg/<Name>.msg files for custom types (repeatable)",
+    )
 
 
 def _positive(text: str) -> float:
@@ -126,6 +147,38 @@ def build_parser() -> argparse.ArgumentParser:
     monitor_cmd.add_argument("--json", action="store_true", help="one JSON object per channel")
     monitor_cmd.add_argument("--duration", type=_positive, help="stop after S seconds")
     _transport_options(monitor_cmd)
+
+    bridge_cmd = commands.add_parser(
+        "bridge", help="put an existing topic under management, its publisher untouched"
+    )
+    bridge_cmd.add_argument("topic", nargs="?", help="e.g. /r1/camera (or --config)")
+    bridge_cmd.add_argument("--min-hz", type=_positive, help="minimum rate")
+    bridge_cmd.add_argument("--max-hz", type=_positive, help="maximum rate")
+    bridge_cmd.add_argument("--priority", type=float, help="raw priority in [0, 1]")
+    bridge_cmd.add_argument(
+        "--type", metavar="PKG/msg/NAME", help="message type (default: as the graph shows it)"
+    )
+    bridge_cmd.add_argument("--config", metavar="FILE", help="YAML whose channels: are bridged")
+    bridge_cmd.add_argument(
+        "--wait",
+        type=_positive,
+        default=10.0,
+        metavar="S",
+        help="how long each topic has to deliver its first message (default 10)",
+    )
+    bridge_cmd.add_argument("--duration", type=_positive, help="stop after S seconds")
+    _transport_options(bridge_cmd)
+
+    router_cmd = commands.add_parser(
+        "router", help="a zenoh router, for machines without ROS 2's rmw_zenohd"
+    )
+    router_cmd.add_argument(
+        "--listen",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help=f"where it listens (repeatable; default {DEFAULT_ROUTER_ENDPOINT})",
+    )
 
     from dbml.transports.registry import TRANSPORTS
 

@@ -15,11 +15,15 @@
     links:                               # optional, strategy lp only
       - {name: r1-uplink, max_bandwidth_in_mbit: 6, channels: [/r1/camera]}
 
-Parsing is pure (text in, specs out); ``load_config`` is the one function that reads a file.
+``dbml bridge --config`` reads the same ``channels:`` entries, where ``message_size_in_bytes`` is
+optional (the bridge measures it) and ``type: sensor_msgs/msg/Image`` may name the message type.
+
+Parsing is pure (text in, specs out); ``_read_text`` is the one function that reads a file.
 """
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -42,9 +46,13 @@ from dbml.core.spec import (
 __all__ = [
     "MAX_CONFIG_BYTES",
     "MAX_CONFIG_DEPTH",
+    "BridgeChannel",
     "Config",
     "DbmSettings",
+    "check_msg_type",
+    "load_bridge_channels",
     "load_config",
+    "parse_bridge_channels",
     "parse_config",
 ]
 
@@ -307,10 +315,8 @@ def parse_config(
     return Config(dbm=dbm, channels=channels, links=links)
 
 
-def load_config(
-    path: str | Path, *, require_channels: bool = True, strategy: Strategy | str | None = None
-) -> Config:
-    """Read and validate a YAML config; an unreadable file is a ``ConfigError`` naming the path."""
+def _read_text(path: str | Path) -> str:
+    """A config file's text; an unreadable or oversized file is a ``ConfigError`` naming it."""
     try:
         with Path(path).open("rb") as file:
             data = file.read(MAX_CONFIG_BYTES + 1)  # /dev/zero must not fill the memory
@@ -320,9 +326,111 @@ def load_config(
     except (OSError, UnicodeDecodeError) as err:
         reason = err.strerror if isinstance(err, OSError) and err.strerror else str(err)
         raise ConfigError(f"config {str(path)!r}: cannot read: {reason}") from None
+    return text
+
+
+def load_config(
+    path: str | Path, *, require_channels: bool = True, strategy: Strategy | str | None = None
+) -> Config:
+    """Read and validate a YAML config; an unreadable file is a ``ConfigError`` naming the path."""
+    text = _read_text(path)
     return parse_config(
         text,
         source=f"config {str(path)!r}",
         require_channels=require_channels,
         strategy=strategy,
     )
+
+
+_MSG_TYPE = re.compile(r"^[A-Za-z][A-Za-z0-9_]*/(msg/)?[A-Za-z][A-Za-z0-9_]*$")
+"""``pkg/msg/Name`` (ROS 2) or ``pkg/Name`` (ROS 1)."""
+
+
+def check_msg_type(msg_type: object, *, field: str = "type") -> str:
+    """``msg_type`` if it is shaped like a ROS message type, else a ``SpecError`` naming it."""
+    if not isinstance(msg_type, str) or not _MSG_TYPE.match(msg_type):
+        raise SpecError(f"{field}={msg_type!r} must look like 'sensor_msgs/msg/Image'")
+    return msg_type
+
+
+@dataclass(frozen=True, slots=True)
+class BridgeChannel:
+    """One topic ``dbml bridge`` puts under management: its bounds, priority and type.
+
+    No size: the bridge measures what it forwards. ``priority`` None keeps whatever is set.
+    ``msg_type`` None means: as the graph shows it (where topics are typed).
+    """
+
+    topic: str
+    min_rate_hz: float
+    max_rate_hz: float
+    priority: float | None = None
+    msg_type: str | None = None
+
+    def __post_init__(self) -> None:
+        # The same rules and messages as a channel of the allocation problem.
+        spec = ChannelSpec(
+            self.topic,
+            self.min_rate_hz,
+            self.max_rate_hz,
+            1.0,
+            0.0 if self.priority is None else self.priority,
+        )
+        object.__setattr__(self, "min_rate_hz", spec.min_rate_hz)
+        object.__setattr__(self, "max_rate_hz", spec.max_rate_hz)
+        if self.priority is not None:
+            object.__setattr__(self, "priority", spec.priority)
+        if self.msg_type is not None:
+            check_msg_type(self.msg_type, field=f"channel {self.topic!r}: type")
+
+
+def _bridge_channel(index: int, value: object) -> BridgeChannel:
+    where = _where("channels", index, value, "topic")
+    data = _mapping(
+        where,
+        value,
+        {"topic", "frequency", "message_size_in_bytes", "priority", "type"},
+        {"topic", "frequency"},
+    )
+    topic = data["topic"]
+    if not isinstance(topic, str) or not topic.startswith("/") or topic.strip() != topic:
+        raise ConfigError(f"{where}: topic={topic!r} must be a string starting with '/'")
+    frequency = _mapping(f"{where}: frequency", data["frequency"], {"min", "max"}, {"min", "max"})
+    fmin = _number(where, "frequency.min", frequency["min"])
+    fmax = _number(where, "frequency.max", frequency["max"])
+    if "message_size_in_bytes" in data:  # accepted for a shared config; the bridge measures it
+        _number(where, "message_size_in_bytes", data["message_size_in_bytes"], **_POSITIVE)
+    priority = data.get("priority")
+    if priority is not None:
+        priority = _number(where, "priority", priority)
+    msg_type = data.get("type")
+    try:
+        if msg_type is not None:
+            check_msg_type(msg_type)
+        return BridgeChannel(topic, fmin, fmax, priority, msg_type)
+    except SpecError as err:
+        raise ConfigError(f"{where}: {err}") from None
+
+
+def parse_bridge_channels(text: str, *, source: str = "<config>") -> tuple[BridgeChannel, ...]:
+    """The ``channels:`` of a config document, as ``dbml bridge`` reads them (at least one).
+
+    ``dbm:`` and ``links:`` may be there (one file for a fleet) and are the optimizer's business.
+    """
+    document = _load_yaml(text, source)
+    top = _mapping(source, document, {"dbm", "channels", "links"}, {"channels"})
+    raw = top["channels"]
+    if not isinstance(raw, list) or not raw:
+        raise ConfigError(f"{source}: channels={raw!r} must be a non-empty list")
+    channels = tuple(_bridge_channel(i, c) for i, c in enumerate(raw))
+    seen: set[str] = set()
+    for i, channel in enumerate(channels):
+        if channel.topic in seen:
+            raise ConfigError(f"channels[{i}] {channel.topic!r}: topic is declared twice")
+        seen.add(channel.topic)
+    return channels
+
+
+def load_bridge_channels(path: str | Path) -> tuple[BridgeChannel, ...]:
+    """Read the channels ``dbml bridge --config`` puts under management."""
+    return parse_bridge_channels(_read_text(path), source=f"config {str(path)!r}")

@@ -2,9 +2,9 @@
 
 The roles run on loopback: OS processes over zenoh (a rendezvous port of the run's own) or ROS 1
 (the master at ``ROS_MASTER_URI`` when one answers, else one started for the run; each role a
-node with its own ROS_IP, so R1, R2 and the operator are different ROS hosts), or threads over
-the memory transport. Per step and robot the result holds tc, priority, the allocated and
-measured rate, and whether they match Table 2 and each other.
+node with its own ROS_IP, so R1, R2 and the operator are different ROS hosts), ROS 2 (see
+``_ros2_processes``), or threads over the memory transport. Per step and robot the result holds
+tc, priority, the allocated and measured rate, and whether they match Table 2 and each other.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from __future__ import annotations
 import importlib.util
 import os
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from dbml.core.errors import DbmlError
 from dbml.experiment.analysis import (
@@ -22,11 +22,13 @@ from dbml.experiment.analysis import (
     Window,
 )
 from dbml.experiment.roles import HOSTS, RoleSpec
-from dbml.experiment.runner import Command, Observer, run_experiment
+from dbml.experiment.ros2peers import IMAGE_TYPE, SDK_MISSING
+from dbml.experiment.ros2peers import ROLES as ROS2_PEER_ROLES
+from dbml.experiment.runner import Command, Helper, Observer, run_experiment
 from dbml.harness.processes import free_port
 from dbml.harness.rosmaster import RosMaster
 from dbml.scenarios.reproduce import reproduce_table2
-from dbml.scenarios.teleop import LINK_MBIT, ROBOTS, STEPS
+from dbml.scenarios.teleop import LINK_MBIT, MAX_RATE_HZ, MIN_RATE_HZ, ROBOTS, STEPS
 from dbml.transports.registry import TRANSPORTS
 
 __all__ = ["MIN_STEP_S", "DemoOptions", "DemoResult", "DemoRobot", "DemoStep", "run_teleop_demo"]
@@ -40,6 +42,12 @@ ROS1_HOSTS = {
     "operator": "127.0.0.4",
 }
 """ROS_IP per role: loopback addresses, so the master sees four hosts on one machine."""
+ROS2_LISTEN = "tcp/127.0.0.1:0"
+"""Each ROS 2 process listens on a port of its own: the router's gossip links peers directly."""
+BRIDGE_WAIT_S = 50.0
+"""How long a bridge waits for its camera's first frame (the robots start after it)."""
+ROLES_MODULE = "dbml.experiment.roles"
+ROS2_PEERS_MODULE = "dbml.experiment.ros2peers"
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -142,6 +150,58 @@ def _command(master: RosMaster | None) -> Command:
     return command
 
 
+def _ros2_processes(
+    specs: dict[str, RoleSpec],
+) -> tuple[dict[str, RoleSpec], Command, tuple[Helper, ...]]:
+    """The ROS 2 run: plain ROS 2 robots and operator, dbml's bridges, optimizer and router.
+
+    ROS 2 nodes meet at a zenoh router (``dbml router`` on a free loopback port, as
+    ``rmw_zenohd`` on 7447), which starts first; everyone connects to it and listens on a port
+    of its own. The robots and the operator are ``ros2peers`` (zenoh-ros2-sdk, no dbml); one
+    ``dbml bridge`` per camera, on its robot's host, manages it; the optimizer is ``roles``'.
+    Bridges start after the optimizer and operator, before the robots they bridge.
+    """
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    network = ("--transport", "ros2", "--connect", endpoint, "--listen", ROS2_LISTEN)
+    dbml = (sys.executable, "-m", "dbml")
+    router = Helper(name="router", argv=(*dbml, "router", "--listen", endpoint), port=port)
+    bridges = tuple(
+        Helper(
+            name=f"bridge-{camera.robot.lower()}",
+            argv=(
+                *dbml,
+                "bridge",
+                camera.topic,
+                "--min-hz",
+                str(MIN_RATE_HZ),
+                "--max-hz",
+                str(MAX_RATE_HZ),
+                "--type",
+                IMAGE_TYPE,
+                "--wait",
+                str(BRIDGE_WAIT_S),
+                "--host",
+                HOSTS[camera.robot.lower()],
+                *network,
+            ),
+            before=ROBOTS[0].robot.lower(),
+        )
+        for camera in ROBOTS
+    )
+    specs = {
+        role: replace(spec, connect=(endpoint,), listen=(ROS2_LISTEN,))
+        for role, spec in specs.items()
+    }
+
+    def command(role: str, argv: list[str]) -> tuple[list[str], dict[str, str]]:
+        if role in ROS2_PEER_ROLES:  # the same protocol, played by plain ROS 2 nodes
+            argv = [ROS2_PEERS_MODULE if a == ROLES_MODULE else a for a in argv]
+        return argv, dict(os.environ)
+
+    return specs, command, (router, *bridges)
+
+
 def run_teleop_demo(options: DemoOptions, *, observe: Observer | None = None) -> DemoResult:
     """Run the scenario live; ``observe`` sees every report of the operator (a live view)."""
     if options.transport == "ros1" and importlib.util.find_spec("rospy") is None:
@@ -149,17 +209,22 @@ def run_teleop_demo(options: DemoOptions, *, observe: Observer | None = None) ->
             f"--transport ros1 needs rospy, which {sys.executable} cannot import: run "
             "`make run-ros1` (Debian's ROS packages and a venv of Debian's Python)"
         )
+    if options.transport == "ros2" and importlib.util.find_spec("zenoh_ros2_sdk") is None:
+        raise DbmlError(SDK_MISSING)
     specs = {
         role: RoleSpec(step_s=options.step_seconds, transport=options.transport, host=host)
         for role, host in HOSTS.items()
     }
+    helpers: tuple[Helper, ...] = ()
     master = RosMaster.reuse_or_start() if options.transport == "ros1" else None
     try:
+        command: Command | None = None
+        if options.transport == "ros2":
+            specs, command, helpers = _ros2_processes(specs)
+        elif TRANSPORTS[options.transport].spans_processes:
+            command = _command(master)
         recording = run_experiment(
-            specs,
-            what="demo",
-            command=_command(master) if TRANSPORTS[options.transport].spans_processes else None,
-            observe=observe,
+            specs, what="demo", command=command, observe=observe, helpers=helpers
         )
     finally:
         if master is not None:

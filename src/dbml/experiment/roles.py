@@ -53,6 +53,7 @@ __all__ = [
     "TICK_S",
     "RoleSpec",
     "main",
+    "operator_tick",
     "robot_index",
     "run_role",
     "wait_until",
@@ -194,6 +195,26 @@ def _unmanaged_robot(
         publisher.close()
 
 
+def operator_tick(view: ParamView, frames: list[list[Any]], variants: list[str]) -> dict[str, Any]:
+    """The operator's report: ``frames`` that arrived and the parameters in force now.
+
+    One function for every operator (dbml's own and the plain ROS 2 one of ``ros2peers``), so
+    the runner and the analysis read one format.
+    """
+    dbm = view.dbm()
+    state = view.get(names.ESTIMATOR_STATE)
+    return {
+        "type": "tick",
+        "t": time.time(),
+        "frames": frames,
+        "allocated_hz": [view.channel(c.topic).current_rate_hz for c in ROBOTS],
+        "budget_mbit": dbm.budget_mbit,
+        "estimate_mbit": dbm.estimate_mbit,
+        "estimator": state if isinstance(state, str) else None,
+        "variants": variants,
+    }
+
+
 def _operator(
     transport: Transport, t0: float, spec: RoleSpec, stop: threading.Event, emit: Emit
 ) -> None:
@@ -235,20 +256,9 @@ def _operator(
     unmanaged = [Variant.FULL.value for _ in ROBOTS]
 
     def tick() -> dict[str, Any]:
-        dbm = view.dbm()
-        state = view.get(names.ESTIMATOR_STATE)
         with lock:
             batch, rows[:] = list(rows), []
-        return {
-            "type": "tick",
-            "t": time.time(),
-            "frames": batch,
-            "allocated_hz": [view.channel(c.topic).current_rate_hz for c in ROBOTS],
-            "budget_mbit": dbm.budget_mbit,
-            "estimate_mbit": dbm.estimate_mbit,
-            "estimator": state if isinstance(state, str) else None,
-            "variants": [s.variant.value for s in subscribers] or unmanaged,
-        }
+        return operator_tick(view, batch, [s.variant.value for s in subscribers] or unmanaged)
 
     try:
         while not stop.is_set() and time.time() < t0 + spec.duration_s + TAIL_S:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import queue
 import signal
+import socket
 import sys
 import threading
 import time
@@ -30,9 +31,11 @@ from dbml.scenarios.teleop import ROBOTS, STEPS
 from dbml.transports.memory import MemoryNetwork, MemoryTransport
 
 __all__ = [
+    "HELPER_LISTEN_TIMEOUT_S",
     "READY_TIMEOUT_S",
     "START_MARGIN_S",
     "Command",
+    "Helper",
     "Observer",
     "Recording",
     "RoleThreads",
@@ -52,6 +55,37 @@ REPORT_DEADLINE_S = 30.0
 
 Command = Callable[[str, list[str]], tuple[list[str], Mapping[str, str] | None]]
 """A role and the argv that runs it -> the argv and environment to start (netns exec, env)."""
+HELPER_LISTEN_TIMEOUT_S = 15.0
+"""How long a helper with a ``port`` (a zenoh router) may take to accept connections."""
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Helper:
+    """A process the roles need that speaks no role protocol: a zenoh router, a bridge.
+
+    It starts just before role ``before`` (None: before every role), once ``port`` on
+    127.0.0.1 accepts connections when given; it counts as a role that exits early if it ends
+    before the last step, and is ended by PID with the roles.
+    """
+
+    name: str
+    argv: tuple[str, ...]
+    env: Mapping[str, str] | None = None
+    before: str | None = None
+    port: int | None = None
+
+
+def _wait_listening(what: str, helper: Helper, roles: RoleProcesses) -> None:
+    """Wait until ``helper.port`` accepts a connection; fail naming it if it ended or timed out."""
+    assert helper.port is not None
+    deadline = time.monotonic() + HELPER_LISTEN_TIMEOUT_S
+    while time.monotonic() < deadline:
+        if roles.children[helper.name].poll() is not None:
+            raise _exited_early(what, helper.name, roles.log_tail(helper.name))
+        with contextlib.suppress(OSError), socket.create_connection(("127.0.0.1", helper.port), 1):
+            return
+        time.sleep(0.05)
+    raise DbmlError(f"{what} {helper.name} did not listen on port {helper.port} in time")
 
 
 @dataclass(frozen=True, slots=True)
@@ -172,6 +206,17 @@ def sigterm_as_interrupt() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
+def _start_helpers(
+    what: str, helpers: Sequence[Helper], roles: RoleThreads | RoleProcesses, *, before: str | None
+) -> None:
+    """Start the helpers that go just before role ``before``, in their order."""
+    for helper in helpers:
+        if helper.before == before and isinstance(roles, RoleProcesses):
+            roles.spawn(helper.name, helper.argv, env=helper.env)
+            if helper.port is not None:
+                _wait_listening(what, helper, roles)
+
+
 def _exited_early(what: str, role: str, tail: str) -> DbmlError:
     """One line: the role and the last lines of its log."""
     lines = " | ".join(tail.strip().splitlines()[-3:])
@@ -185,12 +230,16 @@ def run_experiment(
     command: Command | None,
     observe: Observer | None = None,
     on_start: Callable[[float, threading.Event], None] | None = None,
+    helpers: Sequence[Helper] = (),
 ) -> Recording:
     """Run the roles of ``specs`` (processes through ``command``, or threads when it is None).
 
     ``what`` names the experiment in errors; ``on_start(t0, stop)`` runs in a thread from step
-    1's start until the run ends (the testbed's link changes).
+    1's start until the run ends (the testbed's link changes); ``helpers`` are processes started
+    among the roles (each just before its ``before`` role), which need ``command``.
     """
+    if helpers and command is None:
+        raise DbmlError(f"{what}: helper processes need role processes, not threads")
     step_s = next(iter(specs.values())).step_s
     total_s = len(STEPS) * step_s
     roles = RoleThreads() if command is None else RoleProcesses()
@@ -200,7 +249,9 @@ def run_experiment(
     stop = threading.Event()
     with sigterm_as_interrupt():
         try:
+            _start_helpers(what, helpers, roles, before=None)
             for role, spec in specs.items():
+                _start_helpers(what, helpers, roles, before=role)
                 if isinstance(roles, RoleThreads):
                     roles.spawn(role, spec)
                 else:

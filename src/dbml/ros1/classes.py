@@ -7,6 +7,8 @@ same allocation, fail-safe and local/remote rules as every other transport.
 
 from __future__ import annotations
 
+import threading
+import weakref
 from collections.abc import Callable, Iterable
 from typing import Any
 
@@ -19,9 +21,12 @@ except ImportError as err:  # pragma: no cover - depends on the machine
 
 from dbml.core.config import DbmSettings
 from dbml.core.errors import SpecError
-from dbml.core.spec import LinkSpec
+from dbml.core.spec import ChannelSpec, LinkSpec
+from dbml.runtime import names
 from dbml.runtime.optimizer import OptimizerNode, Round
+from dbml.runtime.params import ParamView
 from dbml.runtime.publisher import FAILSAFE_PERIODS, ManagedPublisher
+from dbml.runtime.rate import Rate
 from dbml.runtime.subscriber import ManagedSubscriber
 from dbml.transports.base import Sample, Variant, check_topic
 from dbml.transports.ros1 import Ros1Transport, serialize
@@ -37,6 +42,14 @@ def ros1_transport() -> Ros1Transport:
 def _resolve(name: str) -> str:
     """A ROS name as the node sees it (``camera`` in namespace ``/r1`` is ``/r1/camera``)."""
     return check_topic(rospy.resolve_name(name))
+
+
+_PUBLISHERS: weakref.WeakValueDictionary[str, DBMPublisher] = weakref.WeakValueDictionary()
+"""This process's DBMPublishers by resolved topic, for ``DBMRate(topic_name, ...)``."""
+
+
+class _StoppedError(Exception):
+    """A ``start`` loop's publisher was unregistered (or ROS shut down): end the loop."""
 
 
 def _message_type(data_class: type) -> str:
@@ -79,6 +92,8 @@ class DBMPublisher:
             priority=priority,
             failsafe_periods=failsafe_periods,
         )
+        self._stop = threading.Event()
+        _PUBLISHERS[self.name] = self
 
     @property
     def frequency(self) -> float:
@@ -93,19 +108,93 @@ class DBMPublisher:
             )
         return self._managed.publish(serialize(message))
 
+    def start(self, get_message: Callable[[], Any], *, full_rate: bool = True) -> None:
+        """Publish ``get_message()`` in a background thread, as the original package's nodes do.
+
+        ``full_rate=True`` calls it at ``max_frequency``: every message goes to ``[name]`` (for
+        local readers) and the allocated share to ``[name]/optimized``. ``full_rate=False``
+        calls it only at the allocated frequency (no capture that would be dropped). The thread
+        ends with ``unregister()`` or ROS's shutdown.
+        """
+
+        def pause(seconds: float) -> None:
+            if self._stop.wait(seconds) or rospy.is_shutdown():
+                raise _StoppedError
+
+        max_hz = self._managed.max_rate_hz
+        rate = Rate((lambda: max_hz) if full_rate else self._managed.current_rate_hz, sleep=pause)
+
+        def loop() -> None:
+            try:
+                while not self._stop.is_set() and not rospy.is_shutdown():
+                    rate.sleep()
+                    self.publish(get_message())
+            except _StoppedError:
+                return
+
+        threading.Thread(target=loop, name=f"dbm-publisher {self.name}", daemon=True).start()
+
     def unregister(self) -> None:
-        """Stop publishing and withdraw the channel."""
+        """Stop publishing (and a ``start`` thread) and withdraw the channel."""
+        self._stop.set()
         self._managed.close()
 
 
-class DBMRate:
-    """``rospy.Rate`` at a publisher's allocated frequency: ``sleep()`` follows every change.
+class _Allocation:
+    """A channel's allocated frequency, for a ``DBMRate`` whose topic has no DBMPublisher here.
 
-    Like ``rospy.Rate.sleep``, it raises ``rospy.ROSInterruptException`` once ROS shuts down.
+    As the original ``DBMRate(topic_name, ...)``: it declares the bounds and follows the
+    allocation (within them); the size comes from whoever publishes the topic.
     """
 
-    def __init__(self, publisher: DBMPublisher) -> None:
-        self._rate = publisher._managed.rate
+    def __init__(self, topic: str, min_hz: float, max_hz: float, default_hz: float | None) -> None:
+        spec = ChannelSpec(topic, min_hz, max_hz, 1.0)
+        self.min_hz, self.max_hz = spec.min_rate_hz, spec.max_rate_hz
+        self._initial = spec.min_rate_hz if default_hz is None else default_hz
+        self._topic = topic
+        transport = ros1_transport()
+        transport.params.set(names.min_rate(topic), self.min_hz)
+        transport.params.set(names.max_rate(topic), self.max_hz)
+        self._view = ParamView.of(transport.params)
+
+    def rate_hz(self) -> float:
+        """The allocation, clamped to the bounds; ``default_frequency`` (or min) before one."""
+        value = self._view.get(names.current_value(self._topic))
+        rate = value if isinstance(value, float) else self._initial
+        return min(max(rate, self.min_hz), self.max_hz)
+
+
+class DBMRate:
+    """``rospy.Rate`` at a channel's allocated frequency: ``sleep()`` follows every change.
+
+    ``DBMRate(publisher)``, or the original package's ``DBMRate(topic_name, min_frequency,
+    max_frequency[, default_frequency])``: the rate of that topic's DBMPublisher in this process
+    if there is one, else the allocation read from the parameter server. Like
+    ``rospy.Rate.sleep``, it raises ``rospy.ROSInterruptException`` once ROS shuts down.
+    """
+
+    def __init__(
+        self,
+        publisher: DBMPublisher | str,
+        min_frequency: float | None = None,
+        max_frequency: float | None = None,
+        default_frequency: float | None = None,
+    ) -> None:
+        if isinstance(publisher, DBMPublisher):
+            self._rate = publisher._managed.rate
+            return
+        topic = _resolve(publisher)
+        known = _PUBLISHERS.get(topic)
+        if known is not None:
+            self._rate = known._managed.rate
+            return
+        if min_frequency is None or max_frequency is None:
+            raise SpecError(
+                f"DBMRate({publisher!r}): min_frequency and max_frequency are required "
+                "for a topic without a DBMPublisher in this process"
+            )
+        self._allocation = _Allocation(topic, min_frequency, max_frequency, default_frequency)
+        self._rate = Rate(self._allocation.rate_hz)
 
     def sleep(self) -> None:
         """Sleep until the next period at the allocated frequency."""

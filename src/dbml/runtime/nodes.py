@@ -13,14 +13,16 @@ import sys
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TextIO
 
-from dbml.core.config import DbmSettings
+from dbml.core.config import BridgeChannel, DbmSettings
+from dbml.core.errors import TransportError
 from dbml.core.spec import MAX_SIZE_BYTES, LinkSpec, check_number, check_priority
 from dbml.runtime import names
+from dbml.runtime.bridge import FIRST_MESSAGE_TIMEOUT_S, Bridge
 from dbml.runtime.estimator import LinkEstimator
 from dbml.runtime.monitor import MonitorView, monitor_view
 from dbml.runtime.optimizer import OptimizerNode
@@ -32,6 +34,7 @@ from dbml.transports.base import ParamValue, Sample, Transport
 
 __all__ = [
     "PEER_WAIT_S",
+    "run_bridge",
     "run_monitor",
     "run_optimizer",
     "run_publisher",
@@ -139,6 +142,56 @@ def run_publisher(
                 log.info("%s: publishing %d B at %.3f Hz", topic, size_bytes, rate)
     finally:
         publisher.close()
+    return 0
+
+
+def run_bridge(
+    transport: Transport,
+    channels: Sequence[BridgeChannel],
+    *,
+    stop: threading.Event,
+    duration_s: float | None = None,
+    wait_s: float = FIRST_MESSAGE_TIMEOUT_S,
+) -> int:
+    """``dbml bridge``: put existing topics under management, one ``Bridge`` each.
+
+    A channel without a type takes the one the graph shows (where topics are typed). Every
+    topic must deliver a first message within ``wait_s``, else ``TransportError`` names it.
+    """
+    transport.wait_for_peers(PEER_WAIT_S)
+    deadline = time.monotonic() + wait_s
+    bridges: list[Bridge] = []
+    try:
+        for given in channels:
+            channel = given
+            if given.msg_type is None:
+                left_s = max(0.0, deadline - time.monotonic())
+                found = transport.topic_type(given.topic, timeout_s=left_s)
+                if found is not None:
+                    channel = replace(given, msg_type=found)
+            bridges.append(Bridge(transport, channel))
+        for bridge in bridges:
+            if not bridge.wait_first(max(0.0, deadline - time.monotonic())):
+                raise TransportError(
+                    f"topic={bridge.topic!r}: no message within {wait_s:g} s "
+                    "(is its publisher running on this host?)"
+                )
+            bridge.start(timeout_s=0)
+            log.info(
+                "%s: bridged to %s/optimized (%s)",
+                bridge.topic,
+                bridge.topic,
+                bridge.channel.msg_type or "bytes",
+            )
+        done = _until(stop, duration_s)
+        while not done():
+            if not all(bridge.alive for bridge in bridges):
+                log.critical("a bridge's thread died (see above); exiting")
+                return 1
+            stop.wait(0.1)
+    finally:
+        for bridge in bridges:
+            bridge.close()
     return 0
 
 

@@ -23,7 +23,7 @@ from dbml.runtime import names
 from dbml.runtime.metadata import pack_meta
 from dbml.runtime.params import ParamView
 from dbml.runtime.rate import Rate, RateLimiter
-from dbml.transports.base import Handle, ParamValue, Role, Transport, Variant
+from dbml.transports.base import Handle, ParamValue, Publisher, Role, Transport, Variant
 
 __all__ = ["FAILSAFE_PERIODS", "SIZE_CHANGE", "ManagedPublisher"]
 
@@ -45,6 +45,8 @@ class ManagedPublisher:
     first allocation, and in fail-safe once ``failsafe_periods`` periods pass without one). A
     pushed rate above the declared maximum is clamped to it, and a size written by anyone else is
     overwritten by the real one: the publisher is the authority on its own bounds and size.
+    ``republish_full=False`` (a bridge, whose ``[topic]`` has its own publisher) sends only
+    ``[topic]/optimized``.
     """
 
     def __init__(
@@ -57,6 +59,7 @@ class ManagedPublisher:
         priority: float | None = None,
         failsafe_periods: float = FAILSAFE_PERIODS,
         wall_clock_ns: Callable[[], int] = time.time_ns,
+        republish_full: bool = True,
     ) -> None:
         names.check_channel(topic)
         # Validates the bounds with the same rules and messages as the allocation core.
@@ -89,7 +92,10 @@ class ManagedPublisher:
         params.set(names.max_rate(topic), self.max_rate_hz)
         if priority is not None:  # otherwise keep what was set (the optimizer reads none as 0)
             params.set(names.priority(topic), float(priority))
-        self._full = transport.declare_publisher(topic, Variant.FULL)
+        # A bridge announces the channel as its publisher but leaves [topic] to the original one.
+        self._full: Publisher | None = None
+        if republish_full:
+            self._full = transport.declare_publisher(topic, Variant.FULL)
         self._optimized = transport.declare_publisher(topic, Variant.OPTIMIZED)
         self._handles: list[Handle] = [
             transport.graph.announce(Role.PUBLISHER, topic, Variant.FULL)
@@ -194,7 +200,7 @@ class ManagedPublisher:
         if len(payload) != self._size_bytes:
             self._track_size(len(payload))
         sent_ns = self._wall_clock_ns()
-        if self._full.has_subscribers:
+        if self._full is not None and self._full.has_subscribers:
             self._full_seq += 1
             self._full.put(payload, pack_meta(self._full_seq, sent_ns, rate))
         with self._lock:
@@ -216,5 +222,6 @@ class ManagedPublisher:
             handle.close()
         self._handles.clear()
         self._view_watch.close()
-        self._full.close()
+        if self._full is not None:
+            self._full.close()
         self._optimized.close()

@@ -249,6 +249,22 @@ class Transport(Protocol):
         """
         ...
 
+    def topic_type(self, topic: str, *, timeout_s: float) -> str | None:
+        """The message type the graph shows for ``topic`` (``pkg/msg/Name``), as rostopic finds it.
+
+        Waits up to ``timeout_s`` for a publisher. None where topics carry untyped bytes (zenoh,
+        memory) or when no publisher of ``topic`` was seen in time.
+        """
+        ...
+
+    def set_topic_type(self, topic: str, msg_type: str) -> None:
+        """Declare the message type of ``topic`` before publishing or subscribing to it.
+
+        ROS 2 puts the type in the key every message travels under; a no-op where topics carry
+        untyped bytes. Raises ``TransportError`` naming a type that cannot be resolved.
+        """
+        ...
+
     def close(self) -> None:
         """Undeclare everything this transport declared, as a process exit would."""
         ...
@@ -282,6 +298,13 @@ class TransportBase:
     def camera_frame(self, topic: str, size_bytes: int) -> bytes:
         """A synthetic camera frame of ``size_bytes``: raw bytes over this transport."""
         return bytes(size_bytes)
+
+    def topic_type(self, topic: str, *, timeout_s: float) -> str | None:
+        """Topics carry untyped bytes here: no type to find."""
+        return None
+
+    def set_topic_type(self, topic: str, msg_type: str) -> None:
+        """Topics carry untyped bytes here: nothing to declare."""
 
     def __enter__(self) -> Self:
         return self

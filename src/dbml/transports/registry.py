@@ -43,6 +43,9 @@ class TransportFactory(Protocol):
         config_file: str | Path | None,
         network: MemoryNetwork | None,
         follow_all_params: bool,
+        domain_id: int | None,
+        ros_distro: str | None,
+        msg_paths: Sequence[str | Path],
     ) -> Transport:
         """Open the transport; a ``TransportError`` names what is missing or not accepted."""
         ...
@@ -69,6 +72,47 @@ def _no_network(name: str, network: MemoryNetwork | None) -> None:
         raise TransportError(f"transport={name!r} takes no network: only 'memory' does")
 
 
+def _no_ros2_options(
+    name: str, domain_id: int | None, ros_distro: str | None, msg_paths: Sequence[str | Path]
+) -> None:
+    for option, value in (
+        ("domain_id", domain_id),
+        ("ros_distro", ros_distro),
+        ("msg_paths", msg_paths or None),
+    ):
+        if value is not None:
+            raise TransportError(
+                f"transport={name!r} takes no {option} ({value!r}): only 'ros2' does"
+            )
+
+
+def _open_ros2(
+    *,
+    host: str | None,
+    connect: Sequence[str],
+    listen: Sequence[str],
+    config_file: str | Path | None,
+    network: MemoryNetwork | None,
+    follow_all_params: bool,
+    domain_id: int | None,
+    ros_distro: str | None,
+    msg_paths: Sequence[str | Path],
+) -> Transport:
+    _no_network("ros2", network)
+    module = importlib.import_module("dbml.transports.ros2")
+    transport: Transport = module.Ros2Transport(
+        host=host,
+        connect=connect,
+        listen=listen,
+        config_file=config_file,
+        domain_id=domain_id,
+        ros_distro=ros_distro,
+        msg_paths=msg_paths,
+        follow_all_params=follow_all_params,
+    )
+    return transport
+
+
 def _open_zenoh(
     *,
     host: str | None,
@@ -77,8 +121,12 @@ def _open_zenoh(
     config_file: str | Path | None,
     network: MemoryNetwork | None,
     follow_all_params: bool,
+    domain_id: int | None,
+    ros_distro: str | None,
+    msg_paths: Sequence[str | Path],
 ) -> Transport:
     _no_network("zenoh", network)
+    _no_ros2_options("zenoh", domain_id, ros_distro, msg_paths)
     module = importlib.import_module("dbml.transports.zenoh")
     transport: Transport = module.ZenohTransport(
         host=host,
@@ -98,12 +146,16 @@ def _open_ros1(
     config_file: str | Path | None,
     network: MemoryNetwork | None,
     follow_all_params: bool,
+    domain_id: int | None,
+    ros_distro: str | None,
+    msg_paths: Sequence[str | Path],
 ) -> Transport:
     if connect or listen or config_file:
         raise TransportError(
             "transport='ros1' takes no endpoints or config file: it uses ROS_MASTER_URI"
         )
     _no_network("ros1", network)
+    _no_ros2_options("ros1", domain_id, ros_distro, msg_paths)
     try:
         module = importlib.import_module("dbml.transports.ros1")
     except ImportError as err:
@@ -120,9 +172,13 @@ def _open_memory(
     config_file: str | Path | None,
     network: MemoryNetwork | None,
     follow_all_params: bool,
+    domain_id: int | None,
+    ros_distro: str | None,
+    msg_paths: Sequence[str | Path],
 ) -> Transport:
     if connect or listen or config_file:
         raise TransportError("transport='memory' takes no endpoints or config file")
+    _no_ros2_options("memory", domain_id, ros_distro, msg_paths)
     return MemoryTransport(network, host=host)
 
 
@@ -141,6 +197,13 @@ TRANSPORTS: Mapping[str, TransportEntry] = types.MappingProxyType(
             spans_processes=True,
             carries_metadata=False,
             params_complete_at_start=True,
+        ),
+        "ros2": TransportEntry(
+            factory=_open_ros2,
+            summary="ROS 2 topics as rmw_zenoh carries them, via the zenoh router of this host",
+            spans_processes=True,
+            carries_metadata=False,
+            params_complete_at_start=False,
         ),
         "memory": TransportEntry(
             factory=_open_memory,
@@ -163,6 +226,9 @@ def open_transport(
     config_file: str | Path | None = None,
     network: MemoryNetwork | None = None,
     follow_all_params: bool = True,
+    domain_id: int | None = None,
+    ros_distro: str | None = None,
+    msg_paths: Sequence[str | Path] = (),
 ) -> Transport:
     """Open a transport by name.
 
@@ -173,6 +239,9 @@ def open_transport(
     ``follow_all_params=False`` is for a process that only publishes: over zenoh it then hears
     the global parameters, the optimizer's allocations and its own channels' parameters, not
     every other publisher's reports (ROS 1's parameter server and memory hold everything anyway).
+    ``ros2`` joins rmw_zenoh's router of this host (or ``connect``/``listen``) in ROS 2 domain
+    ``domain_id`` (else ``ROS_DOMAIN_ID``), with the types of ``ros_distro`` and the ``.msg``
+    files under ``msg_paths``; the other transports refuse these options.
     """
     entry = TRANSPORTS.get(name)
     if entry is None:
@@ -184,4 +253,7 @@ def open_transport(
         config_file=config_file,
         network=network,
         follow_all_params=follow_all_params,
+        domain_id=domain_id,
+        ros_distro=ros_distro,
+        msg_paths=msg_paths,
     )

@@ -424,6 +424,10 @@ class Ros1Transport(TransportBase):
         graph_poll_s: float = GRAPH_POLL_S,
     ) -> None:
         self._classes: dict[str, type] = dict(message_classes or {})
+        self._declared_types: dict[str, str] = {}
+        """Topics typed by ``set_topic_type``: raw bytes of a type whose class may be missing."""
+        self._learned: dict[str, type] = {}
+        """Type, md5 and definition of such a topic, as its publisher's connection header said."""
         self._queue_size = queue_size
         self._handles: set[Handle] = set()
         self._closed = False
@@ -530,7 +534,13 @@ class Ros1Transport(TransportBase):
         """A ROS publisher of the topic's message class (``std_msgs/String`` without one)."""
         self._check_open()
         check_topic(topic)
-        return _Ros1Publisher(topic, variant, self._classes.get(topic), self._queue_size)
+        data_class = self._classes.get(topic) or self._learned.get(topic)
+        if data_class is None and topic in self._declared_types:
+            raise TransportError(
+                f"topic={topic!r}: type {self._declared_types[topic]!r} has no Python class "
+                "here; subscribe to the topic first (its header tells the md5)"
+            )
+        return _Ros1Publisher(topic, variant, data_class, self._queue_size)
 
     def subscribe(
         self, topic: str, callback: Callable[[Sample], None], variant: Variant = Variant.FULL
@@ -538,10 +548,12 @@ class Ros1Transport(TransportBase):
         """A ROS subscriber that hands ``callback`` the serialised message as it arrived."""
         self._check_open()
         check_topic(topic)
-        typed = topic in self._classes
+        typed = topic in self._classes or topic in self._declared_types
 
         def deliver(message: _Received) -> None:
             payload: bytes = message._buff
+            if typed and topic not in self._learned:
+                self._learn(topic, message._connection_header)
             if not typed and message._connection_header.get("type") == _STRING._type:
                 payload = payload[_FRAME_PREFIX_BYTES:]  # a framed untyped payload
             callback(Sample(topic, payload, None))
@@ -561,6 +573,44 @@ class Ros1Transport(TransportBase):
         handle = Closer(unsubscribe)
         self._handles.add(handle)
         return handle
+
+    def _learn(self, topic: str, header: Mapping[str, str]) -> None:
+        """Keep a typed topic's type, md5 and definition, to republish its bytes as they are."""
+        header_class = type(
+            "Header",
+            (),
+            {
+                "_type": header.get("type", ""),
+                "_md5sum": header.get("md5sum", "*"),
+                "_full_text": header.get("message_definition", ""),
+            },
+        )
+        self._learned[topic] = _raw_class(header_class)
+
+    def topic_type(self, topic: str, *, timeout_s: float) -> str | None:
+        """The master's type of ``topic`` (``getTopicTypes``), waiting up to ``timeout_s``."""
+        check_topic(topic)
+        deadline = time.monotonic() + timeout_s
+        while True:
+            for name, msg_type in self._master.call("getTopicTypes"):
+                if name == topic and msg_type != "*":
+                    return str(msg_type)
+            if time.monotonic() >= deadline:
+                return None
+            time.sleep(min(GRAPH_POLL_S, max(0.0, deadline - time.monotonic())))
+
+    def set_topic_type(self, topic: str, msg_type: str) -> None:
+        """Carry ``topic`` (both copies) as raw bytes of ``msg_type`` (``pkg/Name``).
+
+        Its Python class is used when installed; else the md5 and definition come from the
+        connection header of the first message received on ``topic``.
+        """
+        base, _variant = _split(check_topic(topic))
+        package, _, name = msg_type.rpartition("/")
+        package = package.removesuffix("/msg")  # ROS 2 spelling: pkg/msg/Name
+        if not package or "/" in package or not name:
+            raise TransportError(f"type={msg_type!r} must look like 'sensor_msgs/Image'")
+        self._declared_types[base] = f"{package}/{name}"
 
     def now(self) -> float:
         """Monotonic seconds."""

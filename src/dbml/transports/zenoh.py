@@ -62,7 +62,7 @@ except ImportError as err:  # pragma: no cover - eclipse-zenoh is a declared dep
         "the zenoh transport needs eclipse-zenoh: pip install 'eclipse-zenoh>=1.10'"
     ) from err
 
-__all__ = ["DEFAULT_PORT", "ZenohTransport"]
+__all__ = ["DEFAULT_PORT", "ZenohTransport", "open_router"]
 
 log = logging.getLogger("dbml.zenoh")
 
@@ -683,3 +683,22 @@ class ZenohTransport(TransportBase):
             self.session.close()  # type: ignore[no-untyped-call]  # unannotated in the stubs
         except zenoh.ZError as err:
             log.warning("zenoh close: %s", err)
+
+
+def open_router(listen: Iterable[str]) -> zenoh.Session:
+    """A zenoh session in router mode listening on ``listen``, for hosts without rmw_zenohd.
+
+    Clients and peers that connect to it are routed to each other. Multicast scouting and
+    shared memory are off, as in every dbml session (shared memory would bypass a shaped link).
+    A malformed endpoint, or one that cannot be listened on, is a ``TransportError`` naming it.
+    """
+    endpoints = list(listen)
+    try:
+        config = zenoh.Config()
+        config.insert_json5("mode", '"router"')
+        config.insert_json5("listen/endpoints", _json_list(endpoints, listening=True))
+        config.insert_json5("scouting/multicast/enabled", "false")
+        config.insert_json5("transport/shared_memory/enabled", "false")
+        return zenoh.open(config)
+    except zenoh.ZError as err:
+        raise TransportError(f"zenoh router: cannot listen on {endpoints!r}: {err}") from err

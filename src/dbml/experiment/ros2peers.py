@@ -1,0 +1,400 @@
+"""Plain ROS 2 peers of the teleoperation demo: the robots' cameras and the operator, no dbml.
+
+``dbml demo teleop --transport ros2`` shows that dbml manages ROS 2 topics whose publishers and
+subscribers know nothing about it: ``dbml bridge`` puts each camera under management and the
+optimizer allocates over rmw_zenoh's wire format. The peers here are therefore written against
+``zenoh-ros2-sdk``, an independent pure-Python implementation of that format (keys, CDR,
+attachments, liveliness tokens), and not against dbml's ``ros2`` transport: two implementations
+sharing code would agree with each other on a shared mistake; two independent ones agreeing is
+the evidence of interoperability.
+
+- ``r1``/``r2``: a camera driver publishing ``sensor_msgs/msg/Image`` on ``/rN/camera`` at the
+  camera's maximum rate (84,000 / 21,000 bytes serialised, ``header.stamp`` = send time), and
+  the channel's priority the ROS 2 way: ``std_msgs/msg/Float64`` on ``/rN/camera/dbm/priority``,
+  eq. 6-7 of Table 2's replayed events, republished every second so a late bridge hears it.
+- ``operator``: a ROS 2 subscription of each ``/rN/camera/optimized`` (where the bridges
+  republish), recording each frame's arrival and send time, size and a per-topic count; and,
+  through a dbml session, the parameters in force, reported each tick in the format of
+  ``roles``' operator, so the same runner and analysis judge the run.
+
+As a process (``python -m dbml.experiment.ros2peers ROLE SPEC_JSON``) a peer speaks the roles'
+protocol (``harness.processes.serve_role``) and meets the others at the zenoh router at
+``spec.connect[0]``, as ROS 2 nodes do. The SDK keeps one session per process: one peer each.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import os
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from functools import cache
+from typing import Any
+
+import numpy as np
+from rosbags.typesys import Stores, get_typestore
+
+from dbml.core.errors import DbmlError
+from dbml.core.priority import collision_priority, time_to_collision_s
+from dbml.experiment.roles import TAIL_S, TICK_S, RoleSpec, operator_tick, robot_index, wait_until
+from dbml.harness.processes import emit_json, serve_role
+from dbml.runtime.nodes import stop_on_signals
+from dbml.runtime.params import ParamView
+from dbml.scenarios.teleop import MAX_RATE_HZ, ROBOTS, STEPS, Step
+from dbml.transports.base import Variant
+from dbml.transports.registry import open_transport
+
+__all__ = [
+    "DEFINITIONS",
+    "FIRST_FRAMES_TIMEOUT_S",
+    "FLOAT64_TYPE",
+    "IMAGE_OVERHEAD_BYTES",
+    "IMAGE_TYPE",
+    "OPTIMIZED_SUFFIX",
+    "PRIORITY_REPEAT_S",
+    "PRIORITY_SUFFIX",
+    "ROLES",
+    "SDK_MISSING",
+    "SdkSession",
+    "image_fields",
+    "main",
+    "router_address",
+    "step_priority",
+    "type_hash",
+]
+
+log = logging.getLogger("dbml.experiment.ros2peers")
+
+ROLES = ("operator", *(camera.robot.lower() for camera in ROBOTS))
+"""The roles played by plain ROS 2 peers (the optimizer stays ``roles``' own)."""
+SDK_MISSING = (
+    "--transport ros2 runs its robots and operator as plain ROS 2 nodes with zenoh-ros2-sdk, "
+    f"which {sys.executable} cannot import: pip install zenoh-ros2-sdk"
+)
+IMAGE_TYPE = "sensor_msgs/msg/Image"
+FLOAT64_TYPE = "std_msgs/msg/Float64"
+DEFINITIONS: tuple[tuple[str, str], ...] = (
+    ("builtin_interfaces/msg/Time", "int32 sec\nuint32 nanosec\n"),
+    ("std_msgs/msg/Header", "builtin_interfaces/Time stamp\nstring frame_id\n"),
+    (
+        IMAGE_TYPE,
+        "std_msgs/Header header\nuint32 height\nuint32 width\nstring encoding\n"
+        "uint8 is_bigendian\nuint32 step\nuint8[] data\n",
+    ),
+    (FLOAT64_TYPE, "float64 data\n"),
+)
+"""Each type's ``.msg`` text, dependencies first: offline, the SDK cannot fetch them itself."""
+HASH_STORE = Stores.ROS2_JAZZY
+"""Where the RIHS01 hashes come from (the SDK computes wrong ones for nested types offline)."""
+OPTIMIZED_SUFFIX = "/optimized"
+"""A managed topic's copy at the allocated rate: what a ROS 2 operator subscribes to."""
+PRIORITY_SUFFIX = "/dbm/priority"
+"""A managed topic's priority topic (``std_msgs/msg/Float64`` in [0, 1])."""
+FRAME_ID = "camera"
+ENCODING = "mono8"
+IMAGE_OVERHEAD_BYTES = 52
+"""Serialised ``Image`` bytes besides its data (frame_id "camera", mono8, CDR header)."""
+PRIORITY_REPEAT_S = 1.0
+"""Each priority is published again this often: a ROS 2 topic keeps no value for latecomers."""
+FIRST_FRAMES_TIMEOUT_S = 50.0
+"""How long the operator waits for a frame of every managed camera before it reports ready
+(the runner waits 60 s for every role)."""
+_NS_PER_S = 1_000_000_000
+_FIRST_FRAMES_POLL_S = 0.05
+_SHM_OFF = "transport/shared_memory/enabled=false"
+_OVERRIDE_ENV = "ZENOH_CONFIG_OVERRIDE"
+
+
+def router_address(endpoint: str) -> tuple[str, int]:
+    """The SDK's ``router_ip``/``router_port`` of a zenoh endpoint ``tcp/HOST:PORT``.
+
+    The SDK connects over TCP only, so any other protocol is refused here, naming the value.
+    """
+    protocol, _, address = endpoint.partition("/")
+    host, _, port = address.rpartition(":")
+    if protocol != "tcp" or not host or not port.isdigit() or not 0 < int(port) < 2**16:
+        raise DbmlError(f"endpoint={endpoint!r}: the ROS 2 peers need tcp/HOST:PORT")
+    return host, int(port)
+
+
+@cache
+def type_hash(msg_type: str) -> str:
+    """``msg_type``'s RIHS01 hash, as rmw_zenoh puts it in its keys."""
+    value: str = get_typestore(HASH_STORE).hash_rihs01(msg_type)
+    return value
+
+
+def step_priority(step: Step, index: int) -> float:
+    """Robot ``index``'s camera priority in ``step``: eq. 6-7 of its distance and speed.
+
+    The same pure functions as the managed robot's ``collision_priority_source``, published on
+    a ROS 2 topic instead of written as a parameter.
+    """
+    event = step.events[index]
+    return collision_priority(time_to_collision_s(event.distance_m, event.speed_m_per_s))
+
+
+def image_fields(types: Any, size_bytes: int, stamp_ns: int, data: Any = None) -> dict[str, Any]:
+    """An ``Image`` of ``size_bytes`` serialised, stamped ``stamp_ns``: ``publish(**fields)``.
+
+    ``types`` maps type names to classes (a rosbags typestore's ``types``); ``data``, when
+    given, is reused (``size_bytes - IMAGE_OVERHEAD_BYTES`` zero bytes).
+    """
+    width = size_bytes - IMAGE_OVERHEAD_BYTES
+    if width < 0:
+        raise DbmlError(
+            f"size_bytes={size_bytes!r}: an Image takes {IMAGE_OVERHEAD_BYTES} at least"
+        )
+    header = types["std_msgs/msg/Header"](
+        stamp=types["builtin_interfaces/msg/Time"](
+            sec=stamp_ns // _NS_PER_S, nanosec=stamp_ns % _NS_PER_S
+        ),
+        frame_id=FRAME_ID,
+    )
+    return {
+        "header": header,
+        "height": 1,
+        "width": width,
+        "encoding": ENCODING,
+        "is_bigendian": 0,
+        "step": width,
+        "data": np.zeros(width, dtype=np.uint8) if data is None else data,
+    }
+
+
+class SdkSession:
+    """This process's SDK session at the router ``endpoint``, with the peers' types registered.
+
+    Shared memory is off (as rmw_zenoh's default). Close it once, at the process's end: the SDK
+    keeps it as a per-process singleton.
+    """
+
+    def __init__(self, endpoint: str) -> None:
+        self.router_ip, self.router_port = router_address(endpoint)
+        override = os.environ.get(_OVERRIDE_ENV, "")
+        os.environ[_OVERRIDE_ENV] = f"{override};{_SHM_OFF}" if override else _SHM_OFF
+        try:
+            sdk = importlib.import_module("zenoh_ros2_sdk")
+            session = importlib.import_module("zenoh_ros2_sdk.session")
+        except ImportError as err:
+            raise DbmlError(SDK_MISSING) from err
+        self._sdk = sdk
+        self._session: Any = session.ZenohSession.get_instance(self.router_ip, self.router_port)
+        for msg_type, definition in DEFINITIONS:
+            self._session.register_message_type(definition, msg_type)
+
+    @property
+    def store(self) -> Any:
+        """The SDK's rosbags typestore (its ``types`` and ``serialize_cdr``)."""
+        return self._session.store
+
+    def _options(self, msg_type: str, node_name: str) -> dict[str, Any]:
+        return {
+            "msg_type": msg_type,
+            "msg_definition": dict(DEFINITIONS)[msg_type],
+            "type_hash": type_hash(msg_type),
+            "node_name": node_name,
+            "router_ip": self.router_ip,
+            "router_port": self.router_port,
+        }
+
+    def publisher(self, topic: str, msg_type: str, *, node_name: str) -> Any:
+        """A ROS 2 publisher (``publish(**fields)``, ``close()``)."""
+        return self._sdk.ROS2Publisher(topic=topic, **self._options(msg_type, node_name))
+
+    def subscriber(
+        self, topic: str, msg_type: str, callback: Callable[[Any], None], *, node_name: str
+    ) -> Any:
+        """A ROS 2 subscription calling ``callback(message)`` (``close()``)."""
+        return self._sdk.ROS2Subscriber(
+            topic=topic, callback=callback, **self._options(msg_type, node_name)
+        )
+
+    def close(self) -> None:
+        """Close the process's session (its tokens go with it)."""
+        self._session.close()
+
+
+def _publish_frames(publisher: Any, types: Any, size_bytes: int, stop: threading.Event) -> None:
+    """A camera driver: one frame every ``1 / MAX_RATE_HZ`` s until ``stop``, never a burst."""
+    period_s = 1.0 / MAX_RATE_HZ
+    data = np.zeros(size_bytes - IMAGE_OVERHEAD_BYTES, dtype=np.uint8)
+    next_s = time.monotonic()
+    while not stop.is_set():
+        publisher.publish(**image_fields(types, size_bytes, time.time_ns(), data))
+        next_s += period_s
+        now = time.monotonic()
+        next_s = max(next_s, now - period_s)  # late by more than a frame: do not catch up
+        stop.wait(max(0.0, next_s - now))
+
+
+def _replay_priorities(
+    publisher: Any, index: int, t0: float, spec: RoleSpec, stop: threading.Event
+) -> None:
+    """Table 2's priority of each step from its start, again every ``PRIORITY_REPEAT_S``."""
+    if not wait_until(t0, stop):
+        return
+    while not stop.is_set():
+        now = time.time()
+        k = int((now - t0) // spec.step_s)
+        if k >= len(STEPS):
+            return
+        publisher.publish(data=step_priority(STEPS[k], index))
+        if not wait_until(min(t0 + (k + 1) * spec.step_s, now + PRIORITY_REPEAT_S), stop):
+            return
+
+
+def _serve_camera(role: str, spec: RoleSpec, stop: threading.Event) -> None:
+    index = robot_index(role)
+    camera = ROBOTS[index]
+    sdk = SdkSession(spec.connect[0])
+    publishers: list[Any] = []
+    driver: threading.Thread | None = None
+    camera_stop = threading.Event()
+    try:
+        frames = sdk.publisher(camera.topic, IMAGE_TYPE, node_name=f"{role}_camera")
+        publishers.append(frames)
+        priority = sdk.publisher(
+            camera.topic + PRIORITY_SUFFIX, FLOAT64_TYPE, node_name=f"{role}_collision"
+        )
+        publishers.append(priority)
+        driver = threading.Thread(
+            target=_publish_frames,
+            args=(frames, sdk.store.types, camera.size_bytes, camera_stop),
+            name=f"camera-{role}",
+            daemon=True,
+        )
+        driver.start()  # from the start, as a camera driver: the bridge waits for a frame
+        serve_role(role, stop, lambda t0: _replay_priorities(priority, index, t0, spec, stop))
+    finally:
+        camera_stop.set()
+        if driver is not None:
+            driver.join(timeout=5.0)
+        for publisher in publishers:
+            publisher.close()
+        sdk.close()
+
+
+class _Recorder:
+    """The operator's record of each frame: robot, count, send and arrival time, size."""
+
+    def __init__(self, store: Any) -> None:
+        self._store = store
+        self._lock = threading.Lock()
+        self._rows: list[list[Any]] = []
+        self._counts = [0 for _ in ROBOTS]
+
+    def on_image(self, index: int) -> Callable[[Any], None]:
+        """The subscription callback of robot ``index``'s optimized topic."""
+
+        def record(message: Any) -> None:
+            arrival_s = time.time()
+            size_bytes = len(self._store.serialize_cdr(message, IMAGE_TYPE))
+            stamp = message.header.stamp
+            sent_s = stamp.sec + stamp.nanosec / _NS_PER_S
+            with self._lock:
+                seq = self._counts[index]
+                self._counts[index] += 1
+                self._rows.append([index, seq, sent_s, arrival_s, size_bytes, None])
+
+        return record
+
+    def counts(self) -> list[int]:
+        """Frames received so far, per robot."""
+        with self._lock:
+            return list(self._counts)
+
+    def take(self) -> list[list[Any]]:
+        """The rows since the last call."""
+        with self._lock:
+            rows, self._rows = self._rows, []
+        return rows
+
+
+def _wait_first_frames(recorder: _Recorder, topics: Sequence[str], stop: threading.Event) -> None:
+    """Return once every topic delivered a frame; raise naming those that did not."""
+    deadline = time.monotonic() + FIRST_FRAMES_TIMEOUT_S
+    while not all(recorder.counts()) and time.monotonic() < deadline and not stop.is_set():
+        stop.wait(_FIRST_FRAMES_POLL_S)
+    missing = [t for t, n in zip(topics, recorder.counts(), strict=True) if n == 0]
+    if missing and not stop.is_set():
+        raise DbmlError(
+            f"operator: no frame on {', '.join(missing)} within {FIRST_FRAMES_TIMEOUT_S:g} s "
+            "(are the router, the bridges and the robots running?)"
+        )
+
+
+def _serve_operator(spec: RoleSpec, stop: threading.Event) -> None:
+    sdk = SdkSession(spec.connect[0])
+    recorder = _Recorder(sdk.store)
+    topics = [camera.topic + OPTIMIZED_SUFFIX for camera in ROBOTS]
+    subscribers: list[Any] = []
+    try:
+        transport = open_transport(
+            spec.transport,
+            host=spec.host,
+            listen=spec.listen,
+            connect=spec.connect,
+            follow_all_params=True,  # it reports every channel's allocation
+        )
+    except BaseException:
+        sdk.close()
+        raise
+    view = ParamView.of(transport.params)
+    variants = [Variant.OPTIMIZED.value for _ in ROBOTS]  # what the operator subscribes to
+
+    def operate(t0: float) -> None:
+        while not stop.is_set() and time.time() < t0 + spec.duration_s + TAIL_S:
+            stop.wait(TICK_S)
+            emit_json(operator_tick(view, recorder.take(), variants))
+        emit_json({"type": "done"})
+
+    try:
+        for i, topic in enumerate(topics):
+            subscribers.append(
+                sdk.subscriber(
+                    topic,
+                    IMAGE_TYPE,
+                    recorder.on_image(i),
+                    node_name=f"operator_{ROBOTS[i].robot.lower()}",
+                )
+            )
+        transport.wait_for_peers(spec.peer_wait_s)
+        _wait_first_frames(recorder, topics, stop)
+        serve_role("operator", stop, operate)
+    finally:
+        for subscriber in subscribers:
+            subscriber.close()
+        transport.close()
+        sdk.close()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """One plain ROS 2 peer as an OS process, driven over stdin and stdout by the runner."""
+    parser = argparse.ArgumentParser(prog="python -m dbml.experiment.ros2peers")
+    parser.add_argument("role", choices=ROLES)
+    parser.add_argument("spec", help="the RoleSpec as JSON (connect[0]: the zenoh router)")
+    args = parser.parse_args(argv)
+    role, spec = args.role, RoleSpec.from_json(args.spec)
+    logging.basicConfig(level=logging.WARNING, format=f"{role}: %(name)s: %(message)s")
+    if not spec.connect:
+        sys.stderr.write(f"{role}: spec.connect=(): the ROS 2 peers need the router's endpoint\n")
+        return 2
+    try:
+        with stop_on_signals() as stop:
+            if role == "operator":
+                _serve_operator(spec, stop)
+            else:
+                _serve_camera(role, spec, stop)
+    except DbmlError as err:
+        sys.stderr.write(f"{role}: {err}\n")
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,176 @@
+"""The bridge: an existing topic under management without touching its publisher.
+
+What the original package's ``dbm_bridge_node`` did for ROS 1, over any transport. The bridge
+subscribes to the full-rate ``[topic]`` on its own host and republishes it on
+``[topic]/optimized`` at the allocated rate, as a ``ManagedPublisher`` that leaves ``[topic]``
+to its original publisher. It forwards the newest message only: one slot, no queue, each
+message at most once, nothing when nothing new arrived. A queue would send stale frames late;
+the newest value is what a remote operator needs. The size parameter follows what it forwards.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+
+from dbml.core.config import BridgeChannel
+from dbml.core.errors import TransportError
+from dbml.runtime.publisher import FAILSAFE_PERIODS, ManagedPublisher
+from dbml.runtime.rate import Rate
+from dbml.transports.base import Handle, Sample, Transport, Variant
+
+__all__ = ["FIRST_MESSAGE_TIMEOUT_S", "Bridge"]
+
+log = logging.getLogger("dbml.bridge")
+
+FIRST_MESSAGE_TIMEOUT_S = 10.0
+"""How long ``start`` waits for the bridged topic's first message before giving up."""
+_STOP_POLL_S = 0.1
+"""How often the pacing thread, waiting for a message, looks whether it should stop."""
+
+
+class _StoppedError(Exception):
+    """The bridge is closing: leave the pacing loop from inside ``Rate.sleep``."""
+
+
+class Bridge:
+    """One bridged channel: subscribe to ``[topic]``, forward the newest to the optimized copy.
+
+    The subscription callback only swaps the newest payload into one slot (under a lock held
+    for the swap alone, never across a middleware call). ``start`` waits for the first message
+    (which proves the topic exists and, over ROS 1, tells its type), declares the managed
+    publisher and starts the pacing thread. ``forward()`` is one step of that thread, public so
+    a test with a manual clock can drive it.
+    """
+
+    def __init__(
+        self,
+        transport: Transport,
+        channel: BridgeChannel,
+        *,
+        failsafe_periods: float = FAILSAFE_PERIODS,
+    ) -> None:
+        self.channel = channel
+        self._transport = transport
+        self._failsafe_periods = failsafe_periods
+        self._lock = threading.Lock()
+        self._newest: bytes | None = None
+        self._arrived = threading.Event()
+        self._stop = threading.Event()
+        self._publisher: ManagedPublisher | None = None
+        self._thread: threading.Thread | None = None
+        self.forwarded = 0
+        """Messages sent on ``[topic]/optimized`` so far."""
+        if channel.msg_type is not None:
+            for variant in Variant:
+                transport.set_topic_type(variant.key(channel.topic), channel.msg_type)
+        self._subscription: Handle = transport.subscribe(channel.topic, self._on_sample)
+
+    @property
+    def topic(self) -> str:
+        """The bridged topic (its managed copy is ``[topic]/optimized``)."""
+        return self.channel.topic
+
+    @property
+    def publisher(self) -> ManagedPublisher | None:
+        """The managed publisher of ``[topic]/optimized``, once started."""
+        return self._publisher
+
+    def _on_sample(self, sample: Sample) -> None:
+        with self._lock:
+            self._newest = sample.payload
+            self._arrived.set()  # with the slot, so a taker never sees one without the other
+
+    def _take(self) -> bytes | None:
+        with self._lock:
+            payload, self._newest = self._newest, None
+            self._arrived.clear()
+        return payload
+
+    def _put_back(self, payload: bytes) -> None:
+        """Keep a payload the limiter refused, unless a newer one arrived meanwhile."""
+        with self._lock:
+            if self._newest is None:
+                self._newest = payload
+                self._arrived.set()
+
+    def wait_first(self, timeout_s: float) -> bool:
+        """Whether a first message arrived (waiting up to ``timeout_s`` for it)."""
+        return self._publisher is not None or self._arrived.wait(timeout_s)
+
+    def start(self, *, timeout_s: float = FIRST_MESSAGE_TIMEOUT_S, pace: bool = True) -> Bridge:
+        """Wait for the first message, declare the managed publisher, start pacing.
+
+        Raises ``TransportError`` naming the topic when no message came within ``timeout_s``.
+        ``pace=False`` leaves the pacing to the caller's ``forward()`` calls.
+        """
+        if not self._arrived.wait(timeout_s):
+            raise TransportError(
+                f"topic={self.topic!r}: no message within {timeout_s:g} s "
+                "(is its publisher running on this host?)"
+            )
+        channel = self.channel
+        self._publisher = ManagedPublisher(
+            self._transport,
+            channel.topic,
+            min_rate_hz=channel.min_rate_hz,
+            max_rate_hz=channel.max_rate_hz,
+            priority=channel.priority,
+            failsafe_periods=self._failsafe_periods,
+            republish_full=False,
+        )
+        if pace:
+            self._thread = threading.Thread(
+                target=self._run, name=f"dbml-bridge {channel.topic}", daemon=True
+            )
+            self._thread.start()
+        return self
+
+    @property
+    def alive(self) -> bool:
+        """Whether the pacing thread runs (False once it died or was stopped)."""
+        return self._thread is not None and self._thread.is_alive()
+
+    def forward(self) -> bool:
+        """Send the newest unsent message if the rate allows; True if one went out."""
+        publisher = self._publisher
+        if publisher is None:
+            return False
+        payload = self._take()
+        if payload is None:
+            return False
+        if publisher.publish(payload):
+            self.forwarded += 1
+            return True
+        self._put_back(payload)
+        return False
+
+    def _sleep(self, seconds: float) -> None:
+        if self._stop.wait(seconds):
+            raise _StoppedError
+
+    def _run(self) -> None:
+        publisher = self._publisher
+        assert publisher is not None
+        rate = Rate(publisher.current_rate_hz, clock=self._transport.now, sleep=self._sleep)
+        try:
+            while not self._stop.is_set():
+                rate.sleep()  # one tick at the rate in force
+                while not self._arrived.wait(_STOP_POLL_S):  # the tick waits for a message
+                    if self._stop.is_set():
+                        return
+                self.forward()
+        except _StoppedError:
+            return
+        except Exception:
+            log.exception("%s: the bridge's pacing thread failed", self.topic)
+            raise
+
+    def close(self) -> None:
+        """Stop pacing, unsubscribe and withdraw the managed publisher."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+        self._subscription.close()
+        if self._publisher is not None:
+            self._publisher.close()

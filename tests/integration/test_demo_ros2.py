@@ -1,0 +1,81 @@
+"""``dbml demo teleop --transport ros2``: plain ROS 2 robots and operator, dbml's bridges.
+
+The robots and the operator are zenoh-ros2-sdk nodes (no dbml); a ``dbml bridge`` per camera,
+the optimizer and a ``dbml router`` are dbml's. Every process is a real one on loopback.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+
+import pytest
+
+from dbml.cli.main import main
+from tests.integration.test_demo import TABLE2_HZ, alive, children_of
+
+pytestmark = pytest.mark.integration
+
+DEMO_TIMEOUT_S = 240.0
+RATE_TOLERANCE = 0.05
+RATE_FLOOR_HZ = 0.3
+"""As for the other transports: 5 %, or 0.3 Hz for a few-Hz stream in a short step."""
+
+
+def test_demo_over_ros2_matches_table2_and_ends_every_process() -> None:
+    demo = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "dbml",
+            "demo",
+            "teleop",
+            "--transport",
+            "ros2",
+            "--step-seconds",
+            "1.5",
+            "--json",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    started: set[int] = set()
+    deadline = time.monotonic() + DEMO_TIMEOUT_S
+    try:
+        while demo.poll() is None and time.monotonic() < deadline:
+            started |= children_of(demo.pid)  # router, bridges, optimizer and the ROS 2 peers
+            time.sleep(0.1)
+        stdout, stderr = demo.communicate(timeout=max(1.0, deadline - time.monotonic()))
+    finally:
+        if demo.poll() is None:
+            demo.kill()
+            demo.communicate(timeout=10)
+    assert demo.returncode == 0, stderr[-3000:]
+    assert len(started) >= 7, "router, 2 bridges, optimizer, operator and 2 robots"
+    assert not [pid for pid in started if alive(pid)], "every process ended by the demo"
+    document = json.loads(stdout)
+    assert document["ok"] is True
+    steps = document["steps"]
+    assert [s["step"] for s in steps] == list(range(1, 11))
+    for step, expected in zip(steps, TABLE2_HZ, strict=True):
+        for robot, table2_hz in zip(step["robots"], expected, strict=True):
+            assert round(robot["allocated_hz"], 2) == table2_hz
+            tolerance = max(RATE_TOLERANCE * robot["allocated_hz"], RATE_FLOOR_HZ)
+            assert abs(robot["measured_hz"] - robot["allocated_hz"]) <= tolerance
+            assert robot["variant"] == "optimized"
+        assert step["total_mbit"] <= 11 * (1 + RATE_TOLERANCE)
+
+
+def test_demo_over_ros2_without_the_sdk_says_what_to_install(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setitem(sys.modules, "zenoh_ros2_sdk", None)  # as if not installed
+    assert main(["demo", "teleop", "--transport", "ros2", "--json"]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1
+    assert "pip install zenoh-ros2-sdk" in lines[0]

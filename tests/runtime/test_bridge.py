@@ -1,0 +1,198 @@
+import threading
+
+import pytest
+
+from dbml.core.config import BridgeChannel
+from dbml.core.errors import TransportError
+from dbml.runtime import names
+from dbml.runtime.bridge import Bridge
+from dbml.runtime.nodes import run_bridge
+from dbml.transports import ManualClock, MemoryNetwork, MemoryTransport, Sample, Variant
+from tests.conftest import wait_for
+
+CAMERA = "/r1/camera"
+CHANNEL = BridgeChannel(CAMERA, 1.0, 16.0)
+
+
+@pytest.fixture
+def network() -> MemoryNetwork:
+    return MemoryNetwork()
+
+
+@pytest.fixture
+def clock() -> ManualClock:
+    return ManualClock(100.0)
+
+
+def optimized_reader(network: MemoryNetwork) -> list[Sample]:
+    """What a remote operator receives of ``[topic]/optimized``."""
+    received: list[Sample] = []
+    MemoryTransport(network, host="op").subscribe(CAMERA, received.append, Variant.OPTIMIZED)
+    return received
+
+
+def started(network: MemoryNetwork, clock: ManualClock, first: bytes = b"first") -> Bridge:
+    """A bridge on the robot, its topic's original publisher having sent ``first``."""
+    robot = MemoryTransport(network, host="r1", clock=clock)
+    bridge = Bridge(robot, CHANNEL)
+    original = robot.declare_publisher(CAMERA)
+    original.put(first)
+    bridge.start(timeout_s=0, pace=False)
+    MemoryTransport(network, host="base").params.set(names.current_value(CAMERA), 2.0)
+    return bridge
+
+
+def test_forwards_the_newest_message_at_most_once(
+    network: MemoryNetwork, clock: ManualClock
+) -> None:
+    received = optimized_reader(network)
+    bridge = started(network, clock)
+    original = MemoryTransport(network, host="r1b").declare_publisher(CAMERA)
+    for payload in (b"one", b"two", b"three"):
+        original.put(payload)
+    assert bridge.forward()
+    assert [s.payload for s in received] == [b"three"]  # newest wins, no queue
+    clock.advance(10.0)
+    assert not bridge.forward()  # nothing new: nothing is sent again
+    assert len(received) == 1
+    original.put(b"four")
+    assert bridge.forward()
+    assert [s.payload for s in received] == [b"three", b"four"]
+    assert bridge.forwarded == 2
+
+
+def test_a_refused_message_is_kept_unless_a_newer_one_came(
+    network: MemoryNetwork, clock: ManualClock
+) -> None:
+    received = optimized_reader(network)
+    bridge = started(network, clock)
+    original = MemoryTransport(network, host="r1b").declare_publisher(CAMERA)
+    original.put(b"a")
+    assert bridge.forward()
+    original.put(b"b")
+    assert not bridge.forward()  # 2 Hz: too early
+    clock.advance(0.5)
+    assert bridge.forward()
+    assert [s.payload for s in received] == [b"a", b"b"]
+
+
+def test_rate_follows_the_allocation(network: MemoryNetwork, clock: ManualClock) -> None:
+    received = optimized_reader(network)
+    bridge = started(network, clock)
+    original = MemoryTransport(network, host="r1b").declare_publisher(CAMERA)
+    optimizer = MemoryTransport(network, host="base").params
+
+    def sent_in(seconds: float) -> int:
+        before = len(received)
+        for tick in range(round(seconds * 100)):  # a 100 Hz source
+            clock.advance(0.01)
+            if tick % 100 == 0:  # the optimizer's heartbeat keeps the allocation in force
+                optimizer.set(names.ROUND, tick)
+            original.put(b"x")
+            bridge.forward()
+        return len(received) - before
+
+    optimizer.set(names.current_value(CAMERA), 4.0)
+    assert sent_in(10.0) == pytest.approx(40, abs=2)
+    optimizer.set(names.current_value(CAMERA), 12.5)
+    assert sent_in(10.0) == pytest.approx(125, abs=2)
+    optimizer.set(names.current_value(CAMERA), 50.0)  # above max: clamped to 16 Hz
+    assert sent_in(10.0) == pytest.approx(160, abs=2)
+
+
+def test_size_follows_the_forwarded_payloads(network: MemoryNetwork, clock: ManualClock) -> None:
+    bridge = started(network, clock)
+    original = MemoryTransport(network, host="r1b").declare_publisher(CAMERA)
+    params = MemoryTransport(network, host="viewer").params
+    original.put(bytes(84_000))
+    assert bridge.forward()
+    assert params.get(names.size(CAMERA)) == 84_000
+    clock.advance(1.0)
+    original.put(bytes(21_000))
+    assert bridge.forward()
+    assert params.get(names.size(CAMERA)) == 21_000
+
+
+def test_does_not_republish_the_full_rate_topic(network: MemoryNetwork, clock: ManualClock) -> None:
+    local: list[Sample] = []
+    MemoryTransport(network, host="r1").subscribe(CAMERA, local.append)
+    bridge = started(network, clock, first=b"first")
+    original = MemoryTransport(network, host="r1b").declare_publisher(CAMERA)
+    original.put(b"second")
+    assert bridge.forward()
+    # Only the original publisher's two messages: the bridge added none to [topic].
+    assert [s.payload for s in local] == [b"first", b"second"]
+    publishers = [
+        e for e in MemoryTransport(network, host="v").graph.entries() if e.role.value == "pub"
+    ]
+    assert {(e.host, e.topic, e.variant) for e in publishers} == {("r1", CAMERA, Variant.FULL)}
+
+
+def test_start_without_a_message_names_the_topic(network: MemoryNetwork) -> None:
+    bridge = Bridge(MemoryTransport(network, host="r1"), CHANNEL)
+    with pytest.raises(TransportError, match=r"^topic='/r1/camera': no message within 0.01 s"):
+        bridge.start(timeout_s=0.01)
+    bridge.close()
+
+
+def test_pacing_thread_forwards_at_the_allocated_rate(network: MemoryNetwork) -> None:
+    """Real time: a 200 Hz source, a 20 Hz allocation, about 20 messages a second."""
+    received = optimized_reader(network)
+    robot = MemoryTransport(network, host="r1")
+    original = MemoryTransport(network, host="r1b").declare_publisher(CAMERA)
+    stop = threading.Event()
+
+    def source() -> None:
+        n = 0
+        while not stop.wait(0.005):
+            n += 1
+            original.put(n.to_bytes(4, "big"))
+
+    feeder = threading.Thread(target=source, daemon=True)
+    feeder.start()
+    runner = threading.Thread(
+        target=run_bridge, args=(robot, [CHANNEL]), kwargs={"stop": stop, "wait_s": 5.0}
+    )
+    runner.start()
+    try:
+        wait_for(lambda: robot.params.get(names.size(CAMERA)) == 4, what="the bridge's size")
+        MemoryTransport(network, host="base").params.set(names.current_value(CAMERA), 20.0)
+        wait_for(lambda: len(received) > 0, what="a first forwarded message")
+        start = len(received)
+        stop.wait(1.0)
+        count = len(received) - start
+        assert 16 <= count <= 23
+        numbers = [int.from_bytes(s.payload, "big") for s in received]
+        assert numbers == sorted(set(numbers))  # each at most once, never an older one
+    finally:
+        stop.set()
+        runner.join(timeout=5)
+        feeder.join(timeout=5)
+    assert not runner.is_alive()
+
+
+def test_run_bridge_fails_for_a_silent_topic(network: MemoryNetwork) -> None:
+    with pytest.raises(TransportError, match=r"topic='/r1/camera': no message within"):
+        run_bridge(
+            MemoryTransport(network, host="r1"), [CHANNEL], stop=threading.Event(), wait_s=0.05
+        )
+
+
+def test_managed_publisher_without_full_republish(network: MemoryNetwork) -> None:
+    from dbml.runtime import ManagedPublisher
+
+    local: list[Sample] = []
+    MemoryTransport(network, host="r1").subscribe(CAMERA, local.append)
+    received = optimized_reader(network)
+    publisher = ManagedPublisher(
+        MemoryTransport(network, host="r1"),
+        CAMERA,
+        min_rate_hz=1,
+        max_rate_hz=16,
+        failsafe_periods=1e-9,  # no wait for a first allocation
+        republish_full=False,
+    )
+    assert publisher.publish(b"frame")
+    assert local == []
+    assert [s.payload for s in received] == [b"frame"]
+    publisher.close()
