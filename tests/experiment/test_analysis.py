@@ -106,3 +106,60 @@ def test_a_slow_stream_is_timed_exactly_in_a_short_step(offset_s: float) -> None
 def test_a_window_without_a_gap_to_time_counts() -> None:
     assert rate_hz([0.5], 0.0, 2.0) == 0.5
     assert rate_hz([], 0.0, 2.0) == 0.0
+
+
+def test_a_drop_reports_the_first_cut_goodput_after_and_phases() -> None:
+    t0 = 0.0
+    frames = [
+        Arrival(0, seq, seq * 0.1, seq * 0.1 + 0.05, 50_000, 10.0)  # 4 Mbit/s
+        for seq in range(100)
+    ]
+    # the budget is cut 0.6 s after the drop at 4 s as ticks see it; the estimator's own stamp
+    # says 0.25 s
+    ticks = [Tick(t / 5, (10.0,), 9.0, 9.0) for t in range(23)]
+    ticks.append(Tick(4.6, (10.0,), 4.0, 4.0, "decrease: received 4.0 Mbit/s @4.25"))
+    ticks.extend(Tick(4.6 + t / 5, (10.0,), 4.0, 4.0, "hold @4.25") for t in range(1, 28))
+    result = analyse(
+        frames,
+        ticks,
+        robots=["R1"],
+        t0=t0,
+        step_s=1.0,
+        steps=10,
+        link_mbit=11.0,
+        schedule=((0.0, 11.0), (4.0, 5.0)),
+    )
+    (change,) = result.changes
+    assert change.first_cut_s == pytest.approx(0.25)
+    assert change.goodput_share_after == pytest.approx(4.0 / 5.0, rel=0.05)
+    first, second = result.phases
+    assert (first.start_s, first.end_s, second.end_s) == (0.0, 4.0, 10.0)
+    assert second.utilisation == pytest.approx(4.0 / 5.0, rel=0.05)
+    assert second.latency_p95_ms == pytest.approx(50.0)
+    assert second.lost == 0
+
+
+def test_a_cut_without_a_stamp_is_timed_by_the_tick_that_saw_it() -> None:
+    frames = [Arrival(0, seq, seq * 0.1, seq * 0.1 + 0.05, 50_000, 10.0) for seq in range(60)]
+    ticks = [Tick(t / 5, (10.0,), 9.0 if t / 5 < 4.6 else 4.0, None) for t in range(30)]
+    result = analyse(
+        frames,
+        ticks,
+        robots=["R1"],
+        t0=0.0,
+        step_s=0.6,
+        steps=10,
+        link_mbit=11.0,
+        schedule=((0.0, 11.0), (4.0, 5.0)),
+    )
+    (change,) = result.changes
+    assert change.first_cut_s == pytest.approx(0.6)
+
+
+def test_a_schedule_starting_below_the_default_link_starts_there() -> None:
+    """RFC 8867's 5.1 starts at 4.4 Mbit/s: the first phase is 4.4, not the default 11."""
+    from dbml.experiment.analysis import _link_rates
+
+    rates = _link_rates(((0.0, 4.4), (40.0, 11.0), (60.0, 2.6)), 11.0)
+    assert rates == [(0.0, 4.4), (40.0, 11.0), (60.0, 2.6)]
+    assert _link_rates(((20.0, 5.0),), 11.0) == [(0.0, 11.0), (20.0, 5.0)]

@@ -13,6 +13,7 @@ import zenoh
 
 from dbml.harness.processes import free_port
 from dbml.runtime import names
+from dbml.runtime.rate import RateLimiter
 from tests.conftest import wait_for
 from tests.integration.procs import fleet
 
@@ -26,6 +27,8 @@ BUDGET_MBIT = 0.8
 EXPECTED_HZ = BUDGET_MBIT * 125_000 / SIZE_BYTES
 WINDOW_S = 1.0
 TOLERANCE = 0.25
+MEASURED_WINDOWS = 4
+"""The span measured, in windows: sliding 1-s windows every half second over it."""
 
 
 def _session(*, connect: list[str] | None = None, mode: str = "peer") -> zenoh.Session:
@@ -87,10 +90,31 @@ def test_bridge_forwards_at_the_allocated_rate(tmp_path: Path) -> None:
             )
             assert f.param(names.size(CAMERA)) == SIZE_BYTES
             assert f.param(names.managed(CAMERA)) is True
-            allocated_at = time.monotonic()  # the old rate's credit drains for a second
-            wait_for(lambda: time.monotonic() > allocated_at + WINDOW_S, timeout_s=5)
-            start = time.monotonic()
-            wait_for(lambda: time.monotonic() > start + 4 * WINDOW_S, timeout_s=10)
+            wait_for(
+                lambda: f.param(names.applied(CAMERA)) == pytest.approx(EXPECTED_HZ),
+                timeout_s=10,
+                what="the bridge applying the allocation",
+            )
+            applied_at = time.monotonic()
+
+            def after(t0: float, count: int) -> list[float]:
+                with lock:
+                    return [t for t, _, _ in arrivals if t >= t0][:count]
+
+            # The frames banked at the old rate go out first; the measurement starts after.
+            banked = int(RateLimiter.BANKED_FRAMES) + 1
+            wait_for(
+                lambda: len(after(applied_at, banked)) == banked,
+                timeout_s=10,
+                what="the banked frames forwarded",
+            )
+            start = after(applied_at, banked)[-1]
+            end = start + MEASURED_WINDOWS * WINDOW_S
+            wait_for(
+                lambda: bool(after(end, 1)),
+                timeout_s=3 * MEASURED_WINDOWS * WINDOW_S,
+                what="frames over the whole measured span",
+            )
             assert bridge.popen.poll() is None, bridge.stderr()
         finally:
             listener.close()  # type: ignore[no-untyped-call]
@@ -99,7 +123,7 @@ def test_bridge_forwards_at_the_allocated_rate(tmp_path: Path) -> None:
         numbers = [n for _, _, n in arrivals]
     assert numbers == sorted(set(numbers))  # each message at most once, never an older one
     budget = BUDGET_MBIT * 125_000
-    for k in range(7):  # sliding 1-s windows over 4 s
+    for k in range(2 * MEASURED_WINDOWS - 1):  # sliding 1-s windows over the span
         t0 = start + k * 0.5
         in_window = sum(size for t, size, _ in measured if t0 <= t < t0 + WINDOW_S)
         assert in_window == pytest.approx(budget * WINDOW_S, rel=TOLERANCE), (k, in_window)
@@ -113,6 +137,22 @@ def test_bridge_of_a_silent_topic_exits_2_with_one_line() -> None:
         assert proc.stderr_lines == [
             "dbml: error: topic='/nobody': no message within 0.5 s "
             "(is its publisher running on this host?)\n"
+        ]
+
+
+def test_bridge_over_ros2_of_an_untyped_topic_exits_2_with_one_line() -> None:
+    """Over ROS 2 every topic has a type: none found and no --type is an error, not a guess."""
+    listen = f"tcp/127.0.0.1:{free_port()}"
+    with fleet() as f:
+        proc = f.start(
+            "bridge", "/nobody", "--min-hz", "1", "--max-hz", "5", "--wait", "0.5",
+            "--transport", "ros2", "--listen", listen,
+        )  # fmt: skip
+        assert proc.popen.wait(timeout=30) == 2
+        proc.stop()
+        assert proc.stderr_lines == [
+            "dbml: error: topic='/nobody': its type cannot be resolved (no publisher seen "
+            "within 0.5 s); name it with --type pkg/msg/Name\n"
         ]
 
 

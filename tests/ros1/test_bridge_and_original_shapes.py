@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+from pathlib import Path
 
 import pytest
 
@@ -76,3 +77,33 @@ def test_a_node_written_for_the_original_runs_with_its_import_changed(ros: RosNe
         pytest.fail(f"DBMRate('/r1/camera', 1, 16) never followed {expected_hz} Hz")
     seen = lines(viewer, 3)
     assert all(s["optimized"] is True and s["bytes"] == 84_000 for s in seen)
+
+
+def test_dbm_rate_of_a_topic_without_a_publisher_follows_the_parameter_server(
+    ros: RosNet,
+) -> None:
+    """The original's ``DBMRate(topic_name, min, max)`` in a process with no DBMPublisher."""
+    follower = ros.node("follower", "/r1/camera", host="127.0.0.2", module=NODES)
+    assert lines(follower, 1)[0]["frequency"] == 1.0  # the minimum before an allocation
+    ros.wait_param("/r1/camera/dbm/frequency/max", lambda v: v == 16.0, what="its bounds")
+    assert ros.param("/r1/camera/dbm/frequency/min") == 1.0
+    for allocated, kept in ((5.0, 5.0), (50.0, 16.0)):  # above the maximum: clamped
+        ros.rosparam("set", "/r1/camera/dbm/frequency/current_value", str(allocated))
+        for line in follower.json_lines(timeout_s=20):
+            if line["frequency"] == kept:
+                break
+        else:
+            pytest.fail(f"DBMRate never kept {kept} Hz for {allocated}:\n{follower.stderr()}")
+
+
+def test_a_failing_start_thread_is_reported_and_misuse_is_refused(ros: RosNet) -> None:
+    node = ros.node("failing", "/r1/camera", host="127.0.0.2", module=NODES)
+    status, again, rate = lines(node, 3)
+    assert status == {"alive": False, "calls": 3}
+    assert again == {"start": "DBMPublisher('/r1/camera').start(): already started"}
+    assert "min_frequency and max_frequency are required" in str(rate["rate"])
+    # rospy sends Python logging to the node's log file, where a ROS user looks.
+    logs = Path(ros.env["ROS_LOG_DIR"]).glob("failing_*.log")
+    text = "".join(log.read_text(errors="replace") for log in logs)
+    assert "the DBMPublisher's start thread failed" in text
+    assert "RuntimeError: camera unplugged" in text

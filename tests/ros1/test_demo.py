@@ -20,22 +20,26 @@ from tests.ros1.rosnet import RosNet, require_ros1
 pytestmark = pytest.mark.integration
 
 
-def rosmasters() -> set[int]:
-    """PIDs of the rosmaster processes running now."""
+def rosmasters(ros_home: Path) -> set[int]:
+    """PIDs of the rosmaster processes running now with this ``ROS_HOME`` (this test's own).
+
+    Other tests may run masters on this machine at the same time: only ours are counted.
+    """
     found = set()
+    marker = b"ROS_HOME=" + bytes(ros_home)
     for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
         try:
             argv = cmdline.read_bytes().split(b"\0")
+            environ = (cmdline.parent / "environ").read_bytes().split(b"\0")
         except OSError:
             continue  # ended meanwhile
-        if any(arg.endswith(b"rosmaster") for arg in argv[:2]):
+        if any(arg.endswith(b"rosmaster") for arg in argv[:2]) and marker in environ:
             found.add(int(cmdline.parent.name))
     return found
 
 
 def test_demo_over_ros1_matches_table2_and_stops_the_master_it_started(tmp_path: Path) -> None:
     require_ros1()
-    before = rosmasters()
     env = dict(
         os.environ,
         ROS_MASTER_URI="http://127.0.0.1:9/",  # nothing answers there: the demo starts its own
@@ -61,7 +65,7 @@ def test_demo_over_ros1_matches_table2_and_stops_the_master_it_started(tmp_path:
             assert robot["variant"] == "optimized"  # the operator is another ROS host
             assert robot["matches_table2"]
             assert robot["within_tolerance"]
-    assert rosmasters() <= before  # the master it started is gone
+    assert rosmasters(tmp_path) == set()  # the master it started is gone
 
 
 def test_a_running_master_is_reused_and_left_running(

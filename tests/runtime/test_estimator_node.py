@@ -57,7 +57,7 @@ class Link:
             delay = 0.05 + delay_growth * self.t
             self.op_clock.advance(1000.0 + self.t + delay - self.op_clock())
             meta = pack_meta(self.seq, round((self.t - 50.0) * 1e9), RATE_HZ)
-            self.raw.put(bytes(FRAME_BYTES), meta)
+            self.raw.put(bytes(FRAME_BYTES), attachment=meta)
             self.seq += 1 + skip
             self.reporter.flush()
             self.base_clock.advance(self.t + delay + 0.2 - self.base_clock())

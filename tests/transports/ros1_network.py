@@ -38,7 +38,7 @@ from dbml.transports import (
     TransportBase,
     Variant,
 )
-from dbml.transports.base import Closer
+from dbml.transports.base import Closer, TransportPriority
 from tests.conftest import require
 from tests.ros1.rosnet import ros1_problem
 
@@ -171,7 +171,7 @@ class _PeerPublisher:
         self._peer = peer
         self._pid: int = peer.call("declare_publisher", peer.new_id(), topic, variant.value)
 
-    def put(self, payload: bytes, attachment: bytes | None = None) -> None:
+    def put(self, payload: bytes, *, attachment: bytes | None = None) -> None:
         self._peer.call("put", self._pid, payload, attachment)
 
     @property
@@ -233,8 +233,15 @@ class PeerTransport(TransportBase):
         self.graph = _PeerGraph(peer, hosts)
         self._closed = False
 
-    def declare_publisher(self, topic: str, variant: Variant = Variant.FULL) -> _PeerPublisher:
-        return _PeerPublisher(self._peer, topic, variant)
+    def declare_publisher(
+        self,
+        topic: str,
+        variant: Variant = Variant.FULL,
+        *,
+        priority: TransportPriority | None = None,
+        express: bool = False,
+    ) -> _PeerPublisher:
+        return _PeerPublisher(self._peer, topic, variant)  # ROS 1 has no classes
 
     def subscribe(
         self, topic: str, callback: Callable[[Sample], None], variant: Variant = Variant.FULL

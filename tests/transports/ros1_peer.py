@@ -30,7 +30,9 @@ class Peer:
         self.ops: dict[str, Callable[..., Any]] = {
             "subscribe": self.subscribe,
             "declare_publisher": self.declare_publisher,
-            "put": lambda pid, payload, attachment: self.publishers[pid].put(payload, attachment),
+            "put": lambda pid, payload, attachment: self.publishers[pid].put(
+                payload, attachment=attachment
+            ),
             "has_subscribers": lambda pid: self.publishers[pid].has_subscribers,
             "close_publisher": lambda pid: self.publishers.pop(pid).close(),
             "close_handle": lambda hid: self.handles.pop(hid).close(),

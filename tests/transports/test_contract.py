@@ -95,7 +95,7 @@ def test_publish_reaches_a_subscriber_on_another_host_with_attachment(
     b.subscribe("/r1/camera", got.append)
     publisher = a.declare_publisher("/r1/camera")
     wait_for(lambda: publisher.has_subscribers, what="publisher to see its subscriber")
-    publisher.put(b"\x00" * 84_000, b"meta")
+    publisher.put(b"\x00" * 84_000, attachment=b"meta")
     wait_for(lambda: len(got) == 1, what="one sample")
     assert got[0].topic == "/r1/camera"
     assert got[0].payload == b"\x00" * 84_000

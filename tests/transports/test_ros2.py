@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
+import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
@@ -15,21 +17,37 @@ from typing import Any
 import pytest
 import zenoh
 
+from dbml.core.config import DbmSettings
 from dbml.core.errors import TransportError
 from dbml.harness.processes import free_port
+from dbml.runtime import names
 from dbml.runtime.graph import summarize
+from dbml.runtime.optimizer import OptimizerNode
 from dbml.runtime.publisher import ManagedPublisher
-from dbml.transports import TRANSPORTS, GraphEntry, Role, Sample, Variant, open_transport
-from dbml.transports.ros2 import Ros2Transport, node_name_for, open_router, resolve_domain_id
+from dbml.transports import (
+    TRANSPORTS,
+    GraphEntry,
+    MemoryNetwork,
+    MemoryTransport,
+    Role,
+    Sample,
+    Variant,
+    open_transport,
+)
+from dbml.transports import ros2 as ros2_module
+from dbml.transports.ros2 import Ros2Transport, node_name_for, resolve_domain_id
 from dbml.transports.ros2msg import (
     FLOAT64_TYPE,
     IMAGE_TYPE,
     LivelinessToken,
     MessageTypes,
     TokenKind,
+    data_key,
     decode_attachment,
+    encode_float64,
     parse_token,
 )
+from dbml.transports.zenoh import open_router
 from tests.conftest import wait_for
 
 sdk = pytest.importorskip("zenoh_ros2_sdk")
@@ -61,6 +79,34 @@ def ros2(router_port: int) -> Iterator[Callable[[str], Ros2Transport]]:
     yield make
     for transport in made:
         transport.close()
+
+
+@pytest.fixture
+def foreign(router_port: int) -> Iterator[zenoh.Session]:
+    """A plain zenoh peer at the router: it declares whatever tokens a test needs."""
+    config = zenoh.Config()
+    config.insert_json5("mode", '"peer"')
+    config.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{router_port}"]')
+    config.insert_json5("scouting/multicast/enabled", "false")
+    session = zenoh.open(config)
+    yield session
+    session.close()  # type: ignore[no-untyped-call]
+
+
+def subscription_token(zid: str, topic: str, entity_id: int = 2) -> str:
+    """A ROS 2 subscription's token key, as rmw_zenoh declares it."""
+    return LivelinessToken(
+        0,
+        zid,
+        0,
+        entity_id,
+        TokenKind.SUBSCRIPTION,
+        "viewer",
+        topic=topic,
+        msg_type=IMAGE_TYPE,
+        type_hash=TYPES.type_hash(IMAGE_TYPE),
+        qos="::,10:,:,:,,",
+    ).key()
 
 
 @dataclass
@@ -182,11 +228,12 @@ def test_sdk_subscriber_receives_managed_frames_and_is_a_graph_entry(
         wait_for(two_received, timeout_s=TIMEOUT_S, what="two frames at the SDK subscriber")
     finally:
         publisher.close()
-    assert (frames[0].header.frame_id, frames[0].encoding, len(frames[0].data)) == (
-        "camera",
-        "mono8",
-        21_000 - 52,
-    )
+    image = frames[0]
+    pixels = 21_000 - 52
+    assert (image.header.frame_id, image.encoding, len(image.data)) == ("camera", "mono8", pixels)
+    assert (image.height, image.width, image.step) == (1, pixels, pixels)
+    stamp_s = image.header.stamp.sec + image.header.stamp.nanosec / 1e9
+    assert 0 <= time.time() - stamp_s < TIMEOUT_S  # stamped when made, in wall-clock time
     subscriber.close()
     wait_for(
         lambda: not remote_optimized(transport, "/r1/camera"),
@@ -234,16 +281,53 @@ def test_ros2_priority_sets_the_param_and_bad_values_are_logged(
 
     wait_for(applied(0.25), timeout_s=TIMEOUT_S, what="priority 0.25 from ROS 2")
     with caplog.at_level(logging.WARNING, logger="dbml.ros2"):
-        for bad in (1.5, math.nan):
-            publisher.publish(data=bad)
-            wait_for(
-                lambda bad=bad: f"ignoring priority {bad!r}" in caplog.text,  # type: ignore[misc]
-                timeout_s=TIMEOUT_S,
-                what=f"priority {bad} refused",
-            )
-    wait_for(applied(0.75), timeout_s=TIMEOUT_S, what="priority 0.75 after the bad ones")
-    assert name in caplog.text
+        publisher.publish(data=1.5)
+        wait_for(
+            lambda: "ignoring priority 1.5" in caplog.text,
+            timeout_s=TIMEOUT_S,
+            what="priority 1.5 refused",
+        )
+        for _ in range(20):  # within the log interval: counted, not logged again
+            publisher.publish(data=math.nan)
+        wait_for(applied(0.75), timeout_s=TIMEOUT_S, what="priority 0.75 after the bad ones")
+    assert transport.params.get(name) == 0.75
+    assert [r.getMessage() for r in caplog.records].count(
+        f"{name}: ignoring priority 1.5: it must be a number in [0, 1]"
+        " (1 value(s) ignored; logged at most every 10 s)"
+    ) == 1
+    assert "nan" not in caplog.text
     managed.close()
+
+
+def test_a_flood_of_bad_priorities_is_logged_once_per_interval_with_a_count(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    now = [0.0]
+    throttled = ros2_module._ThrottledLog(10.0, clock=lambda: now[0])
+    with caplog.at_level(logging.WARNING, logger="dbml.ros2"):
+        for _ in range(1000):  # a 1 kHz NaN publisher, for one second
+            throttled.warning("/a/dbm/priority", "%s: ignoring priority %r", "/a", math.nan)
+            now[0] += 0.001
+        throttled.warning("/b/dbm/priority", "%s: ignoring priority %r", "/b", 2.0)
+        now[0] = 10.5
+        throttled.warning("/a/dbm/priority", "%s: ignoring priority %r", "/a", math.nan)
+    assert [r.getMessage() for r in caplog.records] == [
+        "/a: ignoring priority nan (1 value(s) ignored; logged at most every 10 s)",
+        "/b: ignoring priority 2.0 (1 value(s) ignored; logged at most every 10 s)",
+        "/a: ignoring priority nan (1000 value(s) ignored; logged at most every 10 s)",
+    ]
+
+
+def test_the_transport_logs_a_priority_flood_once(
+    ros2: Callable[[str], Ros2Transport], caplog: pytest.LogCaptureFixture
+) -> None:
+    transport = ros2("robot-1")
+    name = "/r1/camera/dbm/priority"
+    with caplog.at_level(logging.WARNING, logger="dbml.ros2"):
+        for _ in range(1000):
+            transport._on_priority(name, encode_float64(math.nan))
+    assert len([r for r in caplog.records if name in r.getMessage()]) == 1
+    assert transport.params.get(name) is None
 
 
 def test_dbml_tokens_describe_its_endpoints_and_are_not_double_counted(
@@ -371,4 +455,283 @@ def test_the_sdks_topic_list_shows_dbmls_topics_with_their_types(
         assert f"/r1/camera/optimized [{IMAGE_TYPE}]" in lines, listed
         assert f"/r1/camera/dbm/priority [{FLOAT64_TYPE}]" in lines, listed
     finally:
+        publisher.close()
+
+
+def foreign_entry(zid: str, topic: str = "/r2/lidar") -> GraphEntry:
+    return GraphEntry(Role.SUBSCRIBER, f"ros2:{zid}", topic, Variant.OPTIMIZED, f"ros2:{zid}/0/2")
+
+
+def test_graph_knows_dbml_sessions_under_its_own_lock() -> None:
+    """The check that a session is dbml's and the add of its subscription are one step."""
+    graph = ros2_module._Ros2Graph(MemoryTransport(MemoryNetwork(), host="a").graph, "own")
+    node = "dbml/node/0123456789abcdef/beef"
+    graph.add("own-sub", "own", foreign_entry("own"))
+    graph.add_dbml(node, "beef")
+    graph.add("k1", "beef", foreign_entry("beef"))  # dbml's: dbml's graph counts it
+    assert not graph.entries()
+    graph.remove_dbml(node, "beef")  # the session left: its zid is no longer dbml's
+    graph.add("k1", "beef", foreign_entry("beef"))
+    assert graph.entries() == {foreign_entry("beef")}
+    graph.add_dbml(node, "beef")  # learnt late: what it declared is dropped
+    assert not graph.entries()
+
+
+def test_graph_caps_what_it_remembers(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    monkeypatch.setattr(ros2_module, "_MAX_FOREIGN", 2)
+    monkeypatch.setattr(ros2_module, "_MAX_DBML_SESSIONS", 1)
+    graph = ros2_module._Ros2Graph(MemoryTransport(MemoryNetwork(), host="a").graph, "own")
+    with caplog.at_level(logging.WARNING, logger="dbml.ros2"):
+        for n in range(5):
+            graph.add(f"k{n}", f"{n:x}", foreign_entry(f"{n:x}", f"/r{n}/x"))
+            graph.add_dbml(f"dbml/node/0123456789abcdef/a{n}", f"a{n}")
+    assert len(graph.entries()) == 2
+    graph.add("k9", "a1", foreign_entry("a1"))  # a1 was not remembered as dbml's: the cap
+    assert len(graph.entries()) == 2
+    assert caplog.text.count("ignoring further ROS 2 subscriptions: 2 remembered") == 1
+    assert caplog.text.count("ignoring further dbml sessions: 1 remembered") == 1
+
+
+def test_only_a_well_formed_dbml_node_token_hides_a_sessions_subscriptions(
+    ros2: Callable[[str], Ros2Transport], foreign: zenoh.Session
+) -> None:
+    transport = ros2("host-a")
+    zid = str(foreign.info.zid())
+    liveliness = foreign.liveliness()
+    fake = liveliness.declare_token(f"dbml/node/not-a-node-id/{zid}")
+    subscription = liveliness.declare_token(subscription_token(zid, "/r2/lidar/optimized"))
+    wait_for(
+        lambda: remote_optimized(transport, "/r2/lidar") == [foreign_entry(zid)],
+        timeout_s=TIMEOUT_S,
+        what="the subscription counted despite a malformed dbml node token",
+    )
+    node = liveliness.declare_token(f"dbml/node/0123456789abcdef/{zid}")
+    wait_for(
+        lambda: not remote_optimized(transport, "/r2/lidar"),
+        timeout_s=TIMEOUT_S,
+        what="a dbml session's subscription left to dbml's graph",
+    )
+    node.undeclare()  # type: ignore[no-untyped-call]
+    wait_for(lambda: not transport.graph.is_dbml(zid), timeout_s=TIMEOUT_S, what="zid dropped")
+    again = liveliness.declare_token(subscription_token(zid, "/r2/lidar/optimized", 3))
+    wait_for(
+        lambda: len(remote_optimized(transport, "/r2/lidar")) == 1,
+        timeout_s=TIMEOUT_S,
+        what="its subscriptions counted again once its dbml token is gone",
+    )
+    for token in (fake, subscription, again):
+        token.undeclare()  # type: ignore[no-untyped-call]
+
+
+def test_a_failing_dbml_node_callback_is_logged_not_lost(
+    ros2: Callable[[str], Ros2Transport],
+    foreign: zenoh.Session,
+    monkeypatch: pytest.MonkeyPatch,
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    transport = ros2("host-a")
+
+    def broken(key: str, zid: str) -> None:
+        raise RuntimeError("boom")
+
+    monkeypatch.setattr(transport.graph, "add_dbml", broken)
+    with caplog.at_level(logging.ERROR, logger="dbml.ros2"):
+        token = foreign.liveliness().declare_token(
+            f"dbml/node/0123456789abcdef/{foreign.info.zid()}"
+        )
+        wait_for(
+            lambda: "it could not be handled" in caplog.text,
+            timeout_s=TIMEOUT_S,
+            what="the failure logged by dbml's guard",
+        )
+    token.undeclare()  # type: ignore[no-untyped-call]
+
+
+def test_the_bridge_republishes_under_its_sources_type_hash(
+    ros2: Callable[[str], Ros2Transport],
+    foreign: zenoh.Session,
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Another distro's publisher: rmw_zenoh's subscribers listen on its hash, not ours."""
+    transport = ros2("robot-1")
+    theirs = "RIHS01_" + "ab" * 32
+    source = LivelinessToken(
+        0,
+        str(foreign.info.zid()),
+        0,
+        1,
+        TokenKind.PUBLISHER,
+        "camera",
+        topic="/r1/camera",
+        msg_type=IMAGE_TYPE,
+        type_hash=theirs,
+        qos="::,10:,:,:,,",
+    )
+    token = foreign.liveliness().declare_token(source.key())
+    received: list[bytes] = []
+    listener = foreign.declare_subscriber(
+        data_key(0, "/r1/camera/optimized", IMAGE_TYPE, theirs),
+        lambda sample: received.append(sample.payload.to_bytes()),
+    )
+    with caplog.at_level(logging.WARNING, logger="dbml.ros2"):
+        assert transport.topic_type("/r1/camera", timeout_s=TIMEOUT_S) == IMAGE_TYPE
+    assert f"hash {theirs} is not the jazzy typestore's" in caplog.text
+    transport.set_topic_type("/r1/camera/optimized", IMAGE_TYPE)
+    publisher = transport.declare_publisher("/r1/camera", Variant.OPTIMIZED)
+    frame = transport.camera_frame("/r1/camera", 100)
+
+    def delivered() -> bool:
+        publisher.put(frame)
+        return bool(received)
+
+    wait_for(delivered, timeout_s=TIMEOUT_S, what="/optimized under the source's hash")
+    publisher.close()
+    listener.undeclare()  # type: ignore[no-untyped-call]
+    token.undeclare()  # type: ignore[no-untyped-call]
+
+
+def test_a_failed_declaration_in_init_closes_dbmls_session(
+    router_port: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from dbml.transports.zenoh import ZenohTransport
+
+    opened: list[zenoh.Session] = []
+    real = ZenohTransport
+
+    def recording(**options: Any) -> Any:
+        made = real(**options)
+        opened.append(made.session)
+        return made
+
+    def refuse(self: Ros2Transport, *args: object) -> None:
+        raise TransportError("refused")
+
+    monkeypatch.setattr("dbml.transports.ros2.ZenohTransport", recording)
+    monkeypatch.setattr(Ros2Transport, "_token", refuse)
+    with pytest.raises(TransportError, match="refused"):
+        Ros2Transport(
+            host="h", connect=[f"tcp/127.0.0.1:{router_port}"], listen=["tcp/127.0.0.1:0"]
+        )
+    assert len(opened) == 1
+    assert opened[0].is_closed()
+
+
+def test_a_failed_publisher_declaration_leaves_nothing_declared(
+    ros2: Callable[[str], Ros2Transport], foreign: zenoh.Session, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    transport = ros2("robot-1")
+    live: set[str] = set()
+
+    def on_token(sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        if sample.kind == zenoh.SampleKind.PUT:
+            live.add(key)
+        else:
+            live.discard(key)
+
+    watcher = foreign.liveliness().declare_subscriber(
+        f"@ros2_lv/0/{transport.zid}/**", on_token, history=True
+    )
+
+    def endpoints() -> set[tuple[str, str | None]]:
+        return {
+            (t.kind.value, t.topic)
+            for t in map(parse_token, set(live))
+            if t.kind is not TokenKind.NODE
+        }
+
+    def refuse(*args: object, **options: object) -> None:
+        raise zenoh.ZError("refused")
+
+    monkeypatch.setattr(ros2_module, "_Ros2Publisher", refuse)
+    with pytest.raises(zenoh.ZError, match="refused"):
+        transport.declare_publisher("/r1/camera", Variant.OPTIMIZED)
+    assert transport._priorities == {}
+    monkeypatch.undo()
+    publisher = transport.declare_publisher("/r2/camera", Variant.OPTIMIZED)
+    wait_for(
+        lambda: endpoints() == {("MP", "/r2/camera/optimized"), ("MS", "/r2/camera/dbm/priority")},
+        timeout_s=TIMEOUT_S,
+        what="only the later publisher's MP and priority MS",
+    )
+    publisher.close()
+    watcher.undeclare()  # type: ignore[no-untyped-call]
+
+
+def test_concurrent_managed_publishers_share_one_priority_subscription(
+    ros2: Callable[[str], Ros2Transport], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    transport = ros2("robot-1")
+    real = transport._subscribe_key
+    calls: list[str] = []
+    second = threading.Event()
+
+    def slow(name: str, *args: Any) -> Any:
+        calls.append(name)
+        if len(calls) == 1:
+            second.wait(1.0)  # gives a racing declare the time to subscribe a second time
+        else:
+            second.set()
+        return real(name, *args)
+
+    monkeypatch.setattr(transport, "_subscribe_key", slow)
+    made: list[Any] = []
+    threads = [
+        threading.Thread(
+            target=lambda: made.append(transport.declare_publisher("/r1/cam", Variant.OPTIMIZED))
+        )
+        for _ in range(2)
+    ]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(timeout=TIMEOUT_S)
+    assert calls == ["/r1/cam/dbm/priority"]
+    assert transport._priorities["/r1/cam"][1] == 2
+    for publisher in made:
+        publisher.close()
+    assert transport._priorities == {}
+
+
+def test_a_ros2_subscribers_departure_returns_the_channel_to_its_maximum(
+    ros2: Callable[[str], Ros2Transport], foreign: zenoh.Session
+) -> None:
+    """README: "when it leaves, the channel goes back to its maximum"."""
+    robot, base = ros2("robot-1"), ros2("base")
+    assert base.wait_for_peers(TIMEOUT_S)
+    frame = robot.camera_frame("/r1/camera", 21_000)
+    publisher = ManagedPublisher(robot, "/r1/camera", min_rate_hz=1.0, max_rate_hz=16.0)
+    optimizer = OptimizerNode(base, settings=DbmSettings(1.0))  # 1 Mbit/s: below 16 Hz
+    try:
+        publisher.publish(frame)  # the size parameter
+        viewer = foreign.liveliness().declare_token(
+            subscription_token(str(foreign.info.zid()), "/r1/camera/optimized")
+        )
+
+        def allocated(predicate: Callable[[float], bool]) -> Callable[[], bool]:
+            def check() -> bool:
+                rate = optimizer.optimize().rates_hz.get("/r1/camera")
+                return rate is not None and predicate(rate)
+
+            return check
+
+        wait_for(allocated(lambda r: r < 16.0), timeout_s=TIMEOUT_S, what="a managed rate")
+        assert "/r1/camera" in summarize(base.graph.entries()).managed
+        assert base.params.get(names.managed("/r1/camera")) is True
+        viewer.undeclare()  # type: ignore[no-untyped-call]
+        wait_for(
+            lambda: "/r1/camera" not in summarize(base.graph.entries()).managed,
+            timeout_s=TIMEOUT_S,
+            what="the channel unmanaged once its ROS 2 subscriber left",
+        )
+        wait_for(allocated(lambda r: r == 16.0), timeout_s=TIMEOUT_S, what="the maximum rate")
+        wait_for(
+            lambda: robot.params.get(names.current_value("/r1/camera")) == 16.0,
+            timeout_s=TIMEOUT_S,
+            what="the maximum pushed to the publisher",
+        )
+    finally:
+        optimizer.stop()
         publisher.close()

@@ -88,6 +88,25 @@ def test_custom_types_come_from_msg_paths(tmp_path: Path) -> None:
         MessageTypes(msg_paths=[tmp_path / "nowhere"])
 
 
+def test_custom_types_may_use_each_other(tmp_path: Path) -> None:
+    package = tmp_path / "dbml_msgs" / "msg"
+    package.mkdir(parents=True)
+    (package / "Outer.msg").write_text("dbml_msgs/Inner inner\n")  # sorted before its dependency
+    (package / "Inner.msg").write_text("uint32 seq\n")
+    assert MessageTypes(msg_paths=[tmp_path]).type_hash("dbml_msgs/msg/Outer").startswith("RIHS01_")
+
+
+def test_a_msg_file_clashing_with_the_typestore_is_a_transport_error(tmp_path: Path) -> None:
+    package = tmp_path / "std_msgs" / "msg"
+    package.mkdir(parents=True)
+    (package / "String.msg").write_text("int32 data\n")  # the typestore's says string data
+    with pytest.raises(
+        TransportError, match=r"msg file '.*String\.msg' \(type 'std_msgs/msg/String'\): "
+    ) as raised:
+        MessageTypes(msg_paths=[tmp_path])
+    assert raised.value.__cause__ is not None
+
+
 def test_dds_type_names_round_trip() -> None:
     assert dds_type_name(IMAGE_TYPE) == "sensor_msgs::msg::dds_::Image_"
     assert ros_type_name("sensor_msgs::msg::dds_::Image_") == IMAGE_TYPE

@@ -145,3 +145,29 @@ def test_a_publishing_session_hears_its_own_channels_not_the_fleets_reports() ->
         assert "dbml/param/r1/cam/dbm/message_size_in_bytes" in delivered
     finally:
         close_all([robot, fleet])
+
+
+def settled(session: ZenohTransport) -> bool:
+    """No meeting due, none queued and no fetch waiting for its answers."""
+    with session._lock:
+        quiet = not session._meet_again and session._fetching == 0
+    return quiet and session._fetches.empty()
+
+
+def test_a_publishing_session_fetches_its_channels_values_when_it_starts_hearing_them() -> None:
+    """A write to a channel made while nobody there listened is fetched from its owner."""
+    port = free_port()
+    fleet = ZenohTransport(host="base", port=port)
+    robot = ZenohTransport(host="r1", port=port, follow_all_params=False)
+    try:
+        assert robot.wait_for_peers(10)
+        assert fleet.wait_for_peers(10)
+        # After the meetings, their repetition and their fetches, nothing fetches everything.
+        wait_for(lambda: settled(robot) and settled(fleet), timeout_s=10, what="the meetings")
+        fleet.params.set("/r1/cam/dbm/priority", 0.3)
+        assert fleet.params.flush(5)
+        assert robot.params.get("/r1/cam/dbm/priority") is None  # not heard: not followed yet
+        robot.params.set("/r1/cam/dbm/frequency/max", 10.0)
+        wait_for(lambda: robot.params.get("/r1/cam/dbm/priority") == 0.3, timeout_s=10)
+    finally:
+        close_all([robot, fleet])

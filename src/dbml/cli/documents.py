@@ -104,6 +104,17 @@ def testbed_document(result: TestbedResult) -> dict[str, Any]:
             "capacity_mbit": uplink.capacity_mbit,
             "goodput_mbit_max": uplink.goodput_mbit_max,
         }
+    if result.urgent:
+        summary_document["urgent_stream"] = {
+            u.name: {
+                "received": u.received,
+                "lost": u.lost,
+                "latency_p50_ms": u.latency_p50_ms,
+                "latency_p95_ms": u.latency_p95_ms,
+                "latency_max_ms": u.latency_max_ms,
+            }
+            for u in result.urgent
+        }
     summary_document["targets"] = dict(summary.targets)
     return {
         "policy": options.policy,
@@ -113,6 +124,7 @@ def testbed_document(result: TestbedResult) -> dict[str, Any]:
         "uplinks_mbit": dict(options.uplinks_mbit),
         "estimate": options.estimate,
         "utilization": options.utilization,
+        "urgent_stream": options.urgent_stream,
         "step_seconds": options.step_seconds,
         "run_id": result.run_id,
         "interrupted": result.interrupted,

@@ -194,6 +194,7 @@ def _cmd_publish(args: argparse.Namespace) -> int:
             priority=args.priority,
             stop=stop,
             duration_s=args.duration,
+            transport_priority=args.transport_priority,
         ),
         follow_all_params=False,  # a publisher needs the allocation, not the fleet's reports
     )
@@ -233,7 +234,12 @@ def _cmd_bridge(args: argparse.Namespace) -> int:
     return _run_node(
         args,
         lambda t, stop: nodes.run_bridge(
-            t, channels, stop=stop, duration_s=args.duration, wait_s=args.wait
+            t,
+            channels,
+            stop=stop,
+            duration_s=args.duration,
+            wait_s=args.wait,
+            typed_topics=TRANSPORTS[args.transport].typed_topics,
         ),
         follow_all_params=False,  # like a publisher: it needs its allocations only
     )
@@ -349,6 +355,7 @@ def _cmd_testbed(args: argparse.Namespace) -> int:
         uplinks=args.uplink,
         strategy=args.strategy,
         utilization=args.utilization,
+        urgent_stream=args.urgent_stream,
     )
     console = Console(stderr=args.json)
     with render.ExperimentView(

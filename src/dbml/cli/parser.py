@@ -9,15 +9,15 @@ from typing import NoReturn
 from dbml.core.allocation import Strategy
 from dbml.core.errors import SpecError
 from dbml.core.spec import check_number
+from dbml.runtime.qos import parse_transport_priority
 from dbml.secure import DEFAULT_BASE_PORT, DEFAULT_DAYS
+from dbml.transports.base import DEFAULT_ROUTER_ENDPOINT, TransportPriority
 from dbml.transports.registry import DEFAULT_TRANSPORT, TRANSPORTS
 
 __all__ = ["DEFAULT_ROUTER_ENDPOINT", "EXIT_USAGE", "build_parser"]
 
 EXIT_USAGE = 2
 """Bad input: one line on stderr naming the field and the value."""
-DEFAULT_ROUTER_ENDPOINT = "tcp/localhost:7447"
-"""Where ``dbml router`` listens by default: where ROS 2's rmw_zenoh looks for its router."""
 
 
 class _Parser(argparse.ArgumentParser):
@@ -88,6 +88,14 @@ def _positive(text: str) -> float:
         raise argparse.ArgumentTypeError(f"{text!r} must be a finite number > 0") from None
 
 
+def _transport_priority(text: str) -> TransportPriority:
+    """A transport class by name (argparse reports a bad one in one line, exit 2)."""
+    try:
+        return parse_transport_priority(text)
+    except SpecError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``dbml`` parser; each subcommand's name is ``args.command``."""
     parser = _Parser(
@@ -122,6 +130,13 @@ def build_parser() -> argparse.ArgumentParser:
     publish_cmd.add_argument("--min-hz", type=_positive, required=True, help="minimum rate")
     publish_cmd.add_argument("--max-hz", type=_positive, required=True, help="maximum rate")
     publish_cmd.add_argument("--priority", type=float, help="raw priority in [0, 1]")
+    publish_cmd.add_argument(
+        "--transport-priority",
+        type=_transport_priority,
+        metavar="CLASS",
+        help="the middleware class of its messages, instead of the one --priority maps to: "
+        + "|".join(p.value for p in TransportPriority),
+    )
     publish_cmd.add_argument("--duration", type=_positive, help="stop after S seconds")
     _transport_options(publish_cmd)
 
@@ -220,6 +235,12 @@ def build_parser() -> argparse.ArgumentParser:
     testbed_cmd.add_argument("--strategy", choices=[s.value for s in Strategy])
     testbed_cmd.add_argument(
         "--utilization", type=_positive, help="share of the link dbml may allocate (0.92)"
+    )
+    testbed_cmd.add_argument(
+        "--urgent-stream",
+        action="store_true",
+        help="R1 also sends a 1,000-byte 20 Hz urgent stream twice, with and without the "
+        "transport-priority mapping, and the run reports each one's latency",
     )
     testbed_cmd.add_argument("--json", action="store_true", help="one JSON object on stdout")
     testbed_cmd.add_argument("--plot", metavar="FILE.png", help="rates, latency and budget")

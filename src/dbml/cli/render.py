@@ -25,6 +25,7 @@ from dbml.experiment.analysis import (
     latest,
     link_at,
 )
+from dbml.experiment.roles import URGENT_RATE_HZ, URGENT_SIZE_BYTES
 from dbml.runtime.monitor import MonitorView
 from dbml.scenarios.reproduce import RobotRow
 from dbml.scenarios.teleop import LINK_MBIT, ROBOTS, STEPS
@@ -282,16 +283,34 @@ def testbed_table(result: TestbedResult) -> Table:
     ]
     for change in result.changes:
         link = f"link {change.from_mbit:g} -> {change.to_mbit:g} Mbit/s at {change.t_s:g} s"
+        share = f"goodput {_fmt(change.goodput_share_after, '.0%')} of it from 3 s on"
         if change.drop:
+            cut = change.first_cut_s
             lines.append(
-                f"{link}: latency and losses recovered after "
-                f"{_fmt(change.recovery_s, '.2f')} s, {change.lost_after} lost"
+                f"{link}: first cut after {_fmt(None if cut is None else cut * 1000, '.0f')} ms, "
+                f"peak p95 {_fmt(change.max_latency_p95_ms, '.0f')} ms, latency and losses "
+                f"recovered after {_fmt(change.recovery_s, '.2f')} s, "
+                f"{change.lost_after} lost, {share}"
             )
         else:
             lines.append(
                 f"{link}: budget at {BUDGET_BACK_FRACTION * 100:g} % of the link after "
-                f"{_fmt(change.budget_recovery_s, '.2f')} s"
+                f"{_fmt(change.budget_recovery_s, '.2f')} s, {share}"
             )
+    if len(result.phases) > 1:
+        for phase in result.phases:
+            lines.append(
+                f"{phase.start_s:g}-{phase.end_s:g} s at {phase.link_mbit:g} Mbit/s: "
+                f"utilisation {phase.utilisation:.0%}, p95 {_fmt(phase.latency_p95_ms, '.0f')} "
+                f"ms, {phase.lost} lost"
+            )
+    for urgent in result.urgent:
+        lines.append(
+            f"urgent stream ({URGENT_SIZE_BYTES:,} B at {URGENT_RATE_HZ:g} Hz), {urgent.name}: "
+            f"p50 {_fmt(urgent.latency_p50_ms, '.0f')} ms, "
+            f"p95 {_fmt(urgent.latency_p95_ms, '.0f')} ms, "
+            f"{urgent.received} received, {urgent.lost} lost"
+        )
     for name, ok in summary.targets.items():
         lines.append(f"{mark(ok)} {name.replace('_', ' ')}")
     table.caption = "\n".join(lines)

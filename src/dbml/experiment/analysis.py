@@ -10,6 +10,7 @@ a run are named here, once.
 from __future__ import annotations
 
 import bisect
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
@@ -20,10 +21,15 @@ from dbml.core.spec import bytes_per_s_to_mbit
 __all__ = [
     "BUDGET_BACK_FRACTION",
     "BUDGET_BACK_S",
+    "CUT_STAMP",
+    "FIRST_CUT_S",
+    "GOODPUT_AFTER_FRACTION",
+    "GOODPUT_AFTER_S",
     "GOODPUT_FRACTION",
     "LIVE_FRAMES",
     "LIVE_WINDOW_S",
     "MAX_P95_MS",
+    "PEAK_P95_AFTER_DROP_MS",
     "RATE_TOLERANCE",
     "RATE_TOLERANCE_HZ",
     "RECOVERED_P95_MS",
@@ -33,8 +39,10 @@ __all__ = [
     "Analysis",
     "Arrival",
     "LinkChange",
+    "LinkPhase",
     "SeriesPoint",
     "StepResult",
+    "StreamLatency",
     "Tick",
     "Window",
     "analyse",
@@ -42,6 +50,7 @@ __all__ = [
     "link_at",
     "rate_hz",
     "settle_s",
+    "stream_latency",
 ]
 
 RATE_TOLERANCE = 0.05
@@ -60,6 +69,17 @@ BUDGET_BACK_FRACTION = 0.9
 """After a rise, the budget counts as back once it reaches this share of the new link."""
 BUDGET_BACK_S = 10.0
 """After a rise, the estimated budget is back within this."""
+FIRST_CUT_S = 0.3
+"""After a drop, the estimator cuts the budget within this (GCC: about a round trip + 100 ms)."""
+PEAK_P95_AFTER_DROP_MS = 250.0
+"""After a drop, no window's p95 latency reaches this."""
+GOODPUT_AFTER_FRACTION = 0.85
+"""From ``GOODPUT_AFTER_S`` after a drop, goodput is at least this share of the new rate."""
+GOODPUT_AFTER_S = 3.0
+"""After a change, goodput is judged from this long on: the estimator has settled by then."""
+CUT_STAMP = re.compile(r"@(\d+(?:\.\d+)?)$")
+"""The estimator's state ends with ``@<wall-clock s>`` of its decision: the time of a cut to
+the millisecond, where the operator's ticks see it only to ``TICK_S``."""
 WINDOW_S = 1.0
 """Rolling windows of the time series and the recovery measurement."""
 WINDOW_STEP_S = 0.25
@@ -70,6 +90,8 @@ LIVE_FRAMES = 400
 """A live view reads at most this many of the newest frames (all of ``LIVE_WINDOW_S``)."""
 _MS_PER_S = 1000.0
 _EDGE_S = 1e-9
+_CUT_TOLERANCE = 1e-3
+"""A budget below the one before a drop by more than this fraction is a cut (not rounding)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -166,11 +188,34 @@ class LinkChange:
     lost_after: int = 0
     budget_recovery_s: float | None = None
     """A rise: when the budget reached ``BUDGET_BACK_FRACTION`` of the new rate."""
+    first_cut_s: float | None = None
+    """A drop: when the budget first fell below the one in force before it (the estimator's
+    decision time when its state carries one, else the operator's first tick that saw it)."""
+    goodput_share_after: float | None = None
+    """Goodput from ``GOODPUT_AFTER_S`` after the change to the next, as a share of the new
+    rate (an over-cut shows here)."""
 
     @property
     def drop(self) -> bool:
         """Whether the link got slower."""
         return self.to_mbit < self.from_mbit
+
+
+@dataclass(frozen=True, slots=True)
+class LinkPhase:
+    """Between two changes of the link rate, all robots together: RFC 8867's per-phase figures."""
+
+    start_s: float
+    end_s: float
+    link_mbit: float
+    goodput_mbit: float
+    latency_p95_ms: float | None
+    lost: int
+
+    @property
+    def utilisation(self) -> float:
+        """Goodput as a share of the shaped rate."""
+        return self.goodput_mbit / self.link_mbit
 
 
 @dataclass(frozen=True, slots=True)
@@ -180,6 +225,7 @@ class Analysis:
     steps: tuple[StepResult, ...] = ()
     series: tuple[SeriesPoint, ...] = ()
     changes: tuple[LinkChange, ...] = ()
+    phases: tuple[LinkPhase, ...] = ()
 
 
 def settle_s(step_s: float) -> float:
@@ -331,7 +377,60 @@ def analyse(
     changes = _changes(
         series, ordered, streams, schedule, t0=t0, end_s=steps * step_s, link_mbit=link_mbit
     )
-    return Analysis(tuple(step_rows), tuple(series), changes)
+    phases = _phases(streams, schedule, t0=t0, end_s=steps * step_s, link_mbit=link_mbit)
+    return Analysis(tuple(step_rows), tuple(series), changes, phases)
+
+
+def _link_rates(
+    schedule: Sequence[tuple[float, float]], link_mbit: float
+) -> list[tuple[float, float]]:
+    """Each rate of the link from when it starts: the schedule's own at 0 s, else the default."""
+    return [(0.0, link_at(schedule, 0.0, link_mbit)), *[(t, r) for t, r in schedule if t > 0]]
+
+
+def _phases(
+    streams: Sequence[_Robot],
+    schedule: Sequence[tuple[float, float]],
+    *,
+    t0: float,
+    end_s: float,
+    link_mbit: float,
+) -> tuple[LinkPhase, ...]:
+    """Goodput, p95 latency and losses of every phase of the link schedule."""
+    rates = _link_rates(schedule, link_mbit)
+    phases = []
+    for k, (at, mbit) in enumerate(rates):
+        until = min(rates[k + 1][0], end_s) if k + 1 < len(rates) else end_s
+        if until <= at:
+            break
+        start, end = t0 + at, t0 + until
+        inside = [f for s in streams for f in s.frames if start <= f.arrival_s < end]
+        latencies = [f.arrival_s - f.sent_s for f in inside if f.sent_s is not None]
+        phases.append(
+            LinkPhase(
+                at,
+                until,
+                mbit,
+                bytes_per_s_to_mbit(sum(f.size_bytes for f in inside) / (until - at)),
+                _percentile_ms(latencies, 95),
+                sum(n for s in streams for t, n in s.gaps if start <= t < end),
+            )
+        )
+    return tuple(phases)
+
+
+def _cut_time(tick: Tick) -> float:
+    """When the estimate a tick saw was decided: the estimator's stamp, else the tick."""
+    match = CUT_STAMP.search(tick.estimator or "")
+    return float(match.group(1)) if match else tick.t_s
+
+
+def _goodput_share(series: Sequence[SeriesPoint], start_s: float, end_s: float) -> float | None:
+    """Mean goodput of the windows inside ``[start_s, end_s]`` over the link rate."""
+    inside = [p for p in series if p.t_s - WINDOW_S >= start_s - _EDGE_S and p.t_s <= end_s]
+    if not inside:
+        return None
+    return sum(p.goodput_mbit / p.link_mbit for p in inside) / len(inside)
 
 
 def _changes(
@@ -349,13 +448,14 @@ def _changes(
     After a drop: when latency and losses recovered; after a rise: when the budget grew back.
     """
     changes = []
-    rates = [(0.0, link_mbit), *[(at, mbit) for at, mbit in schedule if at > 0]]
+    rates = _link_rates(schedule, link_mbit)
     for k in range(1, len(rates)):
         at, mbit = rates[k]
         before = rates[k - 1][1]
         until = rates[k + 1][0] if k + 1 < len(rates) else end_s
         if at >= end_s:
             break
+        share = _goodput_share(series, at + GOODPUT_AFTER_S, until)
         if mbit >= before:
             reached = next(
                 (
@@ -367,8 +467,22 @@ def _changes(
                 ),
                 None,
             )
-            changes.append(LinkChange(at, before, mbit, budget_recovery_s=reached))
+            changes.append(
+                LinkChange(at, before, mbit, budget_recovery_s=reached, goodput_share_after=share)
+            )
             continue
+        prior = [t.budget_mbit for t in ticks if t.t_s - t0 <= at and t.budget_mbit is not None]
+        cut = next(
+            (
+                max(_cut_time(t), t0 + at) - t0 - at
+                for t in ticks
+                if at < t.t_s - t0 <= until
+                and prior
+                and t.budget_mbit is not None
+                and t.budget_mbit < prior[-1] * (1 - _CUT_TOLERANCE)
+            ),
+            None,
+        )
         # windows that start after the change: from which one on are all of them good?
         after = [p for p in series if p.t_s - WINDOW_S >= at and p.t_s <= until]
         recovered: float | None = None
@@ -390,6 +504,8 @@ def _changes(
                 recovery_s=recovered,
                 max_latency_p95_ms=max(p95, default=None),
                 lost_after=lost,
+                first_cut_s=cut,
+                goodput_share_after=share,
             )
         )
     return tuple(changes)
@@ -408,4 +524,30 @@ def latest(
             now - LIVE_WINDOW_S, now, tick.allocated_hz[i], lost_from=now - LIVE_WINDOW_S
         )
         for i, name in enumerate(robots)
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class StreamLatency:
+    """One stream's one-way latency over a whole run (the urgent stream beside the cameras)."""
+
+    name: str
+    received: int
+    lost: int
+    latency_p50_ms: float | None
+    latency_p95_ms: float | None
+    latency_max_ms: float | None
+
+
+def stream_latency(frames: Sequence[Arrival], index: int, *, name: str) -> StreamLatency:
+    """Latency percentiles and losses of the frames reported as robot ``index``, all of them."""
+    stream = _Robot(name, index, frames)
+    latencies = [f.arrival_s - f.sent_s for f in stream.frames if f.sent_s is not None]
+    return StreamLatency(
+        name=name,
+        received=len(stream.frames),
+        lost=sum(n for _, n in stream.gaps),
+        latency_p50_ms=_percentile_ms(latencies, 50),
+        latency_p95_ms=_percentile_ms(latencies, 95),
+        latency_max_ms=max(latencies) * _MS_PER_S if latencies else None,
     )

@@ -51,7 +51,11 @@ __all__ = [
     "ROLES",
     "TAIL_S",
     "TICK_S",
+    "URGENT_RATE_HZ",
+    "URGENT_SIZE_BYTES",
+    "URGENT_STREAMS",
     "RoleSpec",
+    "UrgentStream",
     "main",
     "operator_tick",
     "robot_index",
@@ -75,6 +79,30 @@ PEER_WAIT_S = 10.0
 """The operator and optimizer run this long after the last step, for frames still in flight."""
 
 
+URGENT_SIZE_BYTES = 1_000
+"""The urgent stream's message: a command or an alarm, small next to a camera frame."""
+URGENT_RATE_HZ = 20.0
+URGENT_PRIORITY = 1.0
+"""The urgent stream's raw priority: the most urgent there is."""
+
+
+@dataclass(frozen=True, slots=True)
+class UrgentStream:
+    """A small urgent channel on robot R1, beside its camera: with or without the class mapping."""
+
+    topic: str
+    mapped: bool
+    """True: its priority picks its transport class; False: zenoh's default, as before."""
+
+
+URGENT_STREAMS = (
+    UrgentStream("/r1/urgent/mapped", mapped=True),
+    UrgentStream("/r1/urgent/unmapped", mapped=False),
+)
+"""Two copies of one stream at the same moment on the same link, so the mapping is the only
+difference. The operator reports their arrivals as robots ``len(ROBOTS) + k``."""
+
+
 @dataclass(frozen=True, slots=True, kw_only=True)
 class RoleSpec:
     """Everything a role needs, passed to a role process as one JSON argument."""
@@ -93,6 +121,8 @@ class RoleSpec:
     estimate: bool = False
     uplinks_mbit: dict[str, float] = field(default_factory=dict)
     peer_wait_s: float = PEER_WAIT_S
+    urgent_stream: bool = False
+    """R1 also sends ``URGENT_STREAMS``, over zenoh priority links (the testbed's comparison)."""
 
     def to_json(self) -> str:
         """The spec as one JSON object (the role process's argument)."""
@@ -189,10 +219,38 @@ def _unmanaged_robot(
         rate.reset()
         while not stop.is_set() and time.time() < t0 + spec.duration_s:
             rate.sleep()
-            publisher.put(frame, pack_meta(seq, time.time_ns(), MAX_RATE_HZ))
+            publisher.put(frame, attachment=pack_meta(seq, time.time_ns(), MAX_RATE_HZ))
             seq += 1
     finally:
         publisher.close()
+
+
+def _urgent_streams(transport: Transport, t0: float, spec: RoleSpec, stop: threading.Event) -> None:
+    """Publish ``URGENT_STREAMS`` at ``URGENT_RATE_HZ``, both at one moment each tick."""
+    payload = bytes(URGENT_SIZE_BYTES)
+    publishers = [
+        ManagedPublisher(
+            transport,
+            stream.topic,
+            min_rate_hz=URGENT_RATE_HZ,
+            max_rate_hz=URGENT_RATE_HZ,
+            priority=URGENT_PRIORITY,
+            map_transport_priority=stream.mapped,
+        )
+        for stream in URGENT_STREAMS
+    ]
+    try:
+        for publisher in publishers:  # the size is known (and the class chosen) before step 1
+            publisher.publish(payload)
+        wait_until(t0, stop)
+        pace = Rate(lambda: URGENT_RATE_HZ)
+        while not stop.is_set() and time.time() < t0 + spec.duration_s:
+            pace.sleep()
+            for publisher in publishers:
+                publisher.publish(payload)
+    finally:
+        for publisher in publishers:
+            publisher.close()
 
 
 def operator_tick(view: ParamView, frames: list[list[Any]], variants: list[str]) -> dict[str, Any]:
@@ -253,6 +311,9 @@ def _operator(
         else:
             handles.append(transport.subscribe(camera.topic, receiver(i), Variant.FULL))
 
+    if spec.urgent_stream:
+        for k, stream in enumerate(URGENT_STREAMS):
+            handles.append(ManagedSubscriber(transport, stream.topic, receiver(len(ROBOTS) + k)))
     unmanaged = [Variant.FULL.value for _ in ROBOTS]
 
     def tick() -> dict[str, Any]:
@@ -276,6 +337,22 @@ def run_role(
     role: str, transport: Transport, spec: RoleSpec, *, t0: float, stop: threading.Event, emit: Emit
 ) -> None:
     """Run ``role`` from ``t0`` (wall clock of step 1) to its end; reports go to ``emit``."""
+    urgent: threading.Thread | None = None
+    if spec.urgent_stream and role == ROLES[2]:  # robot R1
+        urgent = threading.Thread(
+            target=_urgent_streams, args=(transport, t0, spec, stop), name="urgent", daemon=True
+        )
+        urgent.start()
+    try:
+        _run_role(role, transport, spec, t0=t0, stop=stop, emit=emit)
+    finally:
+        if urgent is not None:
+            urgent.join()
+
+
+def _run_role(
+    role: str, transport: Transport, spec: RoleSpec, *, t0: float, stop: threading.Event, emit: Emit
+) -> None:
     if role == "operator":
         _operator(transport, t0, spec, stop, emit)
     elif role == "optimizer":
@@ -291,6 +368,17 @@ def _open(role: str, spec: RoleSpec) -> Transport:
         from dbml.transports.ros1 import Ros1Transport
 
         return Ros1Transport(node_name=f"dbml_{role}")
+    if spec.transport == "zenoh" and spec.urgent_stream:
+        from dbml.transports.zenoh import ZenohTransport
+
+        # Priority links: the mapped class gets a connection of its own (see the transport).
+        return ZenohTransport(
+            host=spec.host,
+            listen=spec.listen,
+            connect=spec.connect,
+            follow_all_params=role in {"operator", "optimizer"},
+            priority_links=True,
+        )
     return open_transport(
         spec.transport,
         host=spec.host,

@@ -45,7 +45,7 @@ from dbml.harness.processes import emit_json, serve_role
 from dbml.runtime.nodes import stop_on_signals
 from dbml.runtime.params import ParamView
 from dbml.scenarios.teleop import MAX_RATE_HZ, ROBOTS, STEPS, Step
-from dbml.transports.base import Variant
+from dbml.transports.base import PRIORITY_SUFFIX, Variant
 from dbml.transports.registry import open_transport
 
 __all__ = [
@@ -90,10 +90,8 @@ DEFINITIONS: tuple[tuple[str, str], ...] = (
 """Each type's ``.msg`` text, dependencies first: offline, the SDK cannot fetch them itself."""
 HASH_STORE = Stores.ROS2_JAZZY
 """Where the RIHS01 hashes come from (the SDK computes wrong ones for nested types offline)."""
-OPTIMIZED_SUFFIX = "/optimized"
+OPTIMIZED_SUFFIX = Variant.OPTIMIZED.key("")
 """A managed topic's copy at the allocated rate: what a ROS 2 operator subscribes to."""
-PRIORITY_SUFFIX = "/dbm/priority"
-"""A managed topic's priority topic (``std_msgs/msg/Float64`` in [0, 1])."""
 FRAME_ID = "camera"
 ENCODING = "mono8"
 IMAGE_OVERHEAD_BYTES = 52

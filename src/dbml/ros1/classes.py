@@ -7,6 +7,7 @@ same allocation, fail-safe and local/remote rules as every other transport.
 
 from __future__ import annotations
 
+import logging
 import threading
 import weakref
 from collections.abc import Callable, Iterable
@@ -32,6 +33,11 @@ from dbml.transports.base import Sample, Variant, check_topic
 from dbml.transports.ros1 import Ros1Transport, serialize
 
 __all__ = ["DBMOptimizer", "DBMPublisher", "DBMRate", "DBMSubscriber", "ros1_transport"]
+
+log = logging.getLogger("dbml.ros1")
+
+_JOIN_TIMEOUT_S = 5.0
+"""How long ``unregister`` waits for a ``start`` thread's current message before closing."""
 
 
 def ros1_transport() -> Ros1Transport:
@@ -93,6 +99,8 @@ class DBMPublisher:
             failsafe_periods=failsafe_periods,
         )
         self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._failed = False
         _PUBLISHERS[self.name] = self
 
     @property
@@ -108,14 +116,22 @@ class DBMPublisher:
             )
         return self._managed.publish(serialize(message))
 
+    @property
+    def alive(self) -> bool:
+        """Whether the ``start`` thread runs: False before ``start``, after it failed or ended."""
+        return self._thread is not None and self._thread.is_alive() and not self._failed
+
     def start(self, get_message: Callable[[], Any], *, full_rate: bool = True) -> None:
         """Publish ``get_message()`` in a background thread, as the original package's nodes do.
 
         ``full_rate=True`` calls it at ``max_frequency``: every message goes to ``[name]`` (for
         local readers) and the allocated share to ``[name]/optimized``. ``full_rate=False``
         calls it only at the allocated frequency (no capture that would be dropped). The thread
-        ends with ``unregister()`` or ROS's shutdown.
+        ends with ``unregister()`` or ROS's shutdown; an exception from ``get_message`` or the
+        publish ends it too, logged, and ``alive`` turns False. One ``start`` per publisher.
         """
+        if self._thread is not None:
+            raise SpecError(f"DBMPublisher({self.name!r}).start(): already started")
 
         def pause(seconds: float) -> None:
             if self._stop.wait(seconds) or rospy.is_shutdown():
@@ -131,12 +147,27 @@ class DBMPublisher:
                     self.publish(get_message())
             except _StoppedError:
                 return
+            except Exception:
+                self._failed = True
+                log.exception("%s: the DBMPublisher's start thread failed; it stops", self.name)
 
-        threading.Thread(target=loop, name=f"dbm-publisher {self.name}", daemon=True).start()
+        self._thread = threading.Thread(target=loop, name=f"dbm-publisher {self.name}", daemon=True)
+        self._thread.start()
 
     def unregister(self) -> None:
         """Stop publishing (and a ``start`` thread) and withdraw the channel."""
         self._stop.set()
+        if _PUBLISHERS.get(self.name) is self:
+            del _PUBLISHERS[self.name]  # a DBMRate(name) made later must not follow this one
+        thread = self._thread
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(timeout=_JOIN_TIMEOUT_S)
+            if thread.is_alive():
+                log.warning(
+                    "%s: the start thread did not stop within %g s; closing anyway",
+                    self.name,
+                    _JOIN_TIMEOUT_S,
+                )
         self._managed.close()
 
 
@@ -180,13 +211,16 @@ class DBMRate:
         max_frequency: float | None = None,
         default_frequency: float | None = None,
     ) -> None:
+        self._rate_hz: Callable[[], float]
         if isinstance(publisher, DBMPublisher):
             self._rate = publisher._managed.rate
+            self._rate_hz = publisher._managed.current_rate_hz
             return
         topic = _resolve(publisher)
         known = _PUBLISHERS.get(topic)
         if known is not None:
             self._rate = known._managed.rate
+            self._rate_hz = known._managed.current_rate_hz
             return
         if min_frequency is None or max_frequency is None:
             raise SpecError(
@@ -195,6 +229,12 @@ class DBMRate:
             )
         self._allocation = _Allocation(topic, min_frequency, max_frequency, default_frequency)
         self._rate = Rate(self._allocation.rate_hz)
+        self._rate_hz = self._allocation.rate_hz
+
+    @property
+    def frequency(self) -> float:
+        """The frequency ``sleep()`` keeps now (Hz): the allocation within the bounds."""
+        return self._rate_hz()
 
     def sleep(self) -> None:
         """Sleep until the next period at the allocated frequency."""

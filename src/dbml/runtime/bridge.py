@@ -27,6 +27,8 @@ FIRST_MESSAGE_TIMEOUT_S = 10.0
 """How long ``start`` waits for the bridged topic's first message before giving up."""
 _STOP_POLL_S = 0.1
 """How often the pacing thread, waiting for a message, looks whether it should stop."""
+_JOIN_TIMEOUT_S = 5.0
+"""How long ``close`` waits for the pacing thread before it says so (and waits for its send)."""
 
 
 class _StoppedError(Exception):
@@ -57,6 +59,8 @@ class Bridge:
         self._newest: bytes | None = None
         self._arrived = threading.Event()
         self._stop = threading.Event()
+        self._sending = threading.Lock()
+        """Held across one send, and by ``close`` around the publisher's close: never both."""
         self._publisher: ManagedPublisher | None = None
         self._thread: threading.Thread | None = None
         self.forwarded = 0
@@ -132,14 +136,21 @@ class Bridge:
         return self._thread is not None and self._thread.is_alive()
 
     def forward(self) -> bool:
-        """Send the newest unsent message if the rate allows; True if one went out."""
+        """Send the newest unsent message if the rate allows; True if one went out.
+
+        Nothing is sent once ``close`` began: its publisher is, or is about to be, closed.
+        """
         publisher = self._publisher
         if publisher is None:
             return False
         payload = self._take()
         if payload is None:
             return False
-        if publisher.publish(payload):
+        with self._sending:
+            if self._stop.is_set():
+                return False
+            sent = publisher.publish(payload)
+        if sent:
             self.forwarded += 1
             return True
         self._put_back(payload)
@@ -167,10 +178,23 @@ class Bridge:
             raise
 
     def close(self) -> None:
-        """Stop pacing, unsubscribe and withdraw the managed publisher."""
+        """Stop pacing, unsubscribe and withdraw the managed publisher.
+
+        The publisher closes only after a send in progress returned (a stuck one is logged
+        first), and no send starts after: the pacing thread never writes to a closed publisher.
+        """
         self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
+        thread = self._thread
+        if thread is not None:
+            thread.join(timeout=_JOIN_TIMEOUT_S)
+            if thread.is_alive():
+                log.warning(
+                    "%s: the bridge's pacing thread did not stop within %g s; "
+                    "closing once its send returns",
+                    self.topic,
+                    _JOIN_TIMEOUT_S,
+                )
         self._subscription.close()
         if self._publisher is not None:
-            self._publisher.close()
+            with self._sending:
+                self._publisher.close()

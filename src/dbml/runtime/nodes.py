@@ -30,7 +30,7 @@ from dbml.runtime.params import check_param
 from dbml.runtime.publisher import ManagedPublisher
 from dbml.runtime.reception import ReceptionReporter
 from dbml.runtime.subscriber import ManagedSubscriber
-from dbml.transports.base import ParamValue, Sample, Transport
+from dbml.transports.base import ParamValue, Sample, Transport, TransportPriority
 
 __all__ = [
     "PEER_WAIT_S",
@@ -121,14 +121,24 @@ def run_publisher(
     priority: float | None,
     stop: threading.Event,
     duration_s: float | None = None,
+    transport_priority: TransportPriority | None = None,
 ) -> int:
-    """``dbml publish``: a managed publisher of synthetic frames, paced by its rate."""
+    """``dbml publish``: a managed publisher of synthetic frames, paced by its rate.
+
+    ``transport_priority`` fixes the middleware class of its messages (a control stream's),
+    instead of the one its priority maps to.
+    """
     check_number(size_bytes, field="--size-bytes", minimum=0, exclusive_minimum=True)
     check_number(size_bytes, field="--size-bytes", maximum=MAX_SIZE_BYTES)
     transport.wait_for_peers(PEER_WAIT_S)
     payload = transport.camera_frame(topic, size_bytes)  # first: it may set the ROS type
     publisher = ManagedPublisher(
-        transport, topic, min_rate_hz=min_rate_hz, max_rate_hz=max_rate_hz, priority=priority
+        transport,
+        topic,
+        min_rate_hz=min_rate_hz,
+        max_rate_hz=max_rate_hz,
+        priority=priority,
+        transport_priority=transport_priority,
     )
     done = _until(stop, duration_s)
     shown: float | None = None
@@ -152,10 +162,13 @@ def run_bridge(
     stop: threading.Event,
     duration_s: float | None = None,
     wait_s: float = FIRST_MESSAGE_TIMEOUT_S,
+    typed_topics: bool = False,
 ) -> int:
     """``dbml bridge``: put existing topics under management, one ``Bridge`` each.
 
-    A channel without a type takes the one the graph shows (where topics are typed). Every
+    A channel without a type takes the one the graph shows. Where topics are typed
+    (``typed_topics``: ROS 1, ROS 2) and the graph shows none, ``TransportError`` names the
+    topic: republishing under a guessed type would deliver what no subscriber can read. Every
     topic must deliver a first message within ``wait_s``, else ``TransportError`` names it.
     """
     transport.wait_for_peers(PEER_WAIT_S)
@@ -169,6 +182,11 @@ def run_bridge(
                 found = transport.topic_type(given.topic, timeout_s=left_s)
                 if found is not None:
                     channel = replace(given, msg_type=found)
+                elif typed_topics:
+                    raise TransportError(
+                        f"topic={given.topic!r}: its type cannot be resolved (no publisher "
+                        f"seen within {wait_s:g} s); name it with --type pkg/msg/Name"
+                    )
             bridges.append(Bridge(transport, channel))
         for bridge in bridges:
             if not bridge.wait_first(max(0.0, deadline - time.monotonic())):

@@ -22,8 +22,18 @@ from dbml.core.spec import ChannelSpec, check_number
 from dbml.runtime import names
 from dbml.runtime.metadata import pack_meta
 from dbml.runtime.params import ParamView
+from dbml.runtime.qos import TransportQos, explicit_qos, map_priority
 from dbml.runtime.rate import Rate, RateLimiter
-from dbml.transports.base import Handle, ParamValue, Publisher, Role, Transport, Variant
+from dbml.transports.base import (
+    Closer,
+    Handle,
+    ParamValue,
+    Publisher,
+    Role,
+    Transport,
+    TransportPriority,
+    Variant,
+)
 
 __all__ = ["FAILSAFE_PERIODS", "SIZE_CHANGE", "ManagedPublisher"]
 
@@ -60,6 +70,8 @@ class ManagedPublisher:
         failsafe_periods: float = FAILSAFE_PERIODS,
         wall_clock_ns: Callable[[], int] = time.time_ns,
         republish_full: bool = True,
+        transport_priority: TransportPriority | None = None,
+        map_transport_priority: bool = True,
     ) -> None:
         names.check_channel(topic)
         # Validates the bounds with the same rules and messages as the allocation core.
@@ -96,9 +108,22 @@ class ManagedPublisher:
         self._full: Publisher | None = None
         if republish_full:
             self._full = transport.declare_publisher(topic, Variant.FULL)
-        self._optimized = transport.declare_publisher(topic, Variant.OPTIMIZED)
+        # [topic]/optimized is what crosses the network: it travels in the channel's class.
+        self._explicit_priority = transport_priority
+        self._map_qos = transport.has_priorities and (
+            map_transport_priority or transport_priority is not None
+        )
+        self._qos_lock = threading.Lock()
+        self._qos = self._qos_target = self._wanted_qos()
+        self._qos_generation = 0
+        self._qos_stale = False
+        """Set when the priority or size changed: the next ``publish`` looks at the class."""
+        self._retired: Publisher | None = None
+        self._optimized = self._declare_optimized(self._qos)
         self._handles: list[Handle] = [
-            transport.graph.announce(Role.PUBLISHER, topic, Variant.FULL)
+            transport.graph.announce(Role.PUBLISHER, topic, Variant.FULL),
+            self._view.watch(self._on_qos_param),
+            Closer(self._close_retired),
         ]
 
     # -- allocation ---------------------------------------------------------------------------
@@ -173,6 +198,77 @@ class ManagedPublisher:
         """Whether no allocation was heard for ``failsafe_periods`` periods."""
         return self._now() > self._deadline
 
+    # -- transport class ----------------------------------------------------------------------
+
+    @property
+    def transport_qos(self) -> TransportQos | None:
+        """The class ``[topic]/optimized`` travels in now (None: the middleware's default)."""
+        with self._qos_lock:
+            return self._qos
+
+    def _wanted_qos(self) -> TransportQos | None:
+        """The class the channel's priority and size call for (``dbml.runtime.qos``)."""
+        if not self._map_qos:
+            return None
+        channel = self._view.channel(self.topic)
+        size = int(channel.size_bytes) if channel.size_bytes else None
+        if self._explicit_priority is not None:
+            return explicit_qos(self._explicit_priority, size)
+        return map_priority(channel.priority or 0.0, size)
+
+    def _declare_optimized(self, qos: TransportQos | None) -> Publisher:
+        if qos is None:
+            return self._transport.declare_publisher(self.topic, Variant.OPTIMIZED)
+        return self._transport.declare_publisher(
+            self.topic, Variant.OPTIMIZED, priority=qos.priority, express=qos.express
+        )
+
+    def _on_qos_param(self, name: str, _value: ParamValue) -> None:
+        # Often on the middleware's callback thread: the publishing thread re-declares.
+        if self._map_qos and name in (names.priority(self.topic), names.size(self.topic)):
+            self._qos_stale = True
+
+    def update_transport_class(self) -> bool:
+        """Re-declare ``[topic]/optimized`` if its priority or size now call for another class.
+
+        A zenoh publisher's class is fixed at declaration, so a change of class (rare: a
+        priority event, the first message's size) declares a new publisher and swaps it in. No
+        lock is held across the middleware call; a racing change of class wins over an older
+        one. The old publisher is undeclared at the next change (or ``close``), not at once: a
+        ``publish`` that read it just before the swap may still be putting on it. Sequence
+        numbers belong to this object, so the numbering goes on across the swap. True if the
+        class changed.
+        """
+        self._qos_stale = False
+        wanted = self._wanted_qos()
+        with self._qos_lock:
+            if wanted == self._qos_target:  # in force, or being declared
+                return False
+            self._qos_target = wanted
+            self._qos_generation += 1
+            if wanted == self._qos:  # back to the class in force: the one in flight is moot
+                return False
+            generation = self._qos_generation
+        fresh = self._declare_optimized(wanted)
+        with self._qos_lock:
+            swapped = generation == self._qos_generation  # else a newer change wins
+            if swapped:
+                stale, self._retired = self._retired, self._optimized
+                self._optimized, self._qos = fresh, wanted
+            else:
+                stale = fresh
+        if stale is not None:
+            stale.close()
+        if swapped:
+            log.info("%s: transport class now %s", self.topic, wanted)
+        return swapped
+
+    def _close_retired(self) -> None:
+        with self._qos_lock:
+            retired, self._retired = self._retired, None
+        if retired is not None:
+            retired.close()
+
     # -- publishing ---------------------------------------------------------------------------
 
     def _track_size(self, size: int) -> None:
@@ -196,25 +292,38 @@ class ManagedPublisher:
         the throttling.
         """
         now = self._now()
-        rate = self._rate_at(now)
+        allocated = self._allocated_hz
+        if allocated is not None and now <= self._deadline:
+            rate, steady = allocated, True  # the common case: the limiter runs at it already
+        else:
+            rate, steady = self._rate_at(now), False  # before a new size moves the deadline
         if len(payload) != self._size_bytes:
             self._track_size(len(payload))
-        sent_ns = self._wall_clock_ns()
-        if self._full is not None and self._full.has_subscribers:
+        if self._qos_stale:
+            self.update_transport_class()
+        full = self._full
+        if full is not None and full.has_subscribers:
             self._full_seq += 1
-            self._full.put(payload, pack_meta(self._full_seq, sent_ns, rate))
+            full.put(payload, attachment=pack_meta(self._full_seq, self._wall_clock_ns(), rate))
         with self._lock:
-            # A new channel waits for its first allocation (bounded by the fail-safe deadline).
-            # Its credit is spent meanwhile, so the first allocation does not open with a burst.
-            waiting = self._allocated_hz is None and now <= self._deadline
-            if rate != self._limiter.rate_hz:  # fail-safe (an allocation applies on arrival)
-                self._limiter.set_rate(rate, now)
-            allowed = self._limiter.allow(now) and not waiting
+            allowed = self._limiter.allow(now) if steady else self._allow_unallocated(rate, now)
         if not allowed:
             return False
         self._optimized_seq += 1
-        self._optimized.put(payload, pack_meta(self._optimized_seq, sent_ns, rate))
+        meta = pack_meta(self._optimized_seq, self._wall_clock_ns(), rate)
+        self._optimized.put(payload, attachment=meta)
         return True
+
+    def _allow_unallocated(self, rate: float, now: float) -> bool:
+        """Before the first allocation, or without a fresh one (fail-safe); lock held.
+
+        A new channel waits for its first allocation (bounded by the fail-safe deadline). Its
+        credit is spent meanwhile, so the first allocation does not open with a burst.
+        """
+        waiting = self._allocated_hz is None and now <= self._deadline
+        if rate != self._limiter.rate_hz:  # fail-safe (an allocation applies on arrival)
+            self._limiter.set_rate(rate, now)
+        return self._limiter.allow(now) and not waiting
 
     def close(self) -> None:
         """Withdraw from the graph and undeclare both publishers."""

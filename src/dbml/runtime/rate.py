@@ -44,6 +44,20 @@ class _Credit:
         self.frames = max(self.frames - 1.0, 0.0)
         return True
 
+    def take(self, now: float) -> bool:
+        """``look(now)`` then ``spend()`` in one call: the hot path of every managed publish."""
+        seen = self._seen
+        frames = self.frames
+        if seen is None or now > seen:
+            if seen is not None:
+                frames = min(frames + (now - seen) * self.rate_hz, self._cap)
+            self._seen = now
+        if frames < 1.0 - _EPSILON_FRAMES:
+            self.frames = frames
+            return False
+        self.frames = max(frames - 1.0, 0.0)
+        return True
+
     def wait_s(self) -> float:
         """Seconds until one frame is earned at the rate in force."""
         return max(0.0, (1.0 - self.frames) / self.rate_hz)
@@ -77,8 +91,7 @@ class RateLimiter:
 
     def allow(self, now: float) -> bool:
         """Whether a message may go out at ``now``; if so it counts as sent."""
-        self._credit.look(now)
-        return self._credit.spend()
+        return self._credit.take(now)
 
 
 class Rate:

@@ -22,22 +22,29 @@ from dataclasses import dataclass, field, replace
 from dbml.core.allocation import Strategy
 from dbml.experiment.analysis import (
     BUDGET_BACK_S,
+    FIRST_CUT_S,
+    GOODPUT_AFTER_FRACTION,
     GOODPUT_FRACTION,
     MAX_P95_MS,
+    PEAK_P95_AFTER_DROP_MS,
     RATE_TOLERANCE,
     RECOVERY_S,
     LinkChange,
+    LinkPhase,
     SeriesPoint,
     StepResult,
+    StreamLatency,
     link_at,
+    stream_latency,
 )
-from dbml.experiment.roles import HOSTS, RoleSpec
+from dbml.experiment.roles import HOSTS, URGENT_STREAMS, RoleSpec
 from dbml.experiment.runner import Observer, Recording, run_experiment, sigterm_as_interrupt
 from dbml.scenarios.teleop import ROBOTS
 from dbml.testbed.netns import Network, TestbedError, privilege_problem
 
 __all__ = [
     "POLICIES",
+    "URGENT_P95_MS",
     "Summary",
     "TestbedOptions",
     "TestbedResult",
@@ -58,6 +65,8 @@ ZENOH_PORT = 7447
 OPTIMIZER_PORT = 7448
 PEER_WAIT_S = 15.0
 """How long a role waits for its peers across the namespaces before it reports ready."""
+URGENT_P95_MS = 120.0
+"""The mapped urgent stream's p95 bound: two camera frame times (84 KB at 11 Mbit/s: 61 ms)."""
 NETNS_OF_ROLE = {"operator": "op", "optimizer": "op", "r1": "r1", "r2": "r2"}
 
 
@@ -114,6 +123,8 @@ class TestbedOptions:
     link_schedule: tuple[tuple[float, float], ...] = ()
     estimate: bool = False
     uplinks_mbit: Mapping[str, float] = field(default_factory=dict)
+    urgent_stream: bool = False
+    """R1 adds a 1,000-byte 20 Hz urgent stream twice, mapped and unmapped (see ``roles``)."""
     strategy: str | None = Strategy.PAPER.value
     """None under ``unmanaged``: no optimizer runs."""
     utilization: float | None = DEFAULT_UTILIZATION
@@ -130,6 +141,7 @@ class TestbedOptions:
         uplinks: Sequence[str] = (),
         strategy: str | None = None,
         utilization: float | None = None,
+        urgent_stream: bool = False,
     ) -> TestbedOptions:
         """The options of the command line's flags; a bad one raises naming the flag."""
         if policy not in POLICIES:
@@ -145,6 +157,7 @@ class TestbedOptions:
             link_schedule=parse_schedule(link_schedule) if link_schedule else (),
             estimate=estimate,
             uplinks_mbit=parse_uplinks(uplinks, [c.robot for c in ROBOTS]),
+            urgent_stream=urgent_stream,
         )
         if policy == "unmanaged":
             for flag, given in (
@@ -223,6 +236,10 @@ class TestbedResult:
     series: tuple[SeriesPoint, ...] = ()
     changes: tuple[LinkChange, ...] = ()
     interrupted: bool = False
+    phases: tuple[LinkPhase, ...] = ()
+    urgent: tuple[StreamLatency, ...] = ()
+    """With ``urgent_stream``: the mapped and the unmapped copy, over the whole run."""
+    """Between link changes: utilisation, p95 and losses (RFC 8867's per-phase figures)."""
 
     def summary(self) -> Summary:
         """The run in a few numbers."""
@@ -260,11 +277,17 @@ class TestbedResult:
         )
 
     def targets(self) -> dict[str, bool]:
-        """The expectations that apply to this run (policy dbml), by name."""
+        """The expectations that apply to this run (policy dbml; urgent stream: any), by name."""
+        mapped = next((u for u in self.urgent if u.name == "mapped"), None)
+        urgent = {}
+        if mapped is not None:
+            urgent[f"urgent_p95_under_{URGENT_P95_MS:g}ms"] = (
+                mapped.latency_p95_ms is not None and mapped.latency_p95_ms < URGENT_P95_MS
+            )
         if self.options.policy != "dbml" or not self.steps:
-            return {}
+            return urgent
         robots = [r for s in self.steps for r in s.robots]
-        targets: dict[str, bool] = {}
+        targets: dict[str, bool] = dict(urgent)
         if self.options.steady:
             targets[f"delivered_within_{RATE_TOLERANCE * 100:g}pct"] = all(
                 r.within_rate() for r in robots
@@ -285,6 +308,19 @@ class TestbedResult:
                 key = f"budget_back_within_{BUDGET_BACK_S:g}s_after_{change.t_s:g}s"
                 reached = change.budget_recovery_s
                 targets[key] = reached is not None and reached <= BUDGET_BACK_S
+            if self.options.estimate and change.drop:
+                at = f"after_{change.t_s:g}s"
+                cut, p95 = change.first_cut_s, change.max_latency_p95_ms
+                targets[f"first_cut_within_{FIRST_CUT_S * 1000:g}ms_{at}"] = (
+                    cut is not None and cut <= FIRST_CUT_S
+                )
+                targets[f"peak_p95_under_{PEAK_P95_AFTER_DROP_MS:g}ms_{at}"] = (
+                    p95 is not None and p95 < PEAK_P95_AFTER_DROP_MS
+                )
+                share = change.goodput_share_after
+                targets[f"goodput_at_least_{GOODPUT_AFTER_FRACTION * 100:g}pct_{at}"] = (
+                    share is not None and share >= GOODPUT_AFTER_FRACTION
+                )
         return targets
 
 
@@ -302,6 +338,7 @@ def _specs(network: Network, options: TestbedOptions) -> dict[str, RoleSpec]:
         estimate=options.estimate,
         uplinks_mbit=dict(options.uplinks_mbit),
         peer_wait_s=PEER_WAIT_S,
+        urgent_stream=options.urgent_stream,
     )
     specs = {"operator": replace(base, host=HOSTS["operator"], listen=(operator_ep,))}
     if managed:
@@ -361,4 +398,17 @@ def run_teleop_testbed(
     analysis = recording.analyse(
         step_s=options.step_seconds, link_mbit=options.link_mbit, schedule=options.link_schedule
     )
-    return replace(result, steps=analysis.steps, series=analysis.series, changes=analysis.changes)
+    return replace(
+        result,
+        steps=analysis.steps,
+        series=analysis.series,
+        changes=analysis.changes,
+        phases=analysis.phases,
+        urgent=tuple(
+            stream_latency(
+                recording.arrivals, len(ROBOTS) + k, name="mapped" if s.mapped else "unmapped"
+            )
+            for k, s in enumerate(URGENT_STREAMS)
+            if options.urgent_stream
+        ),
+    )

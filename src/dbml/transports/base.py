@@ -28,6 +28,8 @@ from typing import Protocol, Self, TypeAlias, runtime_checkable
 from dbml.core.errors import TransportError
 
 __all__ = [
+    "DEFAULT_ROUTER_ENDPOINT",
+    "PRIORITY_SUFFIX",
     "Closer",
     "GraphEntry",
     "GraphView",
@@ -39,6 +41,7 @@ __all__ = [
     "Sample",
     "Transport",
     "TransportBase",
+    "TransportPriority",
     "Variant",
     "check_param_value",
     "check_topic",
@@ -47,6 +50,13 @@ __all__ = [
 
 ParamValue: TypeAlias = bool | int | float | str | None
 """A parameter's value; ``None`` means deleted."""
+
+DEFAULT_ROUTER_ENDPOINT = "tcp/localhost:7447"
+"""Where a zenoh router of this host listens (``dbml router``, ``rmw_zenohd``): ROS 2's default.
+
+Here, not beside zenoh, so the command line can name it without importing zenoh."""
+PRIORITY_SUFFIX = "/dbm/priority"
+"""A channel's priority parameter (and, over ROS 2, its ``std_msgs/msg/Float64`` topic)."""
 
 _TOPIC = re.compile(r"^(/[A-Za-z0-9_\-.~]+)+$")
 _HOST = re.compile(r"^[A-Za-z0-9_\-.~]+$")
@@ -81,6 +91,23 @@ class Variant(enum.StrEnum):
     def key(self, topic: str) -> str:
         """The name this copy of ``topic`` travels under (``/r1/camera/optimized``)."""
         return topic if self is Variant.FULL else f"{topic}/optimized"
+
+
+class TransportPriority(enum.StrEnum):
+    """A message's class in the middleware's transmission queues, most urgent first.
+
+    zenoh's seven priorities by name (``zenoh.Priority``); a middleware without classes ignores
+    it. Within a session's link, a higher class is sent before queued lower ones; with
+    priority-dedicated links it also gets a connection of its own (``dbml.transports.zenoh``).
+    """
+
+    REAL_TIME = "real_time"
+    INTERACTIVE_HIGH = "interactive_high"
+    INTERACTIVE_LOW = "interactive_low"
+    DATA_HIGH = "data_high"
+    DATA = "data"
+    DATA_LOW = "data_low"
+    BACKGROUND = "background"
 
 
 class Role(enum.StrEnum):
@@ -124,8 +151,12 @@ class Publisher(Protocol):
 
     topic: str
 
-    def put(self, payload: bytes, attachment: bytes | None = None) -> None:
-        """Send ``payload`` (and the publisher's metadata in ``attachment``)."""
+    def put(self, payload: bytes, *, attachment: bytes | None = None) -> None:
+        """Send ``payload`` (and the publisher's metadata in ``attachment``).
+
+        Keyword-only, as zenoh's own ``put``: the zenoh transport hands out zenoh's method
+        itself, so a small message pays no Python frame of dbml's on the way.
+        """
         ...
 
     @property
@@ -203,8 +234,24 @@ class Transport(Protocol):
         """Who publishes and subscribes what, live."""
         ...
 
-    def declare_publisher(self, topic: str, variant: Variant = Variant.FULL) -> Publisher:
-        """A publisher of ``topic`` in ``variant``."""
+    @property
+    def has_priorities(self) -> bool:
+        """Whether ``declare_publisher``'s ``priority`` and ``express`` change anything here."""
+        ...
+
+    def declare_publisher(
+        self,
+        topic: str,
+        variant: Variant = Variant.FULL,
+        *,
+        priority: TransportPriority | None = None,
+        express: bool = False,
+    ) -> Publisher:
+        """A publisher of ``topic`` in ``variant``.
+
+        ``priority`` (None: the middleware's default class) and ``express`` (send at once,
+        unbatched) are hints: a middleware without classes ignores them.
+        """
         ...
 
     def subscribe(
@@ -279,6 +326,9 @@ class TransportBase:
 
     The transports subclass it and override what their middleware needs; ``close`` is theirs.
     """
+
+    has_priorities = False
+    """Messages go in one class: a publisher's priority and ``express`` are ignored."""
 
     def close(self) -> None:
         """Release everything this transport declared; implemented by each transport."""

@@ -23,6 +23,7 @@ from dbml.transports.base import (
     Role,
     Sample,
     TransportBase,
+    TransportPriority,
     Variant,
     check_param_value,
     check_topic,
@@ -83,7 +84,7 @@ class _MemoryPublisher:
         self._route = transport.network.route(variant.key(topic))
         self._transport = transport
 
-    def put(self, payload: bytes, attachment: bytes | None = None) -> None:
+    def put(self, payload: bytes, *, attachment: bytes | None = None) -> None:
         self._transport._check_open()
         self._route.fire(Sample(self.topic, bytes(payload), attachment))
 
@@ -191,8 +192,18 @@ class MemoryTransport(TransportBase):
         """The injected clock's seconds (``time.monotonic`` by default)."""
         return self._clock()
 
-    def declare_publisher(self, topic: str, variant: Variant = Variant.FULL) -> _MemoryPublisher:
-        """A publisher whose ``put`` returns after every subscriber's callback ran."""
+    def declare_publisher(
+        self,
+        topic: str,
+        variant: Variant = Variant.FULL,
+        *,
+        priority: TransportPriority | None = None,
+        express: bool = False,
+    ) -> _MemoryPublisher:
+        """A publisher whose ``put`` returns after every subscriber's callback ran.
+
+        Delivery is synchronous, so there is no queue for ``priority`` or ``express`` to skip.
+        """
         self._check_open()
         return _MemoryPublisher(self, check_topic(topic), variant)
 

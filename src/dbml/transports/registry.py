@@ -65,6 +65,9 @@ class TransportEntry:
     params_complete_at_start: bool
     """Whether a process reads the whole store when it starts (the ROS parameter server), so an
     optimizer must write the defaults of unset parameters where everyone reads them."""
+    typed_topics: bool = False
+    """Whether every topic has a message type (ROS 1, ROS 2), so one that cannot be found is
+    an error rather than untyped bytes."""
 
 
 def _no_network(name: str, network: MemoryNetwork | None) -> None:
@@ -197,6 +200,7 @@ TRANSPORTS: Mapping[str, TransportEntry] = types.MappingProxyType(
             spans_processes=True,
             carries_metadata=False,
             params_complete_at_start=True,
+            typed_topics=True,
         ),
         "ros2": TransportEntry(
             factory=_open_ros2,
@@ -204,6 +208,7 @@ TRANSPORTS: Mapping[str, TransportEntry] = types.MappingProxyType(
             spans_processes=True,
             carries_metadata=False,
             params_complete_at_start=False,
+            typed_topics=True,
         ),
         "memory": TransportEntry(
             factory=_open_memory,

@@ -42,6 +42,7 @@ from dbml.transports.base import (
     Role,
     Sample,
     TransportBase,
+    TransportPriority,
     Variant,
     check_param_value,
     check_topic,
@@ -392,7 +393,7 @@ class _Ros1Publisher:
         self._raw = _raw_class(_STRING if data_class is None else data_class)
         self._publisher = rospy.Publisher(variant.key(topic), self._raw, queue_size=queue)
 
-    def put(self, payload: bytes, attachment: bytes | None = None) -> None:
+    def put(self, payload: bytes, *, attachment: bytes | None = None) -> None:
         if self._framed:
             payload = struct.pack("<I", len(payload)) + payload
         self._publisher.publish(self._raw(payload))
@@ -530,8 +531,19 @@ class Ros1Transport(TransportBase):
             raise TransportError(f"size_bytes={size_bytes!r} is smaller than an empty Image")
         return serialized
 
-    def declare_publisher(self, topic: str, variant: Variant = Variant.FULL) -> _Ros1Publisher:
-        """A ROS publisher of the topic's message class (``std_msgs/String`` without one)."""
+    def declare_publisher(
+        self,
+        topic: str,
+        variant: Variant = Variant.FULL,
+        *,
+        priority: TransportPriority | None = None,
+        express: bool = False,
+    ) -> _Ros1Publisher:
+        """A ROS publisher of the topic's message class (``std_msgs/String`` without one).
+
+        ROS 1 has one TCP connection per topic and no classes: ``priority`` and ``express`` are
+        ignored.
+        """
         self._check_open()
         check_topic(topic)
         data_class = self._classes.get(topic) or self._learned.get(topic)

@@ -14,6 +14,12 @@ value is logged once and ignored.
 
 Topology as rmw_zenoh's: peer mode, connect to the router of this host (``tcp/localhost:7447``,
 ``dbml router`` or ``rmw_zenohd``), listen on a port of its own, no multicast, no shared memory.
+
+Trust: a session whose ``dbml/node/<16 hex>/<zid>`` token is live counts as dbml's, and its ROS 2
+subscriptions are left to dbml's graph. A peer may declare such a token for another session's
+zid and so hide that session's ROS 2 subscribers (fewer managed channels, never more bytes);
+the access control of ``dbml secure init`` (only dbml roles may declare ``dbml/**``) is the
+real defence. Whatever is remembered of the network is capped, so a token flood stays bounded.
 """
 
 from __future__ import annotations
@@ -32,6 +38,8 @@ import zenoh
 
 from dbml.core.errors import TransportError
 from dbml.transports.base import (
+    DEFAULT_ROUTER_ENDPOINT,
+    PRIORITY_SUFFIX,
     Closer,
     GraphEntry,
     GraphView,
@@ -40,6 +48,7 @@ from dbml.transports.base import (
     Role,
     Sample,
     TransportBase,
+    TransportPriority,
     Variant,
     check_topic,
 )
@@ -60,33 +69,41 @@ from dbml.transports.ros2msg import (
     image_cdr,
     parse_token,
 )
-from dbml.transports.zenoh import ZenohTransport, open_router
+from dbml.transports.zenoh import ZENOH_PRIORITY, ZenohTransport
 
 __all__ = [
     "DEFAULT_LISTEN",
-    "DEFAULT_ROUTER",
     "Ros2Transport",
     "node_name_for",
-    "open_router",
     "resolve_domain_id",
 ]
 
 log = logging.getLogger("dbml.ros2")
 
-DEFAULT_ROUTER = "tcp/localhost:7447"
-"""Where rmw_zenoh's router of this host listens, and ROS 2 nodes connect."""
 DEFAULT_LISTEN = "tcp/localhost:0"
 """Each session listens on a port of its own, so peers gossiped by the router link directly."""
-PRIORITY_SUFFIX = "/dbm/priority"
-"""A managed channel's priority topic (``std_msgs/msg/Float64``) and parameter."""
-_OPTIMIZED_SUFFIX = "/optimized"
+_OPTIMIZED_SUFFIX = Variant.OPTIMIZED.key("")
 _NODE_PREFIX = "dbml_"
 _NOT_IN_NAME = re.compile(r"[^A-Za-z0-9_]")
 _DBML_NODE = "dbml/node"
 _DBML_NODE_KEY_PARTS = 4
 """``dbml/node/<node id>/<zenoh id>``."""
+_DBML_NODE_ID = re.compile(r"[0-9a-f]{16}")
+"""A dbml node id as ``ZenohTransport`` makes it; any other shape is not dbml's."""
+_ZID = re.compile(r"[0-9a-f]{1,32}")
+"""A zenoh id: up to 16 bytes in lower-case hex."""
 _MAX_LOGGED = 1024
 """Malformed keys remembered so each is logged once; beyond this, no more are logged."""
+_MAX_FOREIGN = 4096
+"""ROS 2 subscriptions of ``/optimized`` topics remembered at most (beyond: ignored, logged)."""
+_MAX_SEEN_TYPES = 4096
+"""ROS 2 publishers' types remembered at most, for ``topic_type`` (beyond: ignored, logged)."""
+_MAX_DBML_SESSIONS = 1024
+"""dbml sessions remembered at most; beyond, their ROS 2 tokens may be counted twice."""
+_MAX_NODES_PER_SESSION = 16
+"""dbml node tokens remembered per session (one ``ZenohTransport`` declares one)."""
+_PRIORITY_LOG_INTERVAL_S = 10.0
+"""A managed topic's bad priorities are logged at most once per this many seconds."""
 _NODE_ENTITY = 0
 """rmw_zenoh's node token repeats the node's id as its entity id."""
 _HOST_PREFIX = "ros2:"
@@ -131,6 +148,37 @@ class _LogOnce:
         log.warning(message, *args)
 
 
+class _ThrottledLog:
+    """Logs a repeated problem per name at most once per interval, with how many were ignored.
+
+    A ROS 2 node may publish a bad value at kilohertz rates; each one is still counted.
+    """
+
+    def __init__(self, interval_s: float, *, clock: Callable[[], float] = time.monotonic) -> None:
+        self._interval_s = interval_s
+        self._clock = clock
+        self._lock = threading.Lock()
+        self._state: dict[str, tuple[float, int]] = {}
+        """By name: when it was last logged, and what was ignored since."""
+
+    def warning(self, name: str, message: str, *args: object) -> None:
+        """Log ``message`` for ``name`` unless it was logged within the interval."""
+        now = self._clock()
+        with self._lock:
+            last_s, ignored = self._state.get(name, (None, 0))
+            ignored += 1
+            if last_s is not None and now - last_s < self._interval_s:
+                self._state[name] = (last_s, ignored)
+                return
+            self._state[name] = (now, 0)
+        log.warning(
+            f"{message} (%d value(s) ignored; logged at most every %g s)",
+            *args,
+            ignored,
+            self._interval_s,
+        )
+
+
 class _Ros2Publisher:
     """One rmw-style publisher: typed key, rmw's attachment, an ``MP`` token while it lives."""
 
@@ -141,14 +189,24 @@ class _Ros2Publisher:
         key: str,
         token: zenoh.LivelinessToken,
         on_close: Callable[[], None],
+        *,
+        priority: TransportPriority | None = None,
+        express: bool = False,
     ) -> None:
         self.topic = topic
         self._publisher = session.declare_publisher(
-            key, congestion_control=zenoh.CongestionControl.DROP
+            key,
+            congestion_control=zenoh.CongestionControl.DROP,
+            priority=None if priority is None else ZENOH_PRIORITY[priority],
+            express=express,
         )
-        status = self._publisher.matching_status  # typed a bool, a MatchingStatus at runtime
-        self._matching = bool(getattr(status, "matching", status))
-        self._listener = self._publisher.declare_matching_listener(self._on_matching)
+        try:
+            status = self._publisher.matching_status  # typed a bool, a MatchingStatus at runtime
+            self._matching = bool(getattr(status, "matching", status))
+            self._listener = self._publisher.declare_matching_listener(self._on_matching)
+        except BaseException:
+            _undeclare(self._publisher)
+            raise
         self._token = token
         self._gid = uuid.uuid4().bytes
         self._sequence = 0
@@ -158,7 +216,7 @@ class _Ros2Publisher:
     def _on_matching(self, status: zenoh.MatchingStatus) -> None:
         self._matching = status.matching
 
-    def put(self, payload: bytes, attachment: bytes | None = None) -> None:
+    def put(self, payload: bytes, *, attachment: bytes | None = None) -> None:
         """Send CDR ``payload`` with rmw's attachment; dbml's ``attachment`` has no place here."""
         with self._lock:
             self._sequence += 1
@@ -193,14 +251,30 @@ def _undeclare(
 
 
 class _Ros2Graph:
-    """dbml's graph plus the ROS 2 subscriptions of managed channels' ``/optimized`` topics."""
+    """dbml's graph plus the ROS 2 subscriptions of managed channels' ``/optimized`` topics.
 
-    def __init__(self, inner: GraphView) -> None:
+    It also knows which sessions are dbml's, under the same lock as the subscriptions, so a
+    dbml session's token arriving between the check and the add of one of its ROS 2
+    subscriptions cannot leave that subscription counted twice.
+    """
+
+    def __init__(self, inner: GraphView, own_zid: str) -> None:
         self._inner = inner
+        self._own_zid = own_zid
         self._lock = threading.Lock()
         self._foreign: dict[str, tuple[str, GraphEntry]] = {}
         """ROS 2 subscriptions by token key: the session's zid and the entry."""
+        self._dbml: dict[str, set[str]] = {}
+        """Other dbml sessions by zid: the keys of their live node tokens."""
+        self._full: set[str] = set()
+        """Which caps were reached (each is logged once)."""
         self.watchers: CallbackList[[]] = CallbackList()
+
+    def _reached(self, cap: str, limit: int) -> None:
+        """Log once that ``cap`` is full; called under the lock, logs after."""
+        if cap not in self._full:
+            self._full.add(cap)
+            log.warning("ignoring further %s: %d remembered already", cap, limit)
 
     def announce(self, role: Role, topic: str, variant: Variant) -> Handle:
         """Declare in dbml's graph (ROS 2 tokens are the endpoints' own)."""
@@ -223,9 +297,18 @@ class _Ros2Graph:
 
         return Closer(stop)
 
-    def add(self, key: str, zid: str, entry: GraphEntry) -> None:
+    def is_dbml(self, zid: str) -> bool:
+        """Whether ``zid`` is this or another live dbml session."""
         with self._lock:
-            if key in self._foreign:
+            return zid == self._own_zid or zid in self._dbml
+
+    def add(self, key: str, zid: str, entry: GraphEntry) -> None:
+        """Count a ROS 2 subscription, unless its session is dbml's (or the cap is reached)."""
+        with self._lock:
+            if key in self._foreign or zid == self._own_zid or zid in self._dbml:
+                return
+            if len(self._foreign) >= _MAX_FOREIGN:
+                self._reached("ROS 2 subscriptions", _MAX_FOREIGN)
                 return
             self._foreign[key] = (zid, entry)
         self.watchers.fire()
@@ -236,14 +319,32 @@ class _Ros2Graph:
                 return
         self.watchers.fire()
 
-    def forget_session(self, zid: str) -> None:
-        """Drop what a session turned out to be dbml's declared: dbml's graph has it already."""
+    def add_dbml(self, key: str, zid: str) -> None:
+        """Session ``zid`` is dbml's (its node token ``key``): dbml's graph counts its entries."""
         with self._lock:
-            keys = [key for key, (owner, _) in self._foreign.items() if owner == zid]
-            for key in keys:
-                del self._foreign[key]
+            tokens = self._dbml.get(zid)
+            if tokens is None:
+                if len(self._dbml) >= _MAX_DBML_SESSIONS:
+                    self._reached("dbml sessions", _MAX_DBML_SESSIONS)
+                    return
+                tokens = self._dbml[zid] = set()
+            if len(tokens) < _MAX_NODES_PER_SESSION:
+                tokens.add(key)
+            keys = [k for k, (owner, _) in self._foreign.items() if owner == zid]
+            for k in keys:
+                del self._foreign[k]
         if keys:
             self.watchers.fire()
+
+    def remove_dbml(self, key: str, zid: str) -> None:
+        """Node token ``key`` of session ``zid`` is gone; the last one ends it being dbml's."""
+        with self._lock:
+            tokens = self._dbml.get(zid)
+            if tokens is None:
+                return
+            tokens.discard(key)
+            if not tokens:
+                del self._dbml[zid]
 
 
 class Ros2Transport(TransportBase):
@@ -252,6 +353,9 @@ class Ros2Transport(TransportBase):
     Payloads are CDR already (``camera_frame`` makes a ``sensor_msgs/msg/Image``); a topic's
     type is ``set_topic_type``'s, else ``sensor_msgs/msg/Image``. Always ``close()`` it.
     """
+
+    has_priorities = True
+    """Publishers are declared in zenoh's priority classes (and ``express``)."""
 
     def __init__(
         self,
@@ -268,7 +372,7 @@ class Ros2Transport(TransportBase):
         self.domain_id = resolve_domain_id(domain_id)
         self.types = MessageTypes(distro=ros_distro, msg_paths=msg_paths)
         if not (connect or listen or config_file):
-            connect, listen = [DEFAULT_ROUTER], [DEFAULT_LISTEN]
+            connect, listen = [DEFAULT_ROUTER_ENDPOINT], [DEFAULT_LISTEN]
         self._dbml = ZenohTransport(
             host=host,
             connect=connect,
@@ -276,27 +380,41 @@ class Ros2Transport(TransportBase):
             config_file=config_file,
             follow_all_params=follow_all_params,
         )
-        self.host = self._dbml.host
-        self.session = self._dbml.session
+        try:
+            self._declare(self._dbml)
+        except BaseException:
+            self._dbml.close()  # undeclares whatever was declared before the failure
+            raise
+
+    def _declare(self, dbml: ZenohTransport) -> None:
+        """Everything but dbml's own session: split out so a failure here closes that session."""
+        self.host = dbml.host
+        self.session = dbml.session
         self.zid = str(self.session.info.zid())
         self.node_name = node_name_for(self.host)
-        self._graph = _Ros2Graph(self._dbml.graph)
+        self._graph = _Ros2Graph(dbml.graph, self.zid)
         self._lock = threading.Lock()
         self._changed = threading.Condition(self._lock)
         self._closed = False
         self._log = _LogOnce()
+        self._priority_log = _ThrottledLog(_PRIORITY_LOG_INTERVAL_S)
         self._declared_types: dict[str, str] = {}
-        self._seen_types: dict[str, tuple[str, str]] = {}
-        """ROS 2 publishers by token key: topic and type (``topic_type``'s answers)."""
-        self._dbml_zids: set[str] = {self.zid}
+        self._seen_types: dict[str, tuple[str, str, str]] = {}
+        """ROS 2 publishers by token key: topic, type and type hash (``topic_type``'s answers)."""
+        self._source_hashes: dict[str, str] = {}
+        """Type hashes by type, as ``topic_type`` found them on publishers' tokens."""
         self._entity = _NODE_ENTITY
         self._handles: set[Handle] = set()
         self._priorities: dict[str, tuple[Handle, int]] = {}
         """Managed channels' priority subscriptions, and how many publishers share each."""
+        self._priority_lock = threading.Lock()
+        """Held from the check to the store of a priority subscription, so one serves all."""
         liveliness = self.session.liveliness()
         self._node_token = liveliness.declare_token(self._token(TokenKind.NODE).key())
         self._subscribers = [
-            liveliness.declare_subscriber(f"{_DBML_NODE}/**", self._on_dbml_node, history=True),
+            liveliness.declare_subscriber(
+                f"{_DBML_NODE}/**", _guarded(self._on_dbml_node), history=True
+            ),
             liveliness.declare_subscriber(
                 f"{ADMIN_SPACE}/{self.domain_id}/**", _guarded(self._on_token), history=True
             ),
@@ -314,9 +432,8 @@ class Ros2Transport(TransportBase):
         """Dbml's graph and ROS 2's subscriptions of managed topics."""
         return self._graph
 
-    def now(self) -> float:
-        """Monotonic seconds."""
-        return time.monotonic()
+    now = staticmethod(time.monotonic)
+    """Monotonic seconds (the function itself: publishers read it per message)."""
 
     def wait_for_peers(self, timeout_s: float) -> bool:
         """Wait for another dbml session and what it owns (ROS 2 nodes own no parameters)."""
@@ -345,7 +462,17 @@ class Ros2Transport(TransportBase):
             msg_type = self._declared_types.get(variant.key(topic)) or self._declared_types.get(
                 topic, IMAGE_TYPE
             )
-        return msg_type, self.types.type_hash(msg_type)
+        return msg_type, self._hash_of(msg_type)
+
+    def _hash_of(self, msg_type: str) -> str:
+        """The hash a source publisher's token carries for ``msg_type``, else the typestore's.
+
+        rmw_zenoh subscribes to the exact key, hash included: a bridge must republish under
+        its source's hash, or subscribers of another distro never see ``/optimized``.
+        """
+        ours = self.types.type_hash(msg_type)  # also refuses a type the typestore lacks
+        with self._lock:
+            return self._source_hashes.get(msg_type, ours)
 
     def camera_frame(self, topic: str, size_bytes: int) -> bytes:
         """A ``sensor_msgs/msg/Image`` serialised to exactly ``size_bytes`` (52 at least)."""
@@ -361,15 +488,32 @@ class Ros2Transport(TransportBase):
         """The type a ROS 2 publisher of ``topic`` declares, waiting up to ``timeout_s``."""
         check_topic(topic)
 
-        def found() -> str | None:
-            for seen_topic, msg_type in self._seen_types.values():
+        def found() -> tuple[str, str] | None:
+            for seen_topic, msg_type, type_hash in self._seen_types.values():
                 if seen_topic == topic:
-                    return msg_type
+                    return msg_type, type_hash
             return None
 
         with self._changed:
             self._changed.wait_for(lambda: found() is not None, timeout=timeout_s)
-            return found()
+            seen = found()
+            if seen is None:
+                return None
+            msg_type, type_hash = seen
+            self._source_hashes[msg_type] = type_hash
+        with contextlib.suppress(TransportError):  # a type unknown here is refused when used
+            ours = self.types.type_hash(msg_type)
+            if ours != type_hash:
+                log.warning(
+                    "%s: its publisher's %s hash %s is not the %s typestore's %s (another"
+                    " distro?); republishing under the publisher's",
+                    topic,
+                    msg_type,
+                    type_hash,
+                    self.types.distro,
+                    ours,
+                )
+        return msg_type
 
     # -- topics -------------------------------------------------------------------------------
 
@@ -387,12 +531,23 @@ class Ros2Transport(TransportBase):
             self.node_name,
             topic=topic,
             msg_type=msg_type,
-            type_hash=None if msg_type is None else self.types.type_hash(msg_type),
+            type_hash=None if msg_type is None else self._hash_of(msg_type),
             qos=None if topic is None else QOS_RELIABLE_VOLATILE_KEEP_LAST_10,
         )
 
-    def declare_publisher(self, topic: str, variant: Variant = Variant.FULL) -> _Ros2Publisher:
-        """A ROS 2 publisher of ``topic``'s ``variant``; a managed one hears its priority topic."""
+    def declare_publisher(
+        self,
+        topic: str,
+        variant: Variant = Variant.FULL,
+        *,
+        priority: TransportPriority | None = None,
+        express: bool = False,
+    ) -> _Ros2Publisher:
+        """A ROS 2 publisher of ``topic``'s ``variant``; a managed one hears its priority topic.
+
+        ``priority`` and ``express`` are zenoh's, as for the zenoh transport (rmw_zenoh's
+        subscribers read the data whatever its class).
+        """
         check_topic(topic)
         name = variant.key(topic)
         msg_type, type_hash = self._type_of(topic, variant)
@@ -400,8 +555,6 @@ class Ros2Transport(TransportBase):
             self._token(TokenKind.PUBLISHER, name, msg_type).key()
         )
         managed = variant is Variant.OPTIMIZED
-        if managed:
-            self._hear_priority(topic)
 
         def closed() -> None:
             with self._lock:
@@ -409,13 +562,26 @@ class Ros2Transport(TransportBase):
             if managed:
                 self._unhear_priority(topic)
 
-        publisher = _Ros2Publisher(
-            self.session,
-            topic,
-            data_key(self.domain_id, name, msg_type, type_hash),
-            token,
-            closed,
-        )
+        try:
+            if managed:
+                self._hear_priority(topic)
+            try:
+                publisher = _Ros2Publisher(
+                    self.session,
+                    topic,
+                    data_key(self.domain_id, name, msg_type, type_hash),
+                    token,
+                    closed,
+                    priority=priority,
+                    express=express,
+                )
+            except BaseException:
+                if managed:
+                    self._unhear_priority(topic)
+                raise
+        except BaseException:
+            _undeclare(token)
+            raise
         with self._lock:
             self._handles.add(publisher)
         return publisher
@@ -466,56 +632,66 @@ class Ros2Transport(TransportBase):
     # -- priority from ROS 2 ------------------------------------------------------------------
 
     def _hear_priority(self, topic: str) -> None:
-        with self._lock:
-            held = self._priorities.get(topic)
-            if held is not None:
-                self._priorities[topic] = (held[0], held[1] + 1)
-                return
-        name = topic + PRIORITY_SUFFIX
-        key = data_key(self.domain_id, name, FLOAT64_TYPE, self.types.type_hash(FLOAT64_TYPE))
+        """Subscribe to ``topic``'s priority topic, or count one more user of the subscription."""
+        with self._priority_lock:  # two concurrent declares share one subscription
+            with self._lock:
+                held = self._priorities.get(topic)
+                if held is not None:
+                    self._priorities[topic] = (held[0], held[1] + 1)
+                    return
+            name = topic + PRIORITY_SUFFIX
+            key = data_key(self.domain_id, name, FLOAT64_TYPE, self.types.type_hash(FLOAT64_TYPE))
 
-        def on_sample(sample: zenoh.Sample) -> None:
-            self._on_priority(name, sample.payload.to_bytes())
+            def on_sample(sample: zenoh.Sample) -> None:
+                self._on_priority(name, sample.payload.to_bytes())
 
-        handle = self._subscribe_key(name, key, FLOAT64_TYPE, _guarded(on_sample))
-        with self._lock:
-            self._priorities[topic] = (handle, 1)
+            handle = self._subscribe_key(name, key, FLOAT64_TYPE, _guarded(on_sample))
+            with self._lock:
+                self._priorities[topic] = (handle, 1)
 
     def _unhear_priority(self, topic: str) -> None:
-        with self._lock:
-            handle, count = self._priorities.get(topic, (None, 0))
-            if handle is None:
-                return
-            if count > 1:
-                self._priorities[topic] = (handle, count - 1)
-                return
-            del self._priorities[topic]
-        handle.close()
+        """One user less of ``topic``'s priority subscription; the last one undeclares it."""
+        with self._priority_lock:
+            with self._lock:
+                handle, count = self._priorities.get(topic, (None, 0))
+                if handle is None:
+                    return
+                if count > 1:
+                    self._priorities[topic] = (handle, count - 1)
+                    return
+                del self._priorities[topic]
+            handle.close()
 
     def _on_priority(self, name: str, payload: bytes) -> None:
         """Apply a ROS 2 priority in [0, 1]; log anything else (never raise on zenoh's thread)."""
         try:
             value = decode_float64(payload)
         except TransportError as err:
-            log.warning("%s: ignoring an undecodable priority: %s", name, err)
+            self._priority_log.warning(name, "%s: ignoring an undecodable priority: %s", name, err)
             return
         if not 0.0 <= value <= 1.0:  # NaN fails both comparisons
-            log.warning("%s: ignoring priority %r: it must be a number in [0, 1]", name, value)
+            self._priority_log.warning(
+                name, "%s: ignoring priority %r: it must be a number in [0, 1]", name, value
+            )
             return
         self.params.set(name, value)
 
     # -- ROS 2's graph ------------------------------------------------------------------------
 
     def _on_dbml_node(self, sample: zenoh.Sample) -> None:
-        parts = str(sample.key_expr).split("/")
-        if len(parts) != _DBML_NODE_KEY_PARTS or sample.kind != zenoh.SampleKind.PUT:
-            return  # dbml's own transport logs malformed ones; a gone session's tokens go too
-        zid = parts[3]
-        with self._lock:
-            if zid in self._dbml_zids:
-                return
-            self._dbml_zids.add(zid)
-        self._graph.forget_session(zid)
+        """Track which sessions are dbml's: only a well-formed node token makes one."""
+        key = str(sample.key_expr)
+        parts = key.split("/")
+        if len(parts) != _DBML_NODE_KEY_PARTS:
+            return  # dbml's own transport logs malformed ones
+        node_id, zid = parts[2], parts[3]
+        if not (_DBML_NODE_ID.fullmatch(node_id) and _ZID.fullmatch(zid)):
+            self._log.warning(key, "ignoring dbml node token %r: not <16 hex>/<zenoh id>", key)
+            return
+        if sample.kind == zenoh.SampleKind.PUT:
+            self._graph.add_dbml(key, zid)
+        else:
+            self._graph.remove_dbml(key, zid)
 
     def _on_token(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
@@ -532,15 +708,23 @@ class Ros2Transport(TransportBase):
         if token.domain_id != self.domain_id or token.topic is None or token.msg_type is None:
             return
         if token.kind is TokenKind.PUBLISHER:
+            assert token.type_hash is not None  # parse_token requires it of an endpoint
             with self._changed:
-                self._seen_types[key] = (token.topic, token.msg_type)
-                self._changed.notify_all()
+                full = key not in self._seen_types and len(self._seen_types) >= _MAX_SEEN_TYPES
+                if not full:
+                    self._seen_types[key] = (token.topic, token.msg_type, token.type_hash)
+                    self._changed.notify_all()
+            if full:
+                self._log.warning(
+                    "<seen types full>",
+                    "ignoring further ROS 2 publishers' types: %d remembered already",
+                    _MAX_SEEN_TYPES,
+                )
             return
         if token.kind is not TokenKind.SUBSCRIPTION or not token.topic.endswith(_OPTIMIZED_SUFFIX):
             return
-        with self._lock:
-            if token.zid in self._dbml_zids:
-                return  # a dbml session: dbml's graph counts its subscriptions already
+        if self._graph.is_dbml(token.zid):
+            return  # early out; ``add`` checks again under its lock
         channel = token.topic.removesuffix(_OPTIMIZED_SUFFIX)
         try:
             check_topic(channel)

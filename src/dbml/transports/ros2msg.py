@@ -360,14 +360,12 @@ class MessageTypes:
             raise TransportError(f"ros distro {self.distro!r} is not one of: {', '.join(DISTROS)}")
         self._store: Typestore = get_typestore(store)
         files = _msg_files(msg_paths)
-        if files:
-            types = {}
-            for name, path in files.items():
-                try:
-                    types.update(get_types_from_msg(path.read_text(encoding="utf-8"), name))
-                except Exception as err:  # rosbags raises its own parser errors
-                    raise TransportError(f"msg file {str(path)!r}: {err}") from err
-            self._store.register(types)
+        for name, path in files.items():
+            # One file at a time, so a clash with the typestore names the file and its type.
+            try:
+                self._store.register(get_types_from_msg(path.read_text(encoding="utf-8"), name))
+            except Exception as err:  # rosbags raises its own parser and type-system errors
+                raise TransportError(f"msg file {str(path)!r} (type {name!r}): {err}") from err
         self._hashes: dict[str, str] = {}
 
     def type_hash(self, msg_type: str) -> str:
@@ -391,7 +389,10 @@ class MessageTypes:
     def definition(self, msg_type: str) -> str:
         """The ``.msg`` text of ``msg_type`` with its dependencies, as ROS 2 tools print it."""
         self.type_hash(msg_type)
-        text, _ = self._store.generate_msgdef(msg_type, ros_version=2)
+        try:
+            text, _ = self._store.generate_msgdef(msg_type, ros_version=2)
+        except Exception as err:  # a custom type whose definition rosbags cannot render
+            raise TransportError(f"message type {msg_type!r} has no definition: {err}") from err
         return text
 
     @property

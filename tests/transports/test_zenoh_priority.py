@@ -1,0 +1,69 @@
+"""Transport classes over zenoh: priority-dedicated links and re-declaration, on loopback."""
+
+from __future__ import annotations
+
+import pytest
+
+from dbml.core.errors import TransportError
+from dbml.harness.processes import free_port
+from dbml.runtime import ManagedPublisher, names
+from dbml.runtime.qos import TransportQos
+from dbml.transports import Sample, Variant
+from dbml.transports.base import TransportPriority
+from dbml.transports.zenoh import (
+    PRIORITY_LINK_RANGES,
+    ZenohTransport,
+    _json_list,
+    _priority_endpoints,
+)
+from tests.conftest import wait_for
+
+
+def test_each_endpoint_gets_one_link_per_priority_range() -> None:
+    assert PRIORITY_LINK_RANGES == ("1-4", "5-7")
+    assert _priority_endpoints(["tcp/10.0.0.1:7447", "tls/h:7447#iface=eth0"]) == [
+        "tcp/10.0.0.1:7447?prio=1-4",
+        "tcp/10.0.0.1:7447?prio=5-7",
+        "tls/h:7447?prio=1-4#iface=eth0",
+        "tls/h:7447?prio=5-7#iface=eth0",
+    ]
+    assert _priority_endpoints(["tcp/h:1?prio=1-7"]) == ["tcp/h:1?prio=1-7"]  # the author's
+
+
+def test_endpoints_with_metadata_are_checked_on_their_port() -> None:
+    assert _json_list(["tcp/h:7447?prio=1-4", "tcp/h:7447#so_sndbuf=65000"])
+    with pytest.raises(TransportError, match=r"endpoint='tcp/h:99999\?prio=1-4': the port"):
+        _json_list(["tcp/h:99999?prio=1-4"])
+
+
+def test_priority_links_carry_every_class_and_a_remote_priority_redeclares() -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    operator = ZenohTransport(host="op", listen=[endpoint], priority_links=True)
+    robot = ZenohTransport(
+        host="r1", listen=["tcp/127.0.0.1:0"], connect=[endpoint], priority_links=True
+    )
+    try:
+        assert robot.wait_for_peers(10.0)
+        received: list[Sample] = []
+        operator.subscribe("/r1/alarm", received.append, Variant.OPTIMIZED)
+        operator.params.set(names.current_value("/r1/alarm"), 20.0)
+        publisher = ManagedPublisher(robot, "/r1/alarm", min_rate_hz=1, max_rate_hz=20)
+        wait_for(lambda: publisher.publish(bytes(1_000)), what="a first allocated message")
+        wait_for(lambda: bool(received), what="the default class delivered")
+        # Written by another session: applied on zenoh's callback thread, which must not stall.
+        operator.params.set(names.priority("/r1/alarm"), 1.0)
+        wanted = TransportQos(TransportPriority.INTERACTIVE_LOW, express=True)
+
+        def republished() -> bool:
+            """The publishing thread re-declares (never zenoh's callback thread)."""
+            publisher.publish(bytes(1_000))
+            return publisher.transport_qos == wanted
+
+        wait_for(republished, what="the interactive class")
+        count = len(received)
+        wait_for(lambda: publisher.publish(bytes(1_000)), what="a message in the new class")
+        wait_for(lambda: len(received) > count, what="the interactive class delivered")
+        publisher.close()
+    finally:
+        robot.close()
+        operator.close()
