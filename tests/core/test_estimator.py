@@ -126,3 +126,67 @@ def test_bad_settings_name_the_field(field: str, value: float) -> None:
 def test_bad_maximum_names_the_value(value: float) -> None:
     with pytest.raises(SpecError, match=f"max_mbit={value!r}"):
         BandwidthEstimator(max_mbit=value)
+
+
+UPDATE_S = 0.1
+"""The node's estimator interval."""
+
+
+def _feed(
+    estimator: BandwidthEstimator,
+    *,
+    start: float,
+    end: float,
+    seq: int,
+    delay_s: float = 0.01,
+    sent_offset_s: float = 0.0,
+) -> tuple[int, list[Phase]]:
+    """A 10 Hz stream of 21 KB frames from ``start`` to ``end``, an update every 0.1 s."""
+    phases = []
+    t = start
+    while t < end - 1e-9:
+        estimator.observe(Arrival("r1/cam", seq, t - delay_s - sent_offset_s, t, 21_000))
+        seq += 1
+        t += UPDATE_S
+        phases.append(estimator.update(t).phase)
+    return seq, phases
+
+
+def _silence(estimator: BandwidthEstimator, *, start: float, end: float) -> list[Phase]:
+    steps = round((end - start) / UPDATE_S)
+    return [estimator.update(start + (k + 1) * UPDATE_S).phase for k in range(steps)]
+
+
+def test_silence_is_an_outage_that_keeps_the_estimate() -> None:
+    estimator = BandwidthEstimator(max_mbit=CAP_MBIT)
+    _feed(estimator, start=0.0, end=3.0, seq=0)
+    before = estimator.estimate_mbit
+    phases = _silence(estimator, start=3.0, end=5.0)
+    # declared within outage_s (0.5 s) plus one update; nothing measured, nothing cut
+    assert Phase.OUTAGE not in phases[:4]
+    assert set(phases[6:]) == {Phase.OUTAGE}
+    assert estimator.outage
+    assert estimator.estimate_mbit == before
+
+
+def test_the_backlog_after_an_outage_is_not_congestion() -> None:
+    estimator = BandwidthEstimator(max_mbit=CAP_MBIT)
+    seq, _ = _feed(estimator, start=0.0, end=3.0, seq=0)
+    before = estimator.estimate_mbit
+    _silence(estimator, start=3.0, end=6.0)
+    # back: frames queued for seconds, then a jump of 30 sequence numbers (dropped meanwhile)
+    seq, backlog = _feed(estimator, start=6.0, end=6.5, seq=seq, delay_s=3.0)
+    seq, fresh = _feed(estimator, start=6.5, end=8.0, seq=seq + 30)
+    assert not estimator.outage
+    assert Phase.DECREASE not in backlog + fresh
+    assert estimator.estimate_mbit >= before
+
+
+def test_a_slow_stream_is_not_an_outage() -> None:
+    estimator = BandwidthEstimator(max_mbit=CAP_MBIT)
+    t, phases = 0.0, []
+    for seq in range(8):  # 1 Hz: a gap of 1 s is its rhythm, not a dead link
+        estimator.observe(Arrival("r2/cam", seq, t - 0.01, t, 21_000))
+        phases += _silence(estimator, start=t, end=t + 1.0)
+        t += 1.0
+    assert Phase.OUTAGE not in phases

@@ -4,7 +4,15 @@ from __future__ import annotations
 
 import pytest
 
-from dbml.experiment.analysis import Arrival, Tick, analyse, link_at, rate_hz, settle_s
+from dbml.experiment.analysis import (
+    Arrival,
+    Tick,
+    analyse,
+    link_at,
+    outages,
+    rate_hz,
+    settle_s,
+)
 from dbml.testbed import TestbedError
 from dbml.testbed.runner import parse_schedule, parse_uplinks
 
@@ -12,10 +20,14 @@ from dbml.testbed.runner import parse_schedule, parse_uplinks
 def test_schedule_parses_and_names_bad_values() -> None:
     assert parse_schedule("0:11,20:5,40:11") == ((0.0, 11.0), (20.0, 5.0), (40.0, 11.0))
     assert link_at(((0.0, 11.0), (20.0, 5.0)), 25.0, 11.0) == 5.0
+    # 0 Mbit is an outage: the link is down until the next entry
+    assert parse_schedule("0:11,20:0,30:11") == ((0.0, 11.0), (20.0, 0.0), (30.0, 11.0))
     for bad, named in (
         ("0:11,x:5", "'x:5'"),
         ("0:11,20", "'20'"),
-        ("0:0", "rate '0'"),
+        ("0:0", "must be up at 0 s"),
+        ("0:11,5:-1", "rate '-1' must be > 0, or 0 for link down"),
+        ("0:11,5:nan", "rate 'nan'"),
         ("10:5,5:11", "times must increase"),
         ("-1:5", "time '-1'"),
     ):
@@ -163,3 +175,34 @@ def test_a_schedule_starting_below_the_default_link_starts_there() -> None:
     rates = _link_rates(((0.0, 4.4), (40.0, 11.0), (60.0, 2.6)), 11.0)
     assert rates == [(0.0, 4.4), (40.0, 11.0), (60.0, 2.6)]
     assert _link_rates(((20.0, 5.0),), 11.0) == [(0.0, 11.0), (20.0, 5.0)]
+
+
+def test_an_outage_reports_the_urgent_first_frame_the_backlog_and_the_worst_window() -> None:
+    before = _stream(0, hz=10, start=0.0, end=6.0, delay=0.05, size=84_000)
+    # the backlog: three frames sent as the link went down, delivered after it came back
+    backlog = [Arrival(0, 60 + k, 6.0 + 0.1 * k, 9.5 + 0.06 * k, 84_000, 10.0) for k in range(3)]
+    fresh = [Arrival(0, 70 + k, 9.7 + 0.1 * k, 9.75 + 0.1 * k, 84_000, 10.0) for k in range(20)]
+    calm = [Arrival(1, k, 9.2 + 0.5 * k, 9.25 + 0.5 * k, 21_000, 2.0) for k in range(4)]
+    ticks = [
+        Tick(t_s=t, allocated_hz=(10.0, 2.0), budget_mbit=8.0, estimate_mbit=None)
+        for t in (5.0, 9.5, 12.0)
+    ]
+    (outage,) = outages(
+        [*before, *backlog, *fresh, *calm],
+        ticks,
+        robots=["R1", "R2"],
+        t0=0.0,
+        schedule=((0.0, 11.0), (6.0, 0.0), (9.0, 11.0)),
+        urgent_at=lambda t_s: 0 if t_s >= 9 else 1,
+    )
+    assert (outage.start_s, outage.end_s, outage.urgent) == (6.0, 9.0, "R1")
+    assert outage.first_urgent_s == pytest.approx(0.5)  # a stale frame
+    assert outage.first_fresh_urgent_s == pytest.approx(0.75)
+    assert outage.stale == 3
+    assert outage.lost == 7  # seq 63..69 never came
+    assert outage.budget_mbit == 8.0
+    # R1's 10 fresh frames a second are 6.72 Mbit/s, R2 adds two 21 KB frames: 7.06
+    assert outage.worst_sent_after_mbit == pytest.approx(7.056)
+    # the backlog lands in the same second: the wire carried 3 frames more than the release
+    assert outage.worst_window_mbit == pytest.approx(7.728)
+    assert outage.release_over_budget_mbit == pytest.approx(7.056 - 8.0)

@@ -93,3 +93,22 @@ def test_bad_endpoints_and_hosts_are_refused_before_a_session_opens(
 ) -> None:
     with pytest.raises(TransportError, match=message):
         open_transport("zenoh", **options)
+
+
+def test_priority_links_reach_zenoh_and_are_refused_elsewhere(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import dbml.transports.zenoh as zenoh_module
+
+    seen: dict[str, object] = {}
+
+    def fake(**options: object) -> object:
+        seen.update(options)
+        return object()
+
+    monkeypatch.setattr(zenoh_module, "ZenohTransport", fake)
+    open_transport("zenoh", connect=["tcp/127.0.0.1:7447"], priority_links=True)
+    assert seen["priority_links"] is True
+    for name in ("memory", "ros1"):
+        with pytest.raises(TransportError, match=f"transport='{name}' has no priority links"):
+            open_transport(name, priority_links=True)

@@ -57,10 +57,17 @@ def _window(window: Window, *, drop: tuple[str, ...]) -> dict[str, Any]:
     return {k: v for k, v in asdict(window).items() if k not in drop}
 
 
-def _step(step: StepResult) -> dict[str, Any]:
+def _step(
+    step: StepResult, *, urgent: str | None = None, expected_hz: tuple[float, ...] = ()
+) -> dict[str, Any]:
+    robots = [_window(r, drop=("variant",)) for r in step.robots]
+    for robot, hz in zip(robots, expected_hz, strict=False):
+        robot["expected_hz"] = hz  # a fleet's: ``allocate`` on the step's implied channels
+    fleet = {"urgent_robot": urgent} if expected_hz else {}
     return {
         "step": step.step,
-        "robots": [_window(r, drop=("variant",)) for r in step.robots],
+        **fleet,
+        "robots": robots,
         "goodput_mbit": step.goodput_mbit,
         "budget_mbit": step.budget_mbit,
         "estimate_mbit": step.estimate_mbit,
@@ -115,6 +122,24 @@ def testbed_document(result: TestbedResult) -> dict[str, Any]:
             }
             for u in result.urgent
         }
+    if result.outages:
+        summary_document["outages"] = [
+            {
+                "start_s": o.start_s,
+                "end_s": o.end_s,
+                "urgent_robot": o.urgent,
+                "first_urgent_s": o.first_urgent_s,
+                "first_fresh_urgent_s": o.first_fresh_urgent_s,
+                "stale": o.stale,
+                "lost": o.lost,
+                "worst_window_mbit": o.worst_window_mbit,
+                "worst_sent_after_mbit": o.worst_sent_after_mbit,
+                "budget_mbit": o.budget_mbit,
+                "over_budget_mbit": o.over_budget_mbit,
+                "release_over_budget_mbit": o.release_over_budget_mbit,
+            }
+            for o in result.outages
+        ]
     summary_document["targets"] = dict(summary.targets)
     return {
         "policy": options.policy,
@@ -126,9 +151,19 @@ def testbed_document(result: TestbedResult) -> dict[str, Any]:
         "utilization": options.utilization,
         "urgent_stream": options.urgent_stream,
         "step_seconds": options.step_seconds,
+        "robots": options.robots,
+        "topology": options.topology,
         "run_id": result.run_id,
         "interrupted": result.interrupted,
-        "steps": [_step(s) for s in result.steps],
+        "steps": [
+            _step(s, urgent=urgent, expected_hz=expected)
+            for s, urgent, expected in zip(
+                result.steps,
+                result.urgent_robots(),
+                result.expected_hz or [()] * len(result.steps),
+                strict=True,
+            )
+        ],
         "summary": summary_document,
         "series": [_point(p) for p in result.series],
     }

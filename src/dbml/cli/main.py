@@ -122,6 +122,7 @@ def _open(args: argparse.Namespace, *, follow_all_params: bool = True) -> Transp
         domain_id=args.domain_id,
         ros_distro=args.ros_distro,
         msg_paths=args.msg_path,
+        priority_links=args.priority_links,
     )
 
 
@@ -344,6 +345,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 def _cmd_testbed(args: argparse.Namespace) -> int:
     from dbml.cli.documents import testbed_document
     from dbml.cli.plots import plot_series
+    from dbml.scenarios.fleet import fleet_cameras
     from dbml.testbed.runner import TestbedOptions, run_teleop_testbed
 
     options = TestbedOptions.from_flags(
@@ -356,12 +358,15 @@ def _cmd_testbed(args: argparse.Namespace) -> int:
         strategy=args.strategy,
         utilization=args.utilization,
         urgent_stream=args.urgent_stream,
+        robots=args.robots,
+        topology=args.topology,
     )
     console = Console(stderr=args.json)
     with render.ExperimentView(
         Console(stderr=True),
         title=f"dbml testbed teleop — {options.policy}, live",
         step_s=options.step_seconds,
+        robots=[camera.robot for camera in fleet_cameras(options.robots)],
         link_mbit=options.link_mbit,
         schedule=options.link_schedule,
         show=not args.json,

@@ -60,6 +60,12 @@ def _transport_options(parser: argparse.ArgumentParser) -> None:
     )
     group.add_argument("--zenoh-config", metavar="FILE", help="a zenoh JSON5 config file")
     group.add_argument(
+        "--priority-links",
+        action="store_true",
+        help="zenoh/ros2: one TCP link per range of priorities to each --connect endpoint, so "
+        "urgent channels never wait behind queued frames (the listening side needs it too)",
+    )
+    group.add_argument(
         "--domain-id",
         type=int,
         metavar="N",
@@ -220,7 +226,9 @@ def build_parser() -> argparse.ArgumentParser:
     testbed_cmd.add_argument("--link-mbit", type=_positive, default=11.0, help="default 11")
     testbed_cmd.add_argument("--step-seconds", type=_positive, default=6.0, help="default 6")
     testbed_cmd.add_argument(
-        "--link-schedule", metavar="SPEC", help='change the link rate: "0:11,20:5,40:11" (s:Mbit)'
+        "--link-schedule",
+        metavar="SPEC",
+        help='change the link rate: "0:11,20:5,40:11" (s:Mbit; 0: the link is down)',
     )
     testbed_cmd.add_argument(
         "--estimate", action="store_true", help="estimate the bandwidth instead of assuming it"
@@ -241,6 +249,21 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="R1 also sends a 1,000-byte 20 Hz urgent stream twice, with and without the "
         "transport-priority mapping, and the run reports each one's latency",
+    )
+    testbed_cmd.add_argument(
+        "--robots",
+        type=int,
+        default=2,
+        metavar="N",
+        help="robots r1..rN, each its own namespace and uplink (default 2: Table 2; more: "
+        "cameras of 84,000 / 21,000 bytes alternating, Table 2's events rotating among them)",
+    )
+    testbed_cmd.add_argument(
+        "--topology",
+        choices=["peer", "router"],
+        default="peer",
+        help="peer (default): zenoh peers on explicit endpoints; router: a zenoh router per "
+        "host, every role its client, the robots' routers meshed with the operator's",
     )
     testbed_cmd.add_argument("--json", action="store_true", help="one JSON object on stdout")
     testbed_cmd.add_argument("--plot", metavar="FILE.png", help="rates, latency and budget")

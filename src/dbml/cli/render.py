@@ -20,6 +20,7 @@ from rich.table import Table
 from dbml.core.allocation import Allocation, Status
 from dbml.experiment.analysis import (
     BUDGET_BACK_FRACTION,
+    OUTAGE_AFTER_S,
     RATE_TOLERANCE,
     RATE_TOLERANCE_HZ,
     latest,
@@ -46,6 +47,7 @@ __all__ = [
 ]
 
 OK_MARK = "[green]✓[/]"
+URGENT_MARK = "[bold yellow]![/]"
 BAD_MARK = "[bold red]✗[/]"
 
 
@@ -165,8 +167,10 @@ class ExperimentView:
         link_mbit: float = LINK_MBIT,
         schedule: Sequence[tuple[float, float]] = (),
         show: bool = True,
+        robots: Sequence[str] | None = None,
     ) -> None:
         self._title, self._link_mbit, self._schedule = title, link_mbit, schedule
+        self._robots = [c.robot for c in ROBOTS] if robots is None else list(robots)
         self._show = show
         self._progress = Progress(
             TextColumn(f"step {{task.fields[step]}}/{len(STEPS)}"),
@@ -199,7 +203,7 @@ class ExperimentView:
         table = Table(title=self._title, expand=False)
         for name in ("robot", "allocated Hz", "delivered Hz", "p95 ms", "Mbit/s"):
             table.add_column(name, justify="right")
-        robots = latest(snapshot.arrivals, snapshot.ticks, robots=[c.robot for c in ROBOTS])
+        robots = latest(snapshot.arrivals, snapshot.ticks, robots=self._robots)
         for robot in robots:
             table.add_row(
                 robot.robot,
@@ -254,16 +258,23 @@ def testbed_table(result: TestbedResult) -> Table:
     title = f"Teleoperation over a shaped link — policy {options.policy}"
     if options.strategy and options.policy == "dbml":
         title += f" ({options.strategy}{', estimating' if options.estimate else ''})"
+    if options.fleet or options.topology != "peer":
+        title += f", {options.robots} robots, topology {options.topology}"
     table = Table(title=title)
-    for name in ("step", "robot", "alloc", "deliv", "p50", "p95", "lost", "goodput", "budget"):
+    expected = result.expected_hz
+    columns = ["step", "robot", *(["allocate()"] if expected else []), "alloc", "deliv"]
+    for name in (*columns, "p50", "p95", "lost", "goodput", "budget"):
         table.add_column(name, justify="right", no_wrap=True)
     table.add_column("link", justify="right", no_wrap=True)
-    for step in result.steps:
+    most_urgent = result.urgent_robots() if options.fleet else ()
+    for k, step in enumerate(result.steps):
         for i, robot in enumerate(step.robots):
             first = i == 0
             table.add_row(
                 str(step.step) if first else "",
-                robot.robot,
+                robot.robot
+                + (f" {URGENT_MARK}" if most_urgent and most_urgent[k] == robot.robot else ""),
+                *([f"{expected[k][i]:.2f}"] if expected else []),
                 _fmt(robot.allocated_hz, ".2f"),
                 _fmt(robot.delivered_hz, ".2f"),
                 _fmt(robot.latency_p50_ms, ".0f"),
@@ -277,6 +288,14 @@ def testbed_table(result: TestbedResult) -> Table:
     summary = result.summary()
     lines = [
         "rates in Hz, one-way latency in ms, goodput, budget and link in Mbit/s",
+        *(
+            [
+                f"{URGENT_MARK} the step's most urgent robot; allocate(): the optimizer's rule on "
+                "the priorities the events imply"
+            ]
+            if expected or most_urgent
+            else []
+        ),
         f"goodput {_fmt(summary.goodput_fraction_mean, '.0%')} of the link on average, "
         f"p95 latency at most {_fmt(summary.latency_p95_ms_max, '.0f')} ms, "
         f"{summary.lost} frames lost",
@@ -304,6 +323,16 @@ def testbed_table(result: TestbedResult) -> Table:
                 f"utilisation {phase.utilisation:.0%}, p95 {_fmt(phase.latency_p95_ms, '.0f')} "
                 f"ms, {phase.lost} lost"
             )
+    for outage in result.outages:
+        lines.append(
+            f"link down {outage.start_s:g}-{outage.end_s:g} s: most urgent ({outage.urgent}) "
+            f"first frame {_fmt(outage.first_urgent_s, '.2f')} s after the restoration, "
+            f"first fresh one {_fmt(outage.first_fresh_urgent_s, '.2f')} s; "
+            f"{outage.stale} stale frames, {outage.lost} lost; worst 1-s window in the "
+            f"{OUTAGE_AFTER_S:g} s after: {_fmt(outage.worst_window_mbit, '.2f')} Mbit/s, "
+            f"of frames sent after it {_fmt(outage.worst_sent_after_mbit, '.2f')} "
+            f"(budget {_fmt(outage.budget_mbit, '.2f')})"
+        )
     for urgent in result.urgent:
         lines.append(
             f"urgent stream ({URGENT_SIZE_BYTES:,} B at {URGENT_RATE_HZ:g} Hz), {urgent.name}: "

@@ -9,6 +9,13 @@ moves its estimate like a delay-based congestion controller:
   what the link delivered (``backoff`` of the receive rate) minus what drains the queue within
   ``drain_s``.
 - **hold** while the queue drains or just after a decrease.
+- **outage** when nothing at all arrives for ``outage_s`` (or ``outage_gaps`` of the recent
+  inter-arrival gaps, for slow streams): the link is down. The estimate is kept, not cut:
+  nothing was measured, and a cut would slow the restoration. When frames arrive again, what
+  comes first is the backlog the senders queued before they noticed (seconds of queueing) and
+  sequence gaps are what the middleware dropped meanwhile: neither is congestion, so for
+  ``after_outage_s`` the stream history is restarted, losses are not counted and the
+  estimate holds.
 - **increase** otherwise, if the link is actually used (receive rate at least ``probe_fraction``
   of the estimate): slowly near the capacity last measured under overuse, fast away from it, and
   never above the configured maximum.
@@ -33,6 +40,8 @@ __all__ = ["Arrival", "BandwidthEstimator", "Estimate", "EstimatorSettings", "Ph
 
 _TREND_FRAMES = 3
 _RATE_FRAMES = 4
+_RHYTHM_FRAMES = 3
+"""Frames needed before a silence can be judged against the streams' usual gaps."""
 _SPARSE_WINDOWS = 4
 """A slow stream's trend may reach this many windows back for its last few frames."""
 
@@ -43,6 +52,7 @@ class Phase(enum.StrEnum):
     INCREASE = "increase"
     HOLD = "hold"
     DECREASE = "decrease"
+    OUTAGE = "outage"
 
 
 @dataclass(frozen=True, slots=True)
@@ -85,6 +95,12 @@ class EstimatorSettings:
     """Around the capacity last measured under overuse (as fractions), increase slowly."""
     floor_fraction: float = 0.02
     """The estimate never falls below this fraction of the maximum."""
+    outage_s: float = 0.5
+    """Nothing received for this long (after frames came) is an outage: the link is down."""
+    outage_gaps: float = 3.0
+    """...or for this many of the recent mean inter-arrival gaps, whichever is longer."""
+    after_outage_s: float = 2.0
+    """After an outage, the backlog and the drops it caused are not judged for this long."""
 
     def __post_init__(self) -> None:
         for name in (
@@ -97,6 +113,9 @@ class EstimatorSettings:
             "response_s",
             "slow_increase_per_s",
             "fast_increase_per_s",
+            "outage_s",
+            "outage_gaps",
+            "after_outage_s",
         ):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
@@ -156,7 +175,20 @@ class BandwidthEstimator:
         self._last_update: float | None = None
         self._frozen_until = -math.inf
         self._capacity_mbit: float | None = None
+        self._recent: deque[float] = deque(maxlen=_RATE_FRAMES + 1)
+        """Arrival times of the last frames of all streams: the silence and the usual gap."""
+        self._outage_since: float | None = None
+        self._heard_s: float | None = None
+        """The update that first saw the newest frames: silence counts on the update's clock,
+        which is immune to how arrival times were mapped from another host's clock."""
+        self._fresh = False
+        self._judge_from = -math.inf
         self.last: Estimate | None = None
+
+    @property
+    def outage(self) -> bool:
+        """Whether the link is down as far as the last ``update`` could tell."""
+        return self._outage_since is not None
 
     @property
     def estimate_mbit(self) -> float:
@@ -176,6 +208,39 @@ class BandwidthEstimator:
         stream.samples.append(
             (arrival.arrival_s, arrival.arrival_s - arrival.sent_s, arrival.size_bytes)
         )
+        if not self._recent or arrival.arrival_s >= self._recent[-1]:
+            self._recent.append(arrival.arrival_s)
+        self._fresh = True
+
+    def _silence_limit_s(self) -> float:
+        """How long without any frame is an outage: ``outage_s`` or a few usual gaps."""
+        s = self.settings
+        times = self._recent
+        if len(times) < _RHYTHM_FRAMES:
+            return math.inf  # the streams' rhythm is not known yet: no silence is too long
+        usual = (times[-1] - times[0]) / (len(times) - 1)
+        return max(s.outage_s, s.outage_gaps * usual)
+
+    def _outage_update(self, now_s: float) -> Estimate | None:
+        """The outage's part of ``update``: an Estimate while the link is down, else None."""
+        fresh, self._fresh = self._fresh, False
+        if fresh:
+            self._heard_s = now_s
+        if self._outage_since is None:
+            heard = self._heard_s
+            if heard is None or now_s - heard <= self._silence_limit_s():
+                return None
+            self._outage_since = heard
+        elif fresh:
+            # Back: restart what the backlog and the drops would distort, and hold a while.
+            self._outage_since = None
+            self._streams.clear()
+            self._lost = 0
+            self._judge_from = now_s + self.settings.after_outage_s
+            return None
+        self._lost = 0
+        self.last = Estimate(now_s, self._estimate, Phase.OUTAGE, 0.0, 0.0, 0.0, 0)
+        return self.last
 
     def update(self, now_s: float, *, max_mbit: float | None = None) -> Estimate:
         """Move the estimate by what arrived up to ``now_s``; ``max_mbit`` changes the cap."""
@@ -184,7 +249,13 @@ class BandwidthEstimator:
             self._max_mbit = _check_max(max_mbit)
         dt = 0.0 if self._last_update is None else max(0.0, now_s - self._last_update)
         self._last_update = now_s
+        down = self._outage_update(now_s)
+        if down is not None:
+            return down
         lost, self._lost = self._lost, 0
+        settling = now_s < self._judge_from
+        if settling:
+            lost = 0  # what the middleware dropped while the link was down
 
         recent: list[tuple[float, float, int]] = []  # (arrival, queue delay, size), all streams
         # per stream: (latest queueing delay, least in the window, trend). Each publisher's
@@ -229,7 +300,9 @@ class BandwidthEstimator:
             default=0.0,
         )
         floor = s.floor_fraction * self._max_mbit
-        if overuse and now_s >= self._frozen_until:
+        if settling:
+            phase = Phase.HOLD  # the backlog of the outage drains; nothing to judge yet
+        elif overuse and now_s >= self._frozen_until:
             # Frames still queued were sent before this decrease could act: one decrease, then
             # wait until what is sent after it has had time to arrive.
             capacity = _busy_rate_mbit(pairs, s.overuse_delay_s / 2) or received

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import bisect
 import re
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -29,6 +29,7 @@ __all__ = [
     "LIVE_FRAMES",
     "LIVE_WINDOW_S",
     "MAX_P95_MS",
+    "OUTAGE_AFTER_S",
     "PEAK_P95_AFTER_DROP_MS",
     "RATE_TOLERANCE",
     "RATE_TOLERANCE_HZ",
@@ -40,6 +41,7 @@ __all__ = [
     "Arrival",
     "LinkChange",
     "LinkPhase",
+    "Outage",
     "SeriesPoint",
     "StepResult",
     "StreamLatency",
@@ -48,6 +50,7 @@ __all__ = [
     "analyse",
     "latest",
     "link_at",
+    "outages",
     "rate_hz",
     "settle_s",
     "stream_latency",
@@ -88,6 +91,8 @@ LIVE_WINDOW_S = 2.0
 """A live view's readings cover this long: smoother than one second, still current."""
 LIVE_FRAMES = 400
 """A live view reads at most this many of the newest frames (all of ``LIVE_WINDOW_S``)."""
+OUTAGE_AFTER_S = 5.0
+"""After an outage, every 1-s window of this long is held against the budget."""
 _MS_PER_S = 1000.0
 _EDGE_S = 1e-9
 _CUT_TOLERANCE = 1e-3
@@ -214,8 +219,8 @@ class LinkPhase:
 
     @property
     def utilisation(self) -> float:
-        """Goodput as a share of the shaped rate."""
-        return self.goodput_mbit / self.link_mbit
+        """Goodput as a share of the shaped rate (0 while the link is down)."""
+        return self.goodput_mbit / self.link_mbit if self.link_mbit > 0 else 0.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -427,7 +432,11 @@ def _cut_time(tick: Tick) -> float:
 
 def _goodput_share(series: Sequence[SeriesPoint], start_s: float, end_s: float) -> float | None:
     """Mean goodput of the windows inside ``[start_s, end_s]`` over the link rate."""
-    inside = [p for p in series if p.t_s - WINDOW_S >= start_s - _EDGE_S and p.t_s <= end_s]
+    inside = [
+        p
+        for p in series
+        if p.t_s - WINDOW_S >= start_s - _EDGE_S and p.t_s <= end_s and p.link_mbit > 0
+    ]
     if not inside:
         return None
     return sum(p.goodput_mbit / p.link_mbit for p in inside) / len(inside)
@@ -551,3 +560,115 @@ def stream_latency(frames: Sequence[Arrival], index: int, *, name: str) -> Strea
         latency_p95_ms=_percentile_ms(latencies, 95),
         latency_max_ms=max(latencies) * _MS_PER_S if latencies else None,
     )
+
+
+@dataclass(frozen=True, slots=True)
+class Outage:
+    """A link outage (0 Mbit in the schedule) and the restoration after it."""
+
+    start_s: float
+    end_s: float
+    """When the link came back (seconds after step 1 started)."""
+    urgent: str
+    """The most urgent channel's robot when the link came back."""
+    first_urgent_s: float | None
+    """From the restoration to the urgent channel's first frame, stale or not."""
+    first_fresh_urgent_s: float | None
+    """...to its first frame sent after the restoration (not the backlog of the outage)."""
+    stale: int
+    """Frames sent before the restoration that arrived after it: the outage's backlog."""
+    lost: int
+    """Frames lost (sequence gaps) from the outage's start to ``OUTAGE_AFTER_S`` after it."""
+    worst_window_mbit: float | None
+    """The most any 1-s window carried in the ``OUTAGE_AFTER_S`` after the restoration: the
+    wire, with the backlog sent before the link went down."""
+    worst_sent_after_mbit: float | None
+    """The same of frames sent after the restoration only: what the release sent."""
+    budget_mbit: float | None
+    """The largest budget in force in that time (None: nothing allocated, unmanaged)."""
+
+    @property
+    def over_budget_mbit(self) -> float | None:
+        """How far the worst window of the wire went over the budget (negative: under it)."""
+        if self.worst_window_mbit is None or self.budget_mbit is None:
+            return None
+        return self.worst_window_mbit - self.budget_mbit
+
+    @property
+    def release_over_budget_mbit(self) -> float | None:
+        """How far the worst window of what was sent after the restoration went over it."""
+        if self.worst_sent_after_mbit is None or self.budget_mbit is None:
+            return None
+        return self.worst_sent_after_mbit - self.budget_mbit
+
+
+def _worst_window_mbit(times: Sequence[float], sizes: Sequence[int], end: float) -> float | None:
+    """The most bytes in any ``WINDOW_S`` starting at a frame before ``end - WINDOW_S``."""
+    worst: float | None = None
+    for k, start in enumerate(times):
+        if start > end - WINDOW_S + _EDGE_S:
+            break
+        stop = bisect.bisect_left(times, start + WINDOW_S)
+        carried = bytes_per_s_to_mbit(sum(sizes[k:stop]) / WINDOW_S)
+        worst = carried if worst is None else max(worst, carried)
+    return worst
+
+
+def outages(
+    frames: Sequence[Arrival],
+    ticks: Sequence[Tick],
+    *,
+    robots: Sequence[str],
+    t0: float,
+    schedule: Sequence[tuple[float, float]],
+    urgent_at: Callable[[float], int],
+) -> tuple[Outage, ...]:
+    """Every outage of ``schedule`` (a rate of 0) and what the restoration after it did.
+
+    ``urgent_at(t_s)`` is the robot whose channel has the highest priority ``t_s`` after the
+    start: the one that should be heard first when the link is back.
+    """
+    streams = [_Robot(name, i, frames) for i, name in enumerate(robots)]
+    found = []
+    for k, (at, mbit) in enumerate(schedule):
+        if mbit != 0 or k + 1 >= len(schedule):
+            continue
+        back = schedule[k + 1][0]
+        start, restored, until = t0 + at, t0 + back, t0 + back + OUTAGE_AFTER_S
+        urgent = streams[urgent_at(back)]
+        after = [f for f in urgent.frames if f.arrival_s >= restored]
+        fresh = [f for f in after if f.sent_s is not None and f.sent_s >= restored]
+        inside = sorted(
+            (f.arrival_s, f.size_bytes, f.sent_s is not None and f.sent_s >= restored)
+            for s in streams
+            for f in s.frames
+            if restored <= f.arrival_s < until
+        )
+        fresh_inside = [(t, b) for t, b, after_it in inside if after_it]
+        budgets = [
+            t.budget_mbit for t in ticks if restored <= t.t_s <= until and t.budget_mbit is not None
+        ]
+        found.append(
+            Outage(
+                start_s=at,
+                end_s=back,
+                urgent=urgent.name,
+                first_urgent_s=after[0].arrival_s - restored if after else None,
+                first_fresh_urgent_s=fresh[0].arrival_s - restored if fresh else None,
+                stale=sum(
+                    1
+                    for s in streams
+                    for f in s.frames
+                    if f.arrival_s >= restored and f.sent_s is not None and f.sent_s < restored
+                ),
+                lost=sum(n for s in streams for t, n in s.gaps if start < t <= until),
+                worst_window_mbit=_worst_window_mbit(
+                    [t for t, _, _ in inside], [b for _, b, _ in inside], until
+                ),
+                worst_sent_after_mbit=_worst_window_mbit(
+                    [t for t, _ in fresh_inside], [b for _, b in fresh_inside], until
+                ),
+                budget_mbit=max(budgets, default=None),
+            )
+        )
+    return tuple(found)

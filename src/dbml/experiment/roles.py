@@ -21,10 +21,11 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import re
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -42,7 +43,8 @@ from dbml.runtime.publisher import ManagedPublisher
 from dbml.runtime.rate import Rate
 from dbml.runtime.reception import ReceptionReporter
 from dbml.runtime.subscriber import ManagedSubscriber
-from dbml.scenarios.teleop import LINK_MBIT, MAX_RATE_HZ, MIN_RATE_HZ, ROBOTS, STEPS
+from dbml.scenarios.fleet import fleet_cameras, fleet_steps
+from dbml.scenarios.teleop import LINK_MBIT, MAX_RATE_HZ, MIN_RATE_HZ, ROBOTS, STEPS, RobotCamera
 from dbml.transports.base import Handle, Sample, Transport, Variant
 from dbml.transports.registry import open_transport
 
@@ -56,6 +58,7 @@ __all__ = [
     "URGENT_STREAMS",
     "RoleSpec",
     "UrgentStream",
+    "fleet_phase_s",
     "main",
     "operator_tick",
     "robot_index",
@@ -123,6 +126,10 @@ class RoleSpec:
     peer_wait_s: float = PEER_WAIT_S
     urgent_stream: bool = False
     """R1 also sends ``URGENT_STREAMS``, over zenoh priority links (the testbed's comparison)."""
+    robots: int = len(ROBOTS)
+    """The fleet's size: robots ``r1``..``rN`` with ``fleet_cameras`` and ``fleet_steps``."""
+    config_file: str | None = None
+    """A zenoh config file (the testbed's router topology: ``mode: "client"``)."""
 
     def to_json(self) -> str:
         """The spec as one JSON object (the role process's argument)."""
@@ -142,9 +149,25 @@ class RoleSpec:
         return len(STEPS) * self.step_s
 
 
+_ROBOT_ROLE = re.compile(r"r([1-9][0-9]*)")
+
+
 def robot_index(role: str) -> int:
-    """The camera of a robot role (``"r2"`` -> 1)."""
-    return [camera.robot.lower() for camera in ROBOTS].index(role)
+    """The camera of a robot role (``"r2"`` -> 1, ``"r8"`` -> 7)."""
+    match = _ROBOT_ROLE.fullmatch(role)
+    if match is None:
+        raise ValueError(f"role={role!r} is not a robot (r1, r2, ...)")
+    return int(match.group(1)) - 1
+
+
+def fleet_phase_s(index: int, robots: int) -> float:
+    """When robot ``index`` starts sending after step 1 starts: a fleet's robots spread.
+
+    Robots are not clock-synchronised; started in one instant, a fleet's 1 Hz frames would
+    leave together every second (8 robots: 420 KB, a 300 ms queue on 11 Mbit/s). The paper's
+    two robots start together, as before.
+    """
+    return 0.0 if robots <= len(ROBOTS) else index / robots / MIN_RATE_HZ
 
 
 def wait_until(wall_s: float, stop: threading.Event) -> bool:
@@ -154,7 +177,7 @@ def wait_until(wall_s: float, stop: threading.Event) -> bool:
 
 def _optimizer(transport: Transport, t0: float, spec: RoleSpec, stop: threading.Event) -> None:
     settings = DbmSettings(spec.link_mbit, spec.utilization, PERIOD_S, Strategy(spec.strategy))
-    topics = {camera.robot: camera.topic for camera in ROBOTS}
+    topics = {camera.robot: camera.topic for camera in fleet_cameras(spec.robots)}
     links = tuple(
         LinkSpec(f"uplink-{robot}", mbit, (topics[robot],))
         for robot, mbit in sorted(spec.uplinks_mbit.items())
@@ -172,7 +195,7 @@ def _optimizer(transport: Transport, t0: float, spec: RoleSpec, stop: threading.
 def _managed_robot(
     transport: Transport, index: int, t0: float, spec: RoleSpec, stop: threading.Event
 ) -> None:
-    camera = ROBOTS[index]
+    camera = fleet_cameras(spec.robots)[index]
     frame = transport.camera_frame(camera.topic, camera.size_bytes)  # first: it may set the type
     publisher = ManagedPublisher(
         transport, camera.topic, min_rate_hz=MIN_RATE_HZ, max_rate_hz=MAX_RATE_HZ
@@ -183,7 +206,7 @@ def _managed_robot(
     finished = threading.Event()
 
     def replay_events() -> None:
-        for k, step in enumerate(STEPS):
+        for k, step in enumerate(fleet_steps(spec.robots)):
             if not wait_until(t0 + k * spec.step_s, finished) or stop.is_set():
                 return
             event = step.events[index]
@@ -193,7 +216,7 @@ def _managed_robot(
     try:
         publisher.publish(frame)  # the first frame makes the size known before step 1
         events.start()
-        wait_until(t0, stop)
+        wait_until(t0 + fleet_phase_s(index, spec.robots), stop)
         publisher.rate.reset()
         while not stop.is_set() and time.time() < t0 + spec.duration_s:
             publisher.rate.sleep()
@@ -209,7 +232,7 @@ def _unmanaged_robot(
     transport: Transport, index: int, t0: float, spec: RoleSpec, stop: threading.Event
 ) -> None:
     """What a robot does without dbml: publish every frame at the camera's maximum rate."""
-    camera = ROBOTS[index]
+    camera = fleet_cameras(spec.robots)[index]
     frame = transport.camera_frame(camera.topic, camera.size_bytes)
     publisher = transport.declare_publisher(camera.topic, Variant.FULL)
     rate = Rate(lambda: MAX_RATE_HZ)
@@ -253,11 +276,17 @@ def _urgent_streams(transport: Transport, t0: float, spec: RoleSpec, stop: threa
             publisher.close()
 
 
-def operator_tick(view: ParamView, frames: list[list[Any]], variants: list[str]) -> dict[str, Any]:
+def operator_tick(
+    view: ParamView,
+    frames: list[list[Any]],
+    variants: list[str],
+    *,
+    cameras: Sequence[RobotCamera] = ROBOTS,
+) -> dict[str, Any]:
     """The operator's report: ``frames`` that arrived and the parameters in force now.
 
     One function for every operator (dbml's own and the plain ROS 2 one of ``ros2peers``), so
-    the runner and the analysis read one format.
+    the runner and the analysis read one format; ``cameras`` are the fleet's, in robot order.
     """
     dbm = view.dbm()
     state = view.get(names.ESTIMATOR_STATE)
@@ -265,7 +294,7 @@ def operator_tick(view: ParamView, frames: list[list[Any]], variants: list[str])
         "type": "tick",
         "t": time.time(),
         "frames": frames,
-        "allocated_hz": [view.channel(c.topic).current_rate_hz for c in ROBOTS],
+        "allocated_hz": [view.channel(c.topic).current_rate_hz for c in cameras],
         "budget_mbit": dbm.budget_mbit,
         "estimate_mbit": dbm.estimate_mbit,
         "estimator": state if isinstance(state, str) else None,
@@ -303,7 +332,8 @@ def _operator(
     reporter = ReceptionReporter(transport).start() if spec.estimate else None
     handles: list[Handle] = []
     subscribers: list[ManagedSubscriber] = []
-    for i, camera in enumerate(ROBOTS):
+    cameras = fleet_cameras(spec.robots)
+    for i, camera in enumerate(cameras):
         if spec.managed:
             subscriber = ManagedSubscriber(transport, camera.topic, receiver(i), reporter=reporter)
             subscribers.append(subscriber)
@@ -313,13 +343,14 @@ def _operator(
 
     if spec.urgent_stream:
         for k, stream in enumerate(URGENT_STREAMS):
-            handles.append(ManagedSubscriber(transport, stream.topic, receiver(len(ROBOTS) + k)))
-    unmanaged = [Variant.FULL.value for _ in ROBOTS]
+            handles.append(ManagedSubscriber(transport, stream.topic, receiver(len(cameras) + k)))
+    unmanaged = [Variant.FULL.value for _ in cameras]
 
     def tick() -> dict[str, Any]:
         with lock:
             batch, rows[:] = list(rows), []
-        return operator_tick(view, batch, [s.variant.value for s in subscribers] or unmanaged)
+        variants = [s.variant.value for s in subscribers] or unmanaged
+        return operator_tick(view, batch, variants, cameras=cameras)
 
     try:
         while not stop.is_set() and time.time() < t0 + spec.duration_s + TAIL_S:
@@ -376,6 +407,7 @@ def _open(role: str, spec: RoleSpec) -> Transport:
             host=spec.host,
             listen=spec.listen,
             connect=spec.connect,
+            config_file=spec.config_file,
             follow_all_params=role in {"operator", "optimizer"},
             priority_links=True,
         )
@@ -384,6 +416,7 @@ def _open(role: str, spec: RoleSpec) -> Transport:
         host=spec.host,
         listen=spec.listen,
         connect=spec.connect,
+        config_file=spec.config_file,
         follow_all_params=role in {"operator", "optimizer"},  # a robot only publishes
     )
 
@@ -391,10 +424,13 @@ def _open(role: str, spec: RoleSpec) -> Transport:
 def main(argv: list[str] | None = None) -> int:
     """One role as an OS process, driven over stdin and stdout by the experiment runner."""
     parser = argparse.ArgumentParser(prog="python -m dbml.experiment.roles")
-    parser.add_argument("role", choices=ROLES)
+    parser.add_argument("role", help=f"one of {', '.join(ROLES)} or a fleet's r3..rN")
     parser.add_argument("spec", help="the RoleSpec as JSON")
     args = parser.parse_args(argv)
     role, spec = args.role, RoleSpec.from_json(args.spec)
+    fleet = {"operator", "optimizer", *(c.robot.lower() for c in fleet_cameras(spec.robots))}
+    if role not in fleet:
+        parser.error(f"role={role!r} is not one of {', '.join(sorted(fleet))}")
     with stop_on_signals() as stop:
         transport = _open(role, spec)
         # After the node starts: rospy replaces the root handlers with its own log file.

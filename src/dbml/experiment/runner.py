@@ -121,14 +121,23 @@ class Recording:
         return max(0, min(len(STEPS), int((last - self.t0) // step_s)))
 
     def analyse(
-        self, *, step_s: float, link_mbit: float, schedule: Sequence[tuple[float, float]] = ()
+        self,
+        *,
+        step_s: float,
+        link_mbit: float,
+        schedule: Sequence[tuple[float, float]] = (),
+        robots: Sequence[str] | None = None,
     ) -> Analysis:
-        """Every step the operator saw, the time series and the link changes (see ``analyse``)."""
+        """Every step the operator saw, the time series and the link changes (see ``analyse``).
+
+        ``robots`` names the operator's streams in order (a fleet's ``R1``..``RN``; by default
+        the paper's two).
+        """
         assert self.t0 is not None, "a run that never started has nothing to analyse"
         return analyse(
             self.arrivals,
             self.ticks,
-            robots=[camera.robot for camera in ROBOTS],
+            robots=[camera.robot for camera in ROBOTS] if robots is None else robots,
             t0=self.t0,
             step_s=step_s,
             steps=self.steps_done(step_s),

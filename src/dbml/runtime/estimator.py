@@ -7,24 +7,34 @@ publishes the estimate in ``/dbm/estimated_bandwidth_in_mbit`` with its state in
 ``/dbm/estimator_state`` for ``dbml monitor``. The cap is the configured budget,
 ``/dbm/max_bandwidth_in_mbit`` times ``/dbm/max_bandwidth_utilization``: the estimate never
 exceeds it.
+
+Every tick it also sends a small :class:`LinkBeacon` on ``/dbm/link``: whether frames arrive
+(``up``) or the link is in an outage, and during and just after one the order in which the
+channels' held messages go out when it ends (highest priority first, each after the ones
+before it had time to cross at the budget). Publishers that heard a beacon hold their newest
+message when the beacons stop (a link down both ways) or say outage.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
 
 from dbml.core.errors import TransportError
-from dbml.core.estimator import Arrival, BandwidthEstimator, Estimate, EstimatorSettings
+from dbml.core.estimator import Arrival, BandwidthEstimator, Estimate, EstimatorSettings, Phase
+from dbml.core.spec import mbit_to_bytes_per_s
 from dbml.runtime import names
 from dbml.runtime.params import ParamView
 from dbml.runtime.reception import RECEPTION_TOPIC, REPORT_INTERVAL_S, ReceptionReport
 from dbml.runtime.worker import PeriodicWorker
 from dbml.transports.base import Sample, Transport
 
-__all__ = ["ESTIMATE_INTERVAL_S", "LinkEstimator"]
+__all__ = ["ESTIMATE_INTERVAL_S", "LINK_TOPIC", "LinkBeacon", "LinkEstimator", "release_offsets"]
 
 log = logging.getLogger("dbml.estimator")
 
@@ -34,6 +44,58 @@ ESTIMATE_INTERVAL_S = 0.1
 """How often the estimator judges the link."""
 REPORT_LAG_S = REPORT_INTERVAL_S * 1.5
 """Frames arrive up to one report interval late: the estimator judges the window before."""
+LINK_TOPIC = "/dbm/link"
+"""Where the estimator's :class:`LinkBeacon` goes every tick."""
+RELEASE_ORDER_S = 2.0
+"""After an outage, beacons carry the release order this long (publishers may hear late)."""
+
+
+@dataclass(frozen=True, slots=True)
+class LinkBeacon:
+    """The estimator's word on the link: up or down, and the release order after an outage."""
+
+    up: bool
+    release_s: Mapping[str, float] = field(default_factory=dict)
+    """Per channel, how long after the link is back its held message goes out (0: first)."""
+    sent_s: float = 0.0
+    """The estimator's clock: a beacon that sat in a buffer through the outage is stale."""
+
+    def encode(self) -> bytes:
+        """The beacon as compact JSON."""
+        document = {"up": self.up, "release_s": dict(self.release_s), "sent_s": self.sent_s}
+        return json.dumps(document).encode()
+
+    @classmethod
+    def decode(cls, data: bytes) -> LinkBeacon:
+        """A beacon from its bytes; ``TransportError`` if they are malformed."""
+        try:
+            document: dict[str, Any] = json.loads(data)
+            release = {str(t): float(v) for t, v in document.get("release_s", {}).items()}
+            return cls(bool(document["up"]), release, float(document.get("sent_s", 0.0)))
+        except (ValueError, KeyError, TypeError, AttributeError) as err:
+            raise TransportError(f"malformed link beacon {data[:80]!r}") from err
+
+    @property
+    def first(self) -> str | None:
+        """The channel that goes first (the most urgent one): the probe of an outage."""
+        return min(self.release_s, key=lambda t: self.release_s[t], default=None)
+
+
+def release_offsets(
+    channels: Mapping[str, tuple[float, float]], budget_bytes_per_s: float
+) -> dict[str, float]:
+    """``{topic: (priority, size_bytes)}`` -> when each held message goes out after an outage.
+
+    Highest priority first (ties: the larger message, whose normalised priority is higher,
+    then the topic), each once the messages before it had time to cross at the budget, so the
+    release itself never outruns the budget.
+    """
+    order = sorted(channels, key=lambda t: (-channels[t][0], -channels[t][1], t))
+    offsets, at = {}, 0.0
+    for topic in order:
+        offsets[topic] = at
+        at += channels[topic][1] / budget_bytes_per_s if budget_bytes_per_s > 0 else 0.0
+    return offsets
 
 
 class LinkEstimator:
@@ -62,6 +124,8 @@ class LinkEstimator:
             self.tick, interval_s=interval_s, name="dbml-estimator", log=log
         )
         self._subscription = transport.subscribe(RECEPTION_TOPIC, self._on_report)
+        self._beacon = transport.declare_publisher(LINK_TOPIC)
+        self._order_until = -math.inf
 
     def cap_mbit(self) -> float | None:
         """The configured budget (bandwidth times utilization): the estimate's ceiling."""
@@ -109,7 +173,24 @@ class LinkEstimator:
                 self._transport.now() - self._report_lag_s, max_mbit=cap
             )
         self._publish(estimate)
+        self._send_beacon(estimate)
         return estimate
+
+    def _send_beacon(self, estimate: Estimate) -> None:
+        """Tell publishers whether frames arrive (and, around an outage, the release order)."""
+        down = estimate.phase is Phase.OUTAGE
+        now = self._transport.now()
+        if down:
+            self._order_until = now + RELEASE_ORDER_S
+        release: dict[str, float] = {}
+        if now <= self._order_until:  # only around an outage: it reads every parameter
+            channels: dict[str, tuple[float, float]] = {}
+            for topic in {split[0] for n in self._view.values() if (split := names.topic_of(n))}:
+                params = self._view.channel(topic)
+                if params.size_bytes:
+                    channels[topic] = (params.priority, params.size_bytes)
+            release = release_offsets(channels, mbit_to_bytes_per_s(estimate.estimate_mbit))
+        self._beacon.put(LinkBeacon(not down, release, now).encode())
 
     def _publish(self, estimate: Estimate) -> None:
         value, phase = estimate.estimate_mbit, estimate.phase.value
@@ -145,6 +226,7 @@ class LinkEstimator:
         """Stop and withdraw the estimate, so nobody reads a stale one."""
         self._worker.stop()
         self._subscription.close()
+        self._beacon.close()
         if self._published is not None:
             self._transport.params.set(names.ESTIMATE, None)
             self._transport.params.set(names.ESTIMATOR_STATE, None)

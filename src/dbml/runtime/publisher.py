@@ -9,17 +9,27 @@ its size and has made room for it (bytes nobody allocated would break the budget
 if none comes within ``failsafe_periods`` periods it runs at its minimum. Hearing neither an
 allocation nor the optimizer's heartbeat (``/dbm/round``) for ``failsafe_periods`` optimisation
 periods sends it back to its minimum (fail-safe), and the next one takes over again.
+
+Link outage: once it has heard the estimator's beacon (``/dbm/link``), a publisher holds only
+its newest message, sending nothing on ``[topic]/optimized``, while the beacons stop (a link
+down both ways) or say outage; the channel the beacon names first (the most urgent) probes
+with its newest message every ``PROBE_INTERVAL_S`` meanwhile. When the link is back it sends
+the newest message at its place in the beacon's release order and goes on at its rate, with
+fresh credit: the outage's time is not banked into a burst.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
 
+from dbml.core.errors import TransportError
 from dbml.core.spec import ChannelSpec, check_number
 from dbml.runtime import names
+from dbml.runtime.estimator import LINK_TOPIC, LinkBeacon
 from dbml.runtime.metadata import pack_meta
 from dbml.runtime.params import ParamView
 from dbml.runtime.qos import TransportQos, explicit_qos, map_priority
@@ -30,12 +40,19 @@ from dbml.transports.base import (
     ParamValue,
     Publisher,
     Role,
+    Sample,
     Transport,
     TransportPriority,
     Variant,
 )
 
-__all__ = ["FAILSAFE_PERIODS", "SIZE_CHANGE", "ManagedPublisher"]
+__all__ = [
+    "FAILSAFE_PERIODS",
+    "LINK_SILENCE_S",
+    "PROBE_INTERVAL_S",
+    "SIZE_CHANGE",
+    "ManagedPublisher",
+]
 
 log = logging.getLogger("dbml.publisher")
 
@@ -43,6 +60,13 @@ SIZE_CHANGE = 0.10
 """Relative change of message size that is worth telling the optimizer about."""
 FAILSAFE_PERIODS = 3.0
 """Optimisation periods without an allocation before a publisher falls back to its minimum."""
+LINK_SILENCE_S = 0.3
+"""No estimator beacon (sent every 0.1 s) for this long: the link is down, hold."""
+STALE_RESET_S = 1.0
+"""Beacons that all look stale for this long mean a new clock offset, not a buffered backlog."""
+PROBE_INTERVAL_S = 0.5
+"""In an outage the most urgent channel sends its newest message this often, to find the
+link back (the others hold until the estimator sees it arrive)."""
 
 
 class ManagedPublisher:
@@ -98,7 +122,17 @@ class ManagedPublisher:
         self._view = ParamView.of(params)
         self._period_s = self._view.dbm().period_s
         # Until then an allocation is expected; after it, fail-safe (also when none ever came).
-        self._deadline = self._last_heard + failsafe_periods * self._period_s
+        self._link_deadline = math.inf
+        """Hold ``[topic]/optimized`` after this: beacon silence or an outage (inf: no beacon)."""
+        self._held: bytes | None = None
+        self._release_at: float | None = None
+        self._probe = False
+        self._probe_at = -math.inf
+        self._release_timer: threading.Timer | None = None
+        self._beacon_transit_s = math.inf
+        """The quickest beacon's transit plus the clock offset: the yardstick of a stale one."""
+        self._stale_since: float | None = None
+        self._set_deadline(self._last_heard + failsafe_periods * self._period_s)
         self._view_watch = self._view.watch(self._on_param)
         params.set(names.min_rate(topic), self.min_rate_hz)
         params.set(names.max_rate(topic), self.max_rate_hz)
@@ -124,6 +158,7 @@ class ManagedPublisher:
             transport.graph.announce(Role.PUBLISHER, topic, Variant.FULL),
             self._view.watch(self._on_qos_param),
             Closer(self._close_retired),
+            transport.subscribe(LINK_TOPIC, self._on_link),
         ]
 
     # -- allocation ---------------------------------------------------------------------------
@@ -133,7 +168,7 @@ class ManagedPublisher:
         if name == names.PERIOD and isinstance(value, float):
             with self._lock:
                 self._period_s = value
-                self._deadline = self._last_heard + self._failsafe_periods * value
+                self._set_deadline(self._last_heard + self._failsafe_periods * value)
             return
         if name == names.ROUND:
             # The optimizer's heartbeat: an unchanged allocation is not pushed again, and stands.
@@ -163,7 +198,7 @@ class ManagedPublisher:
     def _heard_locked(self, rate: float) -> None:
         """An allocation (or the heartbeat that keeps it) was heard now: it is in force."""
         self._last_heard = now = self._now()
-        self._deadline = now + self._failsafe_periods * self._period_s
+        self._set_deadline(now + self._failsafe_periods * self._period_s)
         if self._failsafe_noted:
             log.warning("%s: allocation heard again; running at %.3f Hz", self.topic, rate)
             self._failsafe_noted = False
@@ -173,8 +208,13 @@ class ManagedPublisher:
         """The rate in force: the allocation while it is fresh, else the minimum."""
         return self._rate_at(self._now())
 
+    def _set_deadline(self, failsafe_deadline: float) -> None:
+        """``publish``'s one test covers both: a fresh allocation and a link that is up."""
+        self._failsafe_deadline = failsafe_deadline
+        self._deadline = min(failsafe_deadline, self._link_deadline)
+
     def _rate_at(self, now: float) -> float:
-        if now <= self._deadline:
+        if now <= self._failsafe_deadline:
             return self._allocated_hz or self.min_rate_hz
         self._note_failsafe(now)
         return self.min_rate_hz
@@ -196,7 +236,80 @@ class ManagedPublisher:
     @property
     def failsafe(self) -> bool:
         """Whether no allocation was heard for ``failsafe_periods`` periods."""
-        return self._now() > self._deadline
+        return self._now() > self._failsafe_deadline
+
+    # -- link outage --------------------------------------------------------------------------
+
+    @property
+    def holding(self) -> bool:
+        """Whether ``[topic]/optimized`` is held (the link is down or not yet released)."""
+        return self._now() > self._link_deadline
+
+    def _on_link(self, sample: Sample) -> None:
+        """The estimator's beacon: keep holding off, hold, or release after an outage."""
+        try:
+            beacon = LinkBeacon.decode(sample.payload)
+        except TransportError as err:
+            log.warning("%s", err)
+            return
+        now = self._now()
+        transit = now - beacon.sent_s  # plus an unknown constant clock offset
+        self._beacon_transit_s = min(self._beacon_transit_s, transit)
+        if transit - self._beacon_transit_s > LINK_SILENCE_S:
+            # Sent before the link went down and buffered: it tells nothing of now. Unless they
+            # all are late for long: then a clock stepped or the path changed; measure anew.
+            if self._stale_since is None:
+                self._stale_since = now
+            if now - self._stale_since <= STALE_RESET_S:
+                return
+            self._beacon_transit_s = transit
+        self._stale_since = None
+        with self._lock:
+            holding = now > self._link_deadline
+            if not beacon.up:
+                self._link_deadline, self._release_at = -math.inf, None
+                self._probe = beacon.first == self.topic
+            elif not holding:
+                self._link_deadline = now + LINK_SILENCE_S
+            elif self._release_at is None:  # back: go at our place in the release order
+                delay = beacon.release_s.get(self.topic, 0.0)
+                self._release_at = now + delay
+                if self._held is not None:  # a slow source may not publish again soon
+                    self._release_timer = threading.Timer(delay, self._send_held)
+                    self._release_timer.daemon = True
+                    self._release_timer.start()
+            self._set_deadline(self._failsafe_deadline)
+
+    def _release_locked(self, now: float) -> None:
+        """The link is back for this channel: no hold, and one message's credit, not more."""
+        self._release_at, self._probe, self._held = None, False, None
+        self._link_deadline = now + LINK_SILENCE_S
+        self._set_deadline(self._failsafe_deadline)
+        self._limiter = RateLimiter(self._allocated_hz or self.min_rate_hz)
+        self._limiter.allow(now)  # spent by the message that goes now
+
+    def _hold_locked(self, now: float, payload: bytes) -> bool:
+        """While the link is down: keep ``payload`` (True) or let it go (False); lock held."""
+        if self._release_at is not None and now >= self._release_at:
+            self._release_locked(now)  # this newer message replaces the held one
+            return False
+        if self._probe and now >= self._probe_at and self._release_at is None:
+            self._probe_at, self._held = now + PROBE_INTERVAL_S, None
+            return False
+        self._held = payload
+        return True
+
+    def _send_held(self) -> None:
+        """The held message at its release time, if no newer ``publish`` took its place."""
+        with self._lock:
+            now, payload = self._now(), self._held
+            if payload is None or self._release_at is None or now < self._release_at:
+                return
+            self._release_locked(now)
+            self._optimized_seq += 1
+            rate = self._allocated_hz or self.min_rate_hz
+            meta = pack_meta(self._optimized_seq, self._wall_clock_ns(), rate)
+            self._optimized.put(payload, attachment=meta)
 
     # -- transport class ----------------------------------------------------------------------
 
@@ -283,7 +396,7 @@ class ManagedPublisher:
                     # The optimizer can only make room once it knows the size: the wait for
                     # the first allocation counts from here, not from the constructor.
                     self._last_heard = now = self._now()
-                    self._deadline = now + self._failsafe_periods * self._period_s
+                    self._set_deadline(now + self._failsafe_periods * self._period_s)
 
     def publish(self, payload: bytes) -> bool:
         """Send ``payload``; True if it went to ``[topic]/optimized`` (within the rate).
@@ -306,7 +419,14 @@ class ManagedPublisher:
             self._full_seq += 1
             full.put(payload, attachment=pack_meta(self._full_seq, self._wall_clock_ns(), rate))
         with self._lock:
-            allowed = self._limiter.allow(now) if steady else self._allow_unallocated(rate, now)
+            if steady:
+                allowed = self._limiter.allow(now)
+            elif now > self._link_deadline:  # the link is down: hold, or probe, or release
+                if self._hold_locked(now, payload):
+                    return False
+                allowed = True  # its credit was settled there
+            else:
+                allowed = self._allow_unallocated(rate, now)
         if not allowed:
             return False
         self._optimized_seq += 1
@@ -320,13 +440,15 @@ class ManagedPublisher:
         A new channel waits for its first allocation (bounded by the fail-safe deadline). Its
         credit is spent meanwhile, so the first allocation does not open with a burst.
         """
-        waiting = self._allocated_hz is None and now <= self._deadline
+        waiting = self._allocated_hz is None and now <= self._failsafe_deadline
         if rate != self._limiter.rate_hz:  # fail-safe (an allocation applies on arrival)
             self._limiter.set_rate(rate, now)
         return self._limiter.allow(now) and not waiting
 
     def close(self) -> None:
         """Withdraw from the graph and undeclare both publishers."""
+        if self._release_timer is not None:
+            self._release_timer.cancel()
         for handle in self._handles:
             handle.close()
         self._handles.clear()

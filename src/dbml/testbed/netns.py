@@ -41,6 +41,8 @@ _OPERATOR_SUBNET = 100  # 10.200.100.0/24; robots use 10.200.1.0/24 .. 10.200.99
 _BURST = "32kbit"
 _LATENCY = "200ms"
 _COMMAND_TIMEOUT_S = 10.0
+_DOWN_RULE_PRIORITIES = (100, 101)
+"""``ip rule`` priorities of a down link's two blackhole rules (from and to the operator)."""
 _CAP_NET_ADMIN = 12
 _CAP_SYS_ADMIN = 21
 
@@ -102,6 +104,7 @@ class Network:
     link_mbit: float
     """The current bottleneck rate (router toward operator)."""
     uplinks_mbit: dict[str, float]
+    link_down: bool
 
     def __init__(
         self,
@@ -135,6 +138,7 @@ class Network:
         )
         self._created: list[str] = []
         self._built = False
+        self.link_down = False  # set by take_link_down, cleared by set_link_rate
 
     @property
     def namespaces(self) -> list[str]:
@@ -173,6 +177,34 @@ class Network:
         router = self._netns(_ROUTER)
         _run(["tc", "-n", router, "qdisc", "change", *self._tbf(self._router_if(_OPERATOR), rate)])
         self.link_mbit = rate
+        if self.link_down:  # the rate first: what was queued drains at the new one
+            self._bring_link_up()
+
+    def take_link_down(self) -> None:
+        """Drop everything on the operator's link, both ways, until the next ``set_link_rate``.
+
+        A radio out of range carries nothing either way: the router discards (silently, as
+        a lost packet) what comes from the operator and what goes to it, so TCP sees pure
+        loss. Policy rules rather than netem, which this kernel may lack; the tbf stays.
+        """
+        if not self._built:
+            raise TestbedError(f"network run_id={self.run_id} is not built")
+        if self.link_down:
+            return
+        router = self._netns(_ROUTER)
+        subnet = f"10.200.{_OPERATOR_SUBNET}.0/24"
+        matches = (["iif", self._router_if(_OPERATOR)], ["to", subnet])
+        for priority, match in zip(_DOWN_RULE_PRIORITIES, matches, strict=True):
+            _run(
+                ["ip", "-n", router, "rule", "add", "priority", str(priority), *match, "blackhole"]
+            )
+        self.link_down = True
+
+    def _bring_link_up(self) -> None:
+        router = self._netns(_ROUTER)
+        for priority in _DOWN_RULE_PRIORITIES:
+            _run(["ip", "-n", router, "rule", "del", "priority", str(priority)])
+        self.link_down = False
 
     def close(self) -> None:
         """Delete every namespace this run created (their veth ends go with them); idempotent."""

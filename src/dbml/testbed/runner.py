@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import contextlib
 import math
+import sys
+import tempfile
 import threading
 import time
 from collections.abc import Mapping, Sequence
@@ -31,19 +33,37 @@ from dbml.experiment.analysis import (
     RECOVERY_S,
     LinkChange,
     LinkPhase,
+    Outage,
     SeriesPoint,
     StepResult,
     StreamLatency,
     link_at,
+    outages,
     stream_latency,
 )
 from dbml.experiment.roles import HOSTS, URGENT_STREAMS, RoleSpec
-from dbml.experiment.runner import Observer, Recording, run_experiment, sigterm_as_interrupt
+from dbml.experiment.runner import (
+    Helper,
+    Observer,
+    Recording,
+    run_experiment,
+    sigterm_as_interrupt,
+)
+from dbml.scenarios.fleet import (
+    MAX_ROBOTS,
+    MIN_ROBOTS,
+    fleet_allocation,
+    fleet_cameras,
+    fleet_steps,
+    urgent_robot,
+)
 from dbml.scenarios.teleop import ROBOTS
 from dbml.testbed.netns import Network, TestbedError, privilege_problem
 
 __all__ = [
+    "ALLOCATION_TOLERANCE_HZ",
     "POLICIES",
+    "TOPOLOGIES",
     "URGENT_P95_MS",
     "Summary",
     "TestbedOptions",
@@ -54,6 +74,14 @@ __all__ = [
 ]
 
 POLICIES = ("dbml", "static", "unmanaged")
+TOPOLOGIES = ("peer", "router")
+"""``peer``: every role a zenoh peer on explicit endpoints; ``router``: a zenoh router per host
+(robots' and operator's), each role a client of its host's router, the robots' routers
+connected to the operator's across the shaped link (as ROS 2 fleets run rmw_zenoh)."""
+ALLOCATION_TOLERANCE_HZ = 0.01
+"""A fleet's allocation equals ``allocate``'s when every rate is within this (rounding)."""
+CLIENT_CONFIG = '{mode: "client"}\n'
+"""The roles' zenoh config under ``--topology router``: they reach others only via routers."""
 MIN_STEP_S = 1.0
 """The shortest step that still times a 1 Hz stream."""
 DEFAULT_UTILIZATION = 0.92
@@ -68,10 +96,15 @@ PEER_WAIT_S = 15.0
 URGENT_P95_MS = 120.0
 """The mapped urgent stream's p95 bound: two camera frame times (84 KB at 11 Mbit/s: 61 ms)."""
 NETNS_OF_ROLE = {"operator": "op", "optimizer": "op", "r1": "r1", "r2": "r2"}
+"""The namespace of each role; a fleet's robot ``rK`` runs in its own namespace ``rK``."""
 
 
 def parse_schedule(text: str) -> tuple[tuple[float, float], ...]:
-    """``"0:11,20:5,40:11"`` -> ((0, 11), (20, 5), (40, 11)): seconds -> Mbit/s, increasing."""
+    """``"0:11,20:5,40:11"`` -> ((0, 11), (20, 5), (40, 11)): seconds -> Mbit/s, increasing.
+
+    A rate of 0 takes the link down (an outage) until the next entry; not at 0 s, since the
+    roles find each other over the link before step 1.
+    """
     entries: list[tuple[float, float]] = []
     for part in text.split(","):
         at, sep, rate = part.strip().partition(":")
@@ -85,8 +118,14 @@ def parse_schedule(text: str) -> tuple[tuple[float, float], ...]:
             ) from None
         if not (math.isfinite(t_s) and t_s >= 0):
             raise TestbedError(f"--link-schedule={text!r}: time {at!r} must be >= 0")
-        if not (math.isfinite(mbit) and mbit > 0):
-            raise TestbedError(f"--link-schedule={text!r}: rate {rate!r} must be > 0")
+        if not (math.isfinite(mbit) and mbit >= 0):
+            raise TestbedError(
+                f"--link-schedule={text!r}: rate {rate!r} must be > 0, or 0 for link down"
+            )
+        if mbit == 0 and t_s == 0:
+            raise TestbedError(
+                f"--link-schedule={text!r}: the link must be up at 0 s (the roles meet over it)"
+            )
         if entries and t_s <= entries[-1][0]:
             raise TestbedError(f"--link-schedule={text!r}: times must increase ({at!r})")
         entries.append((t_s, mbit))
@@ -125,6 +164,9 @@ class TestbedOptions:
     uplinks_mbit: Mapping[str, float] = field(default_factory=dict)
     urgent_stream: bool = False
     """R1 adds a 1,000-byte 20 Hz urgent stream twice, mapped and unmapped (see ``roles``)."""
+    robots: int = len(ROBOTS)
+    """Robots r1..rN, each in its own namespace (``dbml.scenarios.fleet``: two is Table 2)."""
+    topology: str = TOPOLOGIES[0]
     strategy: str | None = Strategy.PAPER.value
     """None under ``unmanaged``: no optimizer runs."""
     utilization: float | None = DEFAULT_UTILIZATION
@@ -142,10 +184,18 @@ class TestbedOptions:
         strategy: str | None = None,
         utilization: float | None = None,
         urgent_stream: bool = False,
+        robots: int = len(ROBOTS),
+        topology: str = TOPOLOGIES[0],
     ) -> TestbedOptions:
         """The options of the command line's flags; a bad one raises naming the flag."""
         if policy not in POLICIES:
             raise TestbedError(f"--policy={policy!r} is not one of: {', '.join(POLICIES)}")
+        if isinstance(robots, bool) or not isinstance(robots, int):
+            raise TestbedError(f"--robots={robots!r} must be an integer")
+        if not MIN_ROBOTS <= robots <= MAX_ROBOTS:
+            raise TestbedError(f"--robots={robots!r} must be in {MIN_ROBOTS}..{MAX_ROBOTS}")
+        if topology not in TOPOLOGIES:
+            raise TestbedError(f"--topology={topology!r} is not one of: {', '.join(TOPOLOGIES)}")
         if not link_mbit > 0:
             raise TestbedError(f"--link-mbit={link_mbit!r} must be > 0")
         if not step_seconds >= MIN_STEP_S:
@@ -156,8 +206,10 @@ class TestbedOptions:
             step_seconds=step_seconds,
             link_schedule=parse_schedule(link_schedule) if link_schedule else (),
             estimate=estimate,
-            uplinks_mbit=parse_uplinks(uplinks, [c.robot for c in ROBOTS]),
+            uplinks_mbit=parse_uplinks(uplinks, [c.robot for c in fleet_cameras(robots)]),
             urgent_stream=urgent_stream,
+            robots=robots,
+            topology=topology,
         )
         if policy == "unmanaged":
             for flag, given in (
@@ -193,6 +245,11 @@ class TestbedOptions:
     def steady(self) -> bool:
         """Whether the link keeps its rate the whole run."""
         return all(mbit == self.link_mbit for _, mbit in self.link_schedule)
+
+    @property
+    def fleet(self) -> bool:
+        """More robots than the paper's two: judged by ``allocate``, not by Table 2's rows."""
+        return self.robots > len(ROBOTS)
 
 
 @dataclass(frozen=True, slots=True)
@@ -237,14 +294,19 @@ class TestbedResult:
     changes: tuple[LinkChange, ...] = ()
     interrupted: bool = False
     phases: tuple[LinkPhase, ...] = ()
+    outages: tuple[Outage, ...] = ()
+    """Per 0 Mbit phase of the schedule: the restoration after it."""
     urgent: tuple[StreamLatency, ...] = ()
     """With ``urgent_stream``: the mapped and the unmapped copy, over the whole run."""
+    expected_hz: tuple[tuple[float, ...], ...] = ()
+    """A fleet under dbml on a known budget: per step, each robot's rate by ``allocate`` on
+    the channels its events imply (empty otherwise: estimated budget, uplinks, two robots)."""
     """Between link changes: utilisation, p95 and losses (RFC 8867's per-phase figures)."""
 
     def summary(self) -> Summary:
         """The run in a few numbers."""
         robots = [r for s in self.steps for r in s.robots]
-        fractions = [s.goodput_mbit / s.link_mbit for s in self.steps]
+        fractions = [s.goodput_mbit / s.link_mbit for s in self.steps if s.link_mbit > 0]
         return Summary(
             steps=len(self.steps),
             max_rate_error=max(
@@ -276,6 +338,24 @@ class TestbedResult:
             targets=self.targets(),
         )
 
+    def urgent_robots(self) -> tuple[str | None, ...]:
+        """Per step, the robot whose events are the most urgent (None: all calm)."""
+        cameras = fleet_cameras(self.options.robots)
+        return tuple(
+            None if (k := urgent_robot(step)) is None else cameras[k].robot
+            for step in fleet_steps(self.options.robots)[: len(self.steps)]
+        )
+
+    def allocation_matches(self) -> bool | None:
+        """Whether every step's allocation was ``allocate``'s (None: nothing to compare)."""
+        if not self.expected_hz:
+            return None
+        return all(
+            r.allocated_hz is not None and abs(r.allocated_hz - hz) <= ALLOCATION_TOLERANCE_HZ
+            for step, expected in zip(self.steps, self.expected_hz, strict=False)
+            for r, hz in zip(step.robots, expected, strict=True)
+        )
+
     def targets(self) -> dict[str, bool]:
         """The expectations that apply to this run (policy dbml; urgent stream: any), by name."""
         mapped = next((u for u in self.urgent if u.name == "mapped"), None)
@@ -288,6 +368,16 @@ class TestbedResult:
             return urgent
         robots = [r for s in self.steps for r in s.robots]
         targets: dict[str, bool] = dict(urgent)
+        # a token bucket's bound: one message per channel over the budget in any window
+        slack_mbit = sum(c.size_bytes for c in fleet_cameras(self.options.robots)) * 8e-6
+        for outage in self.outages:  # the release after an outage keeps to the budget
+            over = outage.release_over_budget_mbit
+            targets[f"budget_kept_after_outage_at_{outage.end_s:g}s"] = (
+                over is not None and over <= slack_mbit
+            )
+        matches = self.allocation_matches()
+        if matches is not None:
+            targets["allocation_equals_allocate"] = matches
         if self.options.steady:
             targets[f"delivered_within_{RATE_TOLERANCE * 100:g}pct"] = all(
                 r.within_rate() for r in robots
@@ -324,8 +414,47 @@ class TestbedResult:
         return targets
 
 
-def _specs(network: Network, options: TestbedOptions) -> dict[str, RoleSpec]:
-    """Explicit endpoints: robots connect to the operator's side, where the optimizer runs."""
+def _netns_of(role: str) -> str:
+    """The namespace a role runs in: the operator's side, or the robot's own."""
+    return NETNS_OF_ROLE.get(role, role)
+
+
+def _router_ep(network: Network, host: str) -> str:
+    return f"tcp/{network.hosts[host].address}:{ZENOH_PORT}"
+
+
+def _routers(network: Network) -> tuple[Helper, ...]:
+    """``--topology router``: a router per host, each robot's connected to the operator's."""
+    hub = _router_ep(network, "op")
+    return tuple(
+        Helper(
+            name=f"router-{host}",
+            argv=tuple(
+                network.exec_argv(
+                    host,
+                    [
+                        sys.executable,
+                        "-m",
+                        "dbml.testbed.router",
+                        "--listen",
+                        _router_ep(network, host),
+                        *(["--connect", hub] if host != "op" else []),
+                    ],
+                )
+            ),
+        )
+        for host in ("op", *network.robots)
+    )
+
+
+def _specs(
+    network: Network, options: TestbedOptions, *, config_file: str | None = None
+) -> dict[str, RoleSpec]:
+    """Explicit endpoints: robots connect to the operator's side, where the optimizer runs.
+
+    Under ``--topology router`` every role is instead a client (``config_file``) of its host's
+    router, and only the routers cross the shaped link.
+    """
     operator_ep = f"tcp/{network.hosts['op'].address}:{ZENOH_PORT}"
     optimizer_ep = f"tcp/{network.hosts['op'].address}:{OPTIMIZER_PORT}"
     managed = options.policy != "unmanaged"
@@ -339,16 +468,29 @@ def _specs(network: Network, options: TestbedOptions) -> dict[str, RoleSpec]:
         uplinks_mbit=dict(options.uplinks_mbit),
         peer_wait_s=PEER_WAIT_S,
         urgent_stream=options.urgent_stream,
+        robots=options.robots,
     )
+    robots = [camera.robot.lower() for camera in fleet_cameras(options.robots)]
+    if options.topology == "router":
+        client = replace(base, config_file=config_file)
+        specs = {
+            role: replace(client, host=HOSTS[role], connect=(operator_ep,))
+            for role in ("operator", "optimizer")
+            if role == "operator" or managed
+        }
+        for role in robots:
+            host = HOSTS.get(role, f"robot-{role}")
+            specs[role] = replace(client, host=host, connect=(_router_ep(network, role),))
+        return specs
     specs = {"operator": replace(base, host=HOSTS["operator"], listen=(operator_ep,))}
     if managed:
         specs["optimizer"] = replace(
             base, host=HOSTS["optimizer"], listen=(optimizer_ep,), connect=(operator_ep,)
         )
-    for role in ("r1", "r2"):
+    for role in robots:
         specs[role] = replace(
             base,
-            host=HOSTS[role],
+            host=HOSTS.get(role, f"robot-{role}"),
             listen=(f"tcp/{network.hosts[role].address}:{ZENOH_PORT}",),
             connect=(operator_ep, *([optimizer_ep] if managed else [])),
         )
@@ -364,7 +506,37 @@ def _change_link(
         if stop.wait(max(0.0, t0 + at - time.time())):
             return
         with contextlib.suppress(TestbedError):  # the network is being torn down
-            network.set_link_rate(mbit)
+            if mbit == 0:
+                network.take_link_down()
+            else:
+                network.set_link_rate(mbit)
+
+
+def _expected_hz(
+    options: TestbedOptions, steps: Sequence[StepResult]
+) -> tuple[tuple[float, ...], ...]:
+    """A fleet under dbml on a known budget: ``allocate`` on each step's implied channels."""
+    known = options.policy == "dbml" and not options.estimate and not options.uplinks_mbit
+    if not (options.fleet and known and options.strategy and options.utilization):
+        return ()
+    cameras = fleet_cameras(options.robots)
+    return tuple(
+        fleet_allocation(
+            event_step,
+            cameras,
+            link_mbit=step.link_mbit,
+            utilization=options.utilization,
+            strategy=options.strategy,
+        )
+        for event_step, step in zip(fleet_steps(options.robots), steps, strict=False)
+    )
+
+
+def _urgent_index(options: TestbedOptions, t_s: float) -> int:
+    """The robot whose channel has the highest priority ``t_s`` into the run (first on a tie)."""
+    steps = fleet_steps(options.robots)
+    step = steps[min(len(steps) - 1, max(0, int(t_s // options.step_seconds)))]
+    return urgent_robot(step) or 0
 
 
 def run_teleop_testbed(
@@ -374,21 +546,31 @@ def run_teleop_testbed(
     problem = privilege_problem()
     if problem is not None:
         raise TestbedError(f"dbml testbed needs root to build network namespaces: {problem}")
+    cameras = fleet_cameras(options.robots)
     network = Network(
-        robots=("r1", "r2"),
+        robots=tuple(camera.robot.lower() for camera in cameras),
         link_mbit=link_at(options.link_schedule, 0.0, options.link_mbit),
         uplinks_mbit={robot.lower(): mbit for robot, mbit in options.uplinks_mbit.items()},
     )
     recording = Recording(None, (), (), interrupted=True)
-    with sigterm_as_interrupt(), contextlib.suppress(KeyboardInterrupt):
+    router = options.topology == "router"
+    with (
+        sigterm_as_interrupt(),
+        contextlib.suppress(KeyboardInterrupt),
+        tempfile.TemporaryDirectory(prefix="dbml-testbed-") as scratch,
+    ):
+        client_config = f"{scratch}/client.json5"
+        with open(client_config, "w", encoding="utf-8") as config:
+            config.write(CLIENT_CONFIG)
         try:
             network.build()
             recording = run_experiment(
-                _specs(network, options),
+                _specs(network, options, config_file=client_config if router else None),
                 what="testbed",
-                command=lambda role, argv: (network.exec_argv(NETNS_OF_ROLE[role], argv), None),
+                command=lambda role, argv: (network.exec_argv(_netns_of(role), argv), None),
                 observe=observe,
                 on_start=lambda t0, stop: _change_link(network, options.link_schedule, t0, stop),
+                helpers=_routers(network) if router else (),
             )
         finally:
             network.close()
@@ -396,7 +578,10 @@ def run_teleop_testbed(
     if recording.t0 is None:
         return result
     analysis = recording.analyse(
-        step_s=options.step_seconds, link_mbit=options.link_mbit, schedule=options.link_schedule
+        step_s=options.step_seconds,
+        link_mbit=options.link_mbit,
+        schedule=options.link_schedule,
+        robots=[camera.robot for camera in cameras],
     )
     return replace(
         result,
@@ -404,9 +589,18 @@ def run_teleop_testbed(
         series=analysis.series,
         changes=analysis.changes,
         phases=analysis.phases,
+        outages=outages(
+            recording.arrivals,
+            recording.ticks,
+            robots=[camera.robot for camera in cameras],
+            t0=recording.t0,
+            schedule=options.link_schedule,
+            urgent_at=lambda t_s: _urgent_index(options, t_s),
+        ),
+        expected_hz=_expected_hz(options, analysis.steps),
         urgent=tuple(
             stream_latency(
-                recording.arrivals, len(ROBOTS) + k, name="mapped" if s.mapped else "unmapped"
+                recording.arrivals, len(cameras) + k, name="mapped" if s.mapped else "unmapped"
             )
             for k, s in enumerate(URGENT_STREAMS)
             if options.urgent_stream

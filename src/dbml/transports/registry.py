@@ -46,6 +46,7 @@ class TransportFactory(Protocol):
         domain_id: int | None,
         ros_distro: str | None,
         msg_paths: Sequence[str | Path],
+        priority_links: bool,
     ) -> Transport:
         """Open the transport; a ``TransportError`` names what is missing or not accepted."""
         ...
@@ -89,6 +90,11 @@ def _no_ros2_options(
             )
 
 
+def _no_priority_links(name: str, priority_links: bool) -> None:
+    if priority_links:
+        raise TransportError(f"transport={name!r} has no priority links: only zenoh's do")
+
+
 def _open_ros2(
     *,
     host: str | None,
@@ -100,6 +106,7 @@ def _open_ros2(
     domain_id: int | None,
     ros_distro: str | None,
     msg_paths: Sequence[str | Path],
+    priority_links: bool,
 ) -> Transport:
     _no_network("ros2", network)
     module = importlib.import_module("dbml.transports.ros2")
@@ -112,6 +119,7 @@ def _open_ros2(
         ros_distro=ros_distro,
         msg_paths=msg_paths,
         follow_all_params=follow_all_params,
+        priority_links=priority_links,
     )
     return transport
 
@@ -127,6 +135,7 @@ def _open_zenoh(
     domain_id: int | None,
     ros_distro: str | None,
     msg_paths: Sequence[str | Path],
+    priority_links: bool,
 ) -> Transport:
     _no_network("zenoh", network)
     _no_ros2_options("zenoh", domain_id, ros_distro, msg_paths)
@@ -137,6 +146,7 @@ def _open_zenoh(
         listen=listen,
         config_file=config_file,
         follow_all_params=follow_all_params,
+        priority_links=priority_links,
     )
     return transport
 
@@ -152,6 +162,7 @@ def _open_ros1(
     domain_id: int | None,
     ros_distro: str | None,
     msg_paths: Sequence[str | Path],
+    priority_links: bool,
 ) -> Transport:
     if connect or listen or config_file:
         raise TransportError(
@@ -159,6 +170,7 @@ def _open_ros1(
         )
     _no_network("ros1", network)
     _no_ros2_options("ros1", domain_id, ros_distro, msg_paths)
+    _no_priority_links("ros1", priority_links)
     try:
         module = importlib.import_module("dbml.transports.ros1")
     except ImportError as err:
@@ -178,10 +190,12 @@ def _open_memory(
     domain_id: int | None,
     ros_distro: str | None,
     msg_paths: Sequence[str | Path],
+    priority_links: bool,
 ) -> Transport:
     if connect or listen or config_file:
         raise TransportError("transport='memory' takes no endpoints or config file")
     _no_ros2_options("memory", domain_id, ros_distro, msg_paths)
+    _no_priority_links("memory", priority_links)
     return MemoryTransport(network, host=host)
 
 
@@ -234,6 +248,7 @@ def open_transport(
     domain_id: int | None = None,
     ros_distro: str | None = None,
     msg_paths: Sequence[str | Path] = (),
+    priority_links: bool = False,
 ) -> Transport:
     """Open a transport by name.
 
@@ -246,7 +261,9 @@ def open_transport(
     every other publisher's reports (ROS 1's parameter server and memory hold everything anyway).
     ``ros2`` joins rmw_zenoh's router of this host (or ``connect``/``listen``) in ROS 2 domain
     ``domain_id`` (else ``ROS_DOMAIN_ID``), with the types of ``ros_distro`` and the ``.msg``
-    files under ``msg_paths``; the other transports refuse these options.
+    files under ``msg_paths``; the other transports refuse these options. ``priority_links``
+    (zenoh, ros2) opens a link per range of priorities to each ``connect`` endpoint, so urgent
+    classes never wait behind bulk bytes in one TCP connection; the listening side needs it too.
     """
     entry = TRANSPORTS.get(name)
     if entry is None:
@@ -261,4 +278,5 @@ def open_transport(
         domain_id=domain_id,
         ros_distro=ros_distro,
         msg_paths=msg_paths,
+        priority_links=priority_links,
     )

@@ -368,6 +368,7 @@ class Ros2Transport(TransportBase):
         ros_distro: str | None = None,
         msg_paths: Sequence[str | Path] = (),
         follow_all_params: bool = True,
+        priority_links: bool = False,
     ) -> None:
         self.domain_id = resolve_domain_id(domain_id)
         self.types = MessageTypes(distro=ros_distro, msg_paths=msg_paths)
@@ -379,6 +380,7 @@ class Ros2Transport(TransportBase):
             listen=listen,
             config_file=config_file,
             follow_all_params=follow_all_params,
+            priority_links=priority_links,
         )
         try:
             self._declare(self._dbml)
