@@ -27,6 +27,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 from dbml.cli import main
 from dbml.harness.processes import free_port
 from dbml.runtime import names
+from dbml.runtime.estimator import LINK_TOPIC
 from dbml.secure import (
     CA_CERTIFICATE,
     CA_KEY,
@@ -39,7 +40,9 @@ from dbml.secure import (
     init_fleet,
     plan_fleet,
 )
+from dbml.transports.base import Variant
 from dbml.transports.paramstore import BATCH_KEY, PARAM_PREFIX
+from dbml.transports.zenoh import _data_key
 from tests.conftest import wait_for
 
 NODES = ("opt", "r1", "r2", "op")
@@ -215,6 +218,10 @@ def test_the_rules_use_the_runtime_s_own_names() -> None:
         assert f"{PARAM_PREFIX}/**/dbm/{field}" in optimizer
         assert f"{PARAM_PREFIX}/r1/**/dbm/{field}" in by_id["r1/put-deny"]["key_exprs"]
     assert BATCH_KEY in optimizer
+    # the estimator's beacon: the optimizer's node puts it, and no one else may
+    link_key = _data_key(LINK_TOPIC, Variant.FULL)
+    assert link_key in optimizer
+    assert all(link_key not in by_id[f"{n}/put"]["key_exprs"] for n in ("r1", "r2", "op"))
 
 
 # -- the files --------------------------------------------------------------------------------
@@ -430,6 +437,7 @@ ROBOT_FORBIDDEN = [
     "dbml/batch",
     "r2/camera",
     "dbml/param/dbm/status",
+    "dbm/link",
 ]
 ROBOT_ALLOWED = [
     "r1/camera",
@@ -467,6 +475,7 @@ def test_the_optimizer_writes_its_allocation_and_status_only(
         "dbml/param/dbm/status_message",
         "dbml/param/dbm/estimated_bandwidth_in_mbit",
         "dbml/param/dbm/estimator_state",
+        "dbm/link",
     ]
     forbidden = ["dbml/param/dbm/max_bandwidth_in_mbit", "dbml/param/r1/camera/dbm/priority"]
     forbidden += ["r1/camera", "dbml/param/r1/camera/dbm/frequency/min"]

@@ -87,6 +87,10 @@ _OWN = "dbml/own"
 _BATCH = "dbml/batch"
 _GRAPH = "dbml/graph"
 _NODE = "dbml/node"
+_LINK = "dbm/link"
+"""The data key of the estimator's beacon (``dbml.runtime.estimator.LINK_TOPIC``, ``/dbm/link``):
+the optimizer's node runs the estimator and puts it; everyone may subscribe. Without it a
+secured fleet would silently lose outage handling."""
 _MESSAGES = (
     "put",
     "delete",
@@ -384,7 +388,7 @@ def _node_rules(node: FleetNode) -> list[dict[str, Any]]:
     if node.role is NodeRole.ROBOT:
         puts.insert(0, f"{node.name}/**")  # its topics' data: /r1/camera is key r1/camera
     elif node.role is NodeRole.OPTIMIZER:
-        puts.insert(0, _BATCH)
+        puts[:0] = [_BATCH, _LINK]
         replies = [f"{_OWN}/**"]  # it keeps, and serves, values whose writer has left
     prefix = f"{node.name}/"
     rules = [

@@ -190,3 +190,16 @@ def test_a_slow_stream_is_not_an_outage() -> None:
         phases += _silence(estimator, start=t, end=t + 1.0)
         t += 1.0
     assert Phase.OUTAGE not in phases
+
+
+def test_a_second_outage_is_seen_as_soon_as_the_first() -> None:
+    """The first outage's gap is not the streams' usual gap: it must not slow the next one."""
+    estimator = BandwidthEstimator(max_mbit=CAP_MBIT)
+    seq, _ = _feed(estimator, start=0.0, end=3.0, seq=0)
+    _silence(estimator, start=3.0, end=6.0)
+    assert estimator.outage
+    seq, _ = _feed(estimator, start=6.0, end=6.3, seq=seq + 30)  # back for three frames
+    assert not estimator.outage
+    phases = _silence(estimator, start=6.3, end=7.5)
+    # within outage_s (0.5 s) plus an update or two, as the first one was
+    assert Phase.OUTAGE in phases[:8]

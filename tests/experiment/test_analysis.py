@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
+import random
+from dataclasses import replace
+
 import pytest
 
 from dbml.experiment.analysis import (
+    WINDOW_S,
     Arrival,
     Tick,
+    _worst_windows,
     analyse,
     link_at,
     outages,
@@ -206,3 +211,46 @@ def test_an_outage_reports_the_urgent_first_frame_the_backlog_and_the_worst_wind
     # the backlog lands in the same second: the wire carried 3 frames more than the release
     assert outage.worst_window_mbit == pytest.approx(7.728)
     assert outage.release_over_budget_mbit == pytest.approx(7.056 - 8.0)
+
+
+def test_an_outage_s_windows_are_judged_against_the_budget_in_force_then() -> None:
+    """A budget cut after the restoration: the larger budget before it hides nothing."""
+    before = _stream(0, hz=10, start=0.0, end=6.0, delay=0.05, size=84_000)
+    # 10 Hz of 84 KB (6.72 Mbit/s) throughout the 5 s after the restoration
+    after = _stream(0, hz=10, start=9.0, end=14.0, delay=0.05, size=84_000)
+    after = [replace(f, seq=100 + k) for k, f in enumerate(after)]
+    ticks = [
+        Tick(t_s=t, allocated_hz=(10.0,), budget_mbit=8.0, estimate_mbit=None) for t in (5.0, 9.5)
+    ]
+    ticks.append(Tick(t_s=11.0, allocated_hz=(10.0,), budget_mbit=4.0, estimate_mbit=None))
+    (outage,) = outages(
+        [*before, *after],
+        ticks,
+        robots=["R1"],
+        t0=0.0,
+        schedule=((0.0, 11.0), (6.0, 0.0), (9.0, 11.0)),
+        urgent_at=lambda _t: 0,
+    )
+    assert outage.budget_mbit == 8.0  # the largest in force, as reported
+    # the windows from 11 s on carried 6.72 Mbit/s (10 frames, or 11 on the rounding edge)
+    # against a budget of 4; against 8 every window would look within it
+    over = outage.release_over_budget_mbit
+    assert over is not None
+    assert 6.72 - 4.0 - 1e-6 <= over <= 11 * 84_000 * 8e-6 - 4.0 + 1e-6
+    assert outage.over_budget_mbit == over
+
+
+def test_the_worst_window_is_the_brute_force_one() -> None:
+    """The one-pass sliding window finds what summing every window finds."""
+    rng = random.Random(7)
+    times = sorted(rng.uniform(0.0, 6.0) for _ in range(400))
+    sizes = [rng.randrange(1_000, 90_000) for _ in times]
+    ticks = [Tick(t_s=0.0, allocated_hz=(), budget_mbit=5.0, estimate_mbit=None)]
+    worst, over = _worst_windows(times, sizes, 6.0, ticks)
+    brute = max(
+        sum(b for t, b in zip(times, sizes, strict=True) if start <= t < start + WINDOW_S)
+        for start in times
+        if start <= 6.0 - WINDOW_S + 1e-9
+    )
+    assert worst == pytest.approx(brute * 8e-6)
+    assert over == pytest.approx(brute * 8e-6 - 5.0)

@@ -1,19 +1,38 @@
-"""A link outage at the publisher: hold the newest message, release it in priority order."""
+"""A link outage at the publisher: hold the newest message, release it in priority order.
+
+The hold is never worse than the fail-safe: it is bounded, every channel of the release order
+can find the link back, nothing in a beacon raises a rate or breaks a thread. Releases happen
+on a beacon or a ``publish``, so everything here runs on the manual clock, deterministically.
+"""
 
 from __future__ import annotations
 
+import json
+import logging
 from dataclasses import replace
 
 import pytest
 
+from dbml.core.errors import TransportError
 from dbml.runtime import ManagedPublisher, names
-from dbml.runtime.estimator import LINK_TOPIC, LinkBeacon, release_offsets
-from dbml.runtime.publisher import LINK_SILENCE_S, PROBE_INTERVAL_S
+from dbml.runtime.estimator import (
+    LINK_TOPIC,
+    RELEASE_MAX_S,
+    LinkBeacon,
+    LinkEstimator,
+    release_offsets,
+)
+from dbml.runtime.metadata import MessageMeta
+from dbml.runtime.publisher import HOLD_MAX_S, LINK_SILENCE_S, PROBE_INTERVAL_S
+from dbml.runtime.rate import RateLimiter
 from dbml.transports import ManualClock, MemoryNetwork, MemoryTransport, Sample, Variant
-from tests.conftest import wait_for
+from dbml.transports.base import TransportPriority
+from dbml.transports.memory import _MemoryPublisher
 
 RATE_HZ = 10.0
 PERIOD_S = 1 / RATE_HZ
+MIN_RATE_HZ = 1.0
+TWO_CAMERAS = {"/r1/camera": (0.9, 84_000), "/r2/camera": (0.1, 21_000)}
 
 
 class Fleet:
@@ -27,15 +46,18 @@ class Fleet:
         self.operator = MemoryTransport(self.network, host="op", clock=self.clock)
         self.received: list[Sample] = []
 
-    def publisher(self, topic: str, priority: float) -> ManagedPublisher:
+    def publisher(
+        self, topic: str, priority: float, *, rate_hz: float | None = RATE_HZ
+    ) -> ManagedPublisher:
         host = topic.split("/")[1]
         transport = MemoryTransport(self.network, host=host, clock=self.clock)
         publisher = ManagedPublisher(
-            transport, topic, min_rate_hz=1.0, max_rate_hz=16.0, priority=priority
+            transport, topic, min_rate_hz=MIN_RATE_HZ, max_rate_hz=16.0, priority=priority
         )
         self.operator.subscribe(topic, self.received.append, Variant.OPTIMIZED)
         publisher.publish(b"size")  # the size is known before the allocation
-        self.base.params.set(names.current_value(topic), RATE_HZ)
+        if rate_hz is not None:
+            self.base.params.set(names.current_value(topic), rate_hz)
         return publisher
 
     def say(self, beacon: LinkBeacon) -> None:
@@ -43,6 +65,9 @@ class Fleet:
 
     def payloads(self) -> list[bytes]:
         return [bytes(s.payload) for s in self.received]
+
+    def from_topic(self, topic: str) -> list[bytes]:
+        return [bytes(s.payload) for s in self.received if s.topic == topic]
 
 
 @pytest.fixture
@@ -66,8 +91,7 @@ def test_a_silent_link_holds_only_the_newest_message_and_sends_it_when_back(
     assert camera.holding
     assert len(fleet.received) == sent
     fleet.say(LinkBeacon(up=True, release_s={"/r1/camera": 0.0}))
-    wait_for(lambda: len(fleet.received) == sent + 1, timeout_s=2, what="the held message")
-    assert fleet.payloads()[-1] == b"during 4"  # the newest only
+    assert fleet.payloads()[sent:] == [b"during 4"]  # the newest only, on the beacon itself
     assert not camera.holding
 
 
@@ -75,7 +99,7 @@ def test_the_release_banks_no_credit_from_the_outage(fleet: Fleet) -> None:
     camera = fleet.publisher("/r1/camera", 0.9)
     fleet.say(LinkBeacon(up=True))
     fleet.clock.advance(PERIOD_S)
-    fleet.clock.advance(LINK_SILENCE_S + 5.0)  # a long outage, nothing published
+    fleet.clock.advance(HOLD_MAX_S - 1.0)  # a long outage, nothing published
     assert camera.holding
     fleet.base.params.set(names.ROUND, 1)  # the optimizer's heartbeat is back too
     fleet.say(LinkBeacon(up=True))
@@ -87,20 +111,54 @@ def test_the_release_banks_no_credit_from_the_outage(fleet: Fleet) -> None:
     assert len(fleet.received) == sent + 2
 
 
-def test_an_outage_beacon_holds_and_the_most_urgent_channel_probes(fleet: Fleet) -> None:
+def test_in_an_outage_the_channels_take_turns_to_probe(fleet: Fleet) -> None:
     urgent = fleet.publisher("/r1/camera", 0.9)
     calm = fleet.publisher("/r2/camera", 0.1)
     fleet.say(LinkBeacon(up=True))
     fleet.clock.advance(PERIOD_S)
-    order = release_offsets({"/r1/camera": (0.9, 84_000), "/r2/camera": (0.1, 21_000)}, 1e6)
-    fleet.say(LinkBeacon(up=False, release_s=order))
+    fleet.say(LinkBeacon(up=False, release_s=release_offsets(TWO_CAMERAS, 1e6)))
+    start = fleet.clock()
+    probes: list[tuple[int, str]] = []  # (probe interval of the hold, who)
+    for _ in range(round(4 * PROBE_INTERVAL_S / PERIOD_S)):
+        turn = int((fleet.clock() - start) / PROBE_INTERVAL_S)
+        if urgent.publish(b"urgent"):
+            probes.append((turn, "urgent"))
+        if calm.publish(b"calm"):
+            probes.append((turn, "calm"))
+        fleet.clock.advance(PERIOD_S)
+    # the release order's first probes first, then the next: one channel per interval
+    assert probes == [(0, "urgent"), (1, "calm"), (2, "urgent"), (3, "calm")]
+    assert urgent.holding
+    assert calm.holding
+
+
+def test_an_idle_first_channel_does_not_keep_the_others_from_probing(fleet: Fleet) -> None:
+    """The most urgent channel's publisher stopped: the others still find the link back."""
+    fleet.publisher("/r1/camera", 0.9)  # never publishes again
+    calm = fleet.publisher("/r2/camera", 0.1)
+    fleet.say(LinkBeacon(up=True))
+    fleet.clock.advance(PERIOD_S)
+    for _ in range(round(2 * PROBE_INTERVAL_S / PERIOD_S) + 1):
+        fleet.say(LinkBeacon(up=False, release_s=release_offsets(TWO_CAMERAS, 1e6)))
+        calm.publish(b"calm")
+        fleet.clock.advance(PERIOD_S)
+    assert fleet.from_topic("/r2/camera").count(b"calm") >= 1
+
+
+def test_a_probe_never_exceeds_the_channel_s_own_rate(fleet: Fleet) -> None:
+    slow_hz = 0.5  # allocated below the probe rate (and below its minimum: infeasible floors)
+    camera = fleet.publisher("/r1/camera", 0.9, rate_hz=slow_hz)
+    fleet.say(LinkBeacon(up=True))
+    fleet.clock.advance(PERIOD_S)
+    fleet.say(LinkBeacon(up=False, release_s={"/r1/camera": 0.0}))
     sent = len(fleet.received)
-    assert urgent.publish(b"probe")  # the first of the release order probes
-    assert not calm.publish(b"calm")
-    assert not urgent.publish(b"held")
-    fleet.clock.advance(PROBE_INTERVAL_S)
-    assert urgent.publish(b"probe again")
-    assert fleet.payloads()[sent:] == [b"probe", b"probe again"]
+    hold_s = HOLD_MAX_S - 0.5
+    steps = round(hold_s / PERIOD_S)
+    for _ in range(steps):
+        camera.publish(b"frame")
+        fleet.base.params.set(names.ROUND, 1)  # the allocation stands throughout
+        fleet.clock.advance(PERIOD_S)
+    assert len(fleet.received) - sent <= RateLimiter.BANKED_FRAMES + hold_s * slow_hz
 
 
 def test_the_release_goes_in_priority_order(fleet: Fleet) -> None:
@@ -110,27 +168,133 @@ def test_the_release_goes_in_priority_order(fleet: Fleet) -> None:
     fleet.clock.advance(LINK_SILENCE_S + 0.01)
     assert not calm.publish(b"calm newest")
     assert not urgent.publish(b"urgent newest")
-    order = release_offsets({"/r1/camera": (0.9, 84_000), "/r2/camera": (0.1, 21_000)}, 1e6)
+    order = release_offsets(TWO_CAMERAS, 1e6)
     assert order == {"/r1/camera": 0.0, "/r2/camera": pytest.approx(0.084)}
     sent = len(fleet.received)
     fleet.say(LinkBeacon(up=True, release_s=order))
-    wait_for(lambda: len(fleet.received) == sent + 1, timeout_s=2, what="the urgent release")
-    assert fleet.payloads()[-1] == b"urgent newest"
+    assert fleet.payloads()[sent:] == [b"urgent newest"]
     fleet.clock.advance(0.1)  # the calm channel's turn: the urgent frame has crossed
-    wait_for(lambda: len(fleet.received) == sent + 2, timeout_s=2, what="the calm release")
-    assert fleet.payloads()[-1] == b"calm newest"
+    fleet.say(LinkBeacon(up=True))  # the next beacon releases it (or its next publish)
+    assert fleet.payloads()[sent:] == [b"urgent newest", b"calm newest"]
+
+
+def test_a_release_puts_outside_the_lock_and_numbers_stay_unique(fleet: Fleet) -> None:
+    camera = fleet.publisher("/r1/camera", 0.9)
+    locked: list[bool] = []
+    fleet.operator.subscribe(
+        "/r1/camera", lambda _s: locked.append(camera._lock.locked()), Variant.OPTIMIZED
+    )
+    fleet.say(LinkBeacon(up=True))
+    fleet.clock.advance(LINK_SILENCE_S + 0.01)
+    assert not camera.publish(b"held")
+    fleet.say(LinkBeacon(up=True, release_s={"/r1/camera": 0.0}))
+    fleet.clock.advance(PERIOD_S)
+    assert camera.publish(b"next")
+    assert locked == [False, False]
+    seqs = [MessageMeta.decode(s.attachment).seq for s in fleet.received]
+    assert seqs == sorted(set(seqs))
+
+
+def test_a_dead_estimator_leaves_the_fail_safe_minimum_not_a_hold(fleet: Fleet) -> None:
+    """Beacons were heard, then never again: after HOLD_MAX_S the channel runs at its minimum."""
+    camera = fleet.publisher("/r1/camera", 0.9)
+    fleet.say(LinkBeacon(up=True))
+    fleet.clock.advance(LINK_SILENCE_S + HOLD_MAX_S + 0.01)
+    assert not camera.holding
+    sent = len(fleet.received)
+    went = []
+    for _ in range(round(2 / MIN_RATE_HZ / PERIOD_S)):  # two minimum periods
+        fleet.base.params.set(names.ROUND, 1)  # the optimizer is alive: the rate stands
+        went.append(camera.publish(b"frame"))
+        fleet.clock.advance(PERIOD_S)
+    assert 1 <= sum(went) <= 2 + 1  # the minimum, never the allocation of 10 Hz
+    assert len(fleet.received) - sent == sum(went)
+    fleet.say(LinkBeacon(up=True))  # the estimator is back: the allocation again
+    fleet.clock.advance(PERIOD_S)
+    assert camera.publish(b"a")
+    fleet.clock.advance(PERIOD_S)
+    assert camera.publish(b"b")
+
+
+def test_repeated_outage_beacons_do_not_extend_the_hold(fleet: Fleet) -> None:
+    camera = fleet.publisher("/r1/camera", 0.9)
+    fleet.say(LinkBeacon(up=True))
+    for _ in range(round((HOLD_MAX_S + 1.0) / PERIOD_S)):  # the estimator hears nothing
+        fleet.say(LinkBeacon(up=False))
+        fleet.clock.advance(PERIOD_S)
+    assert not camera.holding
+    assert camera.publish(b"fail-safe")
+
+
+def test_a_channel_never_allocated_sends_nothing_through_an_outage(fleet: Fleet) -> None:
+    fresh = fleet.publisher("/r3/camera", 0.9, rate_hz=None)
+    fleet.say(LinkBeacon(up=True))
+    fleet.clock.advance(PERIOD_S)
+    fleet.say(LinkBeacon(up=False, release_s={"/r3/camera": 0.0}))
+    assert not fresh.publish(b"would probe")
+    fleet.clock.advance(PROBE_INTERVAL_S)
+    assert not fresh.publish(b"held")
+    fleet.say(LinkBeacon(up=True, release_s={"/r3/camera": 0.0}))
+    fleet.clock.advance(PERIOD_S)
+    assert not fresh.publish(b"after")
+    assert fleet.from_topic("/r3/camera") == []
+
+
+BAD_BEACONS = [
+    b'{"up": true, "release_s": {"/r1/camera": NaN}}',
+    b'{"up": true, "release_s": {"/r1/camera": Infinity}}',
+    b'{"up": true, "release_s": {"/r1/camera": 1e400}}',
+    b'{"up": true, "release_s": {"/r1/camera": -1}}',
+    b'{"up": true, "release_s": {"/r1/camera": 3e9}}',
+    b'{"up": true, "release_s": {"/r1/camera": 1' + b"0" * 400 + b"}}",
+    b'{"up": true, "release_s": {"/r1/camera": true}}',
+    b'{"up": true, "release_s": {"/r1/camera": "0"}}',
+    b'{"up": true, "release_s": []}',
+    b'{"up": "false"}',
+    b'{"up": 0}',
+    b'{"up": true, "sent_s": NaN}',
+    b'{"up": true, "sent_s": -Infinity}',
+    b"[" * 100_000 + b"]" * 100_000,
+    b"[true]",
+    b"\xff\xfe",
+    b"{not json",
+]
+
+
+@pytest.mark.parametrize("data", BAD_BEACONS, ids=lambda d: d[:40].decode("latin-1"))
+def test_a_malformed_beacon_is_refused(data: bytes) -> None:
+    with pytest.raises(TransportError, match="malformed link beacon"):
+        LinkBeacon.decode(data)
+
+
+def test_the_release_order_stays_within_its_bound() -> None:
+    many = {f"/r{k}/camera": (0.5, 84_000) for k in range(40)}
+    offsets = release_offsets(many, 125_000)  # 1 Mbit: 27 s of frames
+    assert max(offsets.values()) == RELEASE_MAX_S
+    assert LinkBeacon.decode(LinkBeacon(up=True, release_s=offsets).encode()).release_s == offsets
+
+
+def test_malformed_beacons_are_ignored_and_reported_once(
+    fleet: Fleet, caplog: pytest.LogCaptureFixture
+) -> None:
+    camera = fleet.publisher("/r1/camera", 0.9)
+    fleet.say(LinkBeacon(up=True))
+    fleet.clock.advance(LINK_SILENCE_S + 0.01)
+    assert not camera.publish(b"held")
+    with caplog.at_level(logging.WARNING, logger="dbml.publisher"):
+        for data in BAD_BEACONS:  # a release of a huge or non-finite delay among them
+            fleet.beacon.put(data)
+    assert camera.holding  # none of them released, none of them broke anything
+    assert [r.levelno for r in caplog.records if "malformed link beacon" in r.message] == [
+        logging.WARNING
+    ]
+    fleet.say(LinkBeacon(up=True, release_s={"/r1/camera": 0.0}))
+    assert fleet.payloads()[-1] == b"held"
 
 
 def test_without_a_beacon_nothing_is_ever_held(fleet: Fleet) -> None:
     camera = fleet.publisher("/r1/camera", 0.9)
     fleet.clock.advance(10.0)  # no estimator runs: silence means nothing
-    assert not camera.holding
-
-
-def test_a_malformed_beacon_is_ignored(fleet: Fleet, caplog: pytest.LogCaptureFixture) -> None:
-    camera = fleet.publisher("/r1/camera", 0.9)
-    fleet.beacon.put(b"{not json")
-    assert "malformed link beacon" in caplog.text
     assert not camera.holding
 
 
@@ -146,6 +310,16 @@ def test_a_beacon_buffered_through_the_outage_is_stale(fleet: Fleet) -> None:
     assert camera.publish(b"fresh")
 
 
+def test_a_beacon_stamped_ahead_does_not_make_the_genuine_ones_stale(fleet: Fleet) -> None:
+    camera = fleet.publisher("/r1/camera", 0.9)
+    fleet.say(LinkBeacon(up=True))
+    fleet.beacon.put(LinkBeacon(up=True, sent_s=fleet.clock() + 100.0).encode())
+    for _ in range(5):  # genuine beacons go on: the link is up throughout
+        fleet.clock.advance(PERIOD_S)
+        fleet.say(LinkBeacon(up=True))
+        assert not camera.holding
+
+
 def test_beacons_late_for_long_are_a_new_clock_offset_not_a_backlog(fleet: Fleet) -> None:
     camera = fleet.publisher("/r1/camera", 0.9)
     fleet.say(LinkBeacon(up=True))
@@ -156,3 +330,48 @@ def test_beacons_late_for_long_are_a_new_clock_offset_not_a_backlog(fleet: Fleet
     # held meanwhile (nothing counted for STALE_RESET_S), then they count again: released
     assert camera.publish(b"after the step")
     assert not camera.holding
+
+
+def test_after_close_a_beacon_sends_nothing(fleet: Fleet) -> None:
+    camera = fleet.publisher("/r1/camera", 0.9)
+    fleet.say(LinkBeacon(up=True))
+    fleet.clock.advance(LINK_SILENCE_S + 0.01)
+    assert not camera.publish(b"held")
+    sent = len(fleet.received)
+    camera.close()
+    fleet.say(LinkBeacon(up=True, release_s={"/r1/camera": 0.0}))
+    assert len(fleet.received) == sent
+
+
+class _Recording(MemoryTransport):
+    """A memory transport that remembers each declared publisher's class."""
+
+    declared: dict[str, tuple[TransportPriority | None, bool]]
+
+    def declare_publisher(
+        self,
+        topic: str,
+        variant: Variant = Variant.FULL,
+        *,
+        priority: TransportPriority | None = None,
+        express: bool = False,
+    ) -> _MemoryPublisher:
+        self.declared = getattr(self, "declared", {})
+        self.declared[variant.key(topic)] = (priority, express)
+        return super().declare_publisher(topic, variant, priority=priority, express=express)
+
+
+def test_the_beacon_travels_in_the_datas_own_class() -> None:
+    """Behind the frames queued for the link: the "up" beacon must not overtake the backlog."""
+    transport = _Recording(MemoryNetwork(), host="base", clock=ManualClock(0.0))
+    estimator = LinkEstimator(transport)
+    try:
+        assert transport.declared[LINK_TOPIC] == (None, False)
+    finally:
+        estimator.close()
+
+
+def test_an_encoded_beacon_round_trips() -> None:
+    beacon = LinkBeacon(up=False, release_s={"/r1/camera": 0.5}, sent_s=12.5)
+    assert LinkBeacon.decode(beacon.encode()) == beacon
+    assert json.loads(beacon.encode())["up"] is False

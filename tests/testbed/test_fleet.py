@@ -25,8 +25,9 @@ PAYLOAD_SHARE = 0.957
 FAST_HZ = 4.0
 """At or above this a stream has enough frames in a step's 1.3 s window to time to 15 %."""
 FAST_TOLERANCE = 0.15
-SLOW_TOLERANCE_HZ = 0.8
-"""A 1 Hz stream has one or two frames in the window: judged to this many Hz."""
+RUN_TOLERANCE = 0.1
+"""Every stream's delivered rate summed over the steps, against its allocations summed: a
+1 Hz stream has one or two frames in a step's window, so it is judged over the run."""
 STEP_GOODPUT_SLACK = 1.1
 """A step's goodput comes from inter-arrival times, which a burst of queued frames inflates."""
 
@@ -62,16 +63,20 @@ def test_the_allocation_is_allocates_for_the_implied_priorities(fleet_run: Testb
 
 
 def test_every_robot_delivers_its_allocation(fleet_run: TestbedResult) -> None:
+    """Fast streams per step; every stream over the run (a short step times 1 Hz poorly)."""
     for step in fleet_run.steps:
         for robot in step.robots:
             assert robot.allocated_hz is not None
-            tolerance = (
-                FAST_TOLERANCE * robot.allocated_hz
-                if robot.allocated_hz >= FAST_HZ
-                else SLOW_TOLERANCE_HZ
-            )
-            assert abs(robot.delivered_hz - robot.allocated_hz) <= tolerance, (step.step, robot)
             assert robot.lost == 0, (step.step, robot)
+            if robot.allocated_hz >= FAST_HZ:
+                error = abs(robot.delivered_hz - robot.allocated_hz)
+                assert error <= FAST_TOLERANCE * robot.allocated_hz, (step.step, robot)
+    for k, camera in enumerate(fleet_cameras(ROBOTS)):
+        windows = [step.robots[k] for step in fleet_run.steps]
+        assert all(w.robot == camera.robot for w in windows)
+        allocated = sum(w.allocated_hz or 0.0 for w in windows)
+        delivered = sum(w.delivered_hz for w in windows)
+        assert delivered == pytest.approx(allocated, rel=RUN_TOLERANCE), camera.robot
 
 
 def test_the_fleet_fits_the_shared_link(fleet_run: TestbedResult) -> None:
@@ -103,7 +108,6 @@ def test_the_urgent_robot_rotates_and_is_served(fleet_run: TestbedResult) -> Non
         ]
         assert mine.allocated_hz is not None
         assert all(mine.allocated_hz >= (p.allocated_hz or 0.0) for p in peers), step
-        assert all(mine.delivered_hz > p.delivered_hz - SLOW_TOLERANCE_HZ for p in peers), step
 
 
 def test_the_document_names_the_fleet(fleet_run: TestbedResult) -> None:

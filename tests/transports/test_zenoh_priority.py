@@ -2,16 +2,19 @@
 
 from __future__ import annotations
 
+from typing import SupportsInt, cast
+
 import pytest
 
 from dbml.core.errors import TransportError
 from dbml.harness.processes import free_port
 from dbml.runtime import ManagedPublisher, names
-from dbml.runtime.qos import TransportQos
+from dbml.runtime.qos import TransportQos, map_priority
 from dbml.transports import Sample, Variant
 from dbml.transports.base import TransportPriority
 from dbml.transports.zenoh import (
     PRIORITY_LINK_RANGES,
+    ZENOH_PRIORITY,
     ZenohTransport,
     _json_list,
     _priority_endpoints,
@@ -20,14 +23,32 @@ from tests.conftest import wait_for
 
 
 def test_each_endpoint_gets_one_link_per_priority_range() -> None:
-    assert PRIORITY_LINK_RANGES == ("1-4", "5-7")
+    assert PRIORITY_LINK_RANGES == ("1-3", "4-7")
     assert _priority_endpoints(["tcp/10.0.0.1:7447", "tls/h:7447#iface=eth0"]) == [
-        "tcp/10.0.0.1:7447?prio=1-4",
-        "tcp/10.0.0.1:7447?prio=5-7",
-        "tls/h:7447?prio=1-4#iface=eth0",
-        "tls/h:7447?prio=5-7#iface=eth0",
+        "tcp/10.0.0.1:7447?prio=1-3",
+        "tcp/10.0.0.1:7447?prio=4-7",
+        "tls/h:7447?prio=1-3#iface=eth0",
+        "tls/h:7447?prio=4-7#iface=eth0",
     ]
     assert _priority_endpoints(["tcp/h:1?prio=1-7"]) == ["tcp/h:1?prio=1-7"]  # the author's
+
+
+def link_of(priority: TransportPriority) -> int:
+    """Which of ``PRIORITY_LINK_RANGES`` carries a class (zenoh's priorities are 1-7)."""
+    number = int(cast("SupportsInt", ZENOH_PRIORITY[priority]))  # 1-7; the stubs omit __int__
+    for index, span in enumerate(PRIORITY_LINK_RANGES):
+        low, high = (int(end) for end in span.split("-"))
+        if low <= number <= high:
+            return index
+    raise AssertionError(f"{priority} is in no range")
+
+
+def test_camera_frames_never_share_the_urgent_link() -> None:
+    """Every class a large frame can map to travels on the second link, urgent ones the first."""
+    large = {map_priority(p, 84_000).priority for p in (0.0, 0.1, 0.25, 0.5, 0.75, 1.0)}
+    assert {link_of(c) for c in large} == {1}
+    assert link_of(map_priority(1.0, 1_000).priority) == 0
+    assert link_of(TransportPriority.INTERACTIVE_HIGH) == 0  # dbml's control traffic
 
 
 def test_endpoints_with_metadata_are_checked_on_their_port() -> None:

@@ -11,6 +11,7 @@ from dbml.core.errors import SpecError
 from dbml.core.spec import check_number
 from dbml.runtime.qos import parse_transport_priority
 from dbml.secure import DEFAULT_BASE_PORT, DEFAULT_DAYS
+from dbml.testbed.netns import TOPOLOGIES
 from dbml.transports.base import DEFAULT_ROUTER_ENDPOINT, TransportPriority
 from dbml.transports.registry import DEFAULT_TRANSPORT, TRANSPORTS
 
@@ -260,8 +261,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     testbed_cmd.add_argument(
         "--topology",
-        choices=["peer", "router"],
-        default="peer",
+        choices=TOPOLOGIES,
+        default=TOPOLOGIES[0],
         help="peer (default): zenoh peers on explicit endpoints; router: a zenoh router per "
         "host, every role its client, the robots' routers meshed with the operator's",
     )

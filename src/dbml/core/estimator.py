@@ -233,8 +233,13 @@ class BandwidthEstimator:
             self._outage_since = heard
         elif fresh:
             # Back: restart what the backlog and the drops would distort, and hold a while.
+            # The rhythm too: the outage's gap is not a usual gap, and would delay seeing a
+            # second outage.
             self._outage_since = None
             self._streams.clear()
+            newest = self._recent[-1]
+            self._recent.clear()
+            self._recent.append(newest)
             self._lost = 0
             self._judge_from = now_s + self.settings.after_outage_s
             return None

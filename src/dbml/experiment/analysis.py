@@ -10,6 +10,7 @@ a run are named here, once.
 from __future__ import annotations
 
 import bisect
+import itertools
 import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
@@ -586,32 +587,50 @@ class Outage:
     """The same of frames sent after the restoration only: what the release sent."""
     budget_mbit: float | None
     """The largest budget in force in that time (None: nothing allocated, unmanaged)."""
-
-    @property
-    def over_budget_mbit(self) -> float | None:
-        """How far the worst window of the wire went over the budget (negative: under it)."""
-        if self.worst_window_mbit is None or self.budget_mbit is None:
-            return None
-        return self.worst_window_mbit - self.budget_mbit
-
-    @property
-    def release_over_budget_mbit(self) -> float | None:
-        """How far the worst window of what was sent after the restoration went over it."""
-        if self.worst_sent_after_mbit is None or self.budget_mbit is None:
-            return None
-        return self.worst_sent_after_mbit - self.budget_mbit
+    over_budget_mbit: float | None = None
+    """How far the wire's worst window went over the budget in force at that window (negative:
+    under it). Each window is judged against its own budget: a budget cut after the
+    restoration must not be hidden by the larger one before it."""
+    release_over_budget_mbit: float | None = None
+    """The same of what was sent after the restoration only: what the release sent."""
 
 
-def _worst_window_mbit(times: Sequence[float], sizes: Sequence[int], end: float) -> float | None:
-    """The most bytes in any ``WINDOW_S`` starting at a frame before ``end - WINDOW_S``."""
+def _budget_at(ticks: Sequence[Tick], t_s: float) -> float | None:
+    """The budget in force at ``t_s``: the last one seen at or before it, else the first after.
+
+    ``ticks`` are sorted by time and all carry a budget.
+    """
+    k = bisect.bisect_right([t.t_s for t in ticks], t_s)
+    if k > 0:
+        return ticks[k - 1].budget_mbit
+    return ticks[0].budget_mbit if ticks else None
+
+
+def _worst_windows(
+    times: Sequence[float], sizes: Sequence[int], end: float, ticks: Sequence[Tick]
+) -> tuple[float | None, float | None]:
+    """The worst ``WINDOW_S`` windows: most carried (Mbit/s), most over its budget.
+
+    Windows start at a frame before ``end - WINDOW_S``; each is judged against the budget in
+    force at its start. One pass: prefix sums of the sizes, each window's end found by an index
+    that only moves forward.
+    """
     worst: float | None = None
+    over: float | None = None
+    prefix = [0, *itertools.accumulate(sizes)]
+    stop = 0
     for k, start in enumerate(times):
         if start > end - WINDOW_S + _EDGE_S:
             break
-        stop = bisect.bisect_left(times, start + WINDOW_S)
-        carried = bytes_per_s_to_mbit(sum(sizes[k:stop]) / WINDOW_S)
+        stop = max(stop, k)
+        while stop < len(times) and times[stop] < start + WINDOW_S:
+            stop += 1
+        carried = bytes_per_s_to_mbit((prefix[stop] - prefix[k]) / WINDOW_S)
         worst = carried if worst is None else max(worst, carried)
-    return worst
+        budget = _budget_at(ticks, start)
+        if budget is not None:
+            over = carried - budget if over is None else max(over, carried - budget)
+    return worst, over
 
 
 def outages(
@@ -648,6 +667,16 @@ def outages(
         budgets = [
             t.budget_mbit for t in ticks if restored <= t.t_s <= until and t.budget_mbit is not None
         ]
+        known = sorted(
+            (t for t in ticks if t.budget_mbit is not None and t.t_s <= until),
+            key=lambda t: t.t_s,
+        )
+        wire, wire_over = _worst_windows(
+            [t for t, _, _ in inside], [b for _, b, _ in inside], until, known
+        )
+        sent, sent_over = _worst_windows(
+            [t for t, _ in fresh_inside], [b for _, b in fresh_inside], until, known
+        )
         found.append(
             Outage(
                 start_s=at,
@@ -662,13 +691,11 @@ def outages(
                     if f.arrival_s >= restored and f.sent_s is not None and f.sent_s < restored
                 ),
                 lost=sum(n for s in streams for t, n in s.gaps if start < t <= until),
-                worst_window_mbit=_worst_window_mbit(
-                    [t for t, _, _ in inside], [b for _, b, _ in inside], until
-                ),
-                worst_sent_after_mbit=_worst_window_mbit(
-                    [t for t, _ in fresh_inside], [b for _, b in fresh_inside], until
-                ),
+                worst_window_mbit=wire,
+                worst_sent_after_mbit=sent,
                 budget_mbit=max(budgets, default=None),
+                over_budget_mbit=wire_over,
+                release_over_budget_mbit=sent_over,
             )
         )
     return tuple(found)

@@ -399,24 +399,14 @@ def _open(role: str, spec: RoleSpec) -> Transport:
         from dbml.transports.ros1 import Ros1Transport
 
         return Ros1Transport(node_name=f"dbml_{role}")
-    if spec.transport == "zenoh" and spec.urgent_stream:
-        from dbml.transports.zenoh import ZenohTransport
-
-        # Priority links: the mapped class gets a connection of its own (see the transport).
-        return ZenohTransport(
-            host=spec.host,
-            listen=spec.listen,
-            connect=spec.connect,
-            config_file=spec.config_file,
-            follow_all_params=role in {"operator", "optimizer"},
-            priority_links=True,
-        )
     return open_transport(
         spec.transport,
         host=spec.host,
         listen=spec.listen,
         connect=spec.connect,
         config_file=spec.config_file,
+        # Priority links: the urgent stream's class gets a connection of its own.
+        priority_links=spec.transport == "zenoh" and spec.urgent_stream,
         follow_all_params=role in {"operator", "optimizer"},  # a robot only publishes
     )
 

@@ -12,10 +12,18 @@ periods sends it back to its minimum (fail-safe), and the next one takes over ag
 
 Link outage: once it has heard the estimator's beacon (``/dbm/link``), a publisher holds only
 its newest message, sending nothing on ``[topic]/optimized``, while the beacons stop (a link
-down both ways) or say outage; the channel the beacon names first (the most urgent) probes
-with its newest message every ``PROBE_INTERVAL_S`` meanwhile. When the link is back it sends
-the newest message at its place in the beacon's release order and goes on at its rate, with
-fresh credit: the outage's time is not banked into a burst.
+down both ways) or say outage. Meanwhile the channels of the beacon's release order take turns,
+one ``PROBE_INTERVAL_S`` each, to probe with their newest message (so an idle or departed
+channel cannot keep the link from being found), each through its rate limiter at most at its
+own rate. When the link is back it sends the newest message at its place in the release order
+(on the next beacon or ``publish``, whichever comes first) and goes on at its rate, with at most
+one message's credit: the outage's time is not banked into a burst.
+
+The hold can only be safer than the fail-safe, never worse: it lasts at most ``HOLD_MAX_S``,
+after which the channel runs at its minimum (as without an allocation) until a beacon says the
+link is back, so a dead estimator or a lost beacon cannot silence it for good. A channel still
+waiting for its first allocation sends nothing during or after a hold, and nothing in a beacon
+can raise a rate: probes and releases spend the same credit as every other message.
 """
 
 from __future__ import annotations
@@ -24,7 +32,8 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections import deque
+from collections.abc import Callable, Mapping
 
 from dbml.core.errors import TransportError
 from dbml.core.spec import ChannelSpec, check_number
@@ -47,7 +56,9 @@ from dbml.transports.base import (
 )
 
 __all__ = [
+    "BEACON_WINDOW",
     "FAILSAFE_PERIODS",
+    "HOLD_MAX_S",
     "LINK_SILENCE_S",
     "PROBE_INTERVAL_S",
     "SIZE_CHANGE",
@@ -65,8 +76,17 @@ LINK_SILENCE_S = 0.3
 STALE_RESET_S = 1.0
 """Beacons that all look stale for this long mean a new clock offset, not a buffered backlog."""
 PROBE_INTERVAL_S = 0.5
-"""In an outage the most urgent channel sends its newest message this often, to find the
-link back (the others hold until the estimator sees it arrive)."""
+"""In an outage one channel sends its newest message this often, to find the link back; the
+channels of the release order take turns (the others hold until the estimator sees a frame)."""
+PROBE_RATE_HZ = 1 / PROBE_INTERVAL_S
+"""The most a channel probes at; never above its own rate in force."""
+HOLD_MAX_S = 5.0
+"""The longest a hold lasts (seconds): then the channel runs at its fail-safe minimum until a
+beacon says the link is back. A hold is a refinement of the fail-safe, never a stop."""
+BEACON_WINDOW = 50
+"""Beacons (5 s of them) whose quickest transit is the yardstick of a stale or early one. The
+minimum ages, so neither clock drift nor one odd stamp sets it for good; silence does not age
+it, so the backlog buffered through an outage is still judged against the time before it."""
 
 
 class ManagedPublisher:
@@ -124,14 +144,19 @@ class ManagedPublisher:
         # Until then an allocation is expected; after it, fail-safe (also when none ever came).
         self._link_deadline = math.inf
         """Hold ``[topic]/optimized`` after this: beacon silence or an outage (inf: no beacon)."""
+        self._hold_from: float | None = None
+        """When the outage a beacon reported began (None: none reported)."""
         self._held: bytes | None = None
         self._release_at: float | None = None
-        self._probe = False
+        self._probe_turn: tuple[int, int] | None = None
+        """(this channel's place, how many) in the last outage beacon's release order."""
         self._probe_at = -math.inf
-        self._release_timer: threading.Timer | None = None
-        self._beacon_transit_s = math.inf
-        """The quickest beacon's transit plus the clock offset: the yardstick of a stale one."""
-        self._stale_since: float | None = None
+        self._transits: deque[float] = deque(maxlen=BEACON_WINDOW)
+        """Recent beacons' transit plus the clock offset: the yardstick of a stale one."""
+        self._odd_since: float | None = None
+        self._beacon_warned = False
+        self._hold_expired_noted = False
+        self._closed = False
         self._set_deadline(self._last_heard + failsafe_periods * self._period_s)
         self._view_watch = self._view.watch(self._on_param)
         params.set(names.min_rate(topic), self.min_rate_hz)
@@ -158,8 +183,8 @@ class ManagedPublisher:
             transport.graph.announce(Role.PUBLISHER, topic, Variant.FULL),
             self._view.watch(self._on_qos_param),
             Closer(self._close_retired),
-            transport.subscribe(LINK_TOPIC, self._on_link),
         ]
+        self._link_watch = transport.subscribe(LINK_TOPIC, self._on_link)
 
     # -- allocation ---------------------------------------------------------------------------
 
@@ -240,76 +265,142 @@ class ManagedPublisher:
 
     # -- link outage --------------------------------------------------------------------------
 
+    def _hold_start(self, now: float) -> float | None:
+        """When the hold in force began (None: the link is up, or no beacon was ever heard)."""
+        if self._hold_from is not None:
+            return self._hold_from
+        return self._link_deadline if now > self._link_deadline else None
+
     @property
     def holding(self) -> bool:
-        """Whether ``[topic]/optimized`` is held (the link is down or not yet released)."""
-        return self._now() > self._link_deadline
+        """Whether ``[topic]/optimized`` is held (down, not yet released, within ``HOLD_MAX_S``)."""
+        now = self._now()
+        start = self._hold_start(now)
+        return start is not None and now - start <= HOLD_MAX_S
+
+    def _warn_beacon(self, err: TransportError) -> None:
+        """Report a malformed beacon once per channel (they come every tick), then quietly."""
+        if self._beacon_warned:
+            log.debug("%s: %s", self.topic, err)
+            return
+        self._beacon_warned = True
+        log.warning("%s: %s (ignored; further ones are logged at debug level)", self.topic, err)
+
+    def _in_line_locked(self, now: float, sent_s: float) -> bool:
+        """Whether a beacon stamped ``sent_s`` speaks of now; lock held.
+
+        A beacon much later than the recent quickest one sat in a buffer through an outage; one
+        much earlier is stamped ahead (a forged or stepped clock): neither tells anything of the
+        link now. If they all are out of line for ``STALE_RESET_S``, a clock stepped or the
+        path changed: the yardstick starts anew.
+        """
+        transit = now - sent_s  # plus an unknown constant clock offset
+        quickest = min(self._transits, default=transit)
+        if abs(transit - quickest) > LINK_SILENCE_S:
+            if self._odd_since is None:
+                self._odd_since = now
+            if now - self._odd_since <= STALE_RESET_S:
+                return False
+            self._transits.clear()
+        self._odd_since = None
+        self._transits.append(transit)
+        return True
+
+    def _rate_locked(self, now: float) -> float | None:
+        """The rate in force without logging (None: waiting for a first allocation); lock held."""
+        if now > self._failsafe_deadline:
+            return self.min_rate_hz
+        return self._allocated_hz
+
+    def _release_locked(self, now: float, rate: float, *, send: bool) -> bool:
+        """Leave the hold: True if a message is to ``send`` now and the limiter has a frame.
+
+        The credit left is at most one frame (the message that goes now, or the next one), so
+        the outage's time is never banked into a burst; a probe that just went leaves less.
+        """
+        self._hold_from, self._release_at, self._probe_turn, self._held = None, None, None, None
+        self._link_deadline = now + LINK_SILENCE_S
+        self._hold_expired_noted = False
+        self._set_deadline(self._failsafe_deadline)
+        if self._limiter.allow(now):
+            self._limiter = RateLimiter(rate)
+            return send and self._limiter.allow(now)
+        self._limiter.set_rate(rate, now)
+        return False
 
     def _on_link(self, sample: Sample) -> None:
         """The estimator's beacon: keep holding off, hold, or release after an outage."""
         try:
             beacon = LinkBeacon.decode(sample.payload)
         except TransportError as err:
-            log.warning("%s", err)
+            self._warn_beacon(err)
             return
         now = self._now()
-        transit = now - beacon.sent_s  # plus an unknown constant clock offset
-        self._beacon_transit_s = min(self._beacon_transit_s, transit)
-        if transit - self._beacon_transit_s > LINK_SILENCE_S:
-            # Sent before the link went down and buffered: it tells nothing of now. Unless they
-            # all are late for long: then a clock stepped or the path changed; measure anew.
-            if self._stale_since is None:
-                self._stale_since = now
-            if now - self._stale_since <= STALE_RESET_S:
-                return
-            self._beacon_transit_s = transit
-        self._stale_since = None
+        send: tuple[bytes, int, float] | None = None
         with self._lock:
-            holding = now > self._link_deadline
+            if self._closed or not self._in_line_locked(now, beacon.sent_s):
+                return
+            start = self._hold_start(now)
             if not beacon.up:
+                # Repeated outage beacons do not extend the hold: it began once.
+                self._hold_from = now if start is None else start
                 self._link_deadline, self._release_at = -math.inf, None
-                self._probe = beacon.first == self.topic
-            elif not holding:
+                self._probe_turn = _turn(beacon.release_s, self.topic)
+            elif start is None:
                 self._link_deadline = now + LINK_SILENCE_S
-            elif self._release_at is None:  # back: go at our place in the release order
-                delay = beacon.release_s.get(self.topic, 0.0)
-                self._release_at = now + delay
-                if self._held is not None:  # a slow source may not publish again soon
-                    self._release_timer = threading.Timer(delay, self._send_held)
-                    self._release_timer.daemon = True
-                    self._release_timer.start()
+            else:  # back: go at our place in the release order
+                if self._release_at is None:
+                    self._release_at = now + beacon.release_s.get(self.topic, 0.0)
+                if now >= self._release_at:
+                    rate, held = self._rate_locked(now), self._held
+                    # A slow source may not publish again soon: its held message goes now,
+                    # unless the channel still waits for a first allocation.
+                    sending = held is not None and rate is not None
+                    went = self._release_locked(now, rate or self.min_rate_hz, send=sending)
+                    if went and held is not None and rate is not None:
+                        self._optimized_seq += 1
+                        send = (held, self._optimized_seq, rate)
             self._set_deadline(self._failsafe_deadline)
+        if send is not None:  # the middleware's put, never under the lock
+            payload, seq, rate = send
+            self._optimized.put(payload, attachment=pack_meta(seq, self._wall_clock_ns(), rate))
 
-    def _release_locked(self, now: float) -> None:
-        """The link is back for this channel: no hold, and one message's credit, not more."""
-        self._release_at, self._probe, self._held = None, False, None
-        self._link_deadline = now + LINK_SILENCE_S
-        self._set_deadline(self._failsafe_deadline)
-        self._limiter = RateLimiter(self._allocated_hz or self.min_rate_hz)
-        self._limiter.allow(now)  # spent by the message that goes now
+    def _gate_locked(self, now: float, rate: float, payload: bytes) -> tuple[bool, bool]:
+        """Whether ``payload`` goes without a steady allocation, and whether a hold just expired.
 
-    def _hold_locked(self, now: float, payload: bytes) -> bool:
-        """While the link is down: keep ``payload`` (True) or let it go (False); lock held."""
-        if self._release_at is not None and now >= self._release_at:
-            self._release_locked(now)  # this newer message replaces the held one
-            return False
-        if self._probe and now >= self._probe_at and self._release_at is None:
-            self._probe_at, self._held = now + PROBE_INTERVAL_S, None
-            return False
+        Not held: the first-allocation and fail-safe rules. Held: probe at our turn, release
+        at our place, else keep the newest message; past ``HOLD_MAX_S``, the fail-safe minimum.
+        Lock held.
+        """
+        start = self._hold_start(now)
+        if start is None:
+            return self._allow_unallocated(rate, now), False
+        if now - start > HOLD_MAX_S:
+            self._held = None
+            expired, self._hold_expired_noted = not self._hold_expired_noted, True
+            return self._allow_unallocated(min(rate, self.min_rate_hz), now), expired
+        if self._allocated_hz is None and now <= self._failsafe_deadline:
+            self._held = None  # never allocated: nothing of it may cross, now or at the release
+            return False, False
+        if self._release_at is not None:
+            if now >= self._release_at:  # this newer message replaces the held one
+                return self._release_locked(now, rate, send=True), False
+        elif now >= self._probe_at and self._my_turn(now, start):
+            probe_hz = min(rate, PROBE_RATE_HZ)
+            if probe_hz != self._limiter.rate_hz:
+                self._limiter.set_rate(probe_hz, now)
+            if self._limiter.allow(now):
+                self._probe_at, self._held = now + PROBE_INTERVAL_S, None
+                return True, False
         self._held = payload
-        return True
+        return False, False
 
-    def _send_held(self) -> None:
-        """The held message at its release time, if no newer ``publish`` took its place."""
-        with self._lock:
-            now, payload = self._now(), self._held
-            if payload is None or self._release_at is None or now < self._release_at:
-                return
-            self._release_locked(now)
-            self._optimized_seq += 1
-            rate = self._allocated_hz or self.min_rate_hz
-            meta = pack_meta(self._optimized_seq, self._wall_clock_ns(), rate)
-            self._optimized.put(payload, attachment=meta)
+    def _my_turn(self, now: float, start: float) -> bool:
+        """Whether this channel probes in the current ``PROBE_INTERVAL_S`` of the hold."""
+        if self._probe_turn is None:
+            return False  # no release order heard: the hold's bound is the way out
+        place, count = self._probe_turn
+        return int((now - start) / PROBE_INTERVAL_S) % count == place
 
     # -- transport class ----------------------------------------------------------------------
 
@@ -418,20 +509,25 @@ class ManagedPublisher:
         if full is not None and full.has_subscribers:
             self._full_seq += 1
             full.put(payload, attachment=pack_meta(self._full_seq, self._wall_clock_ns(), rate))
+        expired = False
         with self._lock:
             if steady:
                 allowed = self._limiter.allow(now)
-            elif now > self._link_deadline:  # the link is down: hold, or probe, or release
-                if self._hold_locked(now, payload):
-                    return False
-                allowed = True  # its credit was settled there
             else:
-                allowed = self._allow_unallocated(rate, now)
+                allowed, expired = self._gate_locked(now, rate, payload)
+            if allowed:  # numbered under the lock: a release may put from the beacon's thread
+                self._optimized_seq += 1
+                seq = self._optimized_seq
+        if expired:
+            log.warning(
+                "%s: held for %.1f s without word of the link; fail-safe: minimum %.3f Hz",
+                self.topic,
+                HOLD_MAX_S,
+                self.min_rate_hz,
+            )
         if not allowed:
             return False
-        self._optimized_seq += 1
-        meta = pack_meta(self._optimized_seq, self._wall_clock_ns(), rate)
-        self._optimized.put(payload, attachment=meta)
+        self._optimized.put(payload, attachment=pack_meta(seq, self._wall_clock_ns(), rate))
         return True
 
     def _allow_unallocated(self, rate: float, now: float) -> bool:
@@ -446,9 +542,14 @@ class ManagedPublisher:
         return self._limiter.allow(now) and not waiting
 
     def close(self) -> None:
-        """Withdraw from the graph and undeclare both publishers."""
-        if self._release_timer is not None:
-            self._release_timer.cancel()
+        """Withdraw from the graph and undeclare both publishers.
+
+        The beacon's subscription goes first: a release it would trigger puts on the
+        publishers undeclared below.
+        """
+        self._link_watch.close()
+        with self._lock:
+            self._closed = True
         for handle in self._handles:
             handle.close()
         self._handles.clear()
@@ -456,3 +557,11 @@ class ManagedPublisher:
         if self._full is not None:
             self._full.close()
         self._optimized.close()
+
+
+def _turn(release_s: Mapping[str, float], topic: str) -> tuple[int, int] | None:
+    """``topic``'s place in a release order and its length (None: not in it)."""
+    if topic not in release_s:
+        return None
+    order = sorted(release_s, key=lambda t: (release_s[t], t))
+    return order.index(topic), len(order)

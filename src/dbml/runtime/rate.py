@@ -32,11 +32,17 @@ class _Credit:
     def look(self, now: float, rate_hz: float | None = None) -> None:
         """Earn up to ``now``; a new rate counts from the last look at the lower of the two."""
         earning = self.rate_hz if rate_hz is None else min(self.rate_hz, rate_hz)
-        if self._seen is not None and now > self._seen:
-            self.frames = min(self.frames + (now - self._seen) * earning, self._cap)
-        self._seen = now if self._seen is None else max(self._seen, now)
+        self._earn(now, earning)
         if rate_hz is not None:
             self.rate_hz = rate_hz
+
+    def _earn(self, now: float, earning_hz: float) -> None:
+        """Add what ``earning_hz`` earned since the last look (the one rule of credit)."""
+        seen = self._seen
+        if seen is None or now > seen:
+            if seen is not None:
+                self.frames = min(self.frames + (now - seen) * earning_hz, self._cap)
+            self._seen = now
 
     def spend(self) -> bool:
         if self.frames < 1.0 - _EPSILON_FRAMES:
@@ -45,18 +51,9 @@ class _Credit:
         return True
 
     def take(self, now: float) -> bool:
-        """``look(now)`` then ``spend()`` in one call: the hot path of every managed publish."""
-        seen = self._seen
-        frames = self.frames
-        if seen is None or now > seen:
-            if seen is not None:
-                frames = min(frames + (now - seen) * self.rate_hz, self._cap)
-            self._seen = now
-        if frames < 1.0 - _EPSILON_FRAMES:
-            self.frames = frames
-            return False
-        self.frames = max(frames - 1.0, 0.0)
-        return True
+        """``look(now)`` then ``spend()``: the hot path of every managed publish."""
+        self._earn(now, self.rate_hz)
+        return self.spend()
 
     def wait_s(self) -> float:
         """Seconds until one frame is earned at the rate in force."""

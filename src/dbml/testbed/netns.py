@@ -30,7 +30,14 @@ from types import TracebackType
 
 from dbml.core.errors import DbmlError
 
-__all__ = ["Host", "Network", "TestbedError", "leftover_namespaces", "privilege_problem"]
+__all__ = [
+    "TOPOLOGIES",
+    "Host",
+    "Network",
+    "TestbedError",
+    "leftover_namespaces",
+    "privilege_problem",
+]
 
 _PREFIX = "dbml-"
 _OPERATOR = "op"
@@ -45,6 +52,11 @@ _DOWN_RULE_PRIORITIES = (100, 101)
 """``ip rule`` priorities of a down link's two blackhole rules (from and to the operator)."""
 _CAP_NET_ADMIN = 12
 _CAP_SYS_ADMIN = 21
+
+
+TOPOLOGIES = ("peer", "router")
+"""How a testbed's zenoh sessions meet: as peers on explicit endpoints (the default), or through
+a zenoh router per host meshed across the shaped link, as ROS 2 fleets run rmw_zenoh's."""
 
 
 class TestbedError(DbmlError):

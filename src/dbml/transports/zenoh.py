@@ -201,17 +201,17 @@ def _config(
     return config
 
 
-PRIORITY_LINK_RANGES = ("1-4", "5-7")
+PRIORITY_LINK_RANGES = ("1-3", "4-7")
 """With ``priority_links``, one link per range of zenoh priorities (1 = real_time ...
-7 = background): real_time to data_high, then data to background. zenoh sends a message on the
-link whose range holds its priority, so an urgent message has a TCP connection of its own and
-never waits behind bulk bytes already in the other's socket buffer (measured in the testbed:
-p95 34 ms instead of 526 ms beside saturating cameras). Control messages, in no range, take the
-first (urgent) link."""
+7 = background): real_time to interactive_low (control traffic and small urgent messages),
+then data_high to background (every camera frame, whatever its channel's priority). zenoh sends
+a message on the link whose range holds its priority, so an urgent message has a TCP connection
+of its own and never waits behind bulk bytes already in the other's socket buffer (measured in
+the testbed: p95 34 ms instead of 995 ms beside saturating cameras)."""
 
 
 def _priority_endpoints(endpoints: Iterable[str]) -> list[str]:
-    """Each endpoint once per ``PRIORITY_LINK_RANGES`` (``tcp/a:7447?prio=1-4`` ...).
+    """Each endpoint once per ``PRIORITY_LINK_RANGES`` (``tcp/a:7447?prio=1-3`` ...).
 
     An endpoint that already has metadata (``?...``) is kept as given: its author chose.
     """
