@@ -187,12 +187,7 @@ def _channel(index: int, value: object) -> ChannelSpec:
         {"topic", "frequency", "message_size_in_bytes", "priority"},
         {"topic", "frequency", "message_size_in_bytes"},
     )
-    topic = data["topic"]
-    if not isinstance(topic, str) or not topic.startswith("/") or topic.strip() != topic:
-        raise ConfigError(f"{where}: topic={topic!r} must be a string starting with '/'")
-    frequency = _mapping(f"{where}: frequency", data["frequency"], {"min", "max"}, {"min", "max"})
-    fmin = _number(where, "frequency.min", frequency["min"])
-    fmax = _number(where, "frequency.max", frequency["max"])
+    topic, fmin, fmax = _topic_and_bounds(where, data)
     size = _number(where, "message_size_in_bytes", data["message_size_in_bytes"])
     priority = _number(where, "priority", data.get("priority", 0.0))
     try:
@@ -384,6 +379,17 @@ class BridgeChannel:
             check_msg_type(self.msg_type, field=f"channel {self.topic!r}: type")
 
 
+def _topic_and_bounds(where: str, data: dict[str, object]) -> tuple[str, float, float]:
+    """A channel entry's topic and ``frequency: {min, max}``, as every channel list reads them."""
+    topic = data["topic"]
+    if not isinstance(topic, str) or not topic.startswith("/") or topic.strip() != topic:
+        raise ConfigError(f"{where}: topic={topic!r} must be a string starting with '/'")
+    frequency = _mapping(f"{where}: frequency", data["frequency"], {"min", "max"}, {"min", "max"})
+    fmin = _number(where, "frequency.min", frequency["min"])
+    fmax = _number(where, "frequency.max", frequency["max"])
+    return topic, fmin, fmax
+
+
 def _bridge_channel(index: int, value: object) -> BridgeChannel:
     where = _where("channels", index, value, "topic")
     data = _mapping(
@@ -392,12 +398,7 @@ def _bridge_channel(index: int, value: object) -> BridgeChannel:
         {"topic", "frequency", "message_size_in_bytes", "priority", "type"},
         {"topic", "frequency"},
     )
-    topic = data["topic"]
-    if not isinstance(topic, str) or not topic.startswith("/") or topic.strip() != topic:
-        raise ConfigError(f"{where}: topic={topic!r} must be a string starting with '/'")
-    frequency = _mapping(f"{where}: frequency", data["frequency"], {"min", "max"}, {"min", "max"})
-    fmin = _number(where, "frequency.min", frequency["min"])
-    fmax = _number(where, "frequency.max", frequency["max"])
+    topic, fmin, fmax = _topic_and_bounds(where, data)
     if "message_size_in_bytes" in data:  # accepted for a shared config; the bridge measures it
         _number(where, "message_size_in_bytes", data["message_size_in_bytes"], **_POSITIVE)
     priority = data.get("priority")

@@ -24,6 +24,7 @@ __all__ = [
     "TRANSPORTS",
     "TransportEntry",
     "TransportFactory",
+    "TransportOptions",
     "open_transport",
 ]
 
@@ -31,23 +32,26 @@ DEFAULT_TRANSPORT = "zenoh"
 """The transport used when none is named."""
 
 
+@dataclass(frozen=True, slots=True, kw_only=True)
+class TransportOptions:
+    """Everything ``open_transport`` may be given; each factory refuses what it cannot use."""
+
+    host: str | None = None
+    connect: tuple[str, ...] = ()
+    listen: tuple[str, ...] = ()
+    config_file: str | Path | None = None
+    network: MemoryNetwork | None = None
+    follow_all_params: bool = True
+    domain_id: int | None = None
+    ros_distro: str | None = None
+    msg_paths: tuple[str | Path, ...] = ()
+    priority_links: bool = False
+
+
 class TransportFactory(Protocol):
     """Opens one transport from ``open_transport``'s options (each rejects what it cannot use)."""
 
-    def __call__(
-        self,
-        *,
-        host: str | None,
-        connect: Sequence[str],
-        listen: Sequence[str],
-        config_file: str | Path | None,
-        network: MemoryNetwork | None,
-        follow_all_params: bool,
-        domain_id: int | None,
-        ros_distro: str | None,
-        msg_paths: Sequence[str | Path],
-        priority_links: bool,
-    ) -> Transport:
+    def __call__(self, options: TransportOptions, /) -> Transport:
         """Open the transport; a ``TransportError`` names what is missing or not accepted."""
         ...
 
@@ -71,18 +75,16 @@ class TransportEntry:
     an error rather than untyped bytes."""
 
 
-def _no_network(name: str, network: MemoryNetwork | None) -> None:
-    if network is not None:
+def _no_network(name: str, options: TransportOptions) -> None:
+    if options.network is not None:
         raise TransportError(f"transport={name!r} takes no network: only 'memory' does")
 
 
-def _no_ros2_options(
-    name: str, domain_id: int | None, ros_distro: str | None, msg_paths: Sequence[str | Path]
-) -> None:
+def _no_ros2_options(name: str, options: TransportOptions) -> None:
     for option, value in (
-        ("domain_id", domain_id),
-        ("ros_distro", ros_distro),
-        ("msg_paths", msg_paths or None),
+        ("domain_id", options.domain_id),
+        ("ros_distro", options.ros_distro),
+        ("msg_paths", options.msg_paths or None),
     ):
         if value is not None:
             raise TransportError(
@@ -90,113 +92,66 @@ def _no_ros2_options(
             )
 
 
-def _no_priority_links(name: str, priority_links: bool) -> None:
-    if priority_links:
+def _no_priority_links(name: str, options: TransportOptions) -> None:
+    if options.priority_links:
         raise TransportError(f"transport={name!r} has no priority links: only zenoh's do")
 
 
-def _open_ros2(
-    *,
-    host: str | None,
-    connect: Sequence[str],
-    listen: Sequence[str],
-    config_file: str | Path | None,
-    network: MemoryNetwork | None,
-    follow_all_params: bool,
-    domain_id: int | None,
-    ros_distro: str | None,
-    msg_paths: Sequence[str | Path],
-    priority_links: bool,
-) -> Transport:
-    _no_network("ros2", network)
+def _no_endpoints(name: str, options: TransportOptions, why: str) -> None:
+    if options.connect or options.listen or options.config_file:
+        raise TransportError(f"transport={name!r} takes no endpoints or config file{why}")
+
+
+def _open_ros2(options: TransportOptions) -> Transport:
+    _no_network("ros2", options)
     module = importlib.import_module("dbml.transports.ros2")
     transport: Transport = module.Ros2Transport(
-        host=host,
-        connect=connect,
-        listen=listen,
-        config_file=config_file,
-        domain_id=domain_id,
-        ros_distro=ros_distro,
-        msg_paths=msg_paths,
-        follow_all_params=follow_all_params,
-        priority_links=priority_links,
+        host=options.host,
+        connect=options.connect,
+        listen=options.listen,
+        config_file=options.config_file,
+        domain_id=options.domain_id,
+        ros_distro=options.ros_distro,
+        msg_paths=options.msg_paths,
+        follow_all_params=options.follow_all_params,
+        priority_links=options.priority_links,
     )
     return transport
 
 
-def _open_zenoh(
-    *,
-    host: str | None,
-    connect: Sequence[str],
-    listen: Sequence[str],
-    config_file: str | Path | None,
-    network: MemoryNetwork | None,
-    follow_all_params: bool,
-    domain_id: int | None,
-    ros_distro: str | None,
-    msg_paths: Sequence[str | Path],
-    priority_links: bool,
-) -> Transport:
-    _no_network("zenoh", network)
-    _no_ros2_options("zenoh", domain_id, ros_distro, msg_paths)
+def _open_zenoh(options: TransportOptions) -> Transport:
+    _no_network("zenoh", options)
+    _no_ros2_options("zenoh", options)
     module = importlib.import_module("dbml.transports.zenoh")
     transport: Transport = module.ZenohTransport(
-        host=host,
-        connect=connect,
-        listen=listen,
-        config_file=config_file,
-        follow_all_params=follow_all_params,
-        priority_links=priority_links,
+        host=options.host,
+        connect=options.connect,
+        listen=options.listen,
+        config_file=options.config_file,
+        follow_all_params=options.follow_all_params,
+        priority_links=options.priority_links,
     )
     return transport
 
 
-def _open_ros1(
-    *,
-    host: str | None,
-    connect: Sequence[str],
-    listen: Sequence[str],
-    config_file: str | Path | None,
-    network: MemoryNetwork | None,
-    follow_all_params: bool,
-    domain_id: int | None,
-    ros_distro: str | None,
-    msg_paths: Sequence[str | Path],
-    priority_links: bool,
-) -> Transport:
-    if connect or listen or config_file:
-        raise TransportError(
-            "transport='ros1' takes no endpoints or config file: it uses ROS_MASTER_URI"
-        )
-    _no_network("ros1", network)
-    _no_ros2_options("ros1", domain_id, ros_distro, msg_paths)
-    _no_priority_links("ros1", priority_links)
+def _open_ros1(options: TransportOptions) -> Transport:
+    _no_endpoints("ros1", options, ": it uses ROS_MASTER_URI")
+    _no_network("ros1", options)
+    _no_ros2_options("ros1", options)
+    _no_priority_links("ros1", options)
     try:
         module = importlib.import_module("dbml.transports.ros1")
     except ImportError as err:
         raise TransportError(str(err)) from err
-    transport: Transport = module.Ros1Transport(host=host)
+    transport: Transport = module.Ros1Transport(host=options.host)
     return transport
 
 
-def _open_memory(
-    *,
-    host: str | None,
-    connect: Sequence[str],
-    listen: Sequence[str],
-    config_file: str | Path | None,
-    network: MemoryNetwork | None,
-    follow_all_params: bool,
-    domain_id: int | None,
-    ros_distro: str | None,
-    msg_paths: Sequence[str | Path],
-    priority_links: bool,
-) -> Transport:
-    if connect or listen or config_file:
-        raise TransportError("transport='memory' takes no endpoints or config file")
-    _no_ros2_options("memory", domain_id, ros_distro, msg_paths)
-    _no_priority_links("memory", priority_links)
-    return MemoryTransport(network, host=host)
+def _open_memory(options: TransportOptions) -> Transport:
+    _no_endpoints("memory", options, "")
+    _no_ros2_options("memory", options)
+    _no_priority_links("memory", options)
+    return MemoryTransport(options.network, host=options.host)
 
 
 TRANSPORTS: Mapping[str, TransportEntry] = types.MappingProxyType(
@@ -269,14 +224,16 @@ def open_transport(
     if entry is None:
         raise TransportError(f"transport={name!r} is not one of: {', '.join(TRANSPORTS)}")
     return entry.factory(
-        host=host,
-        connect=connect,
-        listen=listen,
-        config_file=config_file,
-        network=network,
-        follow_all_params=follow_all_params,
-        domain_id=domain_id,
-        ros_distro=ros_distro,
-        msg_paths=msg_paths,
-        priority_links=priority_links,
+        TransportOptions(
+            host=host,
+            connect=tuple(connect),
+            listen=tuple(listen),
+            config_file=config_file,
+            network=network,
+            follow_all_params=follow_all_params,
+            domain_id=domain_id,
+            ros_distro=ros_distro,
+            msg_paths=tuple(msg_paths),
+            priority_links=priority_links,
+        )
     )
