@@ -240,6 +240,31 @@ def test_an_outage_s_windows_are_judged_against_the_budget_in_force_then() -> No
     assert outage.over_budget_mbit == over
 
 
+def test_a_window_across_a_raise_is_owed_the_mean_budget_over_it() -> None:
+    """The estimator raises the budget 0.5 s after the restoration; a window is owed its mean."""
+    before = _stream(0, hz=10, start=0.0, end=6.0, delay=0.05, size=84_000)
+    after = _stream(0, hz=10, start=9.0, end=14.0, delay=0.05, size=84_000)  # 6.72 Mbit/s
+    after = [replace(f, seq=100 + k) for k, f in enumerate(after)]
+    ticks = [
+        Tick(t_s=t, allocated_hz=(10.0,), budget_mbit=b, estimate_mbit=None)
+        for t, b in ((5.0, 4.0), (9.5, 9.4))
+    ]
+    (outage,) = outages(
+        [*before, *after],
+        ticks,
+        robots=["R1"],
+        t0=0.0,
+        schedule=((0.0, 11.0), (6.0, 0.0), (9.0, 11.0)),
+        urgent_at=lambda _t: 0,
+    )
+    over = outage.release_over_budget_mbit
+    assert over is not None
+    # the first window (9.05-10.05 s) is owed 0.45 s at 4 and 0.55 s at 9.4: 6.97 Mbit/s;
+    # judged against 4 alone it would read 2.72 over. One frame of rounding on its edge.
+    assert over <= 6.72 - 6.97 + 84_000 * 8e-6 + 1e-6
+    assert over >= 6.72 - 6.97 - 1e-6
+
+
 def test_the_worst_window_is_the_brute_force_one() -> None:
     """The one-pass sliding window finds what summing every window finds."""
     rng = random.Random(7)

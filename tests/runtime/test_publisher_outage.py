@@ -79,9 +79,10 @@ def test_a_silent_link_holds_only_the_newest_message_and_sends_it_when_back(
     fleet: Fleet,
 ) -> None:
     camera = fleet.publisher("/r1/camera", 0.9)
-    fleet.say(LinkBeacon(up=True))
     fleet.clock.advance(PERIOD_S)
     assert camera.publish(b"before")
+    fleet.say(LinkBeacon(up=True))  # after "before": the link carried it
+    fleet.clock.advance(PERIOD_S)
     # the beacons stop: the link is down both ways
     fleet.clock.advance(LINK_SILENCE_S + 0.01)
     sent = len(fleet.received)
@@ -109,6 +110,57 @@ def test_the_release_banks_no_credit_from_the_outage(fleet: Fleet) -> None:
     fleet.clock.advance(PERIOD_S)
     assert camera.publish(b"next period")
     assert len(fleet.received) == sent + 2
+
+
+def test_the_release_owes_what_went_into_the_dead_link(fleet: Fleet) -> None:
+    """Frames sent after the last beacon sit in TCP's buffer and arrive with the release."""
+    camera = fleet.publisher("/r1/camera", 0.9)
+    fleet.say(LinkBeacon(up=True))
+    fleet.clock.advance(PERIOD_S)
+    unheard = 0
+    for k in range(3):  # the link died just after the beacon; nobody knows it yet
+        unheard += camera.publish(f"unheard {k}".encode())
+        fleet.clock.advance(PERIOD_S)
+    assert unheard == 3
+    fleet.clock.advance(LINK_SILENCE_S)
+    assert not camera.publish(b"held")
+    assert camera.holding
+    fleet.say(LinkBeacon(up=True, release_s={"/r1/camera": 0.0}))
+    assert not camera.holding
+    sent = len(fleet.received)
+    went = []
+    for k in range(6):
+        went.append(camera.publish(f"after {k}".encode()))
+        fleet.clock.advance(PERIOD_S)
+        fleet.say(LinkBeacon(up=True))
+    # the three owed frames are the first 0.3 s of the rate; then one a period
+    assert went == [False, False, False, True, True, True]
+    assert len(fleet.received) == sent + 3
+
+
+def test_a_release_owes_at_most_one_window_of_the_rate(fleet: Fleet) -> None:
+    camera = fleet.publisher("/r1/camera", 0.9, rate_hz=MIN_RATE_HZ)
+    fleet.say(LinkBeacon(up=True))
+    unheard = 0
+    for k in range(3 * round(RATE_HZ)):  # 3 s of a 1 Hz channel; beacon silence from 0.3 s
+        unheard += camera.publish(f"unheard {k}".encode())
+        fleet.clock.advance(PERIOD_S)
+    assert unheard <= 1  # the rest was held
+    fleet.clock.advance(HOLD_MAX_S)  # past the hold: the fail-safe minimum, 1 Hz, into the void
+    for k in range(4 * round(RATE_HZ)):
+        unheard += camera.publish(f"fail-safe {k}".encode())
+        fleet.clock.advance(PERIOD_S)
+    assert unheard >= 4
+    fleet.say(LinkBeacon(up=True))
+    went = []
+    for k in range(round(3 * RATE_HZ)):
+        went.append(camera.publish(f"after {k}".encode()))
+        fleet.clock.advance(PERIOD_S)
+        fleet.say(LinkBeacon(up=True))
+    # one second's worth owed (one frame at 1 Hz), not all four: the first goes 1 s on, or
+    # 2 s when the fail-safe had just spent its frame
+    first = went.index(True)
+    assert 0.9 * RATE_HZ <= first <= 2.1 * RATE_HZ
 
 
 def test_in_an_outage_the_channels_take_turns_to_probe(fleet: Fleet) -> None:
@@ -210,7 +262,9 @@ def test_a_dead_estimator_leaves_the_fail_safe_minimum_not_a_hold(fleet: Fleet) 
     assert 1 <= sum(went) <= 2 + 1  # the minimum, never the allocation of 10 Hz
     assert len(fleet.received) - sent == sum(went)
     fleet.say(LinkBeacon(up=True))  # the estimator is back: the allocation again
-    fleet.clock.advance(PERIOD_S)
+    for _ in range(sum(went) + 2):  # once the fail-safe's frames are paid for
+        fleet.clock.advance(PERIOD_S)
+        fleet.say(LinkBeacon(up=True))
     assert camera.publish(b"a")
     fleet.clock.advance(PERIOD_S)
     assert camera.publish(b"b")

@@ -157,3 +157,11 @@ def test_what_goes_out_never_exceeds_the_integral_of_the_rate(
         for window_s in (0.25, 1.0):
             count = sum(1 for s in sent[i:] if s < start + window_s)
             assert count <= integral(start, start + window_s) + 2 + 1e-6
+
+
+def test_a_limiter_that_owes_frames_earns_them_back_from_its_start() -> None:
+    limiter = RateLimiter(10.0, credit_frames=-2.0, now=50.0)
+    assert not limiter.allow(50.0)
+    assert not limiter.allow(50.29)  # 2.9 frames earned of the 3 it needs
+    assert limiter.allow(50.3)
+    assert not limiter.allow(50.3)

@@ -30,6 +30,11 @@ RUN_TOLERANCE = 0.1
 1 Hz stream has one or two frames in a step's window, so it is judged over the run."""
 STEP_GOODPUT_SLACK = 1.1
 """A step's goodput comes from inter-arrival times, which a burst of queued frames inflates."""
+MAX_LOST_PER_RUN = 2
+"""Frames a run may lose (of about 700): data is sent with zenoh's DROP congestion control, so
+a TCP connection that stalls on the saturated link (a tbf drop, then a retransmission timeout)
+fills zenoh's queue and the newest frame is dropped rather than queued stale. Measured: one
+21,000-byte frame in one of about ten 8-robot router runs, none in peer runs."""
 
 
 @pytest.fixture(scope="module", params=["peer", "router"])
@@ -64,10 +69,11 @@ def test_the_allocation_is_allocates_for_the_implied_priorities(fleet_run: Testb
 
 def test_every_robot_delivers_its_allocation(fleet_run: TestbedResult) -> None:
     """Fast streams per step; every stream over the run (a short step times 1 Hz poorly)."""
+    lost = [(step.step, r.robot, r.lost) for step in fleet_run.steps for r in step.robots if r.lost]
+    assert sum(n for _, _, n in lost) <= MAX_LOST_PER_RUN, lost
     for step in fleet_run.steps:
         for robot in step.robots:
             assert robot.allocated_hz is not None
-            assert robot.lost == 0, (step.step, robot)
             if robot.allocated_hz >= FAST_HZ:
                 error = abs(robot.delivered_hz - robot.allocated_hz)
                 assert error <= FAST_TOLERANCE * robot.allocated_hz, (step.step, robot)

@@ -588,9 +588,10 @@ class Outage:
     budget_mbit: float | None
     """The largest budget in force in that time (None: nothing allocated, unmanaged)."""
     over_budget_mbit: float | None = None
-    """How far the wire's worst window went over the budget in force at that window (negative:
-    under it). Each window is judged against its own budget: a budget cut after the
-    restoration must not be hidden by the larger one before it."""
+    """How far the wire's worst window went over the budget in force over that window
+    (negative: under it). Each window is judged against its own budget, the time-weighted mean
+    of the budgets in force across it: a budget cut after the restoration must not be hidden
+    by the larger one before it, nor a raise counted as excess."""
     release_over_budget_mbit: float | None = None
     """The same of what was sent after the restoration only: what the release sent."""
 
@@ -606,13 +607,34 @@ def _budget_at(ticks: Sequence[Tick], t_s: float) -> float | None:
     return ticks[0].budget_mbit if ticks else None
 
 
+def _budget_over(ticks: Sequence[Tick], start: float, end: float) -> float | None:
+    """The mean budget in force over ``[start, end)``, weighted by time.
+
+    Rates follow the budget as it moves (a rate earns credit over time), so a window is owed
+    the budget's integral: judged against its start alone, a window while the estimator raises
+    the budget would count the raise as excess, and one while it cuts would hide the cut.
+    ``ticks`` are sorted by time and all carry a budget.
+    """
+    budget = _budget_at(ticks, start)
+    if budget is None:
+        return None
+    weighted, at = 0.0, start
+    for tick in ticks:
+        if at < tick.t_s < end:
+            weighted += budget * (tick.t_s - at)
+            budget, at = tick.budget_mbit, tick.t_s
+            assert budget is not None  # the caller keeps only ticks with a budget
+    weighted += budget * (end - at)
+    return weighted / (end - start)
+
+
 def _worst_windows(
     times: Sequence[float], sizes: Sequence[int], end: float, ticks: Sequence[Tick]
 ) -> tuple[float | None, float | None]:
     """The worst ``WINDOW_S`` windows: most carried (Mbit/s), most over its budget.
 
-    Windows start at a frame before ``end - WINDOW_S``; each is judged against the budget in
-    force at its start. One pass: prefix sums of the sizes, each window's end found by an index
+    Windows start at a frame before ``end - WINDOW_S``; each is judged against the mean budget
+    in force over it. One pass: prefix sums of the sizes, each window's end found by an index
     that only moves forward.
     """
     worst: float | None = None
@@ -627,7 +649,7 @@ def _worst_windows(
             stop += 1
         carried = bytes_per_s_to_mbit((prefix[stop] - prefix[k]) / WINDOW_S)
         worst = carried if worst is None else max(worst, carried)
-        budget = _budget_at(ticks, start)
+        budget = _budget_over(ticks, start, start + WINDOW_S)
         if budget is not None:
             over = carried - budget if over is None else max(over, carried - budget)
     return worst, over

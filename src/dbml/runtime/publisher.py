@@ -17,7 +17,9 @@ one ``PROBE_INTERVAL_S`` each, to probe with their newest message (so an idle or
 channel cannot keep the link from being found), each through its rate limiter at most at its
 own rate. When the link is back it sends the newest message at its place in the release order
 (on the next beacon or ``publish``, whichever comes first) and goes on at its rate, with at most
-one message's credit: the outage's time is not banked into a burst.
+one message's credit: the outage's time is not banked into a burst. What it sent after the last
+beacon it heard (before it knew, probes, the fail-safe's) sat in the dead link's buffer and
+arrives with the release, so the release owes it (up to ``OWED_WINDOW_S`` of its rate).
 
 The hold can only be safer than the fail-safe, never worse: it lasts at most ``HOLD_MAX_S``,
 after which the channel runs at its minimum (as without an allocation) until a beacon says the
@@ -60,6 +62,7 @@ __all__ = [
     "FAILSAFE_PERIODS",
     "HOLD_MAX_S",
     "LINK_SILENCE_S",
+    "OWED_WINDOW_S",
     "PROBE_INTERVAL_S",
     "SIZE_CHANGE",
     "ManagedPublisher",
@@ -80,6 +83,10 @@ PROBE_INTERVAL_S = 0.5
 channels of the release order take turns (the others hold until the estimator sees a frame)."""
 PROBE_RATE_HZ = 1 / PROBE_INTERVAL_S
 """The most a channel probes at; never above its own rate in force."""
+OWED_WINDOW_S = 1.0
+"""A release owes the frames the channel sent since the last beacon it heard, up to this long
+at its rate: TCP still holds them from before the outage and delivers them when the link
+returns, so the backlog and the release share one window's budget instead of adding up."""
 HOLD_MAX_S = 5.0
 """The longest a hold lasts (seconds): then the channel runs at its fail-safe minimum until a
 beacon says the link is back. A hold is a refinement of the fail-safe, never a stop."""
@@ -131,6 +138,9 @@ class ManagedPublisher:
         self._lock = threading.Lock()
         self._full_seq = 0
         self._optimized_seq = 0
+        self._confirmed_seq = 0
+        """The last message sent before a beacon said the link was up: later ones may sit in a
+        dead link's buffer."""
         self._size_bytes = -1
         self._allocated_hz: float | None = None
         self._last_heard = transport.now()
@@ -316,17 +326,18 @@ class ManagedPublisher:
         """Leave the hold: True if a message is to ``send`` now and the limiter has a frame.
 
         The credit left is at most one frame (the message that goes now, or the next one), so
-        the outage's time is never banked into a burst; a probe that just went leaves less.
+        the outage's time is never banked into a burst; a probe that just went leaves none.
+        What was sent since the last beacon is owed (``OWED_WINDOW_S``): it arrives now too.
         """
         self._hold_from, self._release_at, self._probe_turn, self._held = None, None, None, None
         self._link_deadline = now + LINK_SILENCE_S
         self._hold_expired_noted = False
         self._set_deadline(self._failsafe_deadline)
-        if self._limiter.allow(now):
-            self._limiter = RateLimiter(rate)
-            return send and self._limiter.allow(now)
-        self._limiter.set_rate(rate, now)
-        return False
+        owed = min(float(self._optimized_seq - self._confirmed_seq), rate * OWED_WINDOW_S)
+        self._confirmed_seq = self._optimized_seq
+        credit = 1.0 if self._limiter.allow(now) else 0.0
+        self._limiter = RateLimiter(rate, credit_frames=credit - owed, now=now)
+        return send and self._limiter.allow(now)
 
     def _on_link(self, sample: Sample) -> None:
         """The estimator's beacon: keep holding off, hold, or release after an outage."""
@@ -348,6 +359,7 @@ class ManagedPublisher:
                 self._probe_turn = _turn(beacon.release_s, self.topic)
             elif start is None:
                 self._link_deadline = now + LINK_SILENCE_S
+                self._confirmed_seq = self._optimized_seq
             else:  # back: go at our place in the release order
                 if self._release_at is None:
                     self._release_at = now + beacon.release_s.get(self.topic, 0.0)

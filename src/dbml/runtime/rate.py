@@ -23,11 +23,13 @@ _EPSILON_FRAMES = 1e-9
 class _Credit:
     """Frames earned at the rate in force since the last look, capped at ``cap_frames``."""
 
-    def __init__(self, rate_hz: float, *, cap_frames: float) -> None:
+    def __init__(
+        self, rate_hz: float, *, cap_frames: float, frames: float = 1.0, now: float | None = None
+    ) -> None:
         self.rate_hz = rate_hz
         self._cap = cap_frames
-        self.frames = 1.0  # the first message goes at once
-        self._seen: float | None = None
+        self.frames = min(frames, cap_frames)  # by default the first message goes at once
+        self._seen = now
 
     def look(self, now: float, rate_hz: float | None = None) -> None:
         """Earn up to ``now``; a new rate counts from the last look at the lower of the two."""
@@ -70,8 +72,13 @@ class RateLimiter:
     BANKED_FRAMES = 2.0
     """The most credit kept: a source that called late may catch up one message, no more."""
 
-    def __init__(self, rate_hz: float) -> None:
-        self._credit = _Credit(rate_hz, cap_frames=self.BANKED_FRAMES)
+    def __init__(
+        self, rate_hz: float, *, credit_frames: float = 1.0, now: float | None = None
+    ) -> None:
+        """``credit_frames`` at ``now`` (None: the first call); below 0 it owes frames sent."""
+        self._credit = _Credit(
+            rate_hz, cap_frames=self.BANKED_FRAMES, frames=credit_frames, now=now
+        )
 
     @property
     def rate_hz(self) -> float:
