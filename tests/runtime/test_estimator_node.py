@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 
 from dbml.core.estimator import Phase
+from dbml.experiment.analysis import CUT_STAMP
 from dbml.runtime import names
 from dbml.runtime.estimator import LinkEstimator
 from dbml.runtime.metadata import pack_meta
@@ -15,6 +16,8 @@ from dbml.transports import MemoryNetwork, MemoryTransport, Variant
 from dbml.transports.base import Sample
 from dbml.transports.memory import ManualClock
 
+WALL_S = 1_700_000_000.0
+"""The base station's wall clock at its monotonic 0."""
 FRAME_BYTES = 100_000
 RATE_HZ = 10.0  # 8 Mbit/s
 
@@ -35,7 +38,10 @@ class Link:
         self.base.params.set(names.BANDWIDTH, 10.0)
         self.base.params.set(names.UTILIZATION, 0.9)
         self.changes = 0
-        self.estimator = LinkEstimator(self.base, on_change=self._changed)
+        self.states: list[object] = []
+        self.estimator = LinkEstimator(
+            self.base, on_change=self._changed, wall_clock_s=lambda: WALL_S + self.base_clock()
+        )
         self.reporter = ReceptionReporter(self.operator)
         self.received: list[Sample] = []
         self.subscriber = ManagedSubscriber(
@@ -48,6 +54,7 @@ class Link:
 
     def _changed(self) -> None:
         self.changes += 1
+        self.states.append(self.base.params.get(names.ESTIMATOR_STATE))
 
     def run(self, seconds: float, *, delay_growth: float = 0.0, skip: int = 0) -> None:
         """Send at 10 Hz for ``seconds``; one-way delay grows by ``delay_growth`` s per s."""
@@ -91,6 +98,19 @@ def test_growing_delay_lowers_the_budget_and_pokes_the_optimizer() -> None:
     assert optimizer.budget_mbit() == estimate  # the estimate replaces bandwidth x utilization
     assert optimizer.optimize().budget_mbit == estimate
     optimizer.stop()
+
+
+def test_a_cut_carries_the_wall_clock_time_it_was_decided() -> None:
+    """The testbed times a cut from it: the operator's ticks would see it only every 0.2 s."""
+    link = Link()
+    link.run(2.0)
+    link.run(1.0, delay_growth=0.5)
+    cuts = [str(s) for s in link.states if str(s).startswith("decrease")]
+    assert cuts, link.states
+    stamp = CUT_STAMP.search(cuts[0])
+    assert stamp is not None, cuts[0]
+    assert 2.0 < float(stamp.group(1)) - WALL_S < 3.5  # the base's clock at the decision
+    assert not any(CUT_STAMP.search(str(s)) for s in link.states if str(s).startswith("inc"))
 
 
 def test_lost_frames_lower_the_budget() -> None:

@@ -21,6 +21,7 @@ import json
 import logging
 import math
 import threading
+import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -138,8 +139,10 @@ class LinkEstimator:
         interval_s: float = ESTIMATE_INTERVAL_S,
         report_lag_s: float = REPORT_LAG_S,
         on_change: Callable[[], None] | None = None,
+        wall_clock_s: Callable[[], float] = time.time,
     ) -> None:
         self._transport = transport
+        self._wall_clock_s = wall_clock_s
         self._settings = settings
         self._report_lag_s = report_lag_s
         self.on_change = on_change
@@ -237,11 +240,13 @@ class LinkEstimator:
         self._published = (value, phase)
         params = self._transport.params
         params.set(names.ESTIMATE, round(value, 4))
-        params.set(
-            names.ESTIMATOR_STATE,
+        state = (
             f"{phase}: received {estimate.received_mbit:.2f} Mbit/s, "
-            f"queueing {estimate.queue_delay_s * 1000:.0f} ms, lost {estimate.lost}",
+            f"queueing {estimate.queue_delay_s * 1000:.0f} ms, lost {estimate.lost}"
         )
+        if estimate.phase is Phase.DECREASE:  # when it was decided, to the millisecond
+            state += f" @{self._wall_clock_s():.3f}"
+        params.set(names.ESTIMATOR_STATE, state)
         if self.on_change is not None:
             self.on_change()
 

@@ -30,8 +30,9 @@ __all__ = [
 log = logging.getLogger("dbml.reception")
 
 RECEPTION_TOPIC = "/dbm/reception"
-REPORT_INTERVAL_S = 0.1
-"""How often a reporter sends what it recorded."""
+REPORT_INTERVAL_S = 0.05
+"""How often a reporter sends what it recorded: the estimator judges this much and half again
+in the past (frames still on their way to it), so it is part of the time to a cut."""
 _MAX_FRAMES = 10_000
 """Frames kept between flushes at most; beyond that the oldest are dropped (nobody reads)."""
 
