@@ -7,7 +7,7 @@ import pytest
 from dbml.core.estimator import Phase
 from dbml.experiment.analysis import CUT_STAMP
 from dbml.runtime import names
-from dbml.runtime.estimator import LinkEstimator
+from dbml.runtime.estimator import LINK_TOPIC, LinkBeacon, LinkEstimator
 from dbml.runtime.metadata import pack_meta
 from dbml.runtime.optimizer import OptimizerNode
 from dbml.runtime.reception import RECEPTION_TOPIC, ReceptionReport, ReceptionReporter
@@ -111,6 +111,28 @@ def test_a_cut_carries_the_wall_clock_time_it_was_decided() -> None:
     assert stamp is not None, cuts[0]
     assert 2.0 < float(stamp.group(1)) - WALL_S < 3.5  # the base's clock at the decision
     assert not any(CUT_STAMP.search(str(s)) for s in link.states if str(s).startswith("inc"))
+
+
+def test_after_an_outage_the_beacon_names_the_channels_heard_again() -> None:
+    link = Link()
+    beacons: list[LinkBeacon] = []
+    link.operator.subscribe(LINK_TOPIC, lambda s: beacons.append(LinkBeacon.decode(s.payload)))
+    link.run(2.0)
+    assert beacons
+    assert all(b.up and b.heard is None for b in beacons)  # no outage: not said
+    for _ in range(20):  # 2 s without a frame: the link is down
+        link.t += 0.1
+        link.base_clock.advance(0.1)
+        link.estimator.tick()
+    down = len(beacons)
+    assert not beacons[-1].up
+    assert beacons[-1].heard is None
+    link.estimator.tick()  # still down, nothing arrived: nobody is heard
+    link.run(0.5)
+    after = [b for b in beacons[down:] if b.up]
+    assert after, beacons[down:]
+    assert all(b.heard is not None for b in after)
+    assert "/cam" in (after[-1].heard or ())
 
 
 def test_lost_frames_lower_the_budget() -> None:

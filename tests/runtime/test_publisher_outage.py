@@ -16,6 +16,7 @@ import pytest
 from dbml.core.errors import TransportError
 from dbml.runtime import ManagedPublisher, names
 from dbml.runtime.estimator import (
+    HEARD_MAX,
     LINK_TOPIC,
     RELEASE_MAX_S,
     LinkBeacon,
@@ -23,7 +24,7 @@ from dbml.runtime.estimator import (
     release_offsets,
 )
 from dbml.runtime.metadata import MessageMeta
-from dbml.runtime.publisher import HOLD_MAX_S, LINK_SILENCE_S, PROBE_INTERVAL_S
+from dbml.runtime.publisher import HEARD_WAIT_S, HOLD_MAX_S, LINK_SILENCE_S, PROBE_INTERVAL_S
 from dbml.runtime.rate import RateLimiter
 from dbml.transports import ManualClock, MemoryNetwork, MemoryTransport, Sample, Variant
 from dbml.transports.base import TransportPriority
@@ -136,6 +137,60 @@ def test_the_release_owes_what_went_into_the_dead_link(fleet: Fleet) -> None:
     # the three owed frames are the first 0.3 s of the rate; then one a period
     assert went == [False, False, False, True, True, True]
     assert len(fleet.received) == sent + 3
+
+
+def _stuck(fleet: Fleet, topic: str) -> ManagedPublisher:
+    """A channel that sent into the link just before it died, now holding."""
+    camera = fleet.publisher(topic, 0.9)
+    fleet.say(LinkBeacon(up=True))
+    fleet.clock.advance(PERIOD_S)
+    assert camera.publish(b"unheard")
+    fleet.clock.advance(LINK_SILENCE_S + 0.01)
+    assert not camera.publish(b"held")
+    assert camera.holding
+    return camera
+
+
+def test_a_channel_with_a_backlog_releases_once_it_is_heard(fleet: Fleet) -> None:
+    camera = _stuck(fleet, "/r1/camera")
+    back = {"/r1/camera": 0.0}
+    fleet.say(LinkBeacon(up=True, release_s=back, heard=frozenset({"/r2/camera"})))
+    assert camera.holding  # the link is back, but our backlog is not through yet
+    fleet.clock.advance(PERIOD_S)
+    assert not camera.publish(b"newer")
+    fleet.say(LinkBeacon(up=True, release_s=back, heard=frozenset({"/r1/camera"})))
+    assert not camera.holding
+    fleet.clock.advance(2 * PERIOD_S)  # the owed frame paid for
+    fleet.say(LinkBeacon(up=True))
+    assert camera.publish(b"fresh")
+
+
+def test_a_backlog_never_heard_waits_only_so_long(fleet: Fleet) -> None:
+    """Frames the middleware dropped in the outage never arrive: the wait is bounded."""
+    camera = _stuck(fleet, "/r1/camera")
+    nobody: frozenset[str] = frozenset()
+    waited = 0.0
+    while camera.holding and waited < 3 * HEARD_WAIT_S:
+        fleet.say(LinkBeacon(up=True, release_s={"/r1/camera": 0.0}, heard=nobody))
+        fleet.clock.advance(PERIOD_S)
+        waited += PERIOD_S
+    assert not camera.holding
+    assert HEARD_WAIT_S <= waited <= HEARD_WAIT_S + 2 * PERIOD_S
+
+
+def test_a_channel_that_sent_nothing_into_the_dead_link_need_not_be_heard(
+    fleet: Fleet,
+) -> None:
+    camera = fleet.publisher("/r1/camera", 0.9)
+    fleet.clock.advance(PERIOD_S)
+    assert camera.publish(b"before")
+    fleet.say(LinkBeacon(up=True))  # after it: nothing unconfirmed
+    fleet.clock.advance(LINK_SILENCE_S + 0.01)
+    assert not camera.publish(b"held")
+    sent = len(fleet.received)
+    fleet.say(LinkBeacon(up=True, release_s={"/r1/camera": 0.0}, heard=frozenset()))
+    assert not camera.holding
+    assert fleet.payloads()[sent:] == [b"held"]
 
 
 def test_a_release_owes_at_most_one_window_of_the_rate(fleet: Fleet) -> None:
@@ -308,6 +363,10 @@ BAD_BEACONS = [
     b'{"up": 0}',
     b'{"up": true, "sent_s": NaN}',
     b'{"up": true, "sent_s": -Infinity}',
+    b'{"up": true, "heard": "/r1/camera"}',
+    b'{"up": true, "heard": [1]}',
+    b'{"up": true, "heard": {"/r1/camera": true}}',
+    b'{"up": true, "heard": [' + b",".join([b'"/a"'] * (HEARD_MAX + 1)) + b"]}",
     b"[" * 100_000 + b"]" * 100_000,
     b"[true]",
     b"\xff\xfe",
@@ -428,4 +487,6 @@ def test_the_beacon_travels_in_the_datas_own_class() -> None:
 def test_an_encoded_beacon_round_trips() -> None:
     beacon = LinkBeacon(up=False, release_s={"/r1/camera": 0.5}, sent_s=12.5)
     assert LinkBeacon.decode(beacon.encode()) == beacon
+    heard = LinkBeacon(up=True, sent_s=1.0, heard=frozenset({"/r1/camera", "/r2/camera"}))
+    assert LinkBeacon.decode(heard.encode()) == heard
     assert json.loads(beacon.encode())["up"] is False

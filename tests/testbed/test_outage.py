@@ -32,11 +32,12 @@ the floor (0.23 Mbit) for the rest of the run."""
 
 
 def test_an_outage_holds_then_releases_the_urgent_channel_first(netns_privilege: None) -> None:
-    """Hold, then the most urgent channel first; the release is measured, not bounded here.
+    """Hold, then the most urgent channel first, and the release within the budget.
 
-    Its worst 1-s window over the budget read 0.37-2.17 Mbit/s in eight runs (fresh frames
-    arrive bunched behind the backlog TCP held when the link died, which dbml cannot recall),
-    so only its presence is asserted; the result's target reports it per run.
+    Within it as frames allow: one message per channel over the budget in any 1-s window
+    (a token bucket's bound). The release waits until each channel's backlog is heard and
+    owes what that backlog carried; before both, fresh frames bunched behind the backlog and
+    the worst window read 0.37-2.17 Mbit/s over (eight runs), after them 0.13-0.65 (ten).
     """
     options = TestbedOptions.from_flags(
         policy="dbml", step_seconds=STEP_S, link_schedule=SCHEDULE, estimate=True
@@ -50,7 +51,7 @@ def test_an_outage_holds_then_releases_the_urgent_channel_first(netns_privilege:
     assert outage.first_fresh_urgent_s < FIRST_URGENT_S, outage
     assert outage.stale <= MAX_STALE, outage
     assert outage.release_over_budget_mbit is not None
-    assert "budget_kept_within_one_message_per_channel_after_outage_at_9s" in result.targets()
+    assert result.targets()["budget_kept_within_one_message_per_channel_after_outage_at_9s"]
     budget = result.steps[-1].budget_mbit
     assert budget is not None
     assert budget >= MIN_BUDGET_AFTER_MBIT, result.steps[-1]

@@ -37,6 +37,7 @@ from dbml.transports.base import Sample, Transport
 
 __all__ = [
     "ESTIMATE_INTERVAL_S",
+    "HEARD_MAX",
     "LINK_TOPIC",
     "RELEASE_MAX_S",
     "LinkBeacon",
@@ -59,6 +60,8 @@ RELEASE_ORDER_S = 2.0
 RELEASE_MAX_S = 2.0
 """The latest place in a release order (seconds after the link is back): later ones go
 together at it, and a beacon naming one outside ``[0, RELEASE_MAX_S]`` is malformed."""
+HEARD_MAX = 4096
+"""The most channels a beacon names as heard; a beacon naming more is malformed."""
 _DECODE_ERRORS = (ValueError, OverflowError, RecursionError, TypeError, KeyError, AttributeError)
 """What untrusted JSON can raise on its way in (``UnicodeDecodeError`` is a ``ValueError``)."""
 
@@ -82,10 +85,21 @@ class LinkBeacon:
     """Per channel, how long after the link is back its held message goes out (0: first)."""
     sent_s: float = 0.0
     """The estimator's clock: a beacon that sat in a buffer through the outage is stale."""
+    heard: frozenset[str] | None = None
+    """After an outage, the channels whose frames arrived again (None: not said). A channel
+    that sent into the dead link waits to be heard before it releases: until then its TCP
+    connection still holds that backlog, and a release would queue behind it and arrive
+    bunched with it, over the budget."""
 
     def encode(self) -> bytes:
         """The beacon as compact JSON."""
-        document = {"up": self.up, "release_s": dict(self.release_s), "sent_s": self.sent_s}
+        document: dict[str, Any] = {
+            "up": self.up,
+            "release_s": dict(self.release_s),
+            "sent_s": self.sent_s,
+        }
+        if self.heard is not None:
+            document["heard"] = sorted(self.heard)
         return json.dumps(document).encode()
 
     @classmethod
@@ -105,9 +119,21 @@ class LinkBeacon:
                 str(t): _number(v, field=f"release_s[{t!r}]", low=0.0, high=RELEASE_MAX_S)
                 for t, v in document.get("release_s", {}).items()
             }
-            return cls(up, release, _number(document.get("sent_s", 0.0), field="sent_s"))
+            sent = _number(document.get("sent_s", 0.0), field="sent_s")
+            return cls(up, release, sent, _heard(document.get("heard")))
         except _DECODE_ERRORS as err:
             raise TransportError(f"malformed link beacon {data[:80]!r}: {err}") from err
+
+
+def _heard(value: object) -> frozenset[str] | None:
+    """A beacon's ``heard``: absent, or a list of at most ``HEARD_MAX`` strings."""
+    if value is None:
+        return None
+    if not isinstance(value, list) or len(value) > HEARD_MAX:
+        raise ValueError(f"heard is not a list of at most {HEARD_MAX} topics")
+    if not all(isinstance(topic, str) for topic in value):
+        raise TypeError("heard names a topic that is not a string")
+    return frozenset(value)
 
 
 def release_offsets(
@@ -162,6 +188,10 @@ class LinkEstimator:
         # exceeded the budget by 2.2 Mbit/s in 2 of 4 testbed runs, against 0.4-0.7).
         self._beacon = transport.declare_publisher(LINK_TOPIC)
         self._order_until = -math.inf
+        self._arrived: dict[str, float] = {}
+        """Per channel, its newest frame's arrival on our clock (at most ``HEARD_MAX``)."""
+        self._silent_from = math.inf
+        """The estimator's time when it last declared an outage: frames after it are back."""
 
     def cap_mbit(self) -> float | None:
         """The configured budget (bandwidth times utilization): the estimate's ceiling."""
@@ -186,6 +216,9 @@ class LinkEstimator:
             if self._estimator is None:
                 return
             for frame in report.frames:
+                arrived = self._arrived
+                if frame.topic in arrived or len(arrived) < HEARD_MAX:
+                    arrived[frame.topic] = max(arrived.get(frame.topic, -math.inf), now)
                 self._estimator.observe(
                     Arrival(
                         stream=f"{report.host}{frame.topic}",
@@ -216,8 +249,15 @@ class LinkEstimator:
         """Tell publishers whether frames arrive (and, around an outage, the release order)."""
         down = estimate.phase is Phase.OUTAGE
         now = self._transport.now()
+        heard: frozenset[str] | None = None
         if down:
+            if now > self._order_until:  # a new outage: frames from now on are the link back
+                self._silent_from = now
             self._order_until = now + RELEASE_ORDER_S
+        elif now <= self._order_until:
+            with self._lock:
+                silent = self._silent_from
+                heard = frozenset(t for t, at in self._arrived.items() if at > silent)
         release: dict[str, float] = {}
         if now <= self._order_until:  # only around an outage: it reads every parameter
             channels: dict[str, tuple[float, float]] = {}
@@ -226,7 +266,7 @@ class LinkEstimator:
                 if params.size_bytes:
                     channels[topic] = (params.priority, params.size_bytes)
             release = release_offsets(channels, mbit_to_bytes_per_s(estimate.estimate_mbit))
-        self._beacon.put(LinkBeacon(not down, release, now).encode())
+        self._beacon.put(LinkBeacon(not down, release, now, heard).encode())
 
     def _publish(self, estimate: Estimate) -> None:
         value, phase = estimate.estimate_mbit, estimate.phase.value

@@ -18,8 +18,10 @@ channel cannot keep the link from being found), each through its rate limiter at
 own rate. When the link is back it sends the newest message at its place in the release order
 (on the next beacon or ``publish``, whichever comes first) and goes on at its rate, with at most
 one message's credit: the outage's time is not banked into a burst. What it sent after the last
-beacon it heard (before it knew, probes, the fail-safe's) sat in the dead link's buffer and
-arrives with the release, so the release owes it (up to ``OWED_WINDOW_S`` of its rate).
+beacon it heard (before it knew, probes, the fail-safe's) sat in the dead link's buffer: such
+a channel releases only once the estimator says its frames arrive again (``HEARD_WAIT_S``), so
+fresh frames do not queue behind that backlog, and the release owes it (up to
+``OWED_WINDOW_S`` of its rate).
 
 The hold can only be safer than the fail-safe, never worse: it lasts at most ``HOLD_MAX_S``,
 after which the channel runs at its minimum (as without an allocation) until a beacon says the
@@ -60,6 +62,7 @@ from dbml.transports.base import (
 __all__ = [
     "BEACON_WINDOW",
     "FAILSAFE_PERIODS",
+    "HEARD_WAIT_S",
     "HOLD_MAX_S",
     "LINK_SILENCE_S",
     "OWED_WINDOW_S",
@@ -83,6 +86,9 @@ PROBE_INTERVAL_S = 0.5
 channels of the release order take turns (the others hold until the estimator sees a frame)."""
 PROBE_RATE_HZ = 1 / PROBE_INTERVAL_S
 """The most a channel probes at; never above its own rate in force."""
+HEARD_WAIT_S = 1.0
+"""After an outage, a channel that sent into the dead link waits until the estimator says its
+frames arrive again (``LinkBeacon.heard``), at most this long after the link is back."""
 OWED_WINDOW_S = 1.0
 """A release owes the frames the channel sent since the last beacon it heard, up to this long
 at its rate: TCP still holds them from before the outage and delivers them when the link
@@ -158,6 +164,8 @@ class ManagedPublisher:
         """When the outage a beacon reported began (None: none reported)."""
         self._held: bytes | None = None
         self._release_at: float | None = None
+        self._back_at: float | None = None
+        """When a beacon first said the link is back in the hold in force."""
         self._probe_turn: tuple[int, int] | None = None
         """(this channel's place, how many) in the last outage beacon's release order."""
         self._probe_at = -math.inf
@@ -330,6 +338,7 @@ class ManagedPublisher:
         What was sent since the last beacon is owed (``OWED_WINDOW_S``): it arrives now too.
         """
         self._hold_from, self._release_at, self._probe_turn, self._held = None, None, None, None
+        self._back_at = None
         self._link_deadline = now + LINK_SILENCE_S
         self._hold_expired_noted = False
         self._set_deadline(self._failsafe_deadline)
@@ -355,15 +364,17 @@ class ManagedPublisher:
             if not beacon.up:
                 # Repeated outage beacons do not extend the hold: it began once.
                 self._hold_from = now if start is None else start
-                self._link_deadline, self._release_at = -math.inf, None
+                self._link_deadline, self._release_at, self._back_at = -math.inf, None, None
                 self._probe_turn = _turn(beacon.release_s, self.topic)
             elif start is None:
                 self._link_deadline = now + LINK_SILENCE_S
                 self._confirmed_seq = self._optimized_seq
-            else:  # back: go at our place in the release order
-                if self._release_at is None:
+            else:  # back: go at our place in the release order, once our backlog is through
+                if self._back_at is None:
+                    self._back_at = now
+                if self._release_at is None and self._clear_locked(now, beacon.heard):
                     self._release_at = now + beacon.release_s.get(self.topic, 0.0)
-                if now >= self._release_at:
+                if self._release_at is not None and now >= self._release_at:
                     rate, held = self._rate_locked(now), self._held
                     # A slow source may not publish again soon: its held message goes now,
                     # unless the channel still waits for a first allocation.
@@ -376,6 +387,12 @@ class ManagedPublisher:
         if send is not None:  # the middleware's put, never under the lock
             payload, seq, rate = send
             self._optimized.put(payload, attachment=pack_meta(seq, self._wall_clock_ns(), rate))
+
+    def _clear_locked(self, now: float, heard: frozenset[str] | None) -> bool:
+        """Whether nothing we sent is still stuck in the link (see ``HEARD_WAIT_S``); lock held."""
+        if self._optimized_seq == self._confirmed_seq or heard is None or self.topic in heard:
+            return True
+        return self._back_at is not None and now - self._back_at >= HEARD_WAIT_S
 
     def _gate_locked(self, now: float, rate: float, payload: bytes) -> tuple[bool, bool]:
         """Whether ``payload`` goes without a steady allocation, and whether a hold just expired.
