@@ -34,7 +34,8 @@ MAX_LOST_PER_RUN = 2
 """Frames a run may lose (of about 700): data is sent with zenoh's DROP congestion control, so
 a TCP connection that stalls on the saturated link (a tbf drop, then a retransmission timeout)
 fills zenoh's queue and the newest frame is dropped rather than queued stale. Measured: one
-21,000-byte frame in one of about ten 8-robot router runs, none in peer runs."""
+84,000-byte frame (R3 at 10.5 Hz, step 6) in one of about ten 8-robot router runs, none in
+peer runs."""
 
 
 @pytest.fixture(scope="module", params=["peer", "router"])
