@@ -10,6 +10,7 @@ import pytest
 from dbml.experiment.analysis import (
     WINDOW_S,
     Arrival,
+    Outage,
     Tick,
     _worst_windows,
     analyse,
@@ -213,16 +214,14 @@ def test_an_outage_reports_the_urgent_first_frame_the_backlog_and_the_worst_wind
     assert outage.release_over_budget_mbit == pytest.approx(7.056 - 8.0)
 
 
-def test_an_outage_s_windows_are_judged_against_the_budget_in_force_then() -> None:
-    """A budget cut after the restoration: the larger budget before it hides nothing."""
+def _steady_outage(budgets: tuple[tuple[float, float], ...]) -> Outage:
+    """R1 at 10 Hz of 84 KB (6.72 Mbit/s), the link down 6-9 s; ``budgets``: (t_s, Mbit/s)."""
     before = _stream(0, hz=10, start=0.0, end=6.0, delay=0.05, size=84_000)
-    # 10 Hz of 84 KB (6.72 Mbit/s) throughout the 5 s after the restoration
     after = _stream(0, hz=10, start=9.0, end=14.0, delay=0.05, size=84_000)
     after = [replace(f, seq=100 + k) for k, f in enumerate(after)]
     ticks = [
-        Tick(t_s=t, allocated_hz=(10.0,), budget_mbit=8.0, estimate_mbit=None) for t in (5.0, 9.5)
+        Tick(t_s=t, allocated_hz=(10.0,), budget_mbit=b, estimate_mbit=None) for t, b in budgets
     ]
-    ticks.append(Tick(t_s=11.0, allocated_hz=(10.0,), budget_mbit=4.0, estimate_mbit=None))
     (outage,) = outages(
         [*before, *after],
         ticks,
@@ -231,6 +230,12 @@ def test_an_outage_s_windows_are_judged_against_the_budget_in_force_then() -> No
         schedule=((0.0, 11.0), (6.0, 0.0), (9.0, 11.0)),
         urgent_at=lambda _t: 0,
     )
+    return outage
+
+
+def test_an_outage_s_windows_are_judged_against_the_budget_in_force_then() -> None:
+    """A budget cut after the restoration: the larger budget before it hides nothing."""
+    outage = _steady_outage(((5.0, 8.0), (9.5, 8.0), (11.0, 4.0)))
     assert outage.budget_mbit == 8.0  # the largest in force, as reported
     # the windows from 11 s on carried 6.72 Mbit/s (10 frames, or 11 on the rounding edge)
     # against a budget of 4; against 8 every window would look within it
@@ -242,21 +247,7 @@ def test_an_outage_s_windows_are_judged_against_the_budget_in_force_then() -> No
 
 def test_a_window_across_a_raise_is_owed_the_mean_budget_over_it() -> None:
     """The estimator raises the budget 0.5 s after the restoration; a window is owed its mean."""
-    before = _stream(0, hz=10, start=0.0, end=6.0, delay=0.05, size=84_000)
-    after = _stream(0, hz=10, start=9.0, end=14.0, delay=0.05, size=84_000)  # 6.72 Mbit/s
-    after = [replace(f, seq=100 + k) for k, f in enumerate(after)]
-    ticks = [
-        Tick(t_s=t, allocated_hz=(10.0,), budget_mbit=b, estimate_mbit=None)
-        for t, b in ((5.0, 4.0), (9.5, 9.4))
-    ]
-    (outage,) = outages(
-        [*before, *after],
-        ticks,
-        robots=["R1"],
-        t0=0.0,
-        schedule=((0.0, 11.0), (6.0, 0.0), (9.0, 11.0)),
-        urgent_at=lambda _t: 0,
-    )
+    outage = _steady_outage(((5.0, 4.0), (9.5, 9.4)))
     over = outage.release_over_budget_mbit
     assert over is not None
     # the first window (9.05-10.05 s) is owed 0.45 s at 4 and 0.55 s at 9.4: 6.97 Mbit/s;

@@ -76,16 +76,20 @@ def fleet() -> Fleet:
     return Fleet()
 
 
+def _confirmed_then_silent(fleet: Fleet, topic: str) -> ManagedPublisher:
+    """A channel whose last message went before a beacon (the link carried it), then silence."""
+    camera = fleet.publisher(topic, 0.9)
+    fleet.clock.advance(PERIOD_S)
+    assert camera.publish(b"before")
+    fleet.say(LinkBeacon(up=True))  # after "before": nothing unconfirmed
+    fleet.clock.advance(LINK_SILENCE_S + 0.01)  # the beacons stop: down both ways
+    return camera
+
+
 def test_a_silent_link_holds_only_the_newest_message_and_sends_it_when_back(
     fleet: Fleet,
 ) -> None:
-    camera = fleet.publisher("/r1/camera", 0.9)
-    fleet.clock.advance(PERIOD_S)
-    assert camera.publish(b"before")
-    fleet.say(LinkBeacon(up=True))  # after "before": the link carried it
-    fleet.clock.advance(PERIOD_S)
-    # the beacons stop: the link is down both ways
-    fleet.clock.advance(LINK_SILENCE_S + 0.01)
+    camera = _confirmed_then_silent(fleet, "/r1/camera")
     sent = len(fleet.received)
     for k in range(5):
         assert not camera.publish(f"during {k}".encode())
@@ -181,11 +185,7 @@ def test_a_backlog_never_heard_waits_only_so_long(fleet: Fleet) -> None:
 def test_a_channel_that_sent_nothing_into_the_dead_link_need_not_be_heard(
     fleet: Fleet,
 ) -> None:
-    camera = fleet.publisher("/r1/camera", 0.9)
-    fleet.clock.advance(PERIOD_S)
-    assert camera.publish(b"before")
-    fleet.say(LinkBeacon(up=True))  # after it: nothing unconfirmed
-    fleet.clock.advance(LINK_SILENCE_S + 0.01)
+    camera = _confirmed_then_silent(fleet, "/r1/camera")
     assert not camera.publish(b"held")
     sent = len(fleet.received)
     fleet.say(LinkBeacon(up=True, release_s={"/r1/camera": 0.0}, heard=frozenset()))
