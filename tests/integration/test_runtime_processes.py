@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 import signal
+import threading
 import time
 from pathlib import Path
 
 import pytest
 
 from dbml.runtime import names
+from dbml.runtime.estimator import LINK_TOPIC, LinkBeacon
 from dbml.transports.base import ParamValue
 from dbml.transports.paramstore import encode_param, param_key
 from tests.conftest import MONITOR_JSON_KEYS, wait_for
@@ -18,6 +21,9 @@ from tests.integration.procs import fleet, publish_argv
 pytestmark = pytest.mark.integration
 
 CAMERA = "/r1/camera"
+FRAME_BYTES = 84_000
+FLOOD_MAX_BEACONS = 5_000
+"""A forged-beacon flood's bound in rounds (three beacons a round, every 5 ms: about 25 s)."""
 
 
 def config(tmp_path: Path, *, mbit: float, period_s: float = 1.0) -> str:
@@ -265,3 +271,60 @@ def test_a_forged_graph_token_neither_pulls_the_full_stream_nor_unmanages(
         assert max(line["bytes_per_s"] for line in lines) <= 1.1 * budget
         assert f.param(names.managed(CAMERA)) is True
         assert f.param(names.current_value(CAMERA)) == pytest.approx(budget / 84_000)
+
+
+def test_forged_link_beacons_never_widen_the_wire(tmp_path: Path) -> None:
+    """Forged ``/dbm/link`` beacons from a plain session never raise what is sent.
+
+    The flood: garbage, outages, releases naming every channel as heard, beacons stamped an
+    hour ahead, up and down alternating every few milliseconds. A beacon can make a publisher
+    hold (send less), but nothing in one may raise a rate: each release spends the same credit
+    as any message. Measured on the wire by the passive subscriber's 1-s windows while the
+    flood lasts: 2-3 of the allocated 5.95 frames a second (each release owes the message the
+    one before it sent).
+    """
+    budget = 4 * 125_000
+    with fleet() as f:
+        f.start("optimizer", "--config", config(tmp_path, mbit=4), "--host", "base")
+        camera = f.start(*publisher())
+        viewer = f.start("subscribe", CAMERA, "--json", "--host", "operator")
+        wait_for(
+            lambda: allocated(f) == pytest.approx(budget / 84_000),
+            timeout_s=15,
+            what="the allocation",
+        )
+        beacon = f.probe.declare_publisher(LINK_TOPIC)
+        everyone = frozenset({CAMERA, "/r2/camera"})
+        garbage = [b"{not json", b'{"up": true, "heard": [1]}', b'{"up": "false"}']
+        stop = threading.Event()
+
+        def flood() -> None:
+            for k in itertools.count():
+                if stop.is_set() or k >= FLOOD_MAX_BEACONS:
+                    return
+                now = f.probe.now()
+                forged = [
+                    LinkBeacon(up=k % 2 == 0, release_s={CAMERA: 0.0}, sent_s=now, heard=everyone),
+                    LinkBeacon(up=True, release_s={CAMERA: 0.0}, sent_s=now - 3600.0),
+                ]
+                for data in [*(b.encode() for b in forged), garbage[k % len(garbage)]]:
+                    beacon.put(data)
+                stop.wait(0.005)
+
+        flooder = threading.Thread(target=flood, name="forged-beacons")
+        flooder.start()
+        try:
+            viewer.drain()  # only what was received while the flood lasts
+            rates = [
+                line["bytes_per_s"]
+                for line, _ in zip(viewer.json_lines(timeout_s=8), range(5), strict=False)
+            ]
+        finally:
+            stop.set()
+            flooder.join(timeout=5)
+            beacon.close()
+        assert len(rates) == 5
+        assert max(rates) <= 1.1 * budget  # whole frames per 1-s window: at most one extra
+        assert min(rates) >= FRAME_BYTES  # held and owed, never silenced: the minimum, 1 Hz
+        assert camera.popen.poll() is None, camera.stderr()
+        assert "Traceback" not in camera.stderr()

@@ -159,9 +159,22 @@ def test_what_goes_out_never_exceeds_the_integral_of_the_rate(
             assert count <= integral(start, start + window_s) + 2 + 1e-6
 
 
-def test_a_limiter_that_owes_frames_earns_them_back_from_its_start() -> None:
-    limiter = RateLimiter(10.0, credit_frames=-2.0, now=50.0)
-    assert not limiter.allow(50.0)
-    assert not limiter.allow(50.29)  # 2.9 frames earned of the 3 it needs
-    assert limiter.allow(50.3)
-    assert not limiter.allow(50.3)
+def test_a_restart_keeps_at_most_one_frame_and_owes_what_it_is_told() -> None:
+    limiter = RateLimiter(10.0)
+    assert limiter.allow(50.0)
+    limiter.restart(10.0, 60.0, owed_frames=2.0)  # 10 s idle: one frame kept, two owed
+    assert not limiter.allow(60.0)
+    assert not limiter.allow(60.19)  # -1 + 1.9 frames: not yet
+    assert limiter.allow(60.2)
+    assert not limiter.allow(60.2)
+
+
+def test_restarting_often_never_starves_the_channel() -> None:
+    """Each restart keeps what was earned: a flood of them still lets the rate through."""
+    limiter = RateLimiter(10.0)
+    sent = 0
+    for k in range(1000):  # one restart and one message every 10 ms for 10 s
+        now = 100.0 + k * 0.01
+        limiter.restart(10.0, now)
+        sent += limiter.allow(now)
+    assert 99 <= sent <= 101

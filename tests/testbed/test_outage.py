@@ -37,7 +37,7 @@ def test_an_outage_holds_then_releases_the_urgent_channel_first(netns_privilege:
     Within it as frames allow: one message per channel over the budget in any 1-s window
     (a token bucket's bound). The release waits until each channel's backlog is heard and
     owes what that backlog carried; before both, fresh frames bunched behind the backlog and
-    the worst window read 0.30-2.17 Mbit/s over (ten runs), after them 0.13-0.65 (ten).
+    the worst window read 0.30-2.17 Mbit/s over (ten runs), after them 0.13-0.66 (thirteen).
     """
     options = TestbedOptions.from_flags(
         policy="dbml", step_seconds=STEP_S, link_schedule=SCHEDULE, estimate=True

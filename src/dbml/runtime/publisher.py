@@ -334,7 +334,7 @@ class ManagedPublisher:
         """Leave the hold: True if a message is to ``send`` now and the limiter has a frame.
 
         The credit left is at most one frame (the message that goes now, or the next one), so
-        the outage's time is never banked into a burst; a probe that just went leaves none.
+        the outage's time is never banked into a burst; a probe that just went leaves less.
         What was sent since the last beacon is owed (``OWED_WINDOW_S``): it arrives now too.
         """
         self._hold_from, self._release_at, self._probe_turn, self._held = None, None, None, None
@@ -344,8 +344,7 @@ class ManagedPublisher:
         self._set_deadline(self._failsafe_deadline)
         owed = min(float(self._optimized_seq - self._confirmed_seq), rate * OWED_WINDOW_S)
         self._confirmed_seq = self._optimized_seq
-        credit = 1.0 if self._limiter.allow(now) else 0.0
-        self._limiter = RateLimiter(rate, credit_frames=credit - owed, now=now)
+        self._limiter.restart(rate, now, owed_frames=owed)
         return send and self._limiter.allow(now)
 
     def _on_link(self, sample: Sample) -> None:

@@ -23,13 +23,11 @@ _EPSILON_FRAMES = 1e-9
 class _Credit:
     """Frames earned at the rate in force since the last look, capped at ``cap_frames``."""
 
-    def __init__(
-        self, rate_hz: float, *, cap_frames: float, frames: float = 1.0, now: float | None = None
-    ) -> None:
+    def __init__(self, rate_hz: float, *, cap_frames: float) -> None:
         self.rate_hz = rate_hz
         self._cap = cap_frames
-        self.frames = min(frames, cap_frames)  # by default the first message goes at once
-        self._seen = now
+        self.frames = 1.0  # the first message goes at once
+        self._seen: float | None = None
 
     def look(self, now: float, rate_hz: float | None = None) -> None:
         """Earn up to ``now``; a new rate counts from the last look at the lower of the two."""
@@ -72,13 +70,8 @@ class RateLimiter:
     BANKED_FRAMES = 2.0
     """The most credit kept: a source that called late may catch up one message, no more."""
 
-    def __init__(
-        self, rate_hz: float, *, credit_frames: float = 1.0, now: float | None = None
-    ) -> None:
-        """``credit_frames`` at ``now`` (None: the first call); below 0 it owes frames sent."""
-        self._credit = _Credit(
-            rate_hz, cap_frames=self.BANKED_FRAMES, frames=credit_frames, now=now
-        )
+    def __init__(self, rate_hz: float) -> None:
+        self._credit = _Credit(rate_hz, cap_frames=self.BANKED_FRAMES)
 
     @property
     def rate_hz(self) -> float:
@@ -92,6 +85,17 @@ class RateLimiter:
         counts), and a brief one earns only its share.
         """
         self._credit.look(now, rate_hz)
+
+    def restart(self, rate_hz: float, now: float, *, owed_frames: float = 0.0) -> None:
+        """Apply ``rate_hz`` from ``now`` with at most one frame of credit, less ``owed_frames``.
+
+        After a pause that must not be banked (an outage): what was earned up to one frame is
+        kept, so restarting often never starves a channel, and frames already sent that the
+        pause's time does not cover are owed (the credit goes below zero).
+        """
+        credit = self._credit
+        credit.look(now, rate_hz)
+        credit.frames = min(credit.frames, 1.0) - owed_frames
 
     def allow(self, now: float) -> bool:
         """Whether a message may go out at ``now``; if so it counts as sent."""
