@@ -4,6 +4,9 @@
 # Where Debian's ROS 1 packages are installed (scripts/install-ros1), .venv is made from Debian's
 # Python with its system site packages, the one interpreter that imports rospy; elsewhere from
 # `python3`. Installing ROS later rebuilds .venv on the next make.
+#
+# `.[dev]` brings every extra (ros2, secure, plot) besides the tools: the whole suite runs, the
+# tests of `pip install dbml` without them included (tests/test_extras.py blocks them).
 ROS_PYTHON := /usr/bin/python3
 HAVE_ROS := $(shell $(ROS_PYTHON) -c 'import rospy' >/dev/null 2>&1 && echo ros1)
 ifeq ($(HAVE_ROS),ros1)

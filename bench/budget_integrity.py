@@ -57,7 +57,7 @@ from rich.table import Table
 from dbml.core.errors import TransportError
 from dbml.harness.processes import end_process, free_port
 from dbml.harness.sniffer import WireSniffer, window_stats
-from dbml.runtime import names
+from dbml.protocol import names
 from dbml.runtime.graph import is_managed, published_topics
 from dbml.runtime.metadata import MessageMeta
 from dbml.transports.base import ParamValue

@@ -29,6 +29,9 @@ x size, strategy ``paper``. A probe session (host ``bench``) reads the parameter
 - ``failsafe_events``: warnings containing ``fail-safe`` logged in the robot processes, from start
   to teardown. ``sessions``: robots + operator + optimizer + probe.
 
+The processes are ``dbml.harness``'s: started, read and ended by PID by ``RoleProcesses`` (also
+on Ctrl-C and SIGTERM), the workers report JSON lines and read their commands as roles do.
+
     python bench/fleet.py [--robots R] [--channels C] [--seconds S] [--json]
 
 Default sizes 2x4, 10x4, 20x4, 40x4, 80x4. Targets (for 40x4): converge <= 5 s, reaction p99
@@ -48,7 +51,6 @@ import os
 import queue
 import random
 import signal
-import subprocess
 import sys
 import tempfile
 import threading
@@ -64,9 +66,17 @@ from rich.table import Table
 
 from dbml import ChannelSpec, Problem, allocate
 from dbml.core.allocation import Status
-from dbml.harness.processes import RoleProcesses, emit_json, end_process, free_port
+from dbml.experiment.runner import sigterm_as_interrupt
+from dbml.harness.processes import (
+    Emit,
+    RoleProcesses,
+    emit_json,
+    free_port,
+    read_commands,
+    stop_on_signals,
+)
 from dbml.harness.sniffer import WireSniffer, window_stats
-from dbml.runtime import names
+from dbml.protocol import names
 from dbml.runtime.publisher import ManagedPublisher
 from dbml.runtime.subscriber import ManagedSubscriber
 from dbml.transports.base import ParamValue, Sample
@@ -211,39 +221,22 @@ def percentile(values: list[float], q: float) -> float | None:
 # -- worker processes (robots, operator) ------------------------------------------------------
 
 
-class Emitter:
-    """JSON lines on stdout from any thread."""
-
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-
-    def __call__(self, message: dict[str, Any]) -> None:
-        with self._lock, contextlib.suppress(OSError, ValueError):
-            emit_json(message)
+def report(message: dict[str, Any]) -> None:
+    """A worker's report (from any thread); dropped once the bench is gone."""
+    with contextlib.suppress(OSError, ValueError):
+        emit_json(message)
 
 
 class FailsafeCounter(logging.Handler):
     """Reports each fail-safe warning as it is logged (the pacing threads log it)."""
 
-    def __init__(self, emit: Emitter) -> None:
+    def __init__(self) -> None:
         super().__init__(logging.WARNING)
-        self._emit = emit
 
     def emit(self, record: logging.LogRecord) -> None:
         message = record.getMessage()
         if FAILSAFE_TEXT in message:
-            self._emit({"type": "failsafe", "message": message})
-
-
-def read_commands(commands: queue.Queue[str], stop: threading.Event) -> None:
-    """Lines of stdin into ``commands``; ``stop`` or EOF (the parent gone) ends the worker."""
-    try:
-        for line in sys.stdin:
-            if line.startswith("stop"):
-                break
-            commands.put(line.strip())
-    finally:
-        stop.set()
+            report({"type": "failsafe", "message": message})
 
 
 def ignore_sample(_sample: Sample) -> None:
@@ -251,7 +244,7 @@ def ignore_sample(_sample: Sample) -> None:
 
 
 def run_operator(
-    spec: dict[str, Any], emit: Emitter, commands: queue.Queue[str], stop: threading.Event
+    spec: dict[str, Any], emit: Emit, commands: queue.Queue[str], stop: threading.Event
 ) -> int:
     transport = ZenohTransport(host="operator", port=spec["port"])
     subscribers: list[ManagedSubscriber] = []
@@ -362,7 +355,7 @@ class Robot(threading.Thread):
 
 
 def run_robots(
-    spec: dict[str, Any], emit: Emitter, commands: queue.Queue[str], stop: threading.Event
+    spec: dict[str, Any], emit: Emit, commands: queue.Queue[str], stop: threading.Event
 ) -> int:
     cond = threading.Condition()
     outcomes: dict[str, str | None] = {}
@@ -394,21 +387,17 @@ def run_robots(
 
 def worker_main(spec_text: str) -> int:
     spec: dict[str, Any] = json.loads(spec_text)
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
     logging.basicConfig(
         level=logging.WARNING,
         format="%(asctime)s %(threadName)s %(name)s: %(message)s",
         stream=sys.stderr,
     )
-    emit = Emitter()
-    logging.getLogger().addHandler(FailsafeCounter(emit))
-    commands: queue.Queue[str] = queue.Queue()
-    threading.Thread(target=read_commands, args=(commands, stop), daemon=True).start()
-    if spec["role"] == "operator":
-        return run_operator(spec, emit, commands, stop)
-    return run_robots(spec, emit, commands, stop)
+    logging.getLogger().addHandler(FailsafeCounter())
+    with stop_on_signals() as stop:
+        commands = read_commands(stop)
+        if spec["role"] == "operator":
+            return run_operator(spec, report, commands, stop)
+        return run_robots(spec, report, commands, stop)
 
 
 # -- the bench's side -------------------------------------------------------------------------
@@ -417,11 +406,9 @@ def worker_main(spec_text: str) -> int:
 class Fleet:
     """The processes of one size, each ended by its PID, and what they report."""
 
-    def __init__(self, port: int, workdir: Path) -> None:
+    def __init__(self, port: int) -> None:
         self._env = dict(os.environ, DBML_ZENOH_PORT=str(port))
-        self._workdir = workdir
         self.roles = RoleProcesses()
-        self.optimizer: subprocess.Popen[bytes] | None = None
         self._cond = threading.Condition()
         self.ready: dict[str, dict[str, Any]] = {}
         self.ended: set[str] = set()
@@ -452,16 +439,14 @@ class Fleet:
                 self._cond.notify_all()
 
     def start_optimizer(self, config: Path) -> None:
-        log = self._workdir / "optimizer.log"
         argv = [sys.executable, "-m", "dbml", "optimizer", "--config", str(config)]
-        with log.open("wb") as err:
-            self.optimizer = subprocess.Popen(
-                [*argv, "--host", "base"],
-                stdin=subprocess.DEVNULL,
-                stdout=subprocess.DEVNULL,
-                stderr=err,
-                env=self._env,
-            )
+        self.roles.spawn(
+            "optimizer", [*argv, "--host", "base"], env=self._env, stop_signal=signal.SIGTERM
+        )
+
+    @property
+    def optimizer_pid(self) -> int:
+        return self.roles.children["optimizer"].pid
 
     def spawn(self, role: str, spec: dict[str, Any]) -> None:
         argv = [sys.executable, str(Path(__file__).resolve()), "--worker", json.dumps(spec)]
@@ -475,9 +460,11 @@ class Fleet:
 
     def dead(self) -> list[str]:
         """The processes that ended (none should before teardown)."""
-        gone = sorted(self.ended)
-        if self.optimizer is not None and self.optimizer.poll() is not None:
-            gone.append(f"optimizer (exit {self.optimizer.returncode})")
+        with self._cond:
+            gone = sorted(self.ended - {"optimizer"})
+        optimizer = self.roles.children.get("optimizer")
+        if optimizer is not None and optimizer.poll() is not None:
+            gone.append(f"optimizer (exit {optimizer.returncode})")
         return gone
 
     def watch_window(self, seconds: float) -> None:
@@ -498,13 +485,9 @@ class Fleet:
             while True:
                 self.stats.get_nowait()  # a late answer to an earlier question
         child = self.roles.children.get("operator")
-        if child is None or child.poll() is not None or child.stdin is None:
+        if child is None or child.poll() is not None:
             return None
-        try:
-            child.stdin.write(f"stats {since_s!r} {until_s!r} {limit!r}\n")
-            child.stdin.flush()
-        except OSError:
-            return None
+        self.roles.send(f"stats {since_s!r} {until_s!r} {limit!r}", to="operator")
         deadline = time.monotonic() + STOP_S
         while child.poll() is None and time.monotonic() < deadline:
             with contextlib.suppress(queue.Empty):
@@ -513,8 +496,7 @@ class Fleet:
 
     def pids(self) -> list[int]:
         """This process and every process started here."""
-        children = [c.pid for c in self.roles.children.values()]
-        return [os.getpid(), *([] if self.optimizer is None else [self.optimizer.pid]), *children]
+        return [os.getpid(), *(c.pid for c in self.roles.children.values())]
 
     def robot_failures(self, workers: list[str], robots: int) -> int:
         """Robots whose session or publishers were not set up (all of a silent worker's)."""
@@ -523,17 +505,10 @@ class Fleet:
         up = sum(int(r["robots"]) - len(r["failed"]) - len(r["not_ready"]) for r in reports if r)
         return robots - up
 
-    def tail(self, role: str) -> str:
-        if role == "optimizer":
-            return (self._workdir / "optimizer.log").read_text(errors="replace")[-2000:]
-        return self.roles.log_tail(role)
-
     def close(self) -> None:
         try:
-            self.roles.close()  # stop, then SIGTERM, then SIGKILL: by PID
+            self.roles.close()  # stop (the optimizer: SIGTERM), then SIGTERM, then SIGKILL: by PID
         finally:
-            if self.optimizer is not None:
-                end_process(self.optimizer, timeout_s=STOP_S)
             self._closing.set()
             self._inbox.join(timeout=STOP_S)
 
@@ -717,7 +692,7 @@ def measure_size(
             stack.callback(control.close)
             probe = Probe(transport)
             stack.callback(probe.close)
-            fleet = Fleet(port, workdir)
+            fleet = Fleet(port)
             stack.callback(fleet.close)
             try:
                 run_size(
@@ -726,8 +701,8 @@ def measure_size(
             finally:
                 row["failsafe_events"] = fleet.failsafe_events(freeze=True)
                 if row["error"] is not None:
-                    for role in ["optimizer", *sorted(fleet.roles.children)]:
-                        tail = fleet.tail(role).strip().splitlines()[-5:]
+                    for role in sorted(fleet.roles.children):
+                        tail = fleet.roles.log_tail(role).strip().splitlines()[-5:]
                         if tail:
                             note(f"--- {role} ---\n" + "\n".join(tail))
                 note(f"{robots}x{per_robot}: stopping")
@@ -784,8 +759,7 @@ def run_size(
     row["robot_failures"] = fleet.robot_failures(workers, len(hosts))
 
     # Steady state: control traffic and the optimizer's CPU.
-    assert fleet.optimizer is not None
-    pid = fleet.optimizer.pid
+    pid = fleet.optimizer_pid
     pids = fleet.pids()
     ticks_a, host_a, t_a = cpu_ticks(pid), host_busy_ticks(), time.monotonic()
     own_a = [cpu_ticks(p) for p in pids]
@@ -953,11 +927,12 @@ def main() -> None:
         sizes = [(args.robots or TARGET_SIZE[0], args.channels or TARGET_SIZE[1])]
     results = []
     try:
-        for robots, channels in sizes:
-            row = measure_size(robots, channels, args.seconds, budget_share=args.budget_share)
-            row["meets_targets"] = judge(row)
-            row["ok"] = all(row["meets_targets"].values())
-            results.append(row)
+        with sigterm_as_interrupt():  # SIGTERM too ends every process started here
+            for robots, channels in sizes:
+                row = measure_size(robots, channels, args.seconds, budget_share=args.budget_share)
+                row["meets_targets"] = judge(row)
+                row["ok"] = all(row["meets_targets"].values())
+                results.append(row)
     except KeyboardInterrupt:
         note("interrupted; every process started here was ended")
         raise SystemExit(130) from None

@@ -34,7 +34,8 @@ from rich.console import Console
 from rich.table import Table
 
 from dbml.core.spec import MAX_RATE_HZ
-from dbml.runtime import ManagedPublisher, names
+from dbml.protocol import names
+from dbml.runtime import ManagedPublisher
 from dbml.transports.zenoh import ZenohTransport
 
 PAYLOADS = (64, 84_000)

@@ -37,7 +37,7 @@ from rich.console import Console
 from rich.table import Table
 
 from dbml import ChannelSpec, Problem, allocate
-from dbml.runtime import names
+from dbml.protocol import names
 from dbml.transports.base import ParamValue
 from dbml.transports.zenoh import ZenohTransport
 

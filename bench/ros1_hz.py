@@ -29,7 +29,7 @@ from rich.table import Table
 
 from dbml.harness.processes import end_process
 from dbml.harness.rosmaster import RosMaster
-from dbml.runtime import names
+from dbml.protocol import names
 from dbml.scenarios.teleop import ROBOTS
 from dbml.transports.rosapi import MasterClient
 

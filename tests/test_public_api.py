@@ -18,9 +18,13 @@ PACKAGES = [
     "dbml.cli",
     "dbml.core",
     "dbml.demo",
+    "dbml.experiment",
+    "dbml.experiment.analysis",
     "dbml.harness",
+    "dbml.protocol",
     "dbml.runtime",
     "dbml.scenarios",
+    "dbml.secure",
     "dbml.testbed",
     "dbml.transports",
 ]

@@ -12,7 +12,13 @@ from typing import TYPE_CHECKING
 
 from dbml.core.allocation import Allocation, Status, Strategy, allocate
 from dbml.core.config import Config, DbmSettings, load_config, parse_config
-from dbml.core.errors import ConfigError, DbmlError, SpecError, TransportError
+from dbml.core.errors import (
+    ConfigError,
+    DbmlError,
+    MissingExtraError,
+    SpecError,
+    TransportError,
+)
 from dbml.core.priority import collision_priority, time_to_collision_s
 from dbml.core.spec import ChannelSpec, LinkSpec, Problem
 
@@ -34,6 +40,7 @@ __all__ = [
     "ManagedPublisher",
     "ManagedSubscriber",
     "MemoryNetwork",
+    "MissingExtraError",
     "OptimizerNode",
     "Problem",
     "SpecError",

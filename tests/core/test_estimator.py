@@ -10,7 +10,14 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from dbml.core.errors import SpecError
-from dbml.core.estimator import Arrival, BandwidthEstimator, EstimatorSettings, Phase
+from dbml.core.estimator import (
+    Arrival,
+    BandwidthEstimator,
+    Estimate,
+    EstimatorSettings,
+    EstimatorState,
+    Phase,
+)
 from tests.core.link_model import WIRE_EFFICIENCY, simulate
 
 CAP_MBIT = 11.0 * 0.92
@@ -203,3 +210,46 @@ def test_a_second_outage_is_seen_as_soon_as_the_first() -> None:
     phases = _silence(estimator, start=6.3, end=7.5)
     # within outage_s (0.5 s) plus an update or two, as the first one was
     assert Phase.OUTAGE in phases[:8]
+
+
+# -- the state the estimator tells others ------------------------------------------------------
+
+
+def test_a_state_travels_as_json_and_reads_as_a_line() -> None:
+    estimate = Estimate(5.0, 4.5, Phase.DECREASE, 3.2049, 0.0404, 0.1, 2)
+    state = EstimatorState.of(estimate, decided_at_s=1_700_000_002.1234)
+    assert state.text == "decrease: received 3.20 Mbit/s, queueing 40 ms, lost 2 @1700000002.123"
+    back = EstimatorState.decode(state.encode())
+    assert back.phase is Phase.DECREASE
+    assert back.decided_at_s == 1_700_000_002.123  # to the millisecond, as it was shown
+    assert back.text == state.text
+    hold = EstimatorState.of(Estimate(5.0, 4.5, Phase.HOLD, 3.2, 0.0, 0.0, 0))
+    assert hold.text == "hold: received 3.20 Mbit/s, queueing 0 ms, lost 0"
+    assert EstimatorState.decode(hold.encode()) == hold
+
+
+@pytest.mark.parametrize(
+    ("text", "match"),
+    [
+        ("hold: received 3.20 Mbit/s", "estimator state='hold: received 3.20 Mbit/s' is not JSON"),
+        ("[1]", r"estimator state=\[1\] is not a JSON object"),
+        ('{"phase": "up"}', "estimator state: phase='up' is not one of increase, hold"),
+        ('{"phase": "hold", "lost": -1}', "estimator state: lost=-1 is not a count"),
+        (
+            '{"phase": "hold", "lost": 0, "received_mbit": "fast"}',
+            "estimator state: received_mbit='fast' is not a number",
+        ),
+        (
+            '{"phase": "hold", "lost": 0, "received_mbit": 1, "queue_delay_s": NaN}',
+            "estimator state: queue_delay_s=nan is not finite",
+        ),
+        (
+            '{"phase": "hold", "lost": 0, "received_mbit": 1, "queue_delay_s": 0, '
+            '"decided_at_s": -2}',
+            "estimator state: decided_at_s=-2 must be >= 0",
+        ),
+    ],
+)
+def test_a_malformed_state_names_the_field_and_the_value(text: str, match: str) -> None:
+    with pytest.raises(SpecError, match=match):
+        EstimatorState.decode(text)

@@ -25,6 +25,8 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from dbml.core.errors import DbmlError
 from dbml.experiment import ros2peers
+from dbml.experiment.analysis import Arrival
+from dbml.experiment.report import OperatorReport
 from dbml.experiment.roles import TICK_S, RoleSpec
 from dbml.experiment.ros2peers import (
     DEFINITIONS,
@@ -38,7 +40,7 @@ from dbml.experiment.ros2peers import (
     type_hash,
 )
 from dbml.harness.processes import end_process, free_port
-from dbml.runtime import names
+from dbml.protocol import names
 from dbml.runtime.priority import collision_priority_source
 from dbml.scenarios.teleop import MAX_RATE_HZ, PAPER_TABLE2, ROBOTS, STEPS
 from dbml.transports.base import Variant
@@ -138,7 +140,7 @@ def test_router_address_refuses_what_the_sdk_cannot_connect_to(endpoint: str) ->
 def test_a_missing_sdk_names_the_package(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv("ZENOH_CONFIG_OVERRIDE", raising=False)
     monkeypatch.setitem(sys.modules, "zenoh_ros2_sdk", None)
-    with pytest.raises(DbmlError, match="pip install zenoh-ros2-sdk"):
+    with pytest.raises(DbmlError, match=r"needs zenoh-ros2-sdk, .*: pip install 'dbml\[ros2\]'$"):
         ros2peers.SdkSession("tcp/127.0.0.1:7447")
 
 
@@ -333,15 +335,16 @@ def test_the_operator_reports_each_frame_and_the_parameters_in_force(router: str
         thread.start()
         assert peer.next(READY_TIMEOUT_S) == {"type": "ready", "role": "operator"}
         peer.send(f"start {time.time()!r}")
-        rows: list[list[Any]] = []
-        allocated: list[Any] = []
+        rows: list[Arrival] = []
+        allocated: list[tuple[float | None, ...]] = []
         deadline = time.monotonic() + REPORT_TIMEOUT_S
         while len(rows) < 20 * len(ROBOTS) and time.monotonic() < deadline:
-            tick = peer.next(REPORT_TIMEOUT_S)
-            assert tick["type"] == "tick"
-            assert tick["variants"] == ["optimized", "optimized"]
-            rows.extend(tick["frames"])
-            allocated.append(tick["allocated_hz"])
+            message = peer.next(REPORT_TIMEOUT_S)
+            assert message["type"] == "tick"
+            report = OperatorReport.decode(message)
+            assert report.tick.variants == ("optimized", "optimized")
+            rows.extend(report.frames)
+            allocated.append(report.tick.allocated_hz)
         peer.send("stop")
         for _ in range(int(REPORT_TIMEOUT_S / TICK_S)):  # the ticks still queued, then done
             if peer.next(REPORT_TIMEOUT_S)["type"] == "done":
@@ -357,10 +360,14 @@ def test_the_operator_reports_each_frame_and_the_parameters_in_force(router: str
         transport.close()
     assert allocated[-1][0] == 7.5, "the parameters in force, through a dbml session"
     for i, camera in enumerate(ROBOTS):
-        mine = [r for r in rows if r[0] == i]
+        mine = [r for r in rows if r.robot == i]
         assert len(mine) >= 20
-        assert [r[1] for r in mine] == list(range(len(mine))), "a per-topic count from 0"
-        assert {r[4] for r in mine} == {camera.size_bytes}
-        assert all(r[5] is None for r in mine), "a plain ROS 2 message carries no rate"
-        assert all(min(abs(r[2] - s) for s in sent[i]) < 1e-6 for r in mine), "header.stamp"
-        assert all(0 <= r[3] - r[2] < 0.5 for r in mine), "arrival after the send time"
+        assert [r.seq for r in mine] == list(range(len(mine))), "a per-topic count from 0"
+        assert {r.size_bytes for r in mine} == {camera.size_bytes}
+        assert all(r.rate_hz is None for r in mine), "a plain ROS 2 message carries no rate"
+        stamps = [r.sent_s for r in mine if r.sent_s is not None]
+        assert len(stamps) == len(mine), "every frame carries its send time"
+        assert all(min(abs(t - s) for s in sent[i]) < 1e-6 for t in stamps), "header.stamp"
+        assert all(0 <= r.arrival_s - t < 0.5 for r, t in zip(mine, stamps, strict=True)), (
+            "arrival after the send time"
+        )

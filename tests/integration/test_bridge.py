@@ -12,7 +12,7 @@ import pytest
 import zenoh
 
 from dbml.harness.processes import free_port
-from dbml.runtime import names
+from dbml.protocol import names
 from dbml.runtime.rate import RateLimiter
 from tests.conftest import wait_for
 from tests.integration.procs import fleet

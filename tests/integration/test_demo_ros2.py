@@ -78,4 +78,5 @@ def test_demo_over_ros2_without_the_sdk_says_what_to_install(
     assert captured.out == ""
     lines = captured.err.strip().splitlines()
     assert len(lines) == 1
-    assert "pip install zenoh-ros2-sdk" in lines[0]
+    install = f"zenoh-ros2-sdk, which {sys.executable} cannot import: pip install 'dbml[ros2]'"
+    assert lines[0].endswith(install)

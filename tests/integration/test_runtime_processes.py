@@ -11,10 +11,10 @@ from pathlib import Path
 
 import pytest
 
-from dbml.runtime import names
+from dbml.protocol import names
+from dbml.protocol.keys import encode_param, param_key
 from dbml.runtime.estimator import LINK_TOPIC, LinkBeacon
 from dbml.transports.base import ParamValue
-from dbml.transports.paramstore import encode_param, param_key
 from tests.conftest import MONITOR_JSON_KEYS, wait_for
 from tests.integration.procs import fleet, publish_argv
 

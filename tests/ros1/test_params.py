@@ -2,14 +2,20 @@
 
 from __future__ import annotations
 
+import signal
 import threading
+import time
 
 import pytest
 
+from dbml.transports.base import ParamValue
 from tests.conftest import wait_for
 from tests.ros1.rosnet import RosNet
 
 pytestmark = pytest.mark.integration
+
+SET_BOUND_S = 0.5
+"""How long writes may take with the master stalled: no call to it, so milliseconds."""
 
 
 def test_rosparam_writes_namespaces_and_deletes_reach_the_mirror(ros: RosNet) -> None:
@@ -48,15 +54,84 @@ def test_rosparam_writes_namespaces_and_deletes_reach_the_mirror(ros: RosNet) ->
         assert params.get("/r1/camera/dbm/priority") is None
         assert params.get("/keep") == 1
 
-        # Its own writes are read back at once, and reported like anyone's.
+        # Its own writes are read back and reported at once; the sender takes them to the master.
         params.set("/dbm/status", "optimal")
         assert params.get("/dbm/status") == "optimal"
+        assert saw(("/dbm/status", "optimal"))
+        assert params.flush()
         assert ros.param("/dbm/status") == "optimal"
-        wait_for(lambda: saw(("/dbm/status", "optimal")), timeout_s=5, what="own write")
         params.set("/dbm/status", None)
+        assert params.flush()
         assert ros.param("/dbm/status") is None
         assert params.snapshot("/dbm") == {}
     finally:
         handle.close()
         params.close()
         client.close()
+
+
+def test_writes_never_wait_for_a_stalled_master(ros: RosNet) -> None:
+    """A write may come from inside the master's own push: it queues, and goes once it can."""
+    from dbml.transports.ros1 import _Ros1Params
+    from dbml.transports.rosapi import CALL_TIMEOUT_S, MasterClient
+
+    client = MasterClient(ros.master.uri, caller_id="/params_test")
+    params = _Ros1Params(client, "/params_test", "127.0.0.1", "127.0.0.1")
+    seen: list[tuple[str, object]] = []
+    params.watch(lambda name, value: seen.append((name, value)))
+    params.set("/r1/camera/dbm/priority", 0.1)
+    assert params.flush()
+    process = ros.master.process
+    assert process is not None
+    process.send_signal(signal.SIGSTOP)  # our own master: a master too busy to answer
+    try:
+        started = time.monotonic()
+        params.set("/r1/camera/dbm/priority", 0.5)
+        params.set_many({"/dbm/status": "optimal", "/r1/camera/dbm/priority": None})
+        took_s = time.monotonic() - started
+        assert params.get("/dbm/status") == "optimal"
+        assert params.get("/r1/camera/dbm/priority") is None
+        assert seen[-3:] == [
+            ("/r1/camera/dbm/priority", 0.5),
+            ("/dbm/status", "optimal"),
+            ("/r1/camera/dbm/priority", None),
+        ]
+        assert not params.flush(timeout_s=0.05)
+    finally:
+        process.send_signal(signal.SIGCONT)
+    assert took_s < SET_BOUND_S
+    assert params.flush(timeout_s=CALL_TIMEOUT_S * 2)
+    assert ros.param("/dbm/status") == "optimal"
+    assert ros.param("/r1/camera/dbm/priority") is None
+    assert params.snapshot("/dbm") == {"/dbm/status": "optimal"}
+    params.close()
+    client.close()
+
+
+def test_a_snapshot_holds_the_writes_not_sent_yet(ros: RosNet) -> None:
+    from dbml.transports.ros1 import _Ros1Params
+    from dbml.transports.rosapi import MasterClient
+
+    client = MasterClient(ros.master.uri, caller_id="/params_test")
+    params = _Ros1Params(client, "/params_test", "127.0.0.1", "127.0.0.1")
+    ros.rosparam("set", "/dbm/strategy", "fair")
+    wait_for(lambda: params.get("/dbm/strategy") == "fair", timeout_s=5, what="the push")
+    release = threading.Event()
+    real = params._write
+
+    def held(item: tuple[str, ParamValue]) -> None:
+        assert release.wait(10), "the test never released the sender"
+        real(item)
+
+    params._sender._send = held
+    params.set("/dbm/strategy", "paper")
+    params.set("/dbm/status", "optimal")
+    params.set("/other", 1)
+    try:
+        assert params.snapshot("/dbm") == {"/dbm/strategy": "paper", "/dbm/status": "optimal"}
+    finally:
+        release.set()
+    params.close()  # sends what is queued before it goes
+    assert ros.param("/dbm/status") == "optimal"
+    assert ros.param("/other") == 1
+    client.close()

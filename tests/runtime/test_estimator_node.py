@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import logging
+
 import pytest
 
-from dbml.core.estimator import Phase
-from dbml.experiment.analysis import CUT_STAMP
-from dbml.runtime import names
+from dbml.core.estimator import EstimatorState, Phase
+from dbml.protocol import names
 from dbml.runtime.estimator import LINK_TOPIC, LinkBeacon, LinkEstimator
 from dbml.runtime.metadata import pack_meta
 from dbml.runtime.optimizer import OptimizerNode
@@ -81,7 +82,9 @@ def test_a_link_that_carries_everything_keeps_the_configured_budget() -> None:
     assert state.received_mbit == pytest.approx(8.0, rel=0.25)  # 4-5 frames in the window
     assert link.estimator.budget_mbit() == pytest.approx(9.0)  # 10 Mbit/s x 0.9: the cap
     assert link.base.params.get(names.ESTIMATE) == pytest.approx(9.0)
-    assert str(link.base.params.get(names.ESTIMATOR_STATE)).startswith("increase")
+    published = EstimatorState.decode(str(link.base.params.get(names.ESTIMATOR_STATE)))
+    assert published.phase is Phase.INCREASE
+    assert published.text.startswith("increase: received")
 
 
 def test_growing_delay_lowers_the_budget_and_pokes_the_optimizer() -> None:
@@ -105,12 +108,14 @@ def test_a_cut_carries_the_wall_clock_time_it_was_decided() -> None:
     link = Link()
     link.run(2.0)
     link.run(1.0, delay_growth=0.5)
-    cuts = [str(s) for s in link.states if str(s).startswith("decrease")]
+    states = [EstimatorState.decode(str(s)) for s in link.states]
+    cuts = [s for s in states if s.phase is Phase.DECREASE]
     assert cuts, link.states
-    stamp = CUT_STAMP.search(cuts[0])
-    assert stamp is not None, cuts[0]
-    assert 2.0 < float(stamp.group(1)) - WALL_S < 3.5  # the base's clock at the decision
-    assert not any(CUT_STAMP.search(str(s)) for s in link.states if str(s).startswith("inc"))
+    decided = cuts[0].decided_at_s
+    assert decided is not None, cuts[0]
+    assert 2.0 < decided - WALL_S < 3.5  # the base's clock at the decision
+    assert cuts[0].text.endswith(f" @{decided:.3f}")  # and the monitor's line shows it
+    assert not any(s.decided_at_s is not None for s in states if s.phase is Phase.INCREASE)
 
 
 def test_after_an_outage_the_beacon_names_the_channels_heard_again() -> None:
@@ -189,3 +194,26 @@ def test_a_malformed_report_names_itself() -> None:
 
     with pytest.raises(TransportError, match="malformed reception report"):
         ReceptionReport.decode(b'{"host": "op"}')
+
+
+def test_clock_offsets_are_kept_for_at_most_max_reporters_hosts(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A report's host name is the network's word: made-up ones cannot grow the table."""
+    link = Link()
+    link.run(0.5)
+    assert list(link.estimator._offsets) == ["op"]
+    forger = link.operator.declare_publisher(RECEPTION_TOPIC)
+    bound = LinkEstimator.MAX_REPORTERS
+    with caplog.at_level(logging.WARNING, logger="dbml.estimator"):
+        for i in range(bound + 5):
+            forger.put(ReceptionReport(f"forged-{i}", 0.0, ()).encode())
+    offsets = link.estimator._offsets
+    assert len(offsets) == bound
+    assert "op" not in offsets  # silent the longest: evicted first
+    assert "forged-0" not in offsets
+    assert f"forged-{bound + 4}" in offsets
+    assert caplog.text.count(f"more than {bound} hosts report receptions") == 1
+    link.run(0.5)  # the real host reports again: its offset is learnt anew
+    assert "op" in offsets
+    assert len(offsets) == bound

@@ -9,7 +9,8 @@ from collections.abc import Mapping
 import pytest
 
 from dbml.core import DbmSettings, LinkSpec, Status, Strategy
-from dbml.runtime import ManagedPublisher, ManagedSubscriber, OptimizerNode, Round, names
+from dbml.protocol import names
+from dbml.runtime import ManagedPublisher, ManagedSubscriber, OptimizerNode, Round
 from dbml.transports import ManualClock, MemoryNetwork, MemoryTransport, ParamValue, Role, Variant
 from tests.conftest import wait_for
 

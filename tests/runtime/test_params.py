@@ -8,20 +8,14 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable, Mapping
-from typing import Any, cast
 
 import pytest
 
+from dbml.cli.commands import set_priority
 from dbml.core import DbmSettings, Strategy, TransportError
-from dbml.runtime import ManagedPublisher, ManagedSubscriber, OptimizerNode, names
-from dbml.runtime.nodes import set_priority
-from dbml.runtime.params import (
-    DbmParams,
-    ParamError,
-    ParamView,
-    check_param,
-    valid_values,
-)
+from dbml.protocol import names
+from dbml.runtime import ManagedPublisher, ManagedSubscriber, OptimizerNode
+from dbml.runtime.params import DbmParams, ParamView, valid_values
 from dbml.transports import MemoryNetwork, MemoryTransport
 from dbml.transports.base import Closer, Handle, ParamValue
 from tests.conftest import wait_for
@@ -46,46 +40,6 @@ def managed_fleet(network: MemoryNetwork) -> tuple[ManagedPublisher, OptimizerNo
         MemoryTransport(network, host="base"), settings=DbmSettings(4.0, 1.0, 1.0, Strategy.PAPER)
     )
     return camera, optimizer
-
-
-@pytest.mark.parametrize(
-    ("name", "value", "message"),
-    [
-        (names.BANDWIDTH, math.nan, r"^/dbm/max_bandwidth_in_mbit=nan is not finite$"),
-        (names.BANDWIDTH, math.inf, r"is not finite$"),
-        (names.BANDWIDTH, 10**400, r"is not finite$"),
-        (names.BANDWIDTH, -1, r"=-1 must be within \(0, 1e\+06\]$"),
-        (names.BANDWIDTH, "eleven", r"='eleven' is not a number$"),
-        (names.BANDWIDTH, True, r"=True is not a number$"),
-        (names.UTILIZATION, 1.5, r"=1.5 must be within \(0, 1\]$"),
-        (names.PERIOD, 1e-6, r"=1e-06 must be within \[0.01, 3600\]$"),
-        (names.PERIOD, math.inf, r"is not finite$"),
-        (names.STRATEGY, "fastest", r"^/dbm/strategy='fastest' is not valid$"),
-        (names.STRATEGY, 3, r"^/dbm/strategy=3 is not valid$"),
-        (names.max_rate(CAMERA), 0, r"^/r1/camera/dbm/frequency/max=0 must be within"),
-        (names.max_rate(CAMERA), 1e12, r"=1000000000000.0 must be within \(0, 1e\+06\]$"),
-        (names.current_value(CAMERA), math.nan, r"frequency/current_value=nan is not finite"),
-        (names.size(CAMERA), 1e15, r"message_size_in_bytes=1000000000000000.0 must be within"),
-        (names.priority(CAMERA), 10**400, r"priority=1000.* is not finite$"),
-        (names.priority(CAMERA), -0.5, r"priority=-0.5 must be within \[0, 1\]$"),
-        (names.managed(CAMERA), "yes", r"managed='yes' is not valid$"),
-        (names.STATUS_MESSAGE, "x" * 20_000, r"status_message='xxx.*\.\.\. is not valid$"),
-    ],
-)
-def test_bad_values_are_refused_naming_key_and_value(
-    name: str, value: ParamValue, message: str
-) -> None:
-    with pytest.raises(ParamError, match=message):
-        check_param(name, value)
-
-
-def test_good_values_come_back_typed_and_unknown_names_pass() -> None:
-    assert check_param(names.BANDWIDTH, 11) == 11.0
-    assert isinstance(check_param(names.BANDWIDTH, 11), float)
-    assert check_param(names.STRATEGY, "lp") == "lp"
-    assert check_param(names.managed(CAMERA), True) is True
-    assert check_param(names.priority(CAMERA), None) is None  # deleted
-    assert check_param("/someone/else", cast(Any, [1, 2])) == cast(Any, [1, 2])
 
 
 def test_the_one_budget_rule() -> None:
@@ -244,3 +198,62 @@ def test_a_publisher_reasserts_its_real_size() -> None:
     assert peer.params.get(names.size(CAMERA)) == 1
     camera.publish(bytes(84_000))
     assert peer.params.get(names.size(CAMERA)) == 84_000
+
+
+def test_a_channel_watcher_hears_its_own_channel_only_by_field() -> None:
+    network = MemoryNetwork()
+    writer = MemoryTransport(network, host="peer").params
+    view = ParamView.of(MemoryTransport(network, host="me").params)
+    camera: list[tuple[str, ParamValue]] = []
+    other: list[tuple[str, ParamValue]] = []
+    global_: list[tuple[str, ParamValue]] = []
+    view.watch_channel(CAMERA, lambda *c: camera.append(c))
+    view.watch_channel("/r2/camera", lambda *c: other.append(c))
+    view.watch_dbm(lambda *c: global_.append(c))
+    writer.set(names.current_value(CAMERA), 8)
+    writer.set(names.priority(CAMERA), math.nan)  # a bad value calls nothing
+    writer.set(names.PERIOD, 0.5)
+    writer.set(names.size(CAMERA), None)
+    assert camera == [(names.CURRENT_FIELD, 8.0), (names.SIZE_FIELD, None)]
+    assert other == []
+    assert global_ == [(names.PERIOD, 0.5)]
+
+
+def test_a_closed_channel_watcher_hears_nothing_and_the_others_go_on() -> None:
+    network = MemoryNetwork()
+    writer = MemoryTransport(network, host="peer").params
+    view = ParamView.of(MemoryTransport(network, host="me").params)
+    first: list[ParamValue] = []
+    second: list[ParamValue] = []
+    closing = view.watch_channel(CAMERA, lambda _f, v: first.append(v))
+    view.watch_channel(CAMERA, lambda _f, v: second.append(v))
+    writer.set(names.priority(CAMERA), 0.5)
+    closing.close()
+    writer.set(names.priority(CAMERA), 0.25)
+    assert first == [0.5]
+    assert second == [0.5, 0.25]
+    last = view.watch_channel("/r3/camera", lambda _f, v: first.append(v))
+    last.close()  # its topic's last watcher: gone, and a new one starts afresh
+    again: list[ParamValue] = []
+    view.watch_channel("/r3/camera", lambda _f, v: again.append(v))
+    writer.set(names.priority("/r3/camera"), 1.0)
+    assert first == [0.5]
+    assert again == [1.0]
+
+
+def test_typed_reads_do_not_copy_every_value(monkeypatch: pytest.MonkeyPatch) -> None:
+    network = MemoryNetwork()
+    writer = MemoryTransport(network, host="peer").params
+    for k in range(50):  # a fleet's worth of other channels
+        writer.set(names.size(f"/r{k}/camera"), 84_000)
+    writer.set(names.priority(CAMERA), 0.5)
+    writer.set(names.PERIOD, 0.5)
+    view = ParamView.of(MemoryTransport(network, host="me").params)
+
+    def copied() -> Mapping[str, ParamValue]:
+        raise AssertionError("a typed read copied every value")
+
+    monkeypatch.setattr(view, "values", copied)
+    assert view.channel(CAMERA).priority == 0.5
+    assert view.channel("/r7/camera").size_bytes == 84_000.0
+    assert view.dbm().period_s == 0.5

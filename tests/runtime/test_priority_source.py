@@ -1,7 +1,8 @@
 import pytest
 
 from dbml.core import SpecError
-from dbml.runtime import PrioritySource, collision_priority_source, names
+from dbml.protocol import names
+from dbml.runtime import PrioritySource, collision_priority_source
 from dbml.transports import MemoryNetwork, MemoryTransport
 
 

@@ -4,8 +4,10 @@ from typing import Any
 import pytest
 
 from dbml.core.errors import SpecError
-from dbml.runtime import ManagedPublisher, MessageMeta, names
+from dbml.protocol import names
+from dbml.runtime import ManagedPublisher, MessageMeta, ParamView
 from dbml.transports import ManualClock, MemoryNetwork, MemoryTransport, Sample, Variant
+from dbml.transports.base import Handle
 
 
 @pytest.fixture
@@ -215,3 +217,23 @@ def test_without_any_optimizer_a_new_channel_runs_at_its_minimum_after_the_deadl
         clock.advance(1 / 16)
     assert sent[0] >= 3.0  # silent for three periods, waiting for an allocation
     assert len(sent) == pytest.approx(3, abs=1)  # then 1 Hz
+
+
+def test_a_publisher_hears_its_own_channel_not_every_write(
+    network: MemoryNetwork, clock: ManualClock, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A process with many publishers must not have each of them filter every write."""
+
+    def every_write(_view: ParamView, _callback: object) -> Handle:
+        raise AssertionError("a publisher watched every parameter write")
+
+    monkeypatch.setattr(ParamView, "watch", every_write)
+    publisher = robot(network, clock)
+    optimizer = MemoryTransport(network, host="op", clock=clock)
+    optimizer.params.set(names.current_value("/r1/camera"), 4.0)
+    optimizer.params.set(names.current_value("/r2/camera"), 9.0)
+    assert publisher.current_rate_hz() == 4.0
+    clock.advance(2.0)
+    optimizer.params.set(names.ROUND, 1)  # the heartbeat, a global name, still reaches it
+    clock.advance(2.0)
+    assert publisher.current_rate_hz() == 4.0

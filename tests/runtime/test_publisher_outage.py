@@ -14,7 +14,8 @@ from dataclasses import replace
 import pytest
 
 from dbml.core.errors import TransportError
-from dbml.runtime import ManagedPublisher, names
+from dbml.protocol import names
+from dbml.runtime import ManagedPublisher
 from dbml.runtime.estimator import (
     HEARD_MAX,
     LINK_TOPIC,

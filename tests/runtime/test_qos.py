@@ -1,16 +1,21 @@
 from __future__ import annotations
 
+import threading
+from collections.abc import Callable
 from typing import Any
 
 import pytest
 
 from dbml.core.errors import SpecError
-from dbml.runtime import ManagedPublisher, MessageMeta, names
+from dbml.protocol import names
+from dbml.runtime import ManagedPublisher, MessageMeta
 from dbml.runtime.qos import (
     HIGH_PRIORITY,
     SMALL_MESSAGE_BYTES,
     URGENT_PRIORITY,
+    QosSwitch,
     TransportQos,
+    channel_qos,
     explicit_qos,
     map_priority,
     parse_transport_priority,
@@ -201,3 +206,118 @@ def test_an_explicit_class_goes_express_only_for_latency(
     priority: TransportPriority, size_bytes: int | None, express: bool
 ) -> None:
     assert explicit_qos(priority, size_bytes) == TransportQos(priority, express=express)
+
+
+def test_a_channels_class_is_the_explicit_one_if_given() -> None:
+    assert channel_qos(1.0, 64) == URGENT_SMALL
+    assert channel_qos(1.0, 64, TransportPriority.DATA) == TransportQos(
+        TransportPriority.DATA, express=False
+    )
+    assert channel_qos(0.0, 64, TransportPriority.REAL_TIME) == TransportQos(
+        TransportPriority.REAL_TIME, express=True
+    )
+
+
+class FakePublisher:
+    """A publisher that only records its class and whether it was closed."""
+
+    topic = TOPIC
+    has_subscribers = False
+
+    def __init__(self, qos: TransportQos | None) -> None:
+        self.qos = qos
+        self.closed = False
+
+    def put(self, payload: bytes, attachment: bytes | None = None) -> None:
+        raise AssertionError("nothing is sent here")
+
+    def close(self) -> None:
+        self.closed = True
+
+
+DATA = TransportQos(TransportPriority.DATA, express=False)
+DATA_HIGH = TransportQos(TransportPriority.DATA_HIGH, express=False)
+
+
+class Declarations:
+    """``declare`` for a ``QosSwitch``: every publisher it made, in order."""
+
+    def __init__(self) -> None:
+        self.made: list[FakePublisher] = []
+        self.during: Callable[[], None] | None = None
+        """Run inside the next declaration, as a racing thread would."""
+
+    def __call__(self, qos: TransportQos | None) -> Publisher:
+        during, self.during = self.during, None
+        if during is not None:
+            during()
+        publisher = FakePublisher(qos)
+        self.made.append(publisher)
+        return publisher
+
+
+def test_the_switch_declares_only_for_another_class() -> None:
+    declare = Declarations()
+    switch = QosSwitch(declare, DATA)
+    assert [p.qos for p in declare.made] == [DATA]
+    assert switch.publisher is declare.made[0]
+    assert not switch.switch(DATA)
+    assert len(declare.made) == 1
+    assert switch.switch(DATA_HIGH)
+    assert switch.qos == DATA_HIGH
+    assert switch.publisher is declare.made[1]
+
+
+def test_a_replaced_publisher_is_retired_then_closed() -> None:
+    declare = Declarations()
+    switch = QosSwitch(declare, DATA)
+    first = declare.made[0]
+    switch.switch(DATA_HIGH)
+    assert not first.closed  # a put that read it just before the swap may still use it
+    switch.switch(URGENT_SMALL)
+    assert first.closed
+    second, third = declare.made[1:]
+    assert not second.closed
+    switch.close()
+    assert second.closed
+    assert third.closed
+
+
+def test_close_retired_closes_only_the_retired_one() -> None:
+    declare = Declarations()
+    switch = QosSwitch(declare, None)
+    switch.switch(DATA)
+    switch.close_retired()
+    assert [p.closed for p in declare.made] == [True, False]
+
+
+def test_a_newer_change_wins_and_no_lock_is_held_while_declaring() -> None:
+    declare = Declarations()
+    switch = QosSwitch(declare, DATA)
+    finished: list[bool] = []
+
+    def racing_change() -> None:  # another thread, while the first declaration is under way
+        thread = threading.Thread(target=lambda: finished.append(switch.switch(URGENT_SMALL)))
+        thread.start()
+        thread.join(timeout=5.0)
+        assert not thread.is_alive(), "the switch held its lock across a declaration"
+
+    declare.during = racing_change
+    assert not switch.switch(DATA_HIGH)  # overtaken: its publisher is closed again
+    assert finished == [True]
+    assert switch.qos == URGENT_SMALL
+    high = next(p for p in declare.made if p.qos == DATA_HIGH)
+    assert high.closed
+    assert switch.publisher.qos == URGENT_SMALL  # type: ignore[attr-defined]
+
+
+def test_back_to_the_class_in_force_while_another_is_declared_keeps_it() -> None:
+    declare = Declarations()
+    switch = QosSwitch(declare, DATA)
+    back: list[bool] = []
+    declare.during = lambda: back.append(switch.switch(DATA))
+    assert not switch.switch(DATA_HIGH)
+    assert back == [False]
+    assert switch.qos == DATA
+    assert switch.publisher is declare.made[0]
+    assert declare.made[1].closed

@@ -1,10 +1,29 @@
+"""The managed subscriber over the memory transport: it follows the graph on its own thread."""
+
 import sys
 import threading
+import time
+from collections.abc import Callable
+
+import pytest
 
 from dbml.core.errors import TransportError
-from dbml.runtime import ManagedPublisher, ManagedSubscriber, names
+from dbml.protocol import names
+from dbml.runtime import ManagedPublisher, ManagedSubscriber
 from dbml.transports import MemoryNetwork, MemoryTransport, Role, Sample, Variant
-from dbml.transports.base import GraphEntry
+from dbml.transports.base import GraphEntry, Handle
+from tests.conftest import wait_for
+
+TIMEOUT_S = 10.0
+"""How long a test waits for the subscriber's worker to act (it does within milliseconds)."""
+CALLBACK_BOUND_S = 1.0
+"""How long a graph change may take to report: far below a switch held up for ``TIMEOUT_S``."""
+
+
+def subscriber_tokens(transport: MemoryTransport) -> list[tuple[str, Variant]]:
+    return sorted(
+        (e.host, e.variant) for e in transport.graph.entries() if e.role is Role.SUBSCRIBER
+    )
 
 
 def test_local_publisher_means_full_rate_remote_means_optimized() -> None:
@@ -30,17 +49,25 @@ def test_switches_when_the_publisher_moves() -> None:
 
     assert variant() is Variant.OPTIMIZED  # nobody publishes yet: the safe copy
     on_op = ManagedPublisher(operator, "/cam", min_rate_hz=1, max_rate_hz=16)
-    assert variant() is Variant.FULL
+    wait_for(lambda: variant() is Variant.FULL, timeout_s=TIMEOUT_S, what="the full copy")
+    wait_for(
+        lambda: subscriber_tokens(operator) == [("op", Variant.FULL)],
+        timeout_s=TIMEOUT_S,
+        what="the optimized copy's announcement withdrawn",
+    )
     on_op.close()
     elsewhere = ManagedPublisher(
         MemoryTransport(network, host="r9"), "/cam", min_rate_hz=1, max_rate_hz=16
+    )
+    wait_for(
+        lambda: subscriber_tokens(operator) == [("op", Variant.OPTIMIZED)],
+        timeout_s=TIMEOUT_S,
+        what="back to the optimized copy, announced alone",
     )
     assert variant() is Variant.OPTIMIZED
     operator.params.set(names.current_value("/cam"), 16.0)  # the optimizer's allocation
     elsewhere.publish(b"frame")
     assert [s.payload for s in got] == [b"frame"]
-    tokens = [e for e in operator.graph.entries() if e.role is Role.SUBSCRIBER]
-    assert [(t.host, t.variant) for t in tokens] == [("op", Variant.OPTIMIZED)]
 
 
 def test_close_withdraws_the_subscription() -> None:
@@ -82,11 +109,17 @@ def test_two_subscribers_switching_at_once_from_two_threads_do_not_deadlock() ->
         sys.setswitchinterval(interval)
     for thread in threads:
         thread.join(timeout=5)
-    assert all(s.variant is Variant.OPTIMIZED for s in subscribers.values())
-    tokens = sorted(
-        (e.topic, e.variant) for e in operator.graph.entries() if e.role is Role.SUBSCRIBER
+
+    def tokens() -> list[tuple[str, Variant]]:
+        entries = operator.graph.entries()
+        return sorted((e.topic, e.variant) for e in entries if e.role is Role.SUBSCRIBER)
+
+    wait_for(
+        lambda: tokens() == [("/a", Variant.OPTIMIZED), ("/b", Variant.OPTIMIZED)],
+        timeout_s=TIMEOUT_S,
+        what="both subscribers back on the optimized copy",
     )
-    assert tokens == [("/a", Variant.OPTIMIZED), ("/b", Variant.OPTIMIZED)]
+    assert all(s.variant is Variant.OPTIMIZED for s in subscribers.values())
 
 
 def test_a_failed_graph_read_does_not_freeze_the_subscriber() -> None:
@@ -104,6 +137,54 @@ def test_a_failed_graph_read_does_not_freeze_the_subscriber() -> None:
     operator.graph.entries = flaky  # type: ignore[method-assign]
     robot = MemoryTransport(network, host="r9")
     ManagedPublisher(robot, "/other", min_rate_hz=1, max_rate_hz=16)  # a graph event that fails
-    assert not failures
+    wait_for(lambda: not failures, timeout_s=TIMEOUT_S, what="the failing graph read")
     ManagedPublisher(operator, "/cam", min_rate_hz=1, max_rate_hz=16)  # the next one switches
-    assert subscriber.variant is Variant.FULL
+    wait_for(lambda: subscriber.variant is Variant.FULL, timeout_s=TIMEOUT_S, what="the switch")
+    assert subscriber.alive
+
+
+def test_a_graph_change_is_followed_on_the_subscribers_thread_not_the_reporting_one() -> None:
+    """A switch subscribes and announces: middleware calls, never made on a callback's thread.
+
+    Here the thread that reports the change is the one whose publisher changed the graph.
+    """
+    network = MemoryNetwork()
+    operator = MemoryTransport(network, host="op")
+    subscriber = ManagedSubscriber(operator, "/cam", lambda s: None)
+    real = operator.subscribe
+    release = threading.Event()
+    callers: list[str] = []
+
+    def held_up(
+        topic: str, callback: Callable[[Sample], None], variant: Variant = Variant.FULL
+    ) -> Handle:
+        callers.append(threading.current_thread().name)
+        assert release.wait(TIMEOUT_S), "the test never released the subscription"
+        return real(topic, callback, variant)
+
+    operator.subscribe = held_up  # type: ignore[method-assign]
+    started = time.monotonic()
+    camera_here = MemoryTransport(network, host="op")  # another process on the same host
+    ManagedPublisher(camera_here, "/cam", min_rate_hz=1, max_rate_hz=16)  # fires the watch
+    took_s = time.monotonic() - started
+    wait_for(lambda: bool(callers), timeout_s=TIMEOUT_S, what="the switch to start")
+    release.set()
+    assert took_s < CALLBACK_BOUND_S, f"the graph change took {took_s:.3f} s to report"
+    assert callers == ["dbml-subscriber /cam"]
+    wait_for(lambda: subscriber.variant is Variant.FULL, timeout_s=TIMEOUT_S, what="the switch")
+    subscriber.close()
+    assert subscriber_tokens(operator) == []
+
+
+def test_a_subscriber_whose_thread_dies_says_so(caplog: pytest.LogCaptureFixture) -> None:
+    network = MemoryNetwork()
+    operator = MemoryTransport(network, host="op")
+    subscriber = ManagedSubscriber(operator, "/cam", lambda s: None)
+
+    def fatal() -> frozenset[GraphEntry]:
+        raise SystemExit("the graph view is gone")
+
+    operator.graph.entries = fatal  # type: ignore[method-assign]
+    ManagedPublisher(operator, "/cam", min_rate_hz=1, max_rate_hz=16)
+    wait_for(lambda: not subscriber.alive, timeout_s=TIMEOUT_S, what="the thread's death")
+    assert "dbml-subscriber /cam: the thread died" in caplog.text

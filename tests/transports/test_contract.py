@@ -7,8 +7,14 @@ when CI=true), one peer process per host (rospy runs one node per process).
 
 from __future__ import annotations
 
+import os
+import signal
+import threading
+import time
 from collections.abc import Callable, Iterator
+from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass
+from pathlib import Path
 
 import pytest
 
@@ -23,12 +29,22 @@ from dbml.transports import (
     Variant,
 )
 from dbml.transports.base import resolve_host
+from dbml.transports.paramstore import ReplicatedParams
+from dbml.transports.rosapi import CALL_TIMEOUT_S, MasterClient
 from tests.conftest import wait_for
-from tests.transports.ros1_network import ros1_network
+from tests.transports.ros1_network import PeerTransport, ros1_network
 from tests.transports.ros2_network import ros2_network
 from tests.transports.zenoh_network import zenoh_endpoints_network, zenoh_network
 
 Factory = Callable[[str], Transport]
+Stall = Callable[[Transport], AbstractContextManager[None]]
+"""Makes the network under one transport stop taking its writes, for the ``with`` block."""
+
+SET_BOUND_S = 0.5
+"""How long ``params.set`` may take while the network stalls: ample for a call (over ROS 1, a
+round trip to the peer process), far below the stall (a ROS 1 call waits 2 s for the master)."""
+STALL_LIMIT_S = 10.0
+"""A stall ends by itself after this long, should a failing test never end it."""
 
 
 def memory_network() -> Iterator[Factory]:
@@ -45,23 +61,69 @@ def memory_network() -> Iterator[Factory]:
         transport.close()
 
 
+@contextmanager
+def stalled_sends(transport: Transport) -> Iterator[None]:
+    """The replicated store's network send blocks (a congested zenoh link) until the end."""
+    store = transport.params
+    assert isinstance(store, ReplicatedParams)
+    real = store._send
+    released = threading.Event()
+
+    def stalled(key: str, data: bytes) -> None:
+        released.wait(STALL_LIMIT_S)
+        real(key, data)
+
+    store._send = stalled
+    try:
+        yield
+    finally:
+        store._send = real
+        released.set()
+
+
+@contextmanager
+def stalled_master(transport: Transport) -> Iterator[None]:
+    """The ROS master stops (SIGSTOP) until the end, as a master too busy to answer.
+
+    Ours: each test starts its own. Its URI is in the peer process's environment.
+    """
+    assert isinstance(transport, PeerTransport)
+    environ = Path(f"/proc/{transport._peer.process.pid}/environ").read_bytes().split(b"\0")
+    uri = next(e.split(b"=", 1)[1].decode() for e in environ if e.startswith(b"ROS_MASTER_URI="))
+    with MasterClient(uri) as master:
+        pid = int(master.call("getPid"))
+    os.kill(pid, signal.SIGSTOP)
+    stopped_at = time.monotonic()
+    try:
+        yield
+    finally:
+        os.kill(pid, signal.SIGCONT)
+    # Longer, and the write's call would time out in the peer (and be dropped, logged).
+    assert time.monotonic() - stopped_at < CALL_TIMEOUT_S, "the stall outlasted a ROS call"
+
+
 @dataclass(frozen=True)
 class Network:
     transport: str
     """The registered transport it runs."""
     open: Callable[[], Iterator[Factory]]
+    stall: Stall | None = None
+    """How to stall the network under a transport (None: nothing to stall)."""
 
 
 NETWORKS = {
     "memory": Network("memory", memory_network),
-    "ros1": Network("ros1", ros1_network),
-    "ros2": Network("ros2", ros2_network),
-    "zenoh": Network("zenoh", zenoh_network),
-    "zenoh-endpoints": Network("zenoh", zenoh_endpoints_network),
+    "ros1": Network("ros1", ros1_network, stalled_master),
+    "ros2": Network("ros2", ros2_network, stalled_sends),
+    "zenoh": Network("zenoh", zenoh_network, stalled_sends),
+    "zenoh-endpoints": Network("zenoh", zenoh_endpoints_network, stalled_sends),
 }
 
 _ANNOUNCE = "ROS 1's graph is the master's registrations: announce() declares nothing of its own"
 DOES_NOT_APPLY = {
+    ("memory", "test_a_write_never_waits_for_a_stalled_network"): (
+        "memory's store is the network itself: a write sends nothing that could stall"
+    ),
     ("ros1", "test_graph_announce_withdraw_and_watch"): _ANNOUNCE,
     ("ros1", "test_two_identical_declarations_are_two_entries"): _ANNOUNCE,
     ("ros1", "test_closing_a_transport_withdraws_its_graph"): _ANNOUNCE,
@@ -167,6 +229,26 @@ def test_params_are_shared_and_watched(make: Factory) -> None:
         "/dbm/strategy": "paper",
     }
     assert b.params.get("/nope") is None
+
+
+def test_a_write_never_waits_for_a_stalled_network(make: Factory, network: Network) -> None:
+    """``set`` returns while the network takes no writes (it may run on a middleware thread).
+
+    The value holds here at once, and reaches the others once the network takes it.
+    """
+    assert network.stall is not None
+    a, b = make("host-a"), make("host-b")
+    name = "/r1/camera/dbm/priority"
+    with network.stall(a):
+        started = time.monotonic()
+        a.params.set(name, 0.25)
+        took_s = time.monotonic() - started
+        held_here = a.params.get(name)
+        held_there = b.params.get(name)
+    assert took_s < SET_BOUND_S, f"set took {took_s:.3f} s while the network stalled"
+    assert held_here == 0.25
+    assert held_there is None  # the stall was real: the write had not gone out
+    wait_for(lambda: b.params.get(name) == 0.25, what="the write once the stall ended")
 
 
 def test_a_late_joiner_sees_existing_params(make: Factory) -> None:

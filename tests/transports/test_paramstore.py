@@ -10,17 +10,16 @@ import time
 import pytest
 
 from dbml.core.errors import TransportError
-from dbml.transports.base import ParamValue
-from dbml.transports.paramstore import (
-    BATCH_KEY,
-    MAX_CLOCK_AHEAD_NS,
+from dbml.protocol.keys import (
+    BATCH,
     MAX_WRITE_BYTES,
-    ReplicatedParams,
     decode_batch,
     decode_param,
     encode_param,
     param_key,
 )
+from dbml.transports.base import ParamValue
+from dbml.transports.paramstore import MAX_CLOCK_AHEAD_NS, MAX_QUEUED_WRITES, ReplicatedParams
 
 
 class Wire:
@@ -37,7 +36,7 @@ class Wire:
             self.sent.append((key, data))
             for other in self.stores:
                 if other is not store:
-                    if key == BATCH_KEY:
+                    if key == BATCH:
                         other.on_batch(data)
                     else:
                         other.on_write(key, data)
@@ -184,7 +183,7 @@ def test_a_batch_is_one_message_that_every_store_applies() -> None:
     seen = record(b)
     a.set_many({"/r1/camera/dbm/frequency/current_value": 4.0, "/dbm/round": 7})
     wire.settle()
-    assert [key for key, _ in wire.sent] == [BATCH_KEY]
+    assert [key for key, _ in wire.sent] == [BATCH]
     assert b.get("/r1/camera/dbm/frequency/current_value") == 4.0
     assert sorted(seen) == [("/dbm/round", 7), ("/r1/camera/dbm/frequency/current_value", 4.0)]
     values, stamp, writer = decode_batch(wire.sent[0][1])
@@ -241,6 +240,63 @@ def test_a_write_never_waits_for_the_network() -> None:
     release.set()
     assert store.flush(timeout_s=5.0)
     assert sent == [param_key(f"/x{i}") for i in range(100)]  # in order
+    store.close()
+
+
+class Stalled:
+    """A send that blocks until released (a congested network), recording what it sent."""
+
+    def __init__(self) -> None:
+        self.blocked = threading.Event()
+        self.release = threading.Event()
+        self.sent: list[tuple[str, bytes]] = []
+
+    def __call__(self, key: str, data: bytes) -> None:
+        self.blocked.set()
+        assert self.release.wait(10), "the test never released the network"
+        self.sent.append((key, data))
+
+
+def test_a_stalled_network_keeps_only_a_names_newest_queued_write() -> None:
+    send = Stalled()
+    store = ReplicatedParams("me", send=send)
+    store.set("/held", 0)
+    assert send.blocked.wait(5.0)  # the sender thread took it and blocks in send
+    for value in range(1, 1_000):
+        store.set("/x", value)
+    store.set("/y", "last")
+    assert len(store._sender.pending()) == 3  # /held in flight, /x's newest, /y
+    send.release.set()
+    assert store.flush(timeout_s=5.0)
+    assert [(k, decode_param(d)[0]) for k, d in send.sent] == [
+        (param_key("/held"), 0),
+        (param_key("/x"), 999),
+        (param_key("/y"), "last"),
+    ]
+    store.close()
+
+
+def test_a_stalled_network_drops_the_oldest_write_past_the_bound_and_says_so_once(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    send = Stalled()
+    store = ReplicatedParams("me", send=send)
+    over = 10
+    with caplog.at_level(logging.WARNING, logger="dbml.zenoh"):
+        store.set("/x0", 0)
+        assert send.blocked.wait(5.0)  # in flight: the queue holds the rest
+        for i in range(1, MAX_QUEUED_WRITES + 1 + over):
+            store.set(f"/x{i}", i)
+        assert store.get("/x0") == 0  # every write holds here, sent or not
+        assert len(store._sender.pending()) == MAX_QUEUED_WRITES + 1
+        assert store._sender.dropped == over
+        assert caplog.text.count("dropping the oldest") == 1
+        send.release.set()
+        assert store.flush(timeout_s=10.0)
+        assert caplog.text.count(f"caught up; {over} items were dropped") == 1
+    names = [key for key, _ in send.sent]
+    kept = [param_key(f"/x{i}") for i in (0, *range(1 + over, MAX_QUEUED_WRITES + 1 + over))]
+    assert names == kept  # the oldest queued went, in order; the newest all arrived
     store.close()
 
 

@@ -20,7 +20,7 @@ import zenoh
 from dbml.core.config import DbmSettings
 from dbml.core.errors import TransportError
 from dbml.harness.processes import free_port
-from dbml.runtime import names
+from dbml.protocol import names
 from dbml.runtime.graph import summarize
 from dbml.runtime.optimizer import OptimizerNode
 from dbml.runtime.publisher import ManagedPublisher
@@ -283,7 +283,7 @@ def test_ros2_priority_sets_the_param_and_bad_values_are_logged(
     with caplog.at_level(logging.WARNING, logger="dbml.ros2"):
         publisher.publish(data=1.5)
         wait_for(
-            lambda: "ignoring priority 1.5" in caplog.text,
+            lambda: f"{name}=1.5 must be within" in caplog.text,
             timeout_s=TIMEOUT_S,
             what="priority 1.5 refused",
         )
@@ -292,7 +292,7 @@ def test_ros2_priority_sets_the_param_and_bad_values_are_logged(
         wait_for(applied(0.75), timeout_s=TIMEOUT_S, what="priority 0.75 after the bad ones")
     assert transport.params.get(name) == 0.75
     assert [r.getMessage() for r in caplog.records].count(
-        f"{name}: ignoring priority 1.5: it must be a number in [0, 1]"
+        f"ignoring a priority: {name}=1.5 must be within [0, 1]"
         " (1 value(s) ignored; logged at most every 10 s)"
     ) == 1
     assert "nan" not in caplog.text

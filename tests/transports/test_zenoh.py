@@ -77,7 +77,9 @@ def test_a_newcomer_costs_each_session_answers_of_its_own_values_only() -> None:
                 transport.params.set(f"/r{i}/camera/dbm/{field}", 1.0)
         wait_for(
             lambda: all(
-                len(t.params.snapshot()) == 15 and len(t._live) == 4 and t._fetching == 0
+                len(t.params.snapshot()) == 15
+                and len(t._sync._live) == 4
+                and t._sync._fetching == 0
                 for t in old
             ),
             timeout_s=20,
@@ -149,9 +151,10 @@ def test_a_publishing_session_hears_its_own_channels_not_the_fleets_reports() ->
 
 def settled(session: ZenohTransport) -> bool:
     """No meeting due, none queued and no fetch waiting for its answers."""
-    with session._lock:
-        quiet = not session._meet_again and session._fetching == 0
-    return quiet and session._fetches.empty()
+    sync = session._sync
+    with sync._lock:
+        quiet = not sync._meet_again and sync._fetching == 0
+    return quiet and sync._fetches.empty()
 
 
 def test_a_publishing_session_fetches_its_channels_values_when_it_starts_hearing_them() -> None:

@@ -8,7 +8,8 @@ import pytest
 
 from dbml.core.errors import TransportError
 from dbml.harness.processes import free_port
-from dbml.runtime import ManagedPublisher, names
+from dbml.protocol import names
+from dbml.runtime import ManagedPublisher
 from dbml.runtime.qos import TransportQos, map_priority
 from dbml.transports import Sample, Variant
 from dbml.transports.base import TransportPriority

@@ -21,7 +21,7 @@ def zenoh_network() -> Iterator[Factory]:
         if made:
             assert transport.wait_for_peers(5.0), "no peer found on the loopback rendezvous"
             peers = [t.node_id for t in made]
-            wait_for(lambda: all(t._peers.is_set() for t in made), what=f"peers {peers}")
+            wait_for(lambda: all(t.wait_for_peers(0.0) for t in made), what=f"peers {peers}")
         made.append(transport)
         return transport
 
@@ -46,7 +46,7 @@ def zenoh_endpoints_network() -> Iterator[Factory]:
                 port=0,
             )
             assert transport.wait_for_peers(5.0), "no peer reached on the explicit endpoint"
-            wait_for(lambda: all(t._peers.is_set() for t in made), what="peers")
+            wait_for(lambda: all(t.wait_for_peers(0.0) for t in made), what="peers")
         made.append(transport)
         return transport
 

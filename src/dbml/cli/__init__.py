@@ -1,4 +1,4 @@
-"""The ``dbml`` command line: parser, handlers and rendering."""
+"""The ``dbml`` command line: parser, handlers, command bodies and rendering."""
 
 from dbml.cli.main import main
 

@@ -20,15 +20,15 @@ from typing import Any
 from rich.console import Console
 from rich.live import Live
 
-from dbml.cli import render
+from dbml.cli import commands, render
 from dbml.cli.parser import DEFAULT_ROUTER_ENDPOINT, EXIT_USAGE, build_parser
 from dbml.core.allocation import Allocation, Status, allocate
 from dbml.core.config import BridgeChannel, DbmSettings, load_bridge_channels, load_config
 from dbml.core.errors import DbmlError
+from dbml.core.extras import require
 from dbml.core.spec import LinkSpec
-from dbml.runtime import nodes
+from dbml.harness.processes import stop_on_signals
 from dbml.runtime.monitor import MonitorView
-from dbml.runtime.nodes import stop_on_signals
 from dbml.scenarios.reproduce import RobotRow, reproduce_table2
 from dbml.transports.base import Transport
 from dbml.transports.registry import TRANSPORTS, open_transport
@@ -171,7 +171,7 @@ def _cmd_optimizer(args: argparse.Namespace) -> int:
         settings, links = config.dbm, config.links
     return _run_node(
         args,
-        lambda t, stop: nodes.run_optimizer(
+        lambda t, stop: commands.run_optimizer(
             t,
             settings=settings,
             links=links,
@@ -186,7 +186,7 @@ def _cmd_optimizer(args: argparse.Namespace) -> int:
 def _cmd_publish(args: argparse.Namespace) -> int:
     return _run_node(
         args,
-        lambda t, stop: nodes.run_publisher(
+        lambda t, stop: commands.run_publisher(
             t,
             args.topic,
             size_bytes=args.size_bytes,
@@ -204,7 +204,7 @@ def _cmd_publish(args: argparse.Namespace) -> int:
 def _cmd_subscribe(args: argparse.Namespace) -> int:
     return _run_node(
         args,
-        lambda t, stop: nodes.run_subscriber(
+        lambda t, stop: commands.run_subscriber(
             t, args.topic, as_json=args.json, stop=stop, duration_s=args.duration
         ),
     )
@@ -234,7 +234,7 @@ def _cmd_bridge(args: argparse.Namespace) -> int:
     channels = _bridge_channels(args)  # bad input exits before any network is opened
     return _run_node(
         args,
-        lambda t, stop: nodes.run_bridge(
+        lambda t, stop: commands.run_bridge(
             t,
             channels,
             stop=stop,
@@ -262,12 +262,12 @@ def _cmd_router(args: argparse.Namespace) -> int:
 
 
 def _cmd_priority(args: argparse.Namespace) -> int:
-    return _run_node(args, lambda t, _stop: nodes.set_priority(t, args.topic, args.value))
+    return _run_node(args, lambda t, _stop: commands.set_priority(t, args.topic, args.value))
 
 
 def _cmd_budget(args: argparse.Namespace) -> int:
     return _run_node(
-        args, lambda t, _stop: nodes.set_budget(t, args.mbit, utilization=args.utilization)
+        args, lambda t, _stop: commands.set_budget(t, args.mbit, utilization=args.utilization)
     )
 
 
@@ -281,12 +281,12 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
 
         return _run_node(
             args,
-            lambda t, stop: nodes.run_monitor(t, show=show, stop=stop, duration_s=args.duration),
+            lambda t, stop: commands.run_monitor(t, show=show, stop=stop, duration_s=args.duration),
         )
     with Live(console=Console(), auto_refresh=False) as live:
         return _run_node(
             args,
-            lambda t, stop: nodes.run_monitor(
+            lambda t, stop: commands.run_monitor(
                 t,
                 show=lambda view: live.update(render.monitor_table(view), refresh=True),
                 stop=stop,
@@ -313,7 +313,14 @@ def _show(
         console.print(f"plot written to {args.plot}")
 
 
+def _require_plot(args: argparse.Namespace) -> None:
+    """Before a run, not after it: ``--plot`` without matplotlib would lose the run."""
+    if args.plot:
+        require("matplotlib", extra="plot", what="--plot")
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
+    _require_plot(args)
     from dbml.cli.documents import demo_document
     from dbml.cli.plots import plot_series
     from dbml.demo.runner import DemoOptions, run_teleop_demo
@@ -343,6 +350,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _cmd_testbed(args: argparse.Namespace) -> int:
+    _require_plot(args)
     from dbml.cli.documents import testbed_document
     from dbml.cli.plots import plot_series
     from dbml.scenarios.fleet import fleet_cameras
@@ -389,6 +397,7 @@ def _cmd_testbed(args: argparse.Namespace) -> int:
 
 
 def _cmd_secure(args: argparse.Namespace) -> int:
+    require("cryptography", extra="secure", what="dbml secure init")
     from dbml.secure import fleet_from_flags, init_fleet
 
     fleet = fleet_from_flags(

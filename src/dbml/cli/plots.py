@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
+from dbml.core.extras import require
 from dbml.experiment.analysis import MAX_P95_MS, WINDOW_S, SeriesPoint
 from dbml.scenarios.teleop import ROBOTS, STEPS
 
@@ -26,6 +27,7 @@ def plot_series(
     """
     if not series:
         return
+    require("matplotlib", extra="plot", what="a plot")
     import matplotlib
 
     matplotlib.use("Agg")

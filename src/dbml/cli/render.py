@@ -27,7 +27,7 @@ from dbml.experiment.analysis import (
     link_at,
 )
 from dbml.experiment.roles import URGENT_RATE_HZ, URGENT_SIZE_BYTES
-from dbml.runtime.monitor import MonitorView
+from dbml.runtime.monitor import MONITOR_COLUMNS, MonitorView
 from dbml.scenarios.reproduce import RobotRow
 from dbml.scenarios.teleop import LINK_MBIT, ROBOTS, STEPS
 
@@ -119,16 +119,7 @@ def monitor_table(view: MonitorView) -> Table:
         if view.estimator is not None:
             title += f" ({view.estimator})"
     table = Table(title=title)
-    for name in (
-        "topic",
-        "host",
-        "managed",
-        "priority",
-        "size B",
-        "allocated Hz",
-        "share",
-        "status",
-    ):
+    for name in ("topic", "host", "managed", *MONITOR_COLUMNS, "share", "status"):
         table.add_column(name, justify="left" if name in {"topic", "host", "status"} else "right")
     for row in view.rows:
         table.add_row(

@@ -2,7 +2,13 @@
 
 from dbml.core.allocation import Allocation, ChannelAllocation, Status, Strategy, allocate
 from dbml.core.config import Config, DbmSettings, parse_config
-from dbml.core.errors import ConfigError, DbmlError, SpecError, TransportError
+from dbml.core.errors import (
+    ConfigError,
+    DbmlError,
+    MissingExtraError,
+    SpecError,
+    TransportError,
+)
 from dbml.core.priority import (
     collision_priority,
     linear_ramp,
@@ -21,6 +27,7 @@ __all__ = [
     "DbmSettings",
     "DbmlError",
     "LinkSpec",
+    "MissingExtraError",
     "Problem",
     "SpecError",
     "Status",

@@ -23,20 +23,33 @@ moves its estimate like a delay-based congestion controller:
 Queueing delay is the one-way delay minus its minimum over ``base_window_s``, per stream, so a
 constant clock offset between sender and receiver cancels; the trend is a least-squares slope of
 those delays. Pure: every time is an argument, so it runs in a simulation as in a node.
+
+What the estimator tells others is an :class:`EstimatorState`: its phase, what it measured and,
+for a decrease, when it was decided, carried as JSON so a reader takes the fields as they are.
 """
 
 from __future__ import annotations
 
 import enum
 import itertools
+import json
 import math
 from collections import deque
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 from dbml.core.errors import SpecError
-from dbml.core.spec import bytes_per_s_to_mbit
+from dbml.core.spec import bytes_per_s_to_mbit, check_number, short_repr
 
-__all__ = ["Arrival", "BandwidthEstimator", "Estimate", "EstimatorSettings", "Phase"]
+__all__ = [
+    "Arrival",
+    "BandwidthEstimator",
+    "Estimate",
+    "EstimatorSettings",
+    "EstimatorState",
+    "Phase",
+]
 
 _TREND_FRAMES = 3
 _RATE_FRAMES = 4
@@ -140,6 +153,97 @@ class Estimate:
     """Seconds of queueing delay gained per second (negative while the queue drains)."""
     lost: int
     """Frames lost (sequence gaps) since the previous update."""
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class EstimatorState:
+    """What the estimator tells others (``/dbm/estimator_state``): its phase and what it measured.
+
+    It travels as JSON (``encode``/``decode``) so that a reader takes fields instead of taking
+    text apart; ``text`` is the line a person reads (``dbml monitor``).
+    """
+
+    phase: Phase
+    received_mbit: float
+    queue_delay_s: float
+    lost: int
+    decided_at_s: float | None = None
+    """A decrease's wall-clock time (s) of decision: the testbed times a cut by it to the
+    millisecond, where a reader that polls the parameter sees it only as often as it polls."""
+
+    @classmethod
+    def of(cls, estimate: Estimate, *, decided_at_s: float | None = None) -> EstimatorState:
+        """The state of ``estimate``, decided at ``decided_at_s`` (wall clock) if given."""
+        return cls(
+            phase=estimate.phase,
+            received_mbit=estimate.received_mbit,
+            queue_delay_s=estimate.queue_delay_s,
+            lost=estimate.lost,
+            decided_at_s=decided_at_s,
+        )
+
+    @property
+    def text(self) -> str:
+        """One readable line: ``decrease: received 3.20 Mbit/s, queueing 40 ms, lost 0 @<s>``."""
+        line = (
+            f"{self.phase.value}: received {self.received_mbit:.2f} Mbit/s, "
+            f"queueing {self.queue_delay_s * 1000:.0f} ms, lost {self.lost}"
+        )
+        return line if self.decided_at_s is None else f"{line} @{self.decided_at_s:.3f}"
+
+    def as_json(self) -> dict[str, Any]:
+        """The state as a JSON object (rounded: a state is for reading, not for arithmetic)."""
+        return {
+            "phase": self.phase.value,
+            "received_mbit": round(self.received_mbit, 4),
+            "queue_delay_s": round(self.queue_delay_s, 4),
+            "lost": self.lost,
+            "decided_at_s": None if self.decided_at_s is None else round(self.decided_at_s, 3),
+        }
+
+    def encode(self) -> str:
+        """The state as the parameter's value: compact JSON."""
+        return json.dumps(self.as_json(), separators=(",", ":"))
+
+    @classmethod
+    def from_json(cls, document: object) -> EstimatorState:
+        """The state ``as_json`` made; ``SpecError`` naming the field and the value if not."""
+        if not isinstance(document, Mapping):
+            raise SpecError(f"estimator state={short_repr(document)} is not a JSON object")
+        phase = document.get("phase")
+        known = _PHASES.get(phase) if isinstance(phase, str) else None
+        if known is None:
+            raise SpecError(
+                f"estimator state: phase={short_repr(phase)} is not one of "
+                f"{', '.join(p.value for p in Phase)}"
+            )
+        lost = document.get("lost")
+        if isinstance(lost, bool) or not isinstance(lost, int) or lost < 0:
+            raise SpecError(f"estimator state: lost={short_repr(lost)} is not a count")
+        decided = document.get("decided_at_s")
+        return cls(
+            phase=known,
+            received_mbit=_state_number(document, "received_mbit"),
+            queue_delay_s=_state_number(document, "queue_delay_s"),
+            lost=lost,
+            decided_at_s=None if decided is None else _state_number(document, "decided_at_s"),
+        )
+
+    @classmethod
+    def decode(cls, text: str) -> EstimatorState:
+        """The state ``encode`` wrote; ``SpecError`` naming what is wrong if not."""
+        try:
+            document = json.loads(text)
+        except (ValueError, RecursionError):
+            raise SpecError(f"estimator state={short_repr(text)} is not JSON") from None
+        return cls.from_json(document)
+
+
+_PHASES = {phase.value: phase for phase in Phase}
+
+
+def _state_number(document: Mapping[str, object], field: str) -> float:
+    return check_number(document.get(field), field=field, owner="estimator state", minimum=0.0)
 
 
 class _Stream:

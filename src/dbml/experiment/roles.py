@@ -8,7 +8,8 @@
 - ``operator``: receives both cameras (managed subscribers, or plain ones when unmanaged) and
   reports, every ``TICK_S``, the frames that arrived (robot, sequence number, send and arrival
   time, size, the rate the publisher applied) and the parameters in force (allocation, budget,
-  estimate, the variant each subscriber takes). The runner analyses them.
+  estimate, the variant each subscriber takes): an ``OperatorReport``. The runner analyses
+  them.
 
 As a process (``python -m dbml.experiment.roles ROLE SPEC_JSON``) a role opens its transport,
 prints ``{"type": "ready"}``, waits for ``start <t0>`` on stdin and ends at the last step, on
@@ -31,17 +32,20 @@ from typing import Any
 
 from dbml.core.allocation import Strategy
 from dbml.core.config import DbmSettings
-from dbml.core.errors import TransportError
+from dbml.core.errors import SpecError, TransportError
+from dbml.core.estimator import EstimatorState
 from dbml.core.spec import LinkSpec
-from dbml.harness.processes import Emit, emit_json, serve_role
-from dbml.runtime import names
+from dbml.experiment.analysis import Arrival, Tick
+from dbml.experiment.report import OperatorReport
+from dbml.harness.processes import Emit, emit_json, serve_role, stop_on_signals
+from dbml.protocol import names
 from dbml.runtime.metadata import MessageMeta, pack_meta
-from dbml.runtime.nodes import run_optimizer, stop_on_signals
 from dbml.runtime.params import ParamView
 from dbml.runtime.priority import collision_priority_source
 from dbml.runtime.publisher import ManagedPublisher
 from dbml.runtime.rate import Rate
 from dbml.runtime.reception import ReceptionReporter
+from dbml.runtime.serve import run_optimizer
 from dbml.runtime.subscriber import ManagedSubscriber
 from dbml.scenarios.fleet import fleet_cameras, fleet_steps
 from dbml.scenarios.teleop import LINK_MBIT, MAX_RATE_HZ, MIN_RATE_HZ, ROBOTS, STEPS, RobotCamera
@@ -75,11 +79,11 @@ HOSTS = {"operator": "operator", "optimizer": "base-station", "r1": "robot-r1", 
 TICK_S = 0.2
 """How often the operator reports what arrived."""
 TAIL_S = 1.0
+"""The operator and optimizer run this long after the last step, for frames still in flight."""
 PERIOD_S = 1.0
 """The optimisation period (the paper's 1 s): the publishers' heartbeat."""
 PEER_WAIT_S = 10.0
 """How long a role waits to reach the others before it reports ready."""
-"""The operator and optimizer run this long after the last step, for frames still in flight."""
 
 
 URGENT_SIZE_BYTES = 1_000
@@ -278,35 +282,44 @@ def _urgent_streams(transport: Transport, t0: float, spec: RoleSpec, stop: threa
 
 def operator_tick(
     view: ParamView,
-    frames: list[list[Any]],
-    variants: list[str],
+    frames: Sequence[Arrival],
+    variants: Sequence[str],
     *,
     cameras: Sequence[RobotCamera] = ROBOTS,
-) -> dict[str, Any]:
+) -> OperatorReport:
     """The operator's report: ``frames`` that arrived and the parameters in force now.
 
     One function for every operator (dbml's own and the plain ROS 2 one of ``ros2peers``), so
     the runner and the analysis read one format; ``cameras`` are the fleet's, in robot order.
     """
     dbm = view.dbm()
-    state = view.get(names.ESTIMATOR_STATE)
-    return {
-        "type": "tick",
-        "t": time.time(),
-        "frames": frames,
-        "allocated_hz": [view.channel(c.topic).current_rate_hz for c in cameras],
-        "budget_mbit": dbm.budget_mbit,
-        "estimate_mbit": dbm.estimate_mbit,
-        "estimator": state if isinstance(state, str) else None,
-        "variants": variants,
-    }
+    tick = Tick(
+        t_s=time.time(),
+        allocated_hz=tuple(view.channel(c.topic).current_rate_hz for c in cameras),
+        budget_mbit=dbm.budget_mbit,
+        estimate_mbit=dbm.estimate_mbit,
+        estimator=_estimator_state(view.get(names.ESTIMATOR_STATE)),
+        variants=tuple(variants),
+    )
+    return OperatorReport(tick, tuple(frames))
+
+
+def _estimator_state(value: object) -> EstimatorState | None:
+    """The estimator's state in force; None when none runs or a peer wrote a malformed one."""
+    if not isinstance(value, str):
+        return None
+    try:
+        return EstimatorState.decode(value)
+    except SpecError as err:
+        log.debug("%s", err)
+        return None
 
 
 def _operator(
     transport: Transport, t0: float, spec: RoleSpec, stop: threading.Event, emit: Emit
 ) -> None:
     lock = threading.Lock()
-    rows: list[list[Any]] = []
+    rows: list[Arrival] = []
 
     def receiver(index: int) -> Callable[[Sample], None]:
         def on_sample(sample: Sample) -> None:
@@ -315,14 +328,14 @@ def _operator(
                 meta: MessageMeta | None = MessageMeta.decode(sample.attachment)
             except TransportError:
                 meta = None  # no metadata (ROS 1 messages carry none)
-            row = [
-                index,
-                None if meta is None else meta.seq,
-                None if meta is None else meta.sent_ns / 1e9,
-                arrival_s,
-                len(sample.payload),
-                None if meta is None else meta.rate_hz,
-            ]
+            row = Arrival(
+                robot=index,
+                seq=None if meta is None else meta.seq,
+                sent_s=None if meta is None else meta.sent_ns / 1e9,
+                arrival_s=arrival_s,
+                size_bytes=len(sample.payload),
+                rate_hz=None if meta is None else meta.rate_hz,
+            )
             with lock:
                 rows.append(row)
 
@@ -350,7 +363,7 @@ def _operator(
         with lock:
             batch, rows[:] = list(rows), []
         variants = [s.variant.value for s in subscribers] or unmanaged
-        return operator_tick(view, batch, variants, cameras=cameras)
+        return operator_tick(view, batch, variants, cameras=cameras).encode()
 
     try:
         while not stop.is_set() and time.time() < t0 + spec.duration_s + TAIL_S:

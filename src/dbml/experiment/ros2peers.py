@@ -25,7 +25,6 @@ protocol (``harness.processes.serve_role``) and meets the others at the zenoh ro
 from __future__ import annotations
 
 import argparse
-import importlib
 import logging
 import os
 import sys
@@ -36,13 +35,13 @@ from functools import cache
 from typing import Any
 
 import numpy as np
-from rosbags.typesys import Stores, get_typestore
 
 from dbml.core.errors import DbmlError
+from dbml.core.extras import require
 from dbml.core.priority import collision_priority, time_to_collision_s
+from dbml.experiment.analysis import Arrival
 from dbml.experiment.roles import TAIL_S, TICK_S, RoleSpec, operator_tick, robot_index, wait_until
-from dbml.harness.processes import emit_json, serve_role
-from dbml.runtime.nodes import stop_on_signals
+from dbml.harness.processes import emit_json, serve_role, stop_on_signals
 from dbml.runtime.params import ParamView
 from dbml.scenarios.teleop import MAX_RATE_HZ, ROBOTS, STEPS, Step
 from dbml.transports.base import PRIORITY_SUFFIX, Variant
@@ -73,7 +72,7 @@ ROLES = ("operator", *(camera.robot.lower() for camera in ROBOTS))
 """The roles played by plain ROS 2 peers (the optimizer stays ``roles``' own)."""
 SDK_MISSING = (
     "--transport ros2 runs its robots and operator as plain ROS 2 nodes with zenoh-ros2-sdk, "
-    f"which {sys.executable} cannot import: pip install zenoh-ros2-sdk"
+    f"which {sys.executable} cannot import: pip install 'dbml[ros2]'"
 )
 IMAGE_TYPE = "sensor_msgs/msg/Image"
 FLOAT64_TYPE = "std_msgs/msg/Float64"
@@ -88,7 +87,7 @@ DEFINITIONS: tuple[tuple[str, str], ...] = (
     (FLOAT64_TYPE, "float64 data\n"),
 )
 """Each type's ``.msg`` text, dependencies first: offline, the SDK cannot fetch them itself."""
-HASH_STORE = Stores.ROS2_JAZZY
+HASH_STORE = "ros2_jazzy"
 """Where the RIHS01 hashes come from (the SDK computes wrong ones for nested types offline)."""
 OPTIMIZED_SUFFIX = Variant.OPTIMIZED.key("")
 """A managed topic's copy at the allocated rate: what a ROS 2 operator subscribes to."""
@@ -122,7 +121,10 @@ def router_address(endpoint: str) -> tuple[str, int]:
 @cache
 def type_hash(msg_type: str) -> str:
     """``msg_type``'s RIHS01 hash, as rmw_zenoh puts it in its keys."""
-    value: str = get_typestore(HASH_STORE).hash_rihs01(msg_type)
+    require("rosbags", extra="ros2", what="a plain ROS 2 peer")
+    from rosbags.typesys import Stores, get_typestore
+
+    value: str = get_typestore(Stores(HASH_STORE)).hash_rihs01(msg_type)
     return value
 
 
@@ -175,11 +177,9 @@ class SdkSession:
         self.router_ip, self.router_port = router_address(endpoint)
         override = os.environ.get(_OVERRIDE_ENV, "")
         os.environ[_OVERRIDE_ENV] = f"{override};{_SHM_OFF}" if override else _SHM_OFF
-        try:
-            sdk = importlib.import_module("zenoh_ros2_sdk")
-            session = importlib.import_module("zenoh_ros2_sdk.session")
-        except ImportError as err:
-            raise DbmlError(SDK_MISSING) from err
+        what, package = "a plain ROS 2 peer", "zenoh-ros2-sdk"
+        sdk = require("zenoh_ros2_sdk", extra="ros2", what=what, package=package)
+        session = require("zenoh_ros2_sdk.session", extra="ros2", what=what, package=package)
         self._sdk = sdk
         self._session: Any = session.ZenohSession.get_instance(self.router_ip, self.router_port)
         for msg_type, definition in DEFINITIONS:
@@ -283,7 +283,7 @@ class _Recorder:
     def __init__(self, store: Any) -> None:
         self._store = store
         self._lock = threading.Lock()
-        self._rows: list[list[Any]] = []
+        self._rows: list[Arrival] = []
         self._counts = [0 for _ in ROBOTS]
 
     def on_image(self, index: int) -> Callable[[Any], None]:
@@ -297,7 +297,16 @@ class _Recorder:
             with self._lock:
                 seq = self._counts[index]
                 self._counts[index] += 1
-                self._rows.append([index, seq, sent_s, arrival_s, size_bytes, None])
+                self._rows.append(
+                    Arrival(
+                        robot=index,
+                        seq=seq,
+                        sent_s=sent_s,
+                        arrival_s=arrival_s,
+                        size_bytes=size_bytes,
+                        rate_hz=None,  # a plain ROS 2 message carries no rate
+                    )
+                )
 
         return record
 
@@ -306,8 +315,8 @@ class _Recorder:
         with self._lock:
             return list(self._counts)
 
-    def take(self) -> list[list[Any]]:
-        """The rows since the last call."""
+    def take(self) -> list[Arrival]:
+        """The frames since the last call."""
         with self._lock:
             rows, self._rows = self._rows, []
         return rows
@@ -348,7 +357,7 @@ def _serve_operator(spec: RoleSpec, stop: threading.Event) -> None:
     def operate(t0: float) -> None:
         while not stop.is_set() and time.time() < t0 + spec.duration_s + TAIL_S:
             stop.wait(TICK_S)
-            emit_json(operator_tick(view, recorder.take(), variants))
+            emit_json(operator_tick(view, recorder.take(), variants).encode())
         emit_json({"type": "done"})
 
     try:

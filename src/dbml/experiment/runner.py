@@ -25,6 +25,7 @@ from types import FrameType
 
 from dbml.core.errors import DbmlError
 from dbml.experiment.analysis import Analysis, Arrival, Tick, analyse
+from dbml.experiment.report import TICK, OperatorReport
 from dbml.experiment.roles import RoleSpec, run_role
 from dbml.harness.processes import Message, RoleProcesses, wait_ready
 from dbml.scenarios.teleop import ROBOTS, STEPS
@@ -293,8 +294,10 @@ def run_experiment(
                     continue
                 if message.get("type") == "done":
                     break
-                if message.get("type") == "tick":
-                    _take(message, arrivals, ticks)
+                if message.get("type") == TICK:
+                    report = OperatorReport.decode(message)
+                    arrivals.extend(report.frames)
+                    ticks.append(report.tick)
                     if observe is not None:
                         elapsed = min(max(0.0, ticks[-1].t_s - t0), total_s)
                         step = min(len(STEPS), int(elapsed // step_s) + 1)
@@ -305,38 +308,3 @@ def run_experiment(
             stop.set()
             roles.close()
     return Recording(t0, tuple(arrivals), tuple(ticks), interrupted=False)
-
-
-def _take(message: dict[str, object], arrivals: list[Arrival], ticks: list[Tick]) -> None:
-    """One operator tick, from its JSON form."""
-    rows = message["frames"]
-    assert isinstance(rows, list)
-    arrivals.extend(
-        Arrival(
-            robot=int(r[0]),
-            seq=None if r[1] is None else int(r[1]),
-            sent_s=None if r[2] is None else float(r[2]),
-            arrival_s=float(r[3]),
-            size_bytes=int(r[4]),
-            rate_hz=None if r[5] is None else float(r[5]),
-        )
-        for r in rows
-    )
-    ticks.append(
-        Tick(
-            t_s=_number(message["t"]) or 0.0,
-            allocated_hz=tuple(_number(a) for a in _list(message["allocated_hz"])),
-            budget_mbit=_number(message["budget_mbit"]),
-            estimate_mbit=_number(message["estimate_mbit"]),
-            estimator=message["estimator"] if isinstance(message["estimator"], str) else None,
-            variants=tuple(str(v) for v in _list(message["variants"])),
-        )
-    )
-
-
-def _number(value: object) -> float | None:
-    return float(value) if isinstance(value, int | float) else None
-
-
-def _list(value: object) -> list[object]:
-    return value if isinstance(value, list) else []

@@ -5,7 +5,9 @@ from dbml.harness.processes import (
     emit_json,
     end_process,
     free_port,
+    read_commands,
     serve_role,
+    stop_on_signals,
     wait_ready,
 )
 from dbml.harness.rosmaster import RosMaster
@@ -16,6 +18,8 @@ __all__ = [
     "emit_json",
     "end_process",
     "free_port",
+    "read_commands",
     "serve_role",
+    "stop_on_signals",
     "wait_ready",
 ]

@@ -6,13 +6,15 @@ roles' reports. This is that plumbing, once: every line lands in one queue, ``No
 process's end, and ``close()`` ends every process it started, by PID (ask, terminate, kill).
 
 The role side is :func:`serve_role`: announce readiness, wait for the start time, run, and end on
-``stop``, stdin EOF or a signal.
+``stop``, stdin EOF or a signal (:func:`stop_on_signals`). A process that takes commands of its
+own (a benchmark's workers) reads them with :func:`read_commands`.
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
+import math
 import queue
 import signal
 import socket
@@ -21,8 +23,10 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import IO, Any
+
+from dbml.core.errors import DbmlError
 
 __all__ = [
     "Emit",
@@ -31,7 +35,9 @@ __all__ = [
     "emit_json",
     "end_process",
     "free_port",
+    "read_commands",
     "serve_role",
+    "stop_on_signals",
     "wait_ready",
 ]
 
@@ -39,6 +45,8 @@ Emit = Callable[[dict[str, Any]], None]
 """A role's report sink: one JSON-able message."""
 Message = tuple[str, dict[str, Any] | None]
 """A role's name and one of its reports; None when the role ended."""
+_EMIT_LOCK = threading.Lock()
+"""One report is one line, also when several threads of a role report at once."""
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -63,6 +71,20 @@ def end_process(
     return process.returncode
 
 
+@contextlib.contextmanager
+def stop_on_signals() -> Iterator[threading.Event]:
+    """An event set by SIGINT or SIGTERM, so loops end cleanly and transports get closed."""
+    stop = threading.Event()
+    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    for sig in previous:
+        signal.signal(sig, lambda *_: stop.set())
+    try:
+        yield stop
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
 class RoleProcesses:
     """The role processes, with their stdout read line by line into one queue."""
 
@@ -71,11 +93,23 @@ class RoleProcesses:
         self.children: dict[str, subprocess.Popen[str]] = {}
         self._logs: dict[str, IO[str]] = {}
         self._readers: list[threading.Thread] = []
+        self._stop_signals: dict[str, int] = {}
 
     def spawn(
-        self, role: str, argv: Sequence[str], *, env: Mapping[str, str] | None = None
+        self,
+        role: str,
+        argv: Sequence[str],
+        *,
+        env: Mapping[str, str] | None = None,
+        stop_signal: int | None = None,
     ) -> None:
-        """Start ``argv`` as ``role``, its stdout read into ``messages``, its stderr logged."""
+        """Start ``argv`` as ``role``, its stdout read into ``messages``, its stderr logged.
+
+        ``stop_signal``: a process that reads no ``stop`` line (``dbml optimizer``) gets this
+        signal when the roles are closed, instead of the grace time of one that does.
+        """
+        if stop_signal is not None:
+            self._stop_signals[role] = stop_signal
         log = tempfile.TemporaryFile("w+")  # noqa: SIM115 - closed in close()
         self._logs[role] = log
         child = subprocess.Popen(
@@ -93,14 +127,20 @@ class RoleProcesses:
 
     def _read(self, role: str, child: subprocess.Popen[str]) -> None:
         assert child.stdout is not None
-        for line in child.stdout:
-            with contextlib.suppress(ValueError):
-                self.messages.put((role, json.loads(line)))
-        self.messages.put((role, None))  # EOF: the process ended
+        try:
+            for line in child.stdout:
+                with contextlib.suppress(ValueError):
+                    message = json.loads(line)
+                    if isinstance(message, dict):  # a report; anything else is not one
+                        self.messages.put((role, message))
+        finally:  # EOF, or its output cannot be read: either way the role is gone for us
+            self.messages.put((role, None))
 
-    def send(self, line: str) -> None:
-        """One line to every running role's stdin."""
-        for child in self.children.values():
+    def send(self, line: str, *, to: str | None = None) -> None:
+        """One line to every running role's stdin, or to role ``to``'s only."""
+        for role, child in self.children.items():
+            if to not in (None, role):
+                continue
             if child.poll() is None and child.stdin is not None:
                 with contextlib.suppress(BrokenPipeError, OSError):
                     child.stdin.write(line + "\n")
@@ -119,6 +159,10 @@ class RoleProcesses:
     def close(self) -> None:
         """Ask, then terminate, then kill: every process started here, by PID."""
         self.send("stop")
+        for role, sig in self._stop_signals.items():
+            child = self.children[role]
+            if child.poll() is None:
+                child.send_signal(sig)
         deadline = time.monotonic() + 5.0
         for child in self.children.values():
             try:
@@ -161,31 +205,78 @@ def wait_ready(messages: queue.Queue[Message], roles: set[str], *, timeout_s: fl
 
 def emit_json(message: dict[str, Any]) -> None:
     """A role's report: one JSON line on stdout."""
-    sys.stdout.write(json.dumps(message) + "\n")
-    sys.stdout.flush()
+    line = json.dumps(message) + "\n"
+    with _EMIT_LOCK:
+        sys.stdout.write(line)
+        sys.stdout.flush()
+
+
+def read_commands(stop: threading.Event) -> queue.Queue[str]:
+    """Lines of stdin, read by a thread into the queue returned; ``stop`` or EOF sets ``stop``.
+
+    For a process that takes commands besides ``stop``: EOF means its parent went away, so it
+    ends then too, as a role does.
+    """
+    commands: queue.Queue[str] = queue.Queue()
+
+    def read() -> None:
+        try:
+            for line in sys.stdin:
+                if line.startswith("stop"):
+                    break
+                commands.put(line.strip())
+        finally:
+            stop.set()
+
+    threading.Thread(target=read, name="commands", daemon=True).start()
+    return commands
+
+
+_SHOWN_CHARS = 80
+"""How much of a malformed control line an error quotes."""
+
+
+def _start_time(line: str) -> float:
+    """``t0`` of a ``start <t0>`` line; ``DbmlError`` naming the line if it is not one."""
+    try:
+        t0 = float(line.partition(" ")[2])
+    except ValueError:
+        t0 = math.nan
+    if not math.isfinite(t0):
+        raise DbmlError(f"control line {line.strip()[:_SHOWN_CHARS]!r} is not 'start <t0>'")
+    return t0
 
 
 def serve_role(role: str, stop: threading.Event, run: Callable[[float], None]) -> None:
     """Announce ``ready``, wait for ``start <t0>`` on stdin, then ``run(t0)``.
 
     ``stop`` is set by ``stop`` or EOF on stdin (and by the caller's signal handlers), so a role
-    whose parent went away ends too.
+    whose parent went away ends too. The thread reading stdin sets ``stop`` however it ends: a
+    malformed line, or stdin failing, ends the role too, and then ``DbmlError`` says why, so the
+    process exits non-zero instead of waiting for a start that never comes.
     """
     emit_json({"type": "ready", "role": role})
     start_at: list[float] = []
     started = threading.Event()
+    failed: list[Exception] = []
 
     def control() -> None:
-        for line in sys.stdin:
-            if line.startswith("stop"):
-                break
-            if line.startswith("start "):
-                start_at.append(float(line.split()[1]))
-                started.set()
-        stop.set()  # stdin closed or told to stop
+        try:
+            for line in sys.stdin:
+                if line.startswith("stop"):
+                    break
+                if line.startswith("start ") and not started.is_set():  # the first one counts
+                    start_at.append(_start_time(line))
+                    started.set()
+        except Exception as err:  # said by serve_role, on the main thread
+            failed.append(err)
+        finally:
+            stop.set()  # stdin closed, told to stop, or the thread failed
 
     threading.Thread(target=control, name="control", daemon=True).start()
     while not started.is_set() and not stop.is_set():
         started.wait(0.1)
     if not stop.is_set():
         run(start_at[0])
+    if failed:
+        raise DbmlError(f"role {role}: its control thread failed: {failed[0]}") from failed[0]

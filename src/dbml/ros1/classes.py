@@ -23,7 +23,7 @@ except ImportError as err:  # pragma: no cover - depends on the machine
 from dbml.core.config import DbmSettings
 from dbml.core.errors import SpecError
 from dbml.core.spec import ChannelSpec, LinkSpec
-from dbml.runtime import names
+from dbml.protocol import names
 from dbml.runtime.optimizer import OptimizerNode, Round
 from dbml.runtime.params import ParamView
 from dbml.runtime.publisher import FAILSAFE_PERIODS, ManagedPublisher

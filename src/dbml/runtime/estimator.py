@@ -4,11 +4,12 @@ It listens to ``/dbm/reception`` (what managed subscribers actually receive), ma
 reporter's clock onto its own (the smallest report transit seen, so reporters on other machines
 work too), runs :class:`~dbml.core.estimator.BandwidthEstimator` every ``interval_s``, and
 publishes the estimate in ``/dbm/estimated_bandwidth_in_mbit`` with its state in
-``/dbm/estimator_state`` for ``dbml monitor``. The cap is the configured budget,
-``/dbm/max_bandwidth_in_mbit`` times ``/dbm/max_bandwidth_utilization``: the estimate never
-exceeds it.
+``/dbm/estimator_state`` (an :class:`~dbml.core.estimator.EstimatorState` as JSON: ``dbml
+monitor`` shows its text, the testbed reads a cut's decision time from it). The cap is the
+configured budget, ``/dbm/max_bandwidth_in_mbit`` times ``/dbm/max_bandwidth_utilization``: the
+estimate never exceeds it.
 
-Every tick it also sends a small :class:`LinkBeacon` on ``/dbm/link``: whether frames arrive
+Every tick it also sends a small :class:`LinkBeacon` on ``LINK_TOPIC``: whether frames arrive
 (``up``) or the link is in an outage, and during and just after one the order in which the
 channels' held messages go out when it ends (highest priority first, each after the ones
 before it had time to cross at the budget). Publishers that heard a beacon hold their newest
@@ -27,9 +28,16 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from dbml.core.errors import TransportError
-from dbml.core.estimator import Arrival, BandwidthEstimator, Estimate, EstimatorSettings, Phase
-from dbml.core.spec import mbit_to_bytes_per_s
-from dbml.runtime import names
+from dbml.core.estimator import (
+    Arrival,
+    BandwidthEstimator,
+    Estimate,
+    EstimatorSettings,
+    EstimatorState,
+    Phase,
+)
+from dbml.core.spec import check_number, mbit_to_bytes_per_s
+from dbml.protocol import keys, names
 from dbml.runtime.params import ParamView
 from dbml.runtime.reception import RECEPTION_TOPIC, REPORT_INTERVAL_S, ReceptionReport
 from dbml.runtime.worker import PeriodicWorker
@@ -53,7 +61,7 @@ ESTIMATE_INTERVAL_S = 0.1
 """How often the estimator judges the link."""
 REPORT_LAG_S = REPORT_INTERVAL_S * 1.5
 """Frames arrive up to one report interval late: the estimator judges the window before."""
-LINK_TOPIC = "/dbm/link"
+LINK_TOPIC = keys.LINK_TOPIC
 """Where the estimator's :class:`LinkBeacon` goes every tick."""
 RELEASE_ORDER_S = 2.0
 """After an outage, beacons carry the release order this long (publishers may hear late)."""
@@ -64,16 +72,6 @@ HEARD_MAX = 4096
 """The most channels a beacon names as heard; a beacon naming more is malformed."""
 _DECODE_ERRORS = (ValueError, OverflowError, RecursionError, TypeError, KeyError, AttributeError)
 """What untrusted JSON can raise on its way in (``UnicodeDecodeError`` is a ``ValueError``)."""
-
-
-def _number(value: object, *, field: str, low: float = -math.inf, high: float = math.inf) -> float:
-    """A finite JSON number within ``[low, high]``; ``TypeError``/``ValueError`` otherwise."""
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise TypeError(f"{field}={value!r} is not a number")
-    number = float(value)  # OverflowError for an int beyond a float
-    if not (math.isfinite(number) and low <= number <= high):
-        raise ValueError(f"{field}={value!r} is not a finite number in [{low:g}, {high:g}]")
-    return number
 
 
 @dataclass(frozen=True, slots=True)
@@ -116,10 +114,12 @@ class LinkBeacon:
             if not isinstance(up, bool):
                 raise TypeError(f"up={up!r} is not a boolean")
             release = {
-                str(t): _number(v, field=f"release_s[{t!r}]", low=0.0, high=RELEASE_MAX_S)
+                str(t): check_number(
+                    v, field=f"release_s[{t!r}]", minimum=0.0, maximum=RELEASE_MAX_S
+                )
                 for t, v in document.get("release_s", {}).items()
             }
-            sent = _number(document.get("sent_s", 0.0), field="sent_s")
+            sent = check_number(document.get("sent_s", 0.0), field="sent_s")
             return cls(up, release, sent, _heard(document.get("heard")))
         except _DECODE_ERRORS as err:
             raise TransportError(f"malformed link beacon {data[:80]!r}: {err}") from err
@@ -157,6 +157,12 @@ def release_offsets(
 class LinkEstimator:
     """Estimate the shared link from reception reports; ``budget_mbit`` feeds the optimizer."""
 
+    MAX_REPORTERS = 1024
+    """The most reporting hosts whose clock offsets are kept (a fleet has tens). A host name
+    comes from the network: a report from one more host evicts the one silent the longest,
+    whose offset is learnt again from its next report, so a flood of made-up names costs at
+    most this much memory."""
+
     def __init__(
         self,
         transport: Transport,
@@ -176,6 +182,9 @@ class LinkEstimator:
         self._lock = threading.Lock()
         self._estimator: BandwidthEstimator | None = None
         self._offsets: dict[str, float] = {}
+        """Per reporting host, its clock's offset to ours; the longest silent first."""
+        self._evicted_reporters = 0
+        """Hosts evicted from ``_offsets`` since that was last logged (logged once per flood)."""
         self._published: tuple[float, str] | None = None
         self._view = ParamView.of(transport.params)
         self._worker = PeriodicWorker(
@@ -211,8 +220,8 @@ class LinkEstimator:
         now = self._transport.now()
         with self._lock:
             # arrival on our clock = arrival on theirs + offset; transit >= 0 bounds the offset
-            offset = min(self._offsets.get(report.host, math.inf), now - report.now_s)
-            self._offsets[report.host] = offset
+            offset = min(self._offset_locked(report.host), now - report.now_s)
+            self._offsets[report.host] = offset  # now the most recent
             if self._estimator is None:
                 return
             for frame in report.frames:
@@ -228,6 +237,21 @@ class LinkEstimator:
                         size_bytes=frame.size_bytes,
                     )
                 )
+
+    def _offset_locked(self, host: str) -> float:
+        """The offset known of ``host``, taken out of ``_offsets`` (inf: none), making room."""
+        known = self._offsets.pop(host, math.inf)
+        if len(self._offsets) >= self.MAX_REPORTERS:  # a new host, with every place taken
+            del self._offsets[next(iter(self._offsets))]  # the one silent the longest
+            if self._evicted_reporters == 0:
+                log.warning(
+                    "more than %d hosts report receptions: forgetting the silent ones' clocks",
+                    self.MAX_REPORTERS,
+                )
+            self._evicted_reporters += 1
+        elif len(self._offsets) < self.MAX_REPORTERS // 2:
+            self._evicted_reporters = 0  # the flood is over: say it again if another comes
+        return known
 
     def tick(self) -> Estimate | None:
         """One estimator update (the thread calls this every ``interval_s``)."""
@@ -280,13 +304,9 @@ class LinkEstimator:
         self._published = (value, phase)
         params = self._transport.params
         params.set(names.ESTIMATE, round(value, 4))
-        state = (
-            f"{phase}: received {estimate.received_mbit:.2f} Mbit/s, "
-            f"queueing {estimate.queue_delay_s * 1000:.0f} ms, lost {estimate.lost}"
-        )
-        if estimate.phase is Phase.DECREASE:  # when it was decided, to the millisecond
-            state += f" @{self._wall_clock_s():.3f}"
-        params.set(names.ESTIMATOR_STATE, state)
+        decided = self._wall_clock_s() if estimate.phase is Phase.DECREASE else None
+        state = EstimatorState.of(estimate, decided_at_s=decided)
+        params.set(names.ESTIMATOR_STATE, state.encode())
         if self.on_change is not None:
             self.on_change()
 

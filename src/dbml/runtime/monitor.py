@@ -5,13 +5,19 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+from dbml.core.errors import SpecError
+from dbml.core.estimator import EstimatorState
 from dbml.core.spec import mbit_to_bytes_per_s
-from dbml.runtime import names
+from dbml.protocol import names
+from dbml.protocol.schema import PARAMETERS
 from dbml.runtime.graph import is_managed, published_topics, publisher_hosts
 from dbml.runtime.params import channel_params, dbm_params, valid_values
 from dbml.transports.base import Transport
 
-__all__ = ["ChannelRow", "MonitorView", "channel_rows", "monitor_view"]
+__all__ = ["MONITOR_COLUMNS", "ChannelRow", "MonitorView", "channel_rows", "monitor_view"]
+
+MONITOR_COLUMNS = tuple(p.column for p in PARAMETERS if p.column is not None)
+"""The headers of the parameters a row shows (priority, size, allocated rate), from the schema."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -64,8 +70,7 @@ def monitor_view(transport: Transport) -> MonitorView:
     budget_mbit = dbm.budget_mbit
     budget = None if budget_mbit is None else mbit_to_bytes_per_s(budget_mbit)
     status = values.get(names.STATUS)
-    estimator = values.get(names.ESTIMATOR_STATE)
-    estimator_text = estimator if isinstance(estimator, str) else None
+    estimator_text = _estimator_text(values.get(names.ESTIMATOR_STATE))
     rows = []
     for topic in sorted(published_topics(entries)):
         channel = channel_params(values, topic)
@@ -104,6 +109,16 @@ def monitor_view(transport: Transport) -> MonitorView:
         estimator=estimator_text,
         status_message=message if isinstance(message, str) else None,
     )
+
+
+def _estimator_text(value: object) -> str | None:
+    """The estimator's state as a line to read (its JSON is for programs); None if malformed."""
+    if not isinstance(value, str):
+        return None
+    try:
+        return EstimatorState.decode(value).text
+    except SpecError:
+        return None
 
 
 def channel_rows(transport: Transport) -> list[ChannelRow]:

@@ -19,14 +19,14 @@ from __future__ import annotations
 
 import logging
 import threading
-from collections.abc import Callable, Iterable
-from dataclasses import dataclass, replace
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field, replace
 
 from dbml.core.allocation import Allocation, Status, Strategy, allocate
 from dbml.core.config import DbmSettings
 from dbml.core.errors import DbmlError
 from dbml.core.spec import LinkSpec, Problem, short_repr
-from dbml.runtime import names
+from dbml.protocol import names
 from dbml.runtime.graph import summarize
 from dbml.runtime.params import (
     ChannelParams,
@@ -85,6 +85,18 @@ class Round:
     budget_mbit: float | None
     """What was allocatable: the estimate, else bandwidth times utilization."""
     allocation: Allocation | None
+
+
+@dataclass(frozen=True, slots=True)
+class _Outcome:
+    """What one round's allocation decided for the managed channels, before it is pushed."""
+
+    status: Status
+    message: str
+    rates_hz: Mapping[str, float] = field(default_factory=dict)
+    """The managed channels' rates; a channel without one is pushed nothing."""
+    allocation: Allocation | None = None
+    """The allocator's result, when it ran."""
 
 
 class OptimizerNode:
@@ -235,21 +247,17 @@ class OptimizerNode:
 
     # -- one round ----------------------------------------------------------------------------
 
-    def _allocate(
-        self, managed: list[ChannelParams], dbm: DbmParams
-    ) -> tuple[dict[str, float], Status, str, Allocation | None]:
+    def _allocate(self, managed: list[ChannelParams], dbm: DbmParams) -> _Outcome:
         if not managed:
-            return {}, Status.OPTIMAL, "no managed channels", None
-        floors = {c.topic: c.floor_hz for c in managed}
-        budget = dbm.link_and_utilization()
-        if budget is None:
-            return floors, Status.INFEASIBLE, f"no budget: set {names.BANDWIDTH}", None
+            return _Outcome(Status.OPTIMAL, "no managed channels")
+        if (budget := dbm.link_and_utilization()) is None:
+            floors = {c.topic: c.floor_hz for c in managed}
+            return _Outcome(Status.INFEASIBLE, f"no budget: set {names.BANDWIDTH}", floors)
         specs = [spec for c in managed if (spec := c.spec()) is not None]
         # Channels that have not sent a message yet have no size: nothing is pushed to them, so
         # they send nothing on [topic]/optimized until there is room for them (or fail-safe).
-        rates: dict[str, float] = {}
         if not specs:
-            return rates, Status.OPTIMAL, "waiting for the first message sizes", None
+            return _Outcome(Status.OPTIMAL, "waiting for the first message sizes")
         topics = {s.topic for s in specs}
         links = tuple(
             LinkSpec(link.name, link.capacity_mbit, kept)
@@ -267,8 +275,9 @@ class OptimizerNode:
             frame_headroom=dbm.frame_headroom,
         )
         allocation = allocate(problem, strategy=dbm.strategy)
-        rates.update(allocation.rates_by_topic())
-        return rates, allocation.status, allocation.message, allocation
+        return _Outcome(
+            allocation.status, allocation.message, allocation.rates_by_topic(), allocation
+        )
 
     def optimize(self) -> Round:
         """Read, allocate and push once."""
@@ -276,11 +285,13 @@ class OptimizerNode:
         dbm = self.dbm()
         managed = [c.params for c in channels if c.managed]
         try:
-            rates, status, message, allocation = self._allocate(managed, dbm)
+            outcome = self._allocate(managed, dbm)
         except DbmlError as err:
             # A bad combination of good values: keep every managed channel at its minimum.
-            rates = {c.topic: c.floor_hz for c in managed}
-            status, message, allocation = Status.INFEASIBLE, str(err), None
+            floors = {c.topic: c.floor_hz for c in managed}
+            outcome = _Outcome(Status.INFEASIBLE, str(err), floors)
+        status, message = outcome.status, outcome.message
+        rates = dict(outcome.rates_hz)
         for channel in channels:
             if not channel.managed and channel.params.max_rate_hz is not None:
                 rates[channel.topic] = channel.params.max_rate_hz
@@ -298,7 +309,7 @@ class OptimizerNode:
         publishers = {c.topic: c.publishers for c in channels}
         self._owned = owned | {names.current_value(t): r for t, r in rates.items()}
         self._push(rates, publishers, updates)
-        result = Round(channels, rates, status, message, dbm.budget_mbit, allocation)
+        result = Round(channels, rates, status, message, dbm.budget_mbit, outcome.allocation)
         self.last_round = result
         return result
 

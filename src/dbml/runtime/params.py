@@ -1,11 +1,10 @@
-"""The parameters, typed: the one validation of a value and the one budget rule.
+"""The parameters, typed: the last good value of each and the one budget rule.
 
 Every value dbml reads from a parameter store crosses the network first, so it is untrusted:
-``check_param`` is the single place that decides whether a value of a known name is valid (a
-rate in (0, 1 MHz], a size in (0, 1 GB], a priority in [0, 1], a strategy by name, ...).
-``ParamView`` keeps, per name, the last good value and ignores a bad one: it logs it once with
-the key and the value and lists it in ``problems()`` (the optimizer appends those to
-``/dbm/status_message``), so a bad write never raises in the optimizer's or a publisher's
+the wire schema's ``check_param`` (``dbml.protocol.schema``) decides whether a value of a known
+name is valid. ``ParamView`` keeps, per name, the last good value and ignores a bad one: it
+logs it once with the key and the value and lists it in ``problems()`` (the optimizer appends
+those to ``/dbm/status_message``), so a bad write never raises in the optimizer's or a publisher's
 thread and never takes a channel out of the allocation.
 
 ``DbmParams`` and ``ChannelParams`` are what the optimizer, the publishers, the estimator and
@@ -20,110 +19,27 @@ import threading
 import weakref
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import ClassVar
 
-from dbml.core.allocation import Status, Strategy
+from dbml.core.allocation import Strategy
 from dbml.core.config import DbmSettings
-from dbml.core.errors import SpecError
-from dbml.core.spec import (
-    MAX_BANDWIDTH_MBIT,
-    MAX_PERIOD_S,
-    MAX_RATE_HZ,
-    MAX_SIZE_BYTES,
-    MIN_PERIOD_S,
-    ChannelSpec,
-    check_number,
-    check_priority,
-    short_repr,
-)
-from dbml.runtime import names
-from dbml.transports.base import Handle, ParamStore, ParamValue
+from dbml.core.spec import ChannelSpec
+from dbml.protocol import names
+from dbml.protocol.schema import ParamError, check_param
+from dbml.transports.base import Closer, Handle, ParamStore, ParamValue
 from dbml.transports.callbacks import CallbackList
 
 __all__ = [
-    "MAX_TEXT_CHARS",
     "ChannelParams",
     "DbmParams",
-    "ParamError",
     "ParamView",
     "channel_params",
-    "check_param",
     "dbm_params",
     "valid_values",
     "write_settings",
 ]
 
 log = logging.getLogger("dbml.params")
-
-MAX_TEXT_CHARS = 10_000
-"""Status and estimator texts longer than this are not status lines."""
-
-_POSITIVE: dict[str, Any] = {"minimum": 0.0, "exclusive_minimum": True}
-_RULES: dict[str, dict[str, Any]] = {
-    names.BANDWIDTH: {**_POSITIVE, "maximum": MAX_BANDWIDTH_MBIT},
-    names.ESTIMATE: {**_POSITIVE, "maximum": MAX_BANDWIDTH_MBIT},
-    names.UTILIZATION: {**_POSITIVE, "maximum": 1.0},
-    names.PERIOD: {"minimum": MIN_PERIOD_S, "maximum": MAX_PERIOD_S},
-    names.ROUND: {"minimum": 0.0},
-}
-_CHANNEL_RULES: dict[str, dict[str, Any]] = {
-    names.MIN_FIELD: {**_POSITIVE, "maximum": MAX_RATE_HZ},
-    names.MAX_FIELD: {**_POSITIVE, "maximum": MAX_RATE_HZ},
-    names.CURRENT_FIELD: {**_POSITIVE, "maximum": MAX_RATE_HZ},
-    names.APPLIED_FIELD: {**_POSITIVE, "maximum": MAX_RATE_HZ},
-    names.SIZE_FIELD: {**_POSITIVE, "maximum": MAX_SIZE_BYTES},
-}
-_TEXTS = frozenset({names.STATUS_MESSAGE, names.ESTIMATOR_STATE})
-
-
-class ParamError(SpecError):
-    """A parameter value that breaks its rule; the message names the key and the value."""
-
-
-def check_param(name: str, value: ParamValue) -> ParamValue:
-    """``value`` if it is valid for ``name`` (numbers as floats; None means unset).
-
-    Raises ``ParamError`` naming the key and the value. Names dbml does not know pass unchanged:
-    they are not dbml's to judge.
-    """
-    if value is None:
-        return None
-    try:
-        return _check(name, value)
-    except ParamError:
-        raise
-    except SpecError as err:
-        raise ParamError(str(err)) from None
-    except ValueError:  # an enum that does not know the value
-        raise ParamError(f"{name}={short_repr(value)} is not valid") from None
-
-
-def _check(name: str, value: bool | int | float | str) -> ParamValue:
-    if name in _RULES:
-        return check_number(value, field=name, **_RULES[name])
-    if name == names.STRATEGY:
-        return Strategy(value).value if isinstance(value, str) else _not(name, value)
-    if name == names.STATUS:
-        return Status(value).value if isinstance(value, str) else _not(name, value)
-    if name == names.FRAME_HEADROOM:
-        return value if isinstance(value, bool) else _not(name, value)
-    if name in _TEXTS:
-        return (
-            value if isinstance(value, str) and len(value) <= MAX_TEXT_CHARS else _not(name, value)
-        )
-    split = names.topic_of(name)
-    field = None if split is None else split[1]
-    if field in _CHANNEL_RULES:
-        return check_number(value, field=name, **_CHANNEL_RULES[field])
-    if field == names.PRIORITY_FIELD:
-        return check_priority(value, field=name)
-    if field == names.MANAGED_FIELD and not isinstance(value, bool):
-        return _not(name, value)
-    return value
-
-
-def _not(name: str, value: object) -> ParamValue:
-    raise ParamError(f"{name}={short_repr(value)} is not valid")
 
 
 @dataclass(frozen=True, slots=True)
@@ -218,8 +134,11 @@ class ParamView:
 
     One view per store and process (``ParamView.of``), so every value is checked, and a bad one
     logged, once. ``watch(callback)`` is called with ``(name, value)`` after a valid value is
-    taken in (on the store's thread); a bad value calls nothing. Reading never touches the
-    middleware.
+    taken in (on the store's thread); a bad value calls nothing. ``watch_channel(topic, ...)``
+    and ``watch_dbm(...)`` hear only one channel's names or only the names of no channel: a
+    write's topic is parsed once and goes to its channel's watchers alone, so a process with
+    many publishers does not have each of them filter every write. Reading never touches the
+    middleware, and ``dbm()``/``channel()`` read only the names they need.
     """
 
     _shared: ClassVar[weakref.WeakKeyDictionary[ParamStore, ParamView]] = (
@@ -241,6 +160,9 @@ class ParamView:
         self._values: dict[str, ParamValue] = {}
         self._problems: dict[str, str] = {}
         self._listeners: CallbackList[[str, ParamValue]] = CallbackList()
+        self._dbm_listeners: CallbackList[[str, ParamValue]] = CallbackList()
+        self._channel_listeners: dict[str, CallbackList[[str, ParamValue]]] = {}
+        """Per topic, its watchers; a topic's entry goes when its last watcher does."""
         self._notified: set[str] | None = set()
         self._watch: Handle = store.watch(self._take)  # for the store's life, as the view
         # After the watch, so nothing falls between; a name notified meanwhile is newer than
@@ -265,18 +187,52 @@ class ParamView:
             if not known:
                 log.warning("ignoring %s (the last good value stands)", err)
             return
+        split = None if from_snapshot else names.topic_of(name)
         with self._lock:
             self._problems.pop(name, None)
             if good is None:
                 self._values.pop(name, None)
             else:
                 self._values[name] = good
-        if not from_snapshot:
-            self._listeners.fire(name, good)
+            channel = None if split is None else self._channel_listeners.get(split[0])
+        if from_snapshot:
+            return
+        self._listeners.fire(name, good)
+        if split is None:
+            self._dbm_listeners.fire(name, good)
+        elif channel is not None:
+            channel.fire(split[1], good)
 
     def watch(self, callback: Callable[[str, ParamValue], object]) -> Handle:
         """Call ``callback(name, value)`` for every valid value taken in from now on."""
         return self._listeners.add(callback)
+
+    def watch_dbm(self, callback: Callable[[str, ParamValue], object]) -> Handle:
+        """Call ``callback(name, value)`` for every valid value of a name of no channel.
+
+        dbml's own ``/dbm/...`` names (the period, the optimizer's heartbeat, the budget), and
+        any other name that is not ``[topic]/dbm/...``.
+        """
+        return self._dbm_listeners.add(callback)
+
+    def watch_channel(self, topic: str, callback: Callable[[str, ParamValue], object]) -> Handle:
+        """Call ``callback(field, value)`` for every valid value of one of ``topic``'s names.
+
+        ``field`` is the name's part after ``[topic]/dbm/`` (``names.CURRENT_FIELD``, ...).
+        """
+        with self._lock:  # so a closing watcher cannot drop the list this one joins
+            listeners = self._channel_listeners.get(topic)
+            if listeners is None:
+                listeners = self._channel_listeners[topic] = CallbackList()
+            added = listeners.add(callback)
+
+        def remove() -> None:
+            added.close()
+            with self._lock:
+                if not listeners and self._channel_listeners.get(topic) is listeners:
+                    del self._channel_listeners[topic]
+
+        return Closer(remove)
 
     def get(self, name: str) -> ParamValue:
         """The last good value of ``name`` (None: unset)."""
@@ -295,11 +251,13 @@ class ParamView:
 
     def dbm(self) -> DbmParams:
         """The ``/dbm/...`` parameters, with their defaults where unset."""
-        return dbm_params(self.values())
+        with self._lock:  # dbm_params reads only its own names: no copy of every value
+            return dbm_params(self._values)
 
     def channel(self, topic: str) -> ChannelParams:
         """One channel's parameters."""
-        return channel_params(self.values(), topic)
+        with self._lock:  # channel_params reads only the channel's names
+            return channel_params(self._values, topic)
 
 
 def _float(values: Mapping[str, ParamValue], name: str) -> float | None:

@@ -6,7 +6,7 @@ from collections.abc import Callable
 
 from dbml.core.priority import collision_priority, time_to_collision_s
 from dbml.core.spec import check_priority
-from dbml.runtime import names
+from dbml.protocol import names
 from dbml.transports.base import Transport
 
 __all__ = ["PrioritySource", "collision_priority_source"]

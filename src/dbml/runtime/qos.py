@@ -24,20 +24,28 @@ own, which cut a managed 64-byte publish from 0.3 to 0.02 of a raw put when ever
 went express (``bench/publish_overhead.py``); an IMU stream needs throughput, an alarm latency.
 
 An explicit ``TransportPriority`` (``--transport-priority``) overrides the mapping.
+
+A zenoh publisher's class is fixed when it is declared, so a channel whose class changes (rare:
+a priority event, the first message's size) needs a new publisher: ``QosSwitch`` declares it
+and swaps it in without a lock held across the middleware call.
 """
 
 from __future__ import annotations
 
+import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from dbml.core.errors import SpecError
-from dbml.transports.base import TransportPriority
+from dbml.transports.base import Publisher, TransportPriority
 
 __all__ = [
     "HIGH_PRIORITY",
     "SMALL_MESSAGE_BYTES",
     "URGENT_PRIORITY",
+    "QosSwitch",
     "TransportQos",
+    "channel_qos",
     "explicit_qos",
     "is_small",
     "map_priority",
@@ -93,6 +101,15 @@ def explicit_qos(priority: TransportPriority, size_bytes: int | None) -> Transpo
     return TransportQos(priority, express=urgent and is_small(size_bytes))
 
 
+def channel_qos(
+    priority: float, size_bytes: int | None, explicit: TransportPriority | None = None
+) -> TransportQos:
+    """The class of a channel: ``explicit`` if given (``explicit_qos``), else ``map_priority``."""
+    if explicit is not None:
+        return explicit_qos(explicit, size_bytes)
+    return map_priority(priority, size_bytes)
+
+
 def parse_transport_priority(text: str) -> TransportPriority:
     """``"real_time"`` (or ``real-time``, any case) -> the class; a bad name raises naming it."""
     name = text.strip().lower().replace("-", "_")
@@ -101,3 +118,69 @@ def parse_transport_priority(text: str) -> TransportPriority:
     except ValueError:
         choices = ", ".join(p.value for p in TransportPriority)
         raise SpecError(f"transport_priority={text!r} is not one of: {choices}") from None
+
+
+class QosSwitch:
+    """The publisher of one class at a time, re-declared when another class is wanted.
+
+    ``declare(qos)`` declares a publisher in ``qos`` (None: the middleware's default) and is
+    called without any lock held; ``publisher`` is the one in force, read without a lock by the
+    publishing thread. A racing change of class wins over an older one. The publisher a swap
+    replaces is retired, not closed at once: a ``put`` that read it just before the swap may
+    still be using it; it is closed at the next swap, ``close_retired`` or ``close``.
+    """
+
+    def __init__(
+        self, declare: Callable[[TransportQos | None], Publisher], qos: TransportQos | None
+    ) -> None:
+        self._declare = declare
+        self._lock = threading.Lock()
+        self._qos = self._target = qos
+        self._generation = 0
+        self._retired: Publisher | None = None
+        self.publisher = declare(qos)
+        """The publisher in force."""
+
+    @property
+    def qos(self) -> TransportQos | None:
+        """The class of ``publisher``."""
+        with self._lock:
+            return self._qos
+
+    def switch(self, wanted: TransportQos | None) -> bool:
+        """Declare a publisher in ``wanted`` and swap it in; True if the class in force changed.
+
+        Nothing is declared when ``wanted`` is in force or already being declared, nor when a
+        newer call overtook this one while it declared (its publisher is closed again).
+        """
+        with self._lock:
+            if wanted == self._target:  # in force, or being declared
+                return False
+            self._target = wanted
+            self._generation += 1
+            if wanted == self._qos:  # back to the class in force: the one in flight is moot
+                return False
+            generation = self._generation
+        fresh = self._declare(wanted)
+        with self._lock:
+            swapped = generation == self._generation  # else a newer change wins
+            if swapped:
+                stale, self._retired = self._retired, self.publisher
+                self.publisher, self._qos = fresh, wanted
+            else:
+                stale = fresh
+        if stale is not None:
+            stale.close()
+        return swapped
+
+    def close_retired(self) -> None:
+        """Close the publisher the last swap replaced, if any."""
+        with self._lock:
+            retired, self._retired = self._retired, None
+        if retired is not None:
+            retired.close()
+
+    def close(self) -> None:
+        """Close the retired publisher and the one in force."""
+        self.close_retired()
+        self.publisher.close()

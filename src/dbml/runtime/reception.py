@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from dbml.core.errors import TransportError
+from dbml.protocol import keys
 from dbml.runtime.metadata import MessageMeta
 from dbml.runtime.worker import PeriodicWorker
 from dbml.transports.base import Sample, Transport
@@ -29,7 +30,7 @@ __all__ = [
 
 log = logging.getLogger("dbml.reception")
 
-RECEPTION_TOPIC = "/dbm/reception"
+RECEPTION_TOPIC = keys.RECEPTION_TOPIC
 REPORT_INTERVAL_S = 0.05
 """How often a reporter sends what it recorded: the estimator judges this much and half again
 in the past (frames still on their way to it), so it is part of the time to a cut."""

@@ -5,23 +5,35 @@ It receives ``[topic]`` when the topic is published on its own host only and
 seen it takes the optimized copy, the one that is safe to receive over a network. Its graph
 announcement is what makes the optimizer manage the channel. With a reporter, what arrives over
 the network is also reported for bandwidth estimation.
+
+A switch subscribes and announces: middleware calls, which must not run on the middleware's
+callback thread that tells of a graph change (zenoh's liveliness thread, a ROS master's poll).
+A graph change only wakes the subscriber's own worker thread, which switches; it also looks
+every ``RECHECK_S``, so a switch that failed is retried without waiting for another change.
 """
 
 from __future__ import annotations
 
+import logging
 import threading
 from collections.abc import Callable
 
 from dbml.core.errors import TransportError
-from dbml.runtime import names
+from dbml.protocol import names
 from dbml.runtime.graph import publisher_hosts
 from dbml.runtime.reception import ReceptionReporter
+from dbml.runtime.worker import PeriodicWorker
 from dbml.transports.base import Handle, Role, Sample, Transport, Variant
 
-__all__ = ["FIRST_SWITCH_TIMEOUT_S", "ManagedSubscriber"]
+__all__ = ["FIRST_SWITCH_TIMEOUT_S", "RECHECK_S", "ManagedSubscriber"]
+
+log = logging.getLogger("dbml.subscriber")
 
 FIRST_SWITCH_TIMEOUT_S = 10.0
-"""How long the constructor waits for the first subscription another thread is making."""
+"""How long the constructor waits for its first subscription."""
+RECHECK_S = 1.0
+"""How often the worker looks at the graph unprompted: it retries a failed switch within a
+second, and reading the graph view is cheap (every transport keeps it in memory)."""
 
 
 class ManagedSubscriber:
@@ -49,11 +61,20 @@ class ManagedSubscriber:
         self._updating = False
         self._closed = False
         self._subscribed = threading.Event()
-        self._graph_watch = transport.graph.watch(self._update)
-        self._update()
-        # Another thread may be doing the first switch (a graph event since the watch began):
-        # return subscribed all the same.
+        self._worker = PeriodicWorker(
+            self._update, interval_s=RECHECK_S, name=f"dbml-subscriber {topic}", log=log
+        )
+        # A graph change only wakes the worker: the watch may call on a middleware thread.
+        self._graph_watch = transport.graph.watch(self._worker.wake)
+        try:
+            self._update()  # the first switch here, so that its error is the caller's
+        except BaseException:
+            self._graph_watch.close()
+            raise
+        self._worker.start()
+        # The first switch above subscribed; the wait bounds it should that ever change.
         if not self._subscribed.wait(timeout=FIRST_SWITCH_TIMEOUT_S):
+            self.close()
             raise TransportError(
                 f"subscriber of {topic!r}: no subscription after {FIRST_SWITCH_TIMEOUT_S:g} s"
             )
@@ -71,8 +92,13 @@ class ManagedSubscriber:
         hosts = publisher_hosts(self._transport.graph.entries(), self.topic)
         return Variant.FULL if hosts == {self._transport.host} else Variant.OPTIMIZED
 
+    @property
+    def alive(self) -> bool:
+        """False once the worker thread died (a command then exits non-zero)."""
+        return self._worker.alive
+
     def _update(self) -> None:
-        """Follow the graph.
+        """Follow the graph (on the worker's thread, or the constructor's for the first time).
 
         One thread at a time switches; a change seen meanwhile (also one caused by our own
         announcement) makes that thread look again instead of waiting.
@@ -123,10 +149,13 @@ class ManagedSubscriber:
         self._callback(sample)
 
     def close(self) -> None:
-        """Unsubscribe and withdraw from the graph."""
+        """Stop following the graph (waiting for a switch under way), unsubscribe, withdraw."""
         with self._lock:
             self._closed = True
-            handles = [self._graph_watch, self._subscription, self._token]
+        self._graph_watch.close()
+        self._worker.stop()
+        with self._lock:
+            handles = [self._subscription, self._token]
             self._subscription = self._token = None
         for handle in handles:
             if handle is not None:

@@ -15,7 +15,7 @@ import threading
 
 import zenoh
 
-from dbml.runtime.nodes import stop_on_signals
+from dbml.harness.processes import stop_on_signals
 
 __all__ = ["CONNECT_RETRY_MAX_MS", "main", "open_meshed_router"]
 

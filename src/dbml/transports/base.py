@@ -23,9 +23,12 @@ import re
 import socket
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Protocol, Self, TypeAlias, runtime_checkable
+from typing import Protocol, Self, runtime_checkable
 
 from dbml.core.errors import TransportError
+from dbml.protocol import names
+from dbml.protocol.names import PRIORITY_SUFFIX, check_topic
+from dbml.protocol.schema import ParamValue, check_param_value
 
 __all__ = [
     "DEFAULT_ROUTER_ENDPOINT",
@@ -48,27 +51,11 @@ __all__ = [
     "resolve_host",
 ]
 
-ParamValue: TypeAlias = bool | int | float | str | None
-"""A parameter's value; ``None`` means deleted."""
-
 DEFAULT_ROUTER_ENDPOINT = "tcp/localhost:7447"
 """Where a zenoh router of this host listens (``dbml router``, ``rmw_zenohd``): ROS 2's default.
 
 Here, not beside zenoh, so the command line can name it without importing zenoh."""
-PRIORITY_SUFFIX = "/dbm/priority"
-"""A channel's priority parameter (and, over ROS 2, its ``std_msgs/msg/Float64`` topic)."""
-
-_TOPIC = re.compile(r"^(/[A-Za-z0-9_\-.~]+)+$")
 _HOST = re.compile(r"^[A-Za-z0-9_\-.~]+$")
-
-
-def check_topic(topic: str) -> str:
-    """A topic is a ROS-style name: ``/`` then segments of letters, digits and ``_-.~``."""
-    if not isinstance(topic, str) or not _TOPIC.match(topic):
-        raise TransportError(
-            f"topic={topic!r} must look like '/robot/sensor' (segments of letters, digits, _-.~)"
-        )
-    return topic
 
 
 def resolve_host(host: str | None = None) -> str:
@@ -86,7 +73,7 @@ class Variant(enum.StrEnum):
     """Which copy of a topic: every message (``full``) or the rate-managed one (``optimized``)."""
 
     FULL = "full"
-    OPTIMIZED = "optimized"
+    OPTIMIZED = names.OPTIMIZED
 
     def key(self, topic: str) -> str:
         """The name this copy of ``topic`` travels under (``/r1/camera/optimized``)."""
@@ -173,10 +160,16 @@ class ParamStore(Protocol):
     """Parameters under the paper's names, such as ``/r1/camera/dbm/priority``.
 
     Every process sees every value; the newest write wins; ``watch`` reports every change.
+
+    Writing never blocks, on every transport: ``set`` and ``set_many`` are called from
+    middleware callback threads (a publisher answering an allocation), where waiting for the
+    network, or for a ROS master whose own push is that callback, could deadlock. A write is
+    applied here at once (``get`` and this process's watchers see it before ``set`` returns)
+    and sent from a thread of the store's own, in order, once the network takes it.
     """
 
     def set(self, name: str, value: ParamValue) -> None:
-        """Write ``name`` (``None`` deletes it)."""
+        """Write ``name`` (``None`` deletes it); returns at once, never waiting on the network."""
         ...
 
     def set_many(self, values: Mapping[str, ParamValue]) -> None:
@@ -374,10 +367,3 @@ class Closer:
         action, self._action = self._action, None
         if action is not None:
             action()
-
-
-def check_param_value(value: object) -> ParamValue:
-    """``value`` if a store can hold it (a bool, number, string or ``None``), else an error."""
-    if value is not None and not isinstance(value, bool | int | float | str):
-        raise TransportError(f"parameter value={value!r} must be a bool, number or string")
-    return value

@@ -1,9 +1,9 @@
 """The parameter store over a pub/sub network: every process caches, each value's owner serves it.
 
-A write is published as ``{"v": value, "t": stamp_ns, "w": writer}`` under the key
-``dbml/param/<name>`` (``/r1/camera/dbm/priority`` is ``dbml/param/r1/camera/dbm/priority``),
-and every process that listens caches the newest write per name, ordered by (stamp, writer). A
-batch (``set_many``: the optimizer's allocation of a round) is one message under ``dbml/batch``.
+A write is published under the parameter's key, and every process that listens caches the
+newest write per name, ordered by (stamp, writer). A batch (``set_many``: the optimizer's
+allocation of a round) is one message. Keys and encodings are the wire schema's
+(``dbml.protocol.keys``).
 
 Ownership keeps a join cheap: the writer of a value's newest write owns it and is the one that
 serves it to a newcomer; values whose writer has left (a ``dbml priority`` that exited) are served
@@ -14,6 +14,8 @@ process met: replies grew with the cube of the fleet).
 
 Writes are sent by the store's own sender thread, in order: ``set`` never blocks its caller,
 which may be a middleware callback (a blocking send from there once deadlocked a fleet of 40).
+At most ``MAX_QUEUED_WRITES`` wait: a name's newer write replaces its older one still queued,
+and past the bound the oldest is dropped (logged once per stall).
 No writer's clock can pin a value: a write stamped more than ``MAX_CLOCK_AHEAD_NS`` ahead of the
 receiver's clock is refused, and a local write always supersedes what is held.
 
@@ -23,47 +25,41 @@ fed what arrives. The zenoh transport wires it to a session; the unit tests use 
 
 from __future__ import annotations
 
-import json
 import logging
-import queue
 import threading
 import time
 from collections.abc import Callable, Mapping
 from typing import TypeAlias
 
 from dbml.core.errors import TransportError
-from dbml.transports.base import Handle, ParamValue, check_param_value, check_topic
+from dbml.core.spec import short_repr
+from dbml.protocol.keys import (
+    BATCH,
+    PARAM,
+    decode_batch,
+    decode_param,
+    encode_batch,
+    encode_param,
+    param_key,
+)
+from dbml.protocol.names import check_topic
+from dbml.transports.base import Handle, ParamValue, check_param_value
 from dbml.transports.callbacks import CallbackList
+from dbml.transports.worker import DEFAULT_SENDER_CAPACITY, OrderedSender
 
-__all__ = [
-    "BATCH_KEY",
-    "MAX_CLOCK_AHEAD_NS",
-    "MAX_WRITE_BYTES",
-    "PARAM_PREFIX",
-    "ReplicatedParams",
-    "decode_batch",
-    "decode_param",
-    "encode_batch",
-    "encode_param",
-    "param_key",
-]
+__all__ = ["MAX_CLOCK_AHEAD_NS", "ReplicatedParams"]
 
 log = logging.getLogger("dbml.zenoh")
 
-PARAM_PREFIX = "dbml/param"
-"""Where parameter writes live in the key space; the parameter's name follows."""
-BATCH_KEY = "dbml/batch"
-"""Where a batch of writes (one optimisation round's allocation) is published."""
 MAX_CLOCK_AHEAD_NS = 30 * 1_000_000_000
 """A write stamped further ahead of this process's clock is refused: a peer's wrong clock (or a
 lie) must not make its value win every comparison for good. Fleet clocks agree far better."""
-MAX_WRITE_BYTES = 1 << 20
-"""A received message larger than this is not a parameter write (nor a batch of them)."""
 FLUSH_TIMEOUT_S = 2.0
 """How long ``close`` waits for queued writes to be sent."""
+MAX_QUEUED_WRITES = DEFAULT_SENDER_CAPACITY
+"""The most writes waiting for the network: a name's newer write replaces its queued one, so
+this bounds batches and distinct names; past it the oldest is dropped (``OrderedSender``)."""
 _NS_PER_S = 1e9
-_MALFORMED_SHOWN_BYTES = 80
-"""How much of a malformed write an error message quotes."""
 _WARNED_KEYS = 1_000
 """Malformed writes are logged once per key, for this many keys (a flood must not flood logs)."""
 
@@ -71,80 +67,6 @@ Send: TypeAlias = Callable[[str, bytes], None]
 """Sends one encoded message under its key to every peer; may block (on the sender thread)."""
 _Entry: TypeAlias = tuple[ParamValue, int, str]
 """A held write: value, stamp, writer."""
-
-
-def param_key(name: str) -> str:
-    """The key a parameter's writes are published under."""
-    return PARAM_PREFIX + check_topic(name)
-
-
-def encode_param(value: ParamValue, stamp_ns: int, writer: str) -> bytes:
-    """Wire form of a parameter write: the value, when it was written and by whom."""
-    check_param_value(value)
-    return json.dumps({"v": value, "t": stamp_ns, "w": writer}).encode()
-
-
-def encode_batch(values: Mapping[str, ParamValue], stamp_ns: int, writer: str) -> bytes:
-    """Wire form of several writes with one stamp: ``{"vs": {name: value}, "t", "w"}``."""
-    for name, value in values.items():
-        check_topic(name)
-        check_param_value(value)
-    return json.dumps({"vs": dict(values), "t": stamp_ns, "w": writer}).encode()
-
-
-def _malformed(data: bytes, what: str = "parameter write") -> TransportError:
-    return TransportError(f"malformed {what} {data[:_MALFORMED_SHOWN_BYTES]!r}")
-
-
-def _scalar(value: object) -> ParamValue:
-    if value is not None and not isinstance(value, bool | int | float | str):
-        raise TransportError(f"malformed parameter value {short(value)}")
-    return value
-
-
-def short(value: object) -> str:
-    """``repr`` of ``value``, cut to what a log line can hold."""
-    text = repr(value)
-    return text if len(text) <= _MALFORMED_SHOWN_BYTES else text[:_MALFORMED_SHOWN_BYTES] + "..."
-
-
-def _document(data: bytes, what: str) -> dict[str, object]:
-    if len(data) > MAX_WRITE_BYTES:
-        raise TransportError(f"{what} of {len(data)} bytes (more than {MAX_WRITE_BYTES})")
-    try:
-        document = json.loads(data)
-    except (ValueError, RecursionError) as err:
-        raise _malformed(data, what) from err
-    if not isinstance(document, dict):
-        raise _malformed(data, what)
-    return document
-
-
-def _stamp_and_writer(document: dict[str, object], data: bytes, what: str) -> tuple[int, str]:
-    stamp, writer = document.get("t"), document.get("w")
-    if not isinstance(stamp, int) or isinstance(stamp, bool) or not isinstance(writer, str):
-        raise _malformed(data, what)
-    return stamp, writer
-
-
-def decode_param(data: bytes) -> tuple[ParamValue, int, str]:
-    """A write's value, stamp and writer; a malformed one raises ``TransportError``."""
-    document = _document(data, "parameter write")
-    if "v" not in document:
-        raise _malformed(data)
-    stamp, writer = _stamp_and_writer(document, data, "parameter write")
-    return _scalar(document["v"]), stamp, writer
-
-
-def decode_batch(data: bytes) -> tuple[dict[str, ParamValue], int, str]:
-    """A batch's values by name, stamp and writer; a malformed one raises ``TransportError``."""
-    document = _document(data, "batch")
-    values = document.get("vs")
-    if not isinstance(values, dict):
-        raise _malformed(data, "batch")
-    stamp, writer = _stamp_and_writer(document, data, "batch")
-    checked = {check_topic(name): _scalar(value) for name, value in values.items()}
-    return checked, stamp, writer
 
 
 class ReplicatedParams:
@@ -168,11 +90,13 @@ class ReplicatedParams:
         self._values: dict[str, _Entry] = {}
         self._warned: set[str] = set()
         self.watchers: CallbackList[[str, ParamValue]] = CallbackList()
-        self._outbox: queue.SimpleQueue[tuple[str, bytes] | None] = queue.SimpleQueue()
-        self._idle = threading.Condition()
-        self._queued = 0
-        self._sender = threading.Thread(target=self._send_loop, name="dbml-param-send", daemon=True)
-        self._sender.start()
+        self._sender: OrderedSender[tuple[str, bytes]] = OrderedSender(
+            lambda item: self._send(*item),
+            name="dbml-param-send",
+            log=log,
+            capacity=MAX_QUEUED_WRITES,
+            describe=lambda item: f"parameter write {item[0]}",
+        )
 
     # -- writing ------------------------------------------------------------------------------
 
@@ -193,10 +117,11 @@ class ReplicatedParams:
         """
         check_param_value(value)
         key = param_key(name)
-        with self._lock:
+        with self._lock:  # queued under the lock: no older stamp can be queued after a newer
             stamp = self._stamp_locked([name])
             self._values[name] = (value, stamp, self.node_id)
-        self._queue(key, encode_param(value, stamp, self.node_id))
+            # A name's newest write replaces its older one still queued (one slot per key).
+            self._sender.put((key, encode_param(value, stamp, self.node_id)), slot=key)
         self.watchers.fire(name, value)
 
     def set_many(self, values: Mapping[str, ParamValue]) -> None:
@@ -208,36 +133,23 @@ class ReplicatedParams:
             data = encode_batch(values, stamp, self.node_id)  # checks every name and value
             for name, value in values.items():
                 self._values[name] = (value, stamp, self.node_id)
-        self._queue(BATCH_KEY, data)
+            self._sender.put((BATCH, data))  # never replaced: batches name different sets
         for name, value in values.items():
             self.watchers.fire(name, value)
 
-    def _queue(self, key: str, data: bytes) -> None:
-        with self._idle:
-            self._queued += 1
-        self._outbox.put((key, data))
-
-    def _send_loop(self) -> None:
-        while (item := self._outbox.get()) is not None:
-            try:
-                self._send(*item)
-            except Exception as err:  # a closed session or a network error: keep sending
-                log.warning("parameter write %s not sent: %s", item[0], err)
-            finally:
-                with self._idle:
-                    self._queued -= 1
-                    self._idle.notify_all()
-
     def flush(self, timeout_s: float = FLUSH_TIMEOUT_S) -> bool:
         """Wait until every queued write was handed to the network; False after ``timeout_s``."""
-        with self._idle:
-            return self._idle.wait_for(lambda: self._queued == 0, timeout=timeout_s)
+        return self._sender.flush(timeout_s)
 
     def close(self, timeout_s: float = FLUSH_TIMEOUT_S) -> None:
         """Send what is queued (bounded), then stop the sender thread."""
-        if not self.flush(timeout_s):
+        if not self._sender.close(timeout_s):
             log.warning("closing with parameter writes unsent after %.1f s", timeout_s)
-        self._outbox.put(None)
+
+    @property
+    def alive(self) -> bool:
+        """False once the sender thread died (a failed send does not end it)."""
+        return self._sender.alive
 
     # -- reading ------------------------------------------------------------------------------
 
@@ -269,11 +181,11 @@ class ReplicatedParams:
     # -- what arrives -------------------------------------------------------------------------
 
     def on_write(self, key: str, data: bytes) -> None:
-        """A write received under ``key`` (``dbml/param/<name>``): merged if newer, notified."""
-        if not key.startswith(PARAM_PREFIX + "/"):
+        """A write received under ``key`` (a parameter's): merged if newer, notified."""
+        if not key.startswith(PARAM + "/"):
             self._warn(key, "not a parameter key")
             return
-        self.on_value(key[len(PARAM_PREFIX) :], data)
+        self.on_value(key[len(PARAM) :], data)
 
     def on_value(self, name: str, data: bytes) -> None:
         """A write of ``name`` received (published, or an owner's answer): merged if newer."""
@@ -291,9 +203,9 @@ class ReplicatedParams:
         try:
             values, stamp, writer = decode_batch(data)
         except TransportError as err:
-            self._warn(BATCH_KEY, str(err))
+            self._warn(BATCH, str(err))
             return
-        if not self._accepts(BATCH_KEY, stamp, writer):
+        if not self._accepts(BATCH, stamp, writer):
             return
         for name, value in values.items():
             if self._merge(name, value, stamp, writer):
@@ -307,8 +219,8 @@ class ReplicatedParams:
             # "Newest stamp wins" must not let a writer's clock (or a lie) pin a value for good.
             self._warn(
                 name,
-                f"from {short(writer)} stamped {ahead_ns / _NS_PER_S:.0f} s ahead of this clock "
-                f"(more than {MAX_CLOCK_AHEAD_NS / _NS_PER_S:.0f} s)",
+                f"from {short_repr(writer)} stamped {ahead_ns / _NS_PER_S:.0f} s ahead of this "
+                f"clock (more than {MAX_CLOCK_AHEAD_NS / _NS_PER_S:.0f} s)",
             )
             return False
         return True

@@ -7,7 +7,8 @@
 - Parameters: the real parameter server, under the paper's absolute names, so ``rosparam get``
   and ``rosparam set`` work on them. The master pushes every change (``subscribeParam``, then
   ``paramUpdate`` calls) to a small XML-RPC endpoint of this process; reads are served from that
-  mirror, so nothing polls the master per message.
+  mirror, so nothing polls the master per message. Writes go to the master from a sender thread
+  (a write may come from inside the master's own push): ``set`` never blocks.
 - Graph: the master's ``getSystemState``; each node's host is the host of its URI, which
   ``ROS_IP`` / ``ROS_HOSTNAME`` decide. It is refreshed only while someone watches it, and nodes
   that no longer answer (killed without unregistering) are left out.
@@ -21,6 +22,7 @@ started with ``rospy.init_node``.
 
 from __future__ import annotations
 
+import atexit
 import io
 import logging
 import os
@@ -50,6 +52,7 @@ from dbml.transports.base import (
 )
 from dbml.transports.callbacks import CallbackList
 from dbml.transports.rosapi import CALL_TIMEOUT_S, ROSPY_MISSING, MasterClient
+from dbml.transports.worker import BackgroundThread, OrderedSender, PeriodicWorker
 
 try:
     import rosgraph.network
@@ -70,6 +73,12 @@ NODE_PING_TIMEOUT_S = 0.5
 """How long a node has to answer ``getPid`` before it counts as gone."""
 RECEIVE_BUFFER_BYTES = 1 << 24
 """rospy's receive buffer per subscription: room for a few large camera frames."""
+FLUSH_TIMEOUT_S = 2 * CALL_TIMEOUT_S
+"""How long closing waits for queued parameter writes: one timed-out call, and the next."""
+MAX_QUEUED_WRITES = 4096
+"""The most parameter writes waiting for the master. A name's newer write replaces its queued
+one, so this is room for a process's own parameters (a fleet optimizer writes one per channel);
+past it the oldest is dropped, logged once per stall."""
 _OPTIMIZED = "/" + Variant.OPTIMIZED.value
 _STRING = std_msgs.msg.String
 _SCALARS = (bool, int, float, str)
@@ -152,7 +161,12 @@ def _under(name: str, namespace: str) -> bool:
 
 
 class _Ros1Params:
-    """The parameter server, mirrored in this process from the master's pushes."""
+    """The parameter server, mirrored in this process from the master's pushes.
+
+    ``set`` applies a write to the mirror and tells this process's watchers at once, then
+    queues it for the master: it never blocks, also on the push endpoint's thread or with the
+    master stalled. The master's push of it later reports it again, as anyone's write.
+    """
 
     def __init__(self, master: MasterClient, node_name: str, host: str, bind: str) -> None:
         self._master = master
@@ -169,13 +183,21 @@ class _Ros1Params:
         self._api = f"http://{host}:{port}/"
         # A caller id of its own: the master would shut down a node re-registered at another URI.
         self._subscriber = MasterClient(master.uri, caller_id=f"{node_name}/dbml_params")
-        self._thread = threading.Thread(
-            target=self._server.serve_forever, name="dbml-ros1-params", daemon=True
+        self._thread = BackgroundThread(
+            self._server.serve_forever, name="dbml-ros1-params", log=log
+        ).start()
+        self._sender: OrderedSender[tuple[str, ParamValue]] = OrderedSender(
+            self._write,
+            name="dbml-ros1-param-send",
+            log=log,
+            capacity=MAX_QUEUED_WRITES,
+            describe=lambda item: f"parameter write {item[0]}",
+            on_exit=master.close,  # the sender thread's own connection
         )
-        self._thread.start()
         try:
             tree = self._subscriber.call("subscribeParam", self._api, "/")
         except TransportError:
+            self._sender.close(0)
             self._stop_server()
             raise
         changes: list[tuple[str, ParamValue]] = []
@@ -212,22 +234,43 @@ class _Ros1Params:
             self._watchers.fire(name, value)
 
     def set(self, name: str, value: ParamValue) -> None:
-        """Write on the parameter server; this process reads it back at once."""
+        """Write here and notify at once; the sender thread writes it on the parameter server."""
         check_param_value(value)
-        if value is None:
-            self._master.call("deleteParam", name, missing_ok=True)
-        else:
-            self._master.call("setParam", name, value)
-        with self._lock:  # read-your-writes before the master's push arrives
+        check_topic(name)
+        with self._lock:  # read-your-writes before the master has it
             if value is None:
                 self._mirror.pop(name, None)
             else:
                 self._mirror[name] = value
+            # Queued under the lock, so the master gets a name's writes in the mirror's order;
+            # a newer one replaces its older one still queued.
+            self._sender.put((name, value), slot=name)
+        self._watchers.fire(name, value)
+
+    def _write(self, item: tuple[str, ParamValue]) -> None:
+        """One write on the parameter server (on the sender thread)."""
+        name, value = item
+        if value is None:
+            self._master.call("deleteParam", name, missing_ok=True)
+        else:
+            self._master.call("setParam", name, value)
 
     def set_many(self, values: Mapping[str, ParamValue]) -> None:
-        """Write each on the parameter server (ROS 1 has no multi-set)."""
+        """Write each on the parameter server (ROS 1 has no multi-set); all checked first."""
+        for name, value in values.items():
+            check_topic(name)
+            check_param_value(value)
         for name, value in values.items():
             self.set(name, value)
+
+    def flush(self, timeout_s: float = FLUSH_TIMEOUT_S) -> bool:
+        """Wait until every queued write was handed to the master; False after ``timeout_s``."""
+        return self._sender.flush(timeout_s)
+
+    @property
+    def alive(self) -> bool:
+        """False once the push endpoint's or the sender's thread died."""
+        return self._thread.alive and self._sender.alive
 
     def get(self, name: str) -> ParamValue:
         """The mirrored value of ``name`` (no call to the master)."""
@@ -235,10 +278,21 @@ class _Ros1Params:
             return self._mirror.get(name)
 
     def snapshot(self, prefix: str = "/") -> dict[str, ParamValue]:
-        """Read from the master itself: the authoritative values under ``prefix``."""
+        """The master's values under ``prefix``, with this process's writes not sent yet.
+
+        The unsent ones are taken first: one sent meanwhile is in what the master returns.
+        """
+        unsent = self._sender.pending()
         out: dict[str, ParamValue] = {}
         namespace = prefix.rstrip("/") or "/"
         _flatten(namespace, self._master.call("getParam", namespace, missing_ok=True), out)
+        for name, value in unsent:
+            if not _under(name, namespace):
+                continue
+            if value is None:
+                out.pop(name, None)
+            else:
+                out[name] = value
         return out
 
     def watch(self, callback: Callable[[str, ParamValue], None]) -> Handle:
@@ -249,10 +303,12 @@ class _Ros1Params:
         self._subscriber.close()
         self._server.shutdown()
         self._server.server_close()
-        self._thread.join(timeout=CALL_TIMEOUT_S)
+        self._thread.join(CALL_TIMEOUT_S)
 
     def close(self) -> None:
-        """Unsubscribe from the master and stop the push endpoint."""
+        """Send the queued writes (bounded), unsubscribe from the master, stop the endpoint."""
+        if not self._sender.close(FLUSH_TIMEOUT_S):
+            log.warning("closing with parameter writes unsent after %.1f s", FLUSH_TIMEOUT_S)
         try:
             self._subscriber.call("unsubscribeParam", self._api, "/")
         except TransportError as err:
@@ -267,18 +323,27 @@ def _split(ros_topic: str) -> tuple[str, Variant]:
 
 
 class _Ros1Graph:
-    """The master's view of who publishes and subscribes what, by the host of each node."""
+    """The master's view of who publishes and subscribes what, by the host of each node.
+
+    A watched graph is re-read every ``poll_s`` by a ``PeriodicWorker``: a read that fails is
+    logged and the next one retries; should the thread die all the same, ``alive`` says so.
+    What is remembered of nodes (their URIs, when they last answered) is kept for the nodes of
+    the last read only, so it never outgrows the graph.
+    """
 
     def __init__(self, master: MasterClient, poll_s: float) -> None:
         self._master = master
-        self._poll_s = poll_s
         self._lock = threading.Lock()
         self._entries: frozenset[GraphEntry] | None = None
         self._uris: dict[str, str] = {}
         self._alive: dict[str, float] = {}
         self._watchers: CallbackList[[]] = CallbackList()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._worker = PeriodicWorker(
+            self._poll, interval_s=poll_s, name="dbml-ros1-graph", log=log
+        )
+        self._polling = False
+        self._reading = threading.Lock()
+        """One read at a time (the poller's, a caller's): they share what is known of nodes."""
 
     def announce(self, role: Role, topic: str, variant: Variant) -> Handle:
         """Nothing to do: declaring the ROS publisher or subscriber registered it already."""
@@ -307,15 +372,24 @@ class _Ros1Graph:
         return urlparse(uri).hostname
 
     def _read(self) -> frozenset[GraphEntry]:
+        with self._reading:
+            return self._read_locked()
+
+    def _read_locked(self) -> frozenset[GraphEntry]:
         publishers, subscribers, _services = self._master.call("getSystemState")
         entries = set()
+        listed: set[str] = set()
         for role, listing in ((Role.PUBLISHER, publishers), (Role.SUBSCRIBER, subscribers)):
             for ros_topic, nodes in listing:
                 topic, variant = _split(ros_topic)
                 for node in nodes:
+                    listed.add(node)
                     host = self._host(node)
                     if host is not None:
                         entries.add(GraphEntry(role, host, topic, variant, f"{node} {ros_topic}"))
+        for known in (self._uris, self._alive):  # forget the nodes that left the graph
+            for node in [n for n in known if n not in listed]:
+                known.pop(node, None)
         return frozenset(entries)
 
     def refresh(self) -> bool:
@@ -329,8 +403,8 @@ class _Ros1Graph:
     def entries(self) -> frozenset[GraphEntry]:
         """The graph as last read (read now when nobody watches it)."""
         with self._lock:
-            cached = self._entries
-        if cached is None or self._thread is None:
+            cached, polling = self._entries, self._polling
+        if cached is None or not polling:
             self.refresh()  # nobody keeps it fresh: read it now
             with self._lock:
                 cached = self._entries
@@ -341,28 +415,29 @@ class _Ros1Graph:
         """Call ``callback()`` when the graph changes; the first watch starts the polling."""
         handle = self._watchers.add(callback)
         with self._lock:
-            if self._thread is None:
-                self._thread = threading.Thread(
-                    target=self._poll, name="dbml-ros1-graph", daemon=True
-                )
-                self._thread.start()
+            start, self._polling = not self._polling, True
+        if start:
+            self._worker.start()
         return handle
 
     def _poll(self) -> None:
-        while not self._stop.wait(self._poll_s):
-            try:
-                changed = self.refresh()
-            except TransportError as err:
-                log.warning("graph: %s", err)
-                continue
-            if changed:
-                self._watchers.fire()
+        """One poll: re-read, and tell the watchers if the graph changed."""
+        try:
+            changed = self.refresh()
+        except TransportError as err:  # the master is away: the next poll retries
+            log.warning("graph: %s", err)
+            return
+        if changed:
+            self._watchers.fire()
+
+    @property
+    def alive(self) -> bool:
+        """False once the polling thread died."""
+        return self._worker.alive
 
     def close(self) -> None:
-        """Stop the polling."""
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=CALL_TIMEOUT_S * 2)
+        """Stop the polling (waiting for a poll in progress, bounded)."""
+        self._worker.stop(timeout_s=CALL_TIMEOUT_S * 2)
 
 
 def _raw_class(data_class: type) -> type:
@@ -468,6 +543,12 @@ class Ros1Transport(TransportBase):
             self._master, self.node_name, self._host, rosgraph.network.get_bind_address()
         )
         self._graph = _Ros1Graph(self._master, poll_s)
+        # A node that exits without closing (a rospy user's) still sends its queued writes.
+        atexit.register(self._flush_at_exit)
+
+    def _flush_at_exit(self) -> None:
+        if not self._closed and not self._params.flush(FLUSH_TIMEOUT_S):
+            log.warning("exiting with parameter writes unsent after %.1f s", FLUSH_TIMEOUT_S)
 
     @classmethod
     def shared(cls) -> Ros1Transport:
@@ -501,6 +582,20 @@ class Ros1Transport(TransportBase):
     def params(self) -> _Ros1Params:
         """The parameter server, mirrored here."""
         return self._params
+
+    def confirm_param(self, name: str, *, timeout_s: float) -> bool:
+        """Whether the master holds what this process holds of ``name``, once it is sent.
+
+        ``set`` only queues the write: a process that writes and exits must wait for it.
+        """
+        if not self._params.flush(timeout_s):
+            return False
+        try:
+            held = self._master.call("getParam", name, missing_ok=True)
+        except TransportError as err:
+            log.warning("confirming %s: %s", name, err)
+            return False
+        return bool(held == self._params.get(name))
 
     @property
     def graph(self) -> _Ros1Graph:
@@ -637,6 +732,7 @@ class Ros1Transport(TransportBase):
         if self._closed:
             return
         self._closed = True
+        atexit.unregister(self._flush_at_exit)
         for handle in list(self._handles):
             handle.close()
         self._graph.close()

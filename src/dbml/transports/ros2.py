@@ -15,8 +15,8 @@ value is logged once and ignored.
 Topology as rmw_zenoh's: peer mode, connect to the router of this host (``tcp/localhost:7447``,
 ``dbml router`` or ``rmw_zenohd``), listen on a port of its own, no multicast, no shared memory.
 
-Trust: a session whose ``dbml/node/<16 hex>/<zid>`` token is live counts as dbml's, and its ROS 2
-subscriptions are left to dbml's graph. A peer may declare such a token for another session's
+Trust: a session whose dbml node token (``dbml.protocol.keys``) is live counts as dbml's, and its
+ROS 2 subscriptions are left to dbml's graph. A peer may declare such a token for another session's
 zid and so hide that session's ROS 2 subscribers (fewer managed channels, never more bytes);
 the access control of ``dbml secure init`` (only dbml roles may declare ``dbml/**``) is the
 real defence. Whatever is remembered of the network is capped, so a token flood stays bounded.
@@ -37,6 +37,8 @@ from pathlib import Path
 import zenoh
 
 from dbml.core.errors import TransportError
+from dbml.protocol import keys
+from dbml.protocol.schema import ParamError, check_param
 from dbml.transports.base import (
     DEFAULT_ROUTER_ENDPOINT,
     PRIORITY_SUFFIX,
@@ -85,9 +87,6 @@ DEFAULT_LISTEN = "tcp/localhost:0"
 _OPTIMIZED_SUFFIX = Variant.OPTIMIZED.key("")
 _NODE_PREFIX = "dbml_"
 _NOT_IN_NAME = re.compile(r"[^A-Za-z0-9_]")
-_DBML_NODE = "dbml/node"
-_DBML_NODE_KEY_PARTS = 4
-"""``dbml/node/<node id>/<zenoh id>``."""
 _DBML_NODE_ID = re.compile(r"[0-9a-f]{16}")
 """A dbml node id as ``ZenohTransport`` makes it; any other shape is not dbml's."""
 _ZID = re.compile(r"[0-9a-f]{1,32}")
@@ -409,13 +408,14 @@ class Ros2Transport(TransportBase):
         self._handles: set[Handle] = set()
         self._priorities: dict[str, tuple[Handle, int]] = {}
         """Managed channels' priority subscriptions, and how many publishers share each."""
-        self._priority_lock = threading.Lock()
-        """Held from the check to the store of a priority subscription, so one serves all."""
+        self._declaring: dict[str, threading.Event] = {}
+        """Priority subscriptions being declared (outside any lock), set once they are in
+        ``_priorities`` or failed: a second publisher of the channel waits for the first."""
         liveliness = self.session.liveliness()
         self._node_token = liveliness.declare_token(self._token(TokenKind.NODE).key())
         self._subscribers = [
             liveliness.declare_subscriber(
-                f"{_DBML_NODE}/**", _guarded(self._on_dbml_node), history=True
+                f"{keys.NODE}/**", _guarded(self._on_dbml_node), history=True
             ),
             liveliness.declare_subscriber(
                 f"{ADMIN_SPACE}/{self.domain_id}/**", _guarded(self._on_token), history=True
@@ -634,13 +634,24 @@ class Ros2Transport(TransportBase):
     # -- priority from ROS 2 ------------------------------------------------------------------
 
     def _hear_priority(self, topic: str) -> None:
-        """Subscribe to ``topic``'s priority topic, or count one more user of the subscription."""
-        with self._priority_lock:  # two concurrent declares share one subscription
+        """Subscribe to ``topic``'s priority topic, or count one more user of the subscription.
+
+        The declaration runs outside every lock (zenoh may call back into this transport
+        meanwhile); a concurrent declare of the same channel waits for it, then shares it, or
+        declares it itself if it failed.
+        """
+        while True:
             with self._lock:
                 held = self._priorities.get(topic)
                 if held is not None:
                     self._priorities[topic] = (held[0], held[1] + 1)
                     return
+                declaring = self._declaring.get(topic)
+                if declaring is None:
+                    done = self._declaring[topic] = threading.Event()
+                    break
+            declaring.wait()  # set in a finally below: never left unset
+        try:
             name = topic + PRIORITY_SUFFIX
             key = data_key(self.domain_id, name, FLOAT64_TYPE, self.types.type_hash(FLOAT64_TYPE))
 
@@ -650,19 +661,22 @@ class Ros2Transport(TransportBase):
             handle = self._subscribe_key(name, key, FLOAT64_TYPE, _guarded(on_sample))
             with self._lock:
                 self._priorities[topic] = (handle, 1)
+        finally:
+            with self._lock:
+                del self._declaring[topic]
+            done.set()
 
     def _unhear_priority(self, topic: str) -> None:
         """One user less of ``topic``'s priority subscription; the last one undeclares it."""
-        with self._priority_lock:
-            with self._lock:
-                handle, count = self._priorities.get(topic, (None, 0))
-                if handle is None:
-                    return
-                if count > 1:
-                    self._priorities[topic] = (handle, count - 1)
-                    return
-                del self._priorities[topic]
-            handle.close()
+        with self._lock:
+            handle, count = self._priorities.get(topic, (None, 0))
+            if handle is None:
+                return
+            if count > 1:
+                self._priorities[topic] = (handle, count - 1)
+                return
+            del self._priorities[topic]
+        handle.close()  # outside the lock: an undeclaration is a middleware call too
 
     def _on_priority(self, name: str, payload: bytes) -> None:
         """Apply a ROS 2 priority in [0, 1]; log anything else (never raise on zenoh's thread)."""
@@ -671,22 +685,22 @@ class Ros2Transport(TransportBase):
         except TransportError as err:
             self._priority_log.warning(name, "%s: ignoring an undecodable priority: %s", name, err)
             return
-        if not 0.0 <= value <= 1.0:  # NaN fails both comparisons
-            self._priority_log.warning(
-                name, "%s: ignoring priority %r: it must be a number in [0, 1]", name, value
-            )
+        try:
+            checked = check_param(name, value)
+        except ParamError as err:
+            self._priority_log.warning(name, "ignoring a priority: %s", err)
             return
-        self.params.set(name, value)
+        self.params.set(name, checked)
 
     # -- ROS 2's graph ------------------------------------------------------------------------
 
     def _on_dbml_node(self, sample: zenoh.Sample) -> None:
         """Track which sessions are dbml's: only a well-formed node token makes one."""
         key = str(sample.key_expr)
-        parts = key.split("/")
-        if len(parts) != _DBML_NODE_KEY_PARTS:
+        parsed = keys.parse_node_key(key)
+        if parsed is None:
             return  # dbml's own transport logs malformed ones
-        node_id, zid = parts[2], parts[3]
+        node_id, zid = parsed
         if not (_DBML_NODE_ID.fullmatch(node_id) and _ZID.fullmatch(zid)):
             self._log.warning(key, "ignoring dbml node token %r: not <16 hex>/<zenoh id>", key)
             return

@@ -22,11 +22,13 @@ import struct
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-
-from rosbags.typesys import Stores, get_types_from_msg, get_typestore
-from rosbags.typesys.store import Typestore
+from typing import TYPE_CHECKING
 
 from dbml.core.errors import TransportError
+from dbml.core.extras import require
+
+if TYPE_CHECKING:  # rosbags (the ros2 extra) loads when a transport resolves types
+    from rosbags.typesys.store import Typestore
 
 __all__ = [
     "ADMIN_SPACE",
@@ -59,11 +61,8 @@ __all__ = [
 DISTROS = ("jazzy", "kilted", "lyrical")
 """The ROS 2 distros whose typestores ``rosbags`` ships and whose rmw_zenoh hashes types."""
 DEFAULT_DISTRO = "jazzy"
-_STORES = {
-    "jazzy": Stores.ROS2_JAZZY,
-    "kilted": Stores.ROS2_KILTED,
-    "lyrical": Stores.ROS2_LYRICAL,
-}
+_STORES = {"jazzy": "ros2_jazzy", "kilted": "ros2_kilted", "lyrical": "ros2_lyrical"}
+"""Each distro's ``rosbags.typesys.Stores`` value."""
 MAX_DOMAIN_ID = 232
 """The largest ROS 2 domain id (as ``ROS_DOMAIN_ID`` allows)."""
 ADMIN_SPACE = "@ros2_lv"
@@ -358,7 +357,10 @@ class MessageTypes:
         store = _STORES.get(self.distro)
         if store is None:
             raise TransportError(f"ros distro {self.distro!r} is not one of: {', '.join(DISTROS)}")
-        self._store: Typestore = get_typestore(store)
+        require("rosbags", extra="ros2", what="transport 'ros2'")
+        from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+        self._store: Typestore = get_typestore(Stores(store))
         files = _msg_files(msg_paths)
         for name, path in files.items():
             # One file at a time, so a clash with the typestore names the file and its type.

@@ -6,18 +6,12 @@ connects to the well-known port with retry; gossip then meshes everyone, and a n
 the rendezvous if its holder exits. ``connect`` / ``listen`` endpoints, or a zenoh config file,
 span machines. Shared memory is off unless asked for: it would bypass any shaped link.
 
-Key layout: topic ``/r1/camera`` is key ``r1/camera`` (and ``r1/camera/optimized``); parameter
-``/r1/camera/dbm/priority`` is ``dbml/param/r1/camera/dbm/priority``; graph declarations are
-liveliness tokens ``dbml/graph/<role>/<host>/<uid>/<variant>/<topic>``; each session is a token
-``dbml/node/<node id>/<zenoh id>``. Parameters: a session caches every write
-(``dbml/param/**``, and the optimizer's batches on ``dbml/batch``) and serves what it owns under
-``dbml/own/<node id>/**``. A session opened with ``follow_all_params=False`` (a process that
-only publishes) hears the global parameters (``dbml/param/dbm/**``), the batches, and the
-parameters of the channels it writes to: the reports of a fleet's other publishers (bounds,
-sizes, acknowledgements on every rate change) then cost it nothing. Two sessions that meet
-(see each other's token, and again when their direct link comes up) each fetch what the other
-owns and tell the other to fetch theirs, so what one wrote before the other could hear it is
-not lost; after that, writes reach it (``dbml.transports.paramstore``).
+Key layout: the wire schema's (``dbml.protocol.keys``): a topic's data, parameter writes and
+batches, each session's owned values (a queryable), graph declarations and sessions (liveliness
+tokens). The parameter store's protocol over the session (meetings, fetches, confirmations) is
+``dbml.transports.zenohsync``; with ``follow_all_params=False`` (a process that only publishes)
+a session hears the global parameters, the batches and the channels it writes to, so the
+reports of a fleet's other publishers (bounds, sizes, acknowledgements) cost it nothing.
 """
 
 from __future__ import annotations
@@ -25,8 +19,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
-import queue
-import re
 import threading
 import time
 import uuid
@@ -36,6 +28,7 @@ from pathlib import Path
 from typing import TypeAlias
 
 from dbml.core.errors import TransportError
+from dbml.protocol import keys
 from dbml.transports.base import (
     Closer,
     GraphEntry,
@@ -49,12 +42,7 @@ from dbml.transports.base import (
     resolve_host,
 )
 from dbml.transports.callbacks import CallbackList
-from dbml.transports.paramstore import (
-    BATCH_KEY,
-    PARAM_PREFIX,
-    ReplicatedParams,
-    decode_param,
-)
+from dbml.transports.zenohsync import ParamSync
 
 try:
     import zenoh
@@ -91,18 +79,6 @@ if _register is not None:
 DEFAULT_PORT = 17447
 """The loopback rendezvous port of the no-flags mode; ``DBML_ZENOH_PORT`` overrides it."""
 
-CONFIRM_QUERY_S = 0.5
-"""The longest one query of ``confirm_param`` waits for replies before it asks again."""
-CONFIRM_POLL_S = 0.05
-"""The pause between two queries of ``confirm_param``."""
-
-SYNC_TIMEOUT_S = 2.0
-"""How long the query for a newly met session's values waits for its answers."""
-LINK_POLL_S = 0.25
-"""How often a session looks for direct links that have just come up."""
-MEET_AGAIN_S = 1.0
-"""When two sessions that met meet once more (writes lost to a route not yet up come back)."""
-
 ZENOH_PRIORITY: dict[TransportPriority, zenoh.Priority] = {
     TransportPriority.REAL_TIME: zenoh.Priority.REAL_TIME,
     TransportPriority.INTERACTIVE_HIGH: zenoh.Priority.INTERACTIVE_HIGH,
@@ -114,29 +90,8 @@ ZENOH_PRIORITY: dict[TransportPriority, zenoh.Priority] = {
 }
 """dbml's transport classes are zenoh's, one to one."""
 
-_GRAPH = "dbml/graph"
-_NODE = "dbml/node"
 _CONTROL = zenoh.Priority.INTERACTIVE_HIGH
 """Parameter writes, queries and answers go ahead of bulk data (zenoh's DATA priority)."""
-_GLOBALS = "/dbm"
-"""The global parameters' names start with this (``/dbm/max_bandwidth_in_mbit``)."""
-_CHANNEL_PARAMS = "/dbm/"
-"""A channel's parameters are ``<topic>/dbm/<field>``."""
-_OWN = "dbml/own"
-"""Each session serves what it owns under ``dbml/own/<node id>/<name>``."""
-_OWN_ANY = _OWN + "/*"
-_OWN_KEY_PARTS = 4
-"""``dbml/own/<node id>/<name without its leading slash>``, split at the first three slashes."""
-_HELD = "held"
-"""The query parameter asking every session for the one value named, owned or not."""
-_PULL = "pull"
-"""The query parameter telling a session to fetch what the named session owns."""
-_NODE_ID = re.compile(r"[0-9a-f]{16}")
-_NODE_KEY_PARTS = 4
-"""``dbml/node/<node id>/<zenoh id>``."""
-"""A session's node id: 16 hex digits of a random UUID."""
-_GRAPH_KEY_SPLITS = 6
-"""``dbml/graph/<role>/<host>/<uid>/<variant>/<topic...>``: the topic keeps its slashes."""
 
 _Undeclarable: TypeAlias = (
     "zenoh.Subscriber[None] | zenoh.Queryable[None] | zenoh.LivelinessToken"
@@ -150,7 +105,7 @@ _Declaration: TypeAlias = (
 
 
 def _data_key(topic: str, variant: Variant) -> str:
-    return variant.key(check_topic(topic))[1:]
+    return keys.data_key(variant.key(topic))
 
 
 def _config(
@@ -319,7 +274,7 @@ class _ZenohGraph:
         with self._lock:
             self._count += 1
             uid = f"{transport.node_id}.{self._count}"
-        key = f"{_GRAPH}/{role.value}/{transport.host}/{uid}/{variant.value}{topic}"
+        key = keys.graph_key(role.value, transport.host, uid, variant.value, topic)
         entry = GraphEntry(role, transport.host, topic, variant, uid)
         token = transport.session.liveliness().declare_token(key)
         with self._lock:
@@ -345,12 +300,14 @@ class _ZenohGraph:
 
     def on_sample(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
-        parts = key.split("/", _GRAPH_KEY_SPLITS)  # dbml graph role host uid variant topic...
+        fields = keys.parse_graph_key(key)
         try:
+            if fields is None:
+                raise ValueError(key)
             entry = GraphEntry(
-                Role(parts[2]), parts[3], "/" + parts[6], Variant(parts[5]), parts[4]
+                Role(fields.role), fields.host, fields.topic, Variant(fields.variant), fields.uid
             )
-        except (IndexError, ValueError):
+        except ValueError:
             log.warning("ignoring malformed graph token %s", key)
             return
         with self._lock:
@@ -411,307 +368,35 @@ class ZenohTransport(TransportBase):
         self._lock = threading.Lock()
         # Each declaration until it is closed: a dropped zenoh object is undeclared.
         self._declared: set[_Declaration] = set()
-        self._peers = threading.Event()
-        self._live: set[str] = set()
-        """The dbml sessions met and still alive, by node id."""
-        self._fetching = 0
-        self._due: set[str] = set()
-        """Sessions whose values a queued fetch will ask for."""
-        self._zids: dict[str, str] = {}
-        """The live sessions' zenoh ids, to their node ids."""
-        self._linked: set[str] = set()
-        """The zenoh ids this session has a direct link to, as last seen."""
-        self._meet_again: list[tuple[float, str]] = []
-        """Sessions to meet once more, and when."""
-        self._synced = threading.Condition(self._lock)
-        self._fetches: queue.SimpleQueue[tuple[str, bool] | None] = queue.SimpleQueue()
-        self._replier = self.node_id.encode()
-        self._follow_all = follow_all_params
-        self._followed: set[str] = set()
-        """The channels whose parameters this session hears, when it does not hear them all."""
-        self.params = ReplicatedParams(self.node_id, send=self._send)
+        self._sync = ParamSync(
+            self.session, self.node_id, follow_all=follow_all_params, priority=_CONTROL
+        )
+        self.params = self._sync.params
         self.graph = _ZenohGraph(self)
-        threading.Thread(target=self._fetch_loop, name="dbml-param-sync", daemon=True).start()
-        session = self.session
-        heard = f"{PARAM_PREFIX}/**" if follow_all_params else f"{PARAM_PREFIX}{_GLOBALS}/**"
-        self._declared |= {
-            session.declare_subscriber(heard, self._on_param),
-            session.declare_subscriber(BATCH_KEY, self._on_batch),
-            session.declare_queryable(f"{_OWN}/{self.node_id}/**", self._on_query),
-            session.liveliness().declare_subscriber(
-                f"{_GRAPH}/**", self.graph.on_sample, history=True
-            ),
-            session.liveliness().declare_subscriber(f"{_NODE}/**", self._on_node, history=True),
-            session.liveliness().declare_token(f"{_NODE}/{self.node_id}/{session.info.zid()}"),
-        }
+        self._declared.add(
+            self.session.liveliness().declare_subscriber(
+                f"{keys.GRAPH}/**", self.graph.on_sample, history=True
+            )
+        )
         _OPEN.add(self)
 
-    # -- the parameter store's wire -----------------------------------------------------------
-
-    def _send(self, key: str, data: bytes) -> None:
-        """Put one parameter write or batch (on the store's sender thread, never a callback's).
-
-        Control traffic: never dropped behind bulk data (which uses DROP), and sent ahead of it.
-        A session that does not hear every parameter starts hearing a channel's when it first
-        writes one of them (a publisher's bounds): others' writes there are its business.
-        """
-        if not self._follow_all:
-            self._follow(key)
-        self.session.put(
-            key,
-            data,
-            congestion_control=zenoh.CongestionControl.BLOCK,
-            priority=_CONTROL,
-        )
-
-    def _follow(self, key: str) -> None:
-        """Hear the parameters of the channel that ``key`` (a parameter write's) belongs to."""
-        if not key.startswith(PARAM_PREFIX + "/"):
-            return
-        end = key.find(_CHANNEL_PARAMS, len(PARAM_PREFIX))
-        if end <= len(PARAM_PREFIX):  # a global parameter (heard already), or not a channel's
-            return
-        channel = key[: end + len(_CHANNEL_PARAMS)] + "**"
-        with self._lock:
-            if channel in self._followed or self._closed:
-                return
-            self._followed.add(channel)
-        try:
-            subscriber = self.session.declare_subscriber(channel, self._on_param)
-        except zenoh.ZError:
-            return  # closing: nothing left to hear
-        with self._lock:
-            if self._closed:
-                _undeclare(subscriber)
-                return
-            self._declared.add(subscriber)
-        # What others wrote there between the meetings' fetches and now, from its owners.
-        own = f"{_OWN_ANY}/{channel[len(PARAM_PREFIX) + 1 :]}"
-        self.session.get(
-            own,
-            zenoh.handlers.Callback(self._on_owned_reply, lambda: None),
-            target=zenoh.QueryTarget.ALL,
-            consolidation=zenoh.ConsolidationMode.NONE,
-            timeout=SYNC_TIMEOUT_S,
-            priority=_CONTROL,
-        )
-
-    def _on_owned_reply(self, reply: zenoh.Reply) -> None:
-        """A value some session owns, from ``dbml/own/<node id><name>``."""
-        sample = reply.ok
-        if sample is None:
-            return
-        parts = str(sample.key_expr).split("/", 3)
-        if len(parts) == _OWN_KEY_PARTS and _NODE_ID.fullmatch(parts[2]):
-            self.params.on_value("/" + parts[3], sample.payload.to_bytes())
-
-    def _on_param(self, sample: zenoh.Sample) -> None:
-        self.params.on_write(str(sample.key_expr), sample.payload.to_bytes())
-
-    def _on_batch(self, sample: zenoh.Sample) -> None:
-        self.params.on_batch(sample.payload.to_bytes())
-
-    def _is_live(self, node: str) -> bool:
-        with self._lock:
-            return node == self.node_id or node in self._live
-
-    def _on_query(self, query: zenoh.Query) -> None:
-        """Answer a query on this session's own key.
-
-        Plain: what this session owns. ``?held``: the one value named, whoever owns it.
-        ``?pull=<node>``: fetch what that session owns (it has just met this one).
-        """
-        own = f"{_OWN}/{self.node_id}"
-        parameters = query.parameters
-        if _HELD in parameters:
-            key = str(query.key_expr)
-            name = key[len(_OWN_ANY) :] if key.startswith(_OWN_ANY + "/") else ""
-            data = self.params.held(name) if name else None
-            if data is not None:
-                query.reply(own + name, data, attachment=self._replier)
-            return
-        puller = parameters.get(_PULL)
-        if puller is not None:
-            self._schedule_fetch(puller)
-            return
-        for name, data in self.params.owned(self._is_live):
-            reply_key = own + name
-            if query.key_expr.intersects(reply_key):
-                query.reply(reply_key, data, attachment=self._replier)
-
-    def _on_node(self, sample: zenoh.Sample) -> None:
-        parts = str(sample.key_expr).split("/")
-        if len(parts) != _NODE_KEY_PARTS:
-            log.warning("ignoring malformed session token %s", str(sample.key_expr)[:80])
-            return
-        node, zid = parts[2], parts[3]
-        if node == self.node_id:
-            return
-        with self._lock:
-            if sample.kind != zenoh.SampleKind.PUT:
-                self._live.discard(node)
-                if self._zids.get(zid) == node:
-                    del self._zids[zid]
-                return
-            if node in self._live:
-                return
-            self._live.add(node)
-            self._zids[zid] = node
-        self._peers.set()
-        self._meet(node)
-
-    def _meet(self, node: str, *, again: bool = True) -> None:
-        """Tell ``node`` to fetch what we own and fetch what it owns (off zenoh's thread).
-
-        What we wrote before our writes could reach its subscriber is in that fetch; from then
-        on our writes reach it. But a session's token can arrive before its subscriber's
-        declaration (or, from a peer's answer, before the link to it is up), so the meeting is
-        repeated once ``MEET_AGAIN_S`` later, and whenever a direct link to it comes up.
-        """
-        self._fetches.put((node, True))
-        self._schedule_fetch(node)
-        if again:
-            with self._lock:
-                self._meet_again.append((time.monotonic() + MEET_AGAIN_S, node))
-
-    def _new_links(self) -> None:
-        """Meet again the sessions whose direct link has just come up, or whose time came."""
-        try:
-            linked = {str(zid) for zid in self.session.info.peers_zid()}
-        except zenoh.ZError:
-            return
-        now = time.monotonic()
-        with self._lock:
-            fresh = [self._zids[z] for z in linked - self._linked if z in self._zids]
-            self._linked = linked
-            due = [node for at, node in self._meet_again if at <= now and node in self._live]
-            self._meet_again = [(at, node) for at, node in self._meet_again if at > now]
-        for node in fresh:
-            self._meet(node)
-        for node in due:
-            self._meet(node, again=False)
+    # -- the parameter store ----------------------------------------------------------------
 
     def fetch_owner_of(self, uid: str) -> None:
-        """Fetch what the session that made graph entry ``uid`` (``<node id>.<n>``) owns."""
-        node = uid.partition(".")[0]
-        if node != self.node_id:
-            self._schedule_fetch(node)
+        """Fetch what the session that made graph entry ``uid`` owns."""
+        self._sync.fetch_owner_of(uid)
 
     def refresh(self, entry: GraphEntry) -> None:
         """Meet the session that made ``entry`` again: both fetch what the other owns."""
-        node = entry.uid.partition(".")[0]
-        if node != self.node_id and _NODE_ID.fullmatch(node):
-            self._meet(node, again=False)
-
-    def _schedule_fetch(self, node: str) -> None:
-        """Fetch ``node``'s values soon, once: a fetch already waiting covers this one too."""
-        if not _NODE_ID.fullmatch(node):
-            log.warning("ignoring a fetch request from a malformed node id %s", node[:40])
-            return
-        with self._lock:
-            if node in self._due:
-                return
-            self._due.add(node)
-            self._fetching += 1
-        self._fetches.put((node, False))
-
-    def _fetch_loop(self) -> None:
-        """Ask sessions for their values, or to ask for ours; answers arrive on zenoh's threads.
-
-        A failure is logged and the loop goes on: a dead loop would leave this session deaf to
-        every value written before it could hear it.
-        """
-        while not self._closed:
-            try:
-                self._new_links()
-                try:
-                    item = self._fetches.get(timeout=LINK_POLL_S)
-                except queue.Empty:
-                    continue
-                if item is None:
-                    return
-                self._fetch_one(*item)
-            except Exception:
-                if not self._closed:
-                    log.exception("parameter sync")
-
-    def _fetch_one(self, node: str, announce: bool) -> None:
-        prefix = f"{_OWN}/{node}"
-        if announce:
-            self.session.get(
-                f"{prefix}?{_PULL}={self.node_id}", lambda _reply: None, priority=_CONTROL
-            )
-            return
-        with self._lock:
-            self._due.discard(node)
-
-        def on_reply(reply: zenoh.Reply) -> None:
-            sample = reply.ok
-            if sample is None:
-                return
-            key = str(sample.key_expr)
-            if key.startswith(prefix + "/"):
-                self.params.on_value(key[len(prefix) :], sample.payload.to_bytes())
-
-        try:
-            self.session.get(
-                f"{prefix}/**",
-                zenoh.handlers.Callback(on_reply, self._fetched),
-                target=zenoh.QueryTarget.ALL,
-                consolidation=zenoh.ConsolidationMode.NONE,
-                timeout=SYNC_TIMEOUT_S,
-                priority=_CONTROL,
-            )
-        except BaseException:
-            self._fetched()
-            raise
-
-    def _fetched(self) -> None:
-        with self._lock:
-            self._fetching -= 1
-            self._synced.notify_all()
+        self._sync.refresh(entry.uid)
 
     def wait_for_peers(self, timeout_s: float) -> bool:
         """Wait until another dbml session is reachable and what the sessions met own is here."""
-        deadline = time.monotonic() + timeout_s
-        if not self._peers.wait(timeout_s):
-            return False
-        with self._lock:
-            self._synced.wait_for(
-                lambda: self._fetching == 0, timeout=max(0.0, deadline - time.monotonic())
-            )
-        return True
+        return self._sync.wait_for_peers(timeout_s)
 
     def confirm_param(self, name: str, *, timeout_s: float) -> bool:
         """Whether another session holds our latest write of ``name`` (polled, bounded)."""
-        mine = self.params.stamp(name)
-        if mine is None:
-            return False
-        check_topic(name)
-        deadline = time.monotonic() + timeout_s
-        if not self.params.flush(timeout_s):
-            return False
-        while (left := deadline - time.monotonic()) > 0:
-            replies = self.session.get(
-                f"{_OWN_ANY}{name}?{_HELD}",
-                target=zenoh.QueryTarget.ALL,
-                consolidation=zenoh.ConsolidationMode.NONE,
-                timeout=min(CONFIRM_QUERY_S, left),
-            )
-            for reply in replies:
-                sample = reply.ok
-                if sample is None or sample.attachment is None:
-                    continue
-                if sample.attachment.to_bytes() == self._replier:
-                    continue  # our own cache answering
-                try:
-                    _, stamp, writer = decode_param(sample.payload.to_bytes())
-                except TransportError:
-                    continue
-                if (stamp, writer) == mine:
-                    return True
-            time.sleep(min(CONFIRM_POLL_S, max(0.0, deadline - time.monotonic())))
-        return False
+        return self._sync.confirm_param(name, timeout_s=timeout_s)
 
     # -- topics -------------------------------------------------------------------------------
 
@@ -780,8 +465,7 @@ class ZenohTransport(TransportBase):
             if self._closed:
                 return
             self._closed = True
-        self.params.close()
-        self._fetches.put(None)
+        self._sync.close()
         with self._lock:
             self._declared.clear()
         _OPEN.discard(self)

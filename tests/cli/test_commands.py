@@ -7,16 +7,17 @@ import threading
 
 import pytest
 
-from dbml.core import DbmSettings, SpecError
-from dbml.runtime import ManagedPublisher, ManagedSubscriber, OptimizerNode, names
-from dbml.runtime.monitor import MonitorView, channel_rows
-from dbml.runtime.nodes import (
+from dbml.cli.commands import (
     run_monitor,
     run_optimizer,
     run_subscriber,
     set_budget,
     set_priority,
 )
+from dbml.core import DbmSettings, SpecError
+from dbml.protocol import names
+from dbml.runtime import ManagedPublisher, ManagedSubscriber, OptimizerNode
+from dbml.runtime.monitor import MonitorView, channel_rows
 from dbml.transports import MemoryNetwork, MemoryTransport
 from tests.conftest import MONITOR_JSON_KEYS
 

@@ -1,34 +1,35 @@
-"""The commands behind ``dbml optimizer|publish|subscribe|priority|budget|monitor``.
+"""The bodies of ``dbml optimizer|publish|subscribe|bridge|priority|budget|monitor``.
 
-Each opens a transport, runs until its duration ends, SIGINT or SIGTERM, and closes the
-transport on the way out (zenoh sessions must be closed for the process to exit).
+Each runs on a transport ``dbml.cli.main`` opened, until its duration ends or ``stop`` is set
+(SIGINT or SIGTERM, through ``harness.stop_on_signals``); the caller closes the transport (zenoh
+sessions must be closed for the process to exit). They live beside the parser, not in the
+runtime: they are what a command does with the runtime's nodes. ``dbml optimizer``'s body is the
+runtime's ``run_optimizer`` (``dbml.runtime.serve``), which the experiment's optimizer role runs
+too.
 """
 
 from __future__ import annotations
 
 import json
 import logging
-import signal
 import sys
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from typing import TextIO
 
-from dbml.core.config import BridgeChannel, DbmSettings
+from dbml.core.config import BridgeChannel
 from dbml.core.errors import TransportError
-from dbml.core.spec import MAX_SIZE_BYTES, LinkSpec, check_number, check_priority
-from dbml.runtime import names
+from dbml.core.spec import MAX_SIZE_BYTES, check_number, check_priority
+from dbml.protocol import names
+from dbml.protocol.schema import check_param
 from dbml.runtime.bridge import FIRST_MESSAGE_TIMEOUT_S, Bridge
-from dbml.runtime.estimator import LinkEstimator
 from dbml.runtime.monitor import MonitorView, monitor_view
-from dbml.runtime.optimizer import OptimizerNode
-from dbml.runtime.params import check_param
 from dbml.runtime.publisher import ManagedPublisher
 from dbml.runtime.reception import ReceptionReporter
+from dbml.runtime.serve import PEER_WAIT_S, Lifetime, run_optimizer
 from dbml.runtime.subscriber import ManagedSubscriber
 from dbml.transports.base import ParamValue, Sample, Transport, TransportPriority
 
@@ -41,74 +42,9 @@ __all__ = [
     "run_subscriber",
     "set_budget",
     "set_priority",
-    "stop_on_signals",
 ]
 
 log = logging.getLogger("dbml")
-
-PEER_WAIT_S = 2.0
-"""How long a command waits to reach a running dbml process before going on alone."""
-
-
-@contextmanager
-def stop_on_signals() -> Iterator[threading.Event]:
-    """An event set by SIGINT or SIGTERM, so loops end cleanly and transports get closed."""
-    stop = threading.Event()
-    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
-    for sig in previous:
-        signal.signal(sig, lambda *_: stop.set())
-    try:
-        yield stop
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-
-
-def _until(stop: threading.Event, duration_s: float | None) -> Callable[[], bool]:
-    deadline = None if duration_s is None else time.monotonic() + duration_s
-    return lambda: stop.is_set() or (deadline is not None and time.monotonic() >= deadline)
-
-
-def run_optimizer(
-    transport: Transport,
-    *,
-    settings: DbmSettings | None,
-    links: tuple[LinkSpec, ...],
-    stop: threading.Event,
-    duration_s: float | None = None,
-    estimate: bool = False,
-    write_defaults: bool = False,
-) -> int:
-    """``dbml optimizer``: the optimizer node (and the estimator with ``estimate``)."""
-    transport.wait_for_peers(PEER_WAIT_S)
-    if settings is None and transport.params.get(names.BANDWIDTH) is None:
-        log.warning("no budget yet: waiting for %s (or pass --config)", names.BANDWIDTH)
-    estimator = LinkEstimator(transport) if estimate else None
-    node = OptimizerNode(
-        transport,
-        settings=settings,
-        links=links,
-        budget_mbit=None if estimator is None else estimator.budget_mbit,
-        write_defaults=write_defaults,
-    )
-    if estimator is not None:
-        estimator.on_change = node.poke
-        estimator.start()
-        log.info("estimating the bandwidth from reception reports (at most the configured)")
-    node.start()
-    log.info("optimizer running on host %s", transport.host)
-    done = _until(stop, duration_s)
-    try:
-        while not done():
-            if not node.alive or (estimator is not None and not estimator.alive):
-                log.critical("a worker thread died (see above); exiting so a supervisor restarts")
-                return 1
-            stop.wait(0.1)
-    finally:
-        node.stop()
-        if estimator is not None:
-            estimator.close()
-    return 0
 
 
 def run_publisher(
@@ -140,10 +76,10 @@ def run_publisher(
         priority=priority,
         transport_priority=transport_priority,
     )
-    done = _until(stop, duration_s)
+    life = Lifetime(stop, duration_s)
     shown: float | None = None
     try:
-        while not done():
+        while not life.over():
             publisher.rate.sleep()
             publisher.publish(payload)
             rate = publisher.current_rate_hz()
@@ -152,7 +88,7 @@ def run_publisher(
                 log.info("%s: publishing %d B at %.3f Hz", topic, size_bytes, rate)
     finally:
         publisher.close()
-    return 0
+    return life.exit_code()
 
 
 def run_bridge(
@@ -201,8 +137,8 @@ def run_bridge(
                 bridge.topic,
                 bridge.channel.msg_type or "bytes",
             )
-        done = _until(stop, duration_s)
-        while not done():
+        life = Lifetime(stop, duration_s)
+        while not life.over():
             if not all(bridge.alive for bridge in bridges):
                 log.critical("a bridge's thread died (see above); exiting")
                 return 1
@@ -210,7 +146,7 @@ def run_bridge(
     finally:
         for bridge in bridges:
             bridge.close()
-    return 0
+    return life.exit_code()
 
 
 @dataclass
@@ -248,11 +184,11 @@ def run_subscriber(
     meter = _Meter(deque(), threading.Lock())
     reporter = ReceptionReporter(transport).start()  # for an optimizer that estimates
     subscriber = ManagedSubscriber(transport, topic, meter.add, reporter=reporter)
-    done = _until(stop, duration_s)
+    life = Lifetime(stop, duration_s)
     try:
-        while not done():
-            if not reporter.alive:
-                log.critical("the reception reporter died (see above); exiting")
+        while not life.over():
+            if not reporter.alive or not subscriber.alive:
+                log.critical("the reception reporter or the subscriber died (see above); exiting")
                 return 1
             stop.wait(1.0)
             rate_hz, bytes_per_s = meter.window(1.0)
@@ -271,7 +207,7 @@ def run_subscriber(
     finally:
         subscriber.close()
         reporter.close()
-    return 0
+    return life.exit_code()
 
 
 def set_priority(transport: Transport, topic: str, value: float) -> int:
@@ -311,8 +247,8 @@ def run_monitor(
 ) -> int:
     """Hand a fresh ``MonitorView`` to ``show`` every ``interval_s`` until stopped."""
     transport.wait_for_peers(PEER_WAIT_S)
-    done = _until(stop, duration_s)
-    while not done():
+    life = Lifetime(stop, duration_s)
+    while not life.over():
         show(monitor_view(transport))
         stop.wait(interval_s)
-    return 0
+    return life.exit_code()

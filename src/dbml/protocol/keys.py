@@ -1,0 +1,219 @@
+"""dbml's key space on a zenoh network, and the encoding of what travels under it.
+
+Every key family is spelled here once; the zenoh transport, the rmw_zenoh-format transport and a
+secure fleet's access rules build their keys from these functions and constants.
+
+| family | key | what travels |
+|---|---|---|
+| data | ``r1/camera``, ``r1/camera/optimized`` | a channel's messages (topic without its ``/``) |
+| parameter | ``dbml/param/<name>`` | one write: ``{"v": value, "t": stamp_ns, "w": writer}`` |
+| batch | ``dbml/batch`` | the optimizer's round: ``{"vs": {name: value}, "t", "w"}`` |
+| owned | ``dbml/own/<node id>/<name>`` | what a session serves to a newcomer (queryable) |
+| graph | ``dbml/graph/<role>/<host>/<uid>/<variant>/<topic>`` | a declaration (liveliness) |
+| node | ``dbml/node/<node id>/<zenoh id>`` | a session (liveliness) |
+| link | ``dbm/link`` (topic ``/dbm/link``) | the estimator's beacon |
+| reception | ``dbm/reception`` (topic ``/dbm/reception``) | what subscribers received |
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+from dbml.core.errors import TransportError
+from dbml.core.spec import short_repr
+from dbml.protocol.names import check_topic
+from dbml.protocol.schema import GLOBAL_PREFIX, ParamValue, check_param_value
+
+__all__ = [
+    "BATCH",
+    "GRAPH",
+    "LINK_TOPIC",
+    "MAX_WRITE_BYTES",
+    "NODE",
+    "OWN",
+    "PARAM",
+    "RECEPTION_TOPIC",
+    "ROOT",
+    "GraphKey",
+    "channel_params_filter",
+    "data_key",
+    "decode_batch",
+    "decode_param",
+    "encode_batch",
+    "encode_param",
+    "global_params_filter",
+    "graph_key",
+    "node_key",
+    "own_key",
+    "own_name",
+    "param_key",
+    "parse_graph_key",
+    "parse_node_key",
+]
+
+ROOT = "dbml"
+"""Everything of dbml's own (not a channel's data) lives below this chunk."""
+PARAM = f"{ROOT}/param"
+BATCH = f"{ROOT}/batch"
+OWN = f"{ROOT}/own"
+GRAPH = f"{ROOT}/graph"
+NODE = f"{ROOT}/node"
+LINK_TOPIC = f"{GLOBAL_PREFIX}/link"
+"""The estimator's beacon: a topic of dbml's own namespace, carried like a channel's data."""
+RECEPTION_TOPIC = f"{GLOBAL_PREFIX}/reception"
+"""What managed subscribers received, reported to the estimator."""
+MAX_WRITE_BYTES = 1 << 20
+"""A received message larger than this is not a parameter write (nor a batch of them)."""
+_SHOWN_CHARS = 80
+"""How much of a malformed value or message an error quotes."""
+_GRAPH_SPLITS = 6
+"""``dbml/graph/<role>/<host>/<uid>/<variant>/<topic...>``: the topic keeps its slashes."""
+_NODE_PARTS = 4
+_OWN_PARTS = 4
+
+
+def data_key(topic: str) -> str:
+    """The key a topic's messages travel under: the topic without its leading slash."""
+    return check_topic(topic)[1:]
+
+
+def param_key(name: str) -> str:
+    """The key a parameter's writes are published under."""
+    return PARAM + check_topic(name)
+
+
+def global_params_filter() -> str:
+    """The key expression of every global parameter's writes."""
+    return f"{PARAM}{GLOBAL_PREFIX}/**"
+
+
+def channel_params_filter(key: str) -> str | None:
+    """The key expression of the channel parameters that ``key`` (a write's) belongs to.
+
+    None for a global parameter or a key that is not a channel parameter's.
+    """
+    if not key.startswith(PARAM + "/"):
+        return None
+    end = key.find(GLOBAL_PREFIX + "/", len(PARAM))
+    if end <= len(PARAM):
+        return None
+    return key[: end + len(GLOBAL_PREFIX) + 1] + "**"
+
+
+def own_key(node_id: str, name: str = "") -> str:
+    """Where session ``node_id`` serves ``name`` (all it owns with ``**`` after its prefix)."""
+    return f"{OWN}/{node_id}{name}"
+
+
+def own_name(key: str) -> tuple[str, str] | None:
+    """``(node id, parameter name)`` of an owned value's key; None if malformed."""
+    parts = key.split("/", _OWN_PARTS - 1)
+    if len(parts) != _OWN_PARTS or f"{parts[0]}/{parts[1]}" != OWN or not parts[2]:
+        return None
+    return parts[2], "/" + parts[3]
+
+
+def node_key(node_id: str, zid: str) -> str:
+    """A session's liveliness token."""
+    return f"{NODE}/{node_id}/{zid}"
+
+
+def parse_node_key(key: str) -> tuple[str, str] | None:
+    """``(node id, zenoh id)`` of a session token; None if malformed."""
+    parts = key.split("/")
+    if len(parts) != _NODE_PARTS or f"{parts[0]}/{parts[1]}" != NODE:
+        return None
+    return parts[2], parts[3]
+
+
+@dataclass(frozen=True, slots=True)
+class GraphKey:
+    """The fields of a graph declaration's token, as strings (the transport types them)."""
+
+    role: str
+    host: str
+    uid: str
+    variant: str
+    topic: str
+
+
+def graph_key(role: str, host: str, uid: str, variant: str, topic: str) -> str:
+    """A declaration's liveliness token: ``host`` plays ``role`` on ``topic`` in ``variant``."""
+    return f"{GRAPH}/{role}/{host}/{uid}/{variant}{check_topic(topic)}"
+
+
+def parse_graph_key(key: str) -> GraphKey | None:
+    """The fields of a graph token; None if malformed."""
+    parts = key.split("/", _GRAPH_SPLITS)
+    if len(parts) <= _GRAPH_SPLITS or f"{parts[0]}/{parts[1]}" != GRAPH:
+        return None
+    return GraphKey(parts[2], parts[3], parts[4], parts[5], "/" + parts[6])
+
+
+# -- parameter writes -------------------------------------------------------------------------
+
+
+def encode_param(value: ParamValue, stamp_ns: int, writer: str) -> bytes:
+    """Wire form of a parameter write: the value, when it was written and by whom."""
+    check_param_value(value)
+    return json.dumps({"v": value, "t": stamp_ns, "w": writer}).encode()
+
+
+def encode_batch(values: Mapping[str, ParamValue], stamp_ns: int, writer: str) -> bytes:
+    """Wire form of several writes with one stamp: ``{"vs": {name: value}, "t", "w"}``."""
+    for name, value in values.items():
+        check_topic(name)
+        check_param_value(value)
+    return json.dumps({"vs": dict(values), "t": stamp_ns, "w": writer}).encode()
+
+
+def _malformed(data: bytes, what: str = "parameter write") -> TransportError:
+    return TransportError(f"malformed {what} {data[:_SHOWN_CHARS]!r}")
+
+
+def _scalar(value: object) -> ParamValue:
+    try:
+        return check_param_value(value)
+    except TransportError:
+        raise TransportError(f"malformed parameter value {short_repr(value)}") from None
+
+
+def _document(data: bytes, what: str) -> dict[str, object]:
+    if len(data) > MAX_WRITE_BYTES:
+        raise TransportError(f"{what} of {len(data)} bytes (more than {MAX_WRITE_BYTES})")
+    try:
+        document = json.loads(data)
+    except (ValueError, RecursionError) as err:
+        raise _malformed(data, what) from err
+    if not isinstance(document, dict):
+        raise _malformed(data, what)
+    return document
+
+
+def _stamp_and_writer(document: dict[str, object], data: bytes, what: str) -> tuple[int, str]:
+    stamp, writer = document.get("t"), document.get("w")
+    if not isinstance(stamp, int) or isinstance(stamp, bool) or not isinstance(writer, str):
+        raise _malformed(data, what)
+    return stamp, writer
+
+
+def decode_param(data: bytes) -> tuple[ParamValue, int, str]:
+    """A write's value, stamp and writer; a malformed one raises ``TransportError``."""
+    document = _document(data, "parameter write")
+    if "v" not in document:
+        raise _malformed(data)
+    stamp, writer = _stamp_and_writer(document, data, "parameter write")
+    return _scalar(document["v"]), stamp, writer
+
+
+def decode_batch(data: bytes) -> tuple[dict[str, ParamValue], int, str]:
+    """A batch's values by name, stamp and writer; a malformed one raises ``TransportError``."""
+    document = _document(data, "batch")
+    values = document.get("vs")
+    if not isinstance(values, dict):
+        raise _malformed(data, "batch")
+    stamp, writer = _stamp_and_writer(document, data, "batch")
+    checked = {check_topic(name): _scalar(value) for name, value in values.items()}
+    return checked, stamp, writer

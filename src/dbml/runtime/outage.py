@@ -1,0 +1,255 @@
+"""The outage gate: what a managed publisher sends while the link is down, and how it resumes.
+
+Once it has heard the estimator's beacon (``LINK_TOPIC``), a publisher holds only its newest
+message, sending nothing on ``[topic]/optimized``, while the beacons stop (a link down both
+ways) or say outage. Meanwhile the channels of the beacon's release order take turns, one
+``PROBE_INTERVAL_S`` each, to probe with their newest message (so an idle or departed channel
+cannot keep the link from being found), each through its rate limiter at most at its own rate.
+When the link is back it sends the newest message at its place in the release order (on the
+next beacon or ``publish``, whichever comes first) and goes on at its rate, with at most one
+message's credit: the outage's time is not banked into a burst. What it sent after the last
+beacon it heard (before it knew, probes, the fail-safe's) sat in the dead link's buffer: such
+a channel releases only once the estimator says its frames arrive again (``HEARD_WAIT_S``), so
+fresh frames do not queue behind that backlog, and the release owes it (up to
+``OWED_WINDOW_S`` of its rate).
+
+The hold can only be safer than the fail-safe, never worse: it lasts at most ``HOLD_MAX_S``,
+after which the channel runs at its minimum (as without an allocation) until a beacon says the
+link is back, so a dead estimator or a lost beacon cannot silence it for good. A channel still
+waiting for its first allocation sends nothing during or after a hold, and nothing in a beacon
+can raise a rate: probes and releases spend the same credit as every other message.
+
+``OutageGate`` is that state machine alone: every call takes ``now`` and the facts it needs
+(the rate in force, whether a first allocation is awaited, how many messages were sent), it
+starts no thread and sends nothing. The publisher serialises calls under its lock and puts
+what the gate lets through outside it.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections import deque
+from collections.abc import Mapping
+
+from dbml.runtime.estimator import LinkBeacon
+from dbml.runtime.rate import RateLimiter
+
+__all__ = [
+    "BEACON_WINDOW",
+    "HEARD_WAIT_S",
+    "HOLD_MAX_S",
+    "LINK_SILENCE_S",
+    "OWED_WINDOW_S",
+    "PROBE_INTERVAL_S",
+    "PROBE_RATE_HZ",
+    "STALE_RESET_S",
+    "Admission",
+    "OutageGate",
+]
+
+LINK_SILENCE_S = 0.3
+"""No estimator beacon (sent every 0.1 s) for this long: the link is down, hold."""
+STALE_RESET_S = 1.0
+"""Beacons that all look stale for this long mean a new clock offset, not a buffered backlog."""
+PROBE_INTERVAL_S = 0.5
+"""In an outage one channel sends its newest message this often, to find the link back; the
+channels of the release order take turns (the others hold until the estimator sees a frame)."""
+PROBE_RATE_HZ = 1 / PROBE_INTERVAL_S
+"""The most a channel probes at; never above its own rate in force."""
+HEARD_WAIT_S = 1.0
+"""After an outage, a channel that sent into the dead link waits until the estimator says its
+frames arrive again (``LinkBeacon.heard``), at most this long after the link is back."""
+OWED_WINDOW_S = 1.0
+"""A release owes the frames the channel sent since the last beacon it heard, up to this long
+at its rate: TCP still holds them from before the outage and delivers them when the link
+returns, so the backlog and the release share one window's budget instead of adding up."""
+HOLD_MAX_S = 5.0
+"""The longest a hold lasts (seconds): then the channel runs at its fail-safe minimum until a
+beacon says the link is back. A hold is a refinement of the fail-safe, never a stop."""
+BEACON_WINDOW = 50
+"""Beacons (5 s of them) whose quickest transit is the yardstick of a stale or early one. The
+minimum ages, so neither clock drift nor one odd stamp sets it for good; silence does not age
+it, so the backlog buffered through an outage is still judged against the time before it."""
+
+
+class Admission(enum.Enum):
+    """What the gate says of a message offered outside the steady state."""
+
+    OPEN = "open"
+    """No hold: the allocation's and the fail-safe's rules decide."""
+    SEND = "send"
+    """A probe or the release: it goes now (the limiter has already counted it)."""
+    HOLD = "hold"
+    """Held (the newest is kept for the release) or, awaiting a first allocation, dropped."""
+    EXPIRED = "expired"
+    """The hold just outlasted ``HOLD_MAX_S``: from now on the fail-safe minimum (say so once)."""
+    OUTLASTED = "outlasted"
+    """The hold outlasted ``HOLD_MAX_S`` before: the fail-safe minimum."""
+
+
+class OutageGate:
+    """One channel's hold, probe and release around a link outage (see the module docstring).
+
+    ``limiter`` is the channel's own rate limiter, shared with the publisher: probes and the
+    release spend the same credit as every other message. ``sent_seq`` arguments are the
+    number of messages sent on ``[topic]/optimized`` so far; what was sent after the last
+    beacon that said the link was up may sit in a dead link's buffer.
+    """
+
+    def __init__(self, topic: str, limiter: RateLimiter) -> None:
+        self.topic = topic
+        self._limiter = limiter
+        self.link_deadline = math.inf
+        """Hold after this: beacon silence or an outage (inf: no beacon heard yet)."""
+        self._hold_from: float | None = None
+        """When the outage a beacon reported began (None: none reported)."""
+        self.held: bytes | None = None
+        """The newest message, kept for the release."""
+        self._release_at: float | None = None
+        self._back_at: float | None = None
+        """When a beacon first said the link is back in the hold in force."""
+        self._probe_turn: tuple[int, int] | None = None
+        """(this channel's place, how many) in the last outage beacon's release order."""
+        self._probe_at = -math.inf
+        self._confirmed_seq = 0
+        """The last message sent before a beacon said the link was up: later ones may sit in a
+        dead link's buffer."""
+        self._transits: deque[float] = deque(maxlen=BEACON_WINDOW)
+        """Recent beacons' transit plus the clock offset: the yardstick of a stale one."""
+        self._odd_since: float | None = None
+        self._expiry_noted = False
+
+    def hold_start(self, now: float) -> float | None:
+        """When the hold in force began (None: the link is up, or no beacon was ever heard)."""
+        if self._hold_from is not None:
+            return self._hold_from
+        return self.link_deadline if now > self.link_deadline else None
+
+    def holding(self, now: float) -> bool:
+        """Whether ``[topic]/optimized`` is held (down, not yet released, within ``HOLD_MAX_S``)."""
+        start = self.hold_start(now)
+        return start is not None and now - start <= HOLD_MAX_S
+
+    def in_line(self, now: float, sent_s: float) -> bool:
+        """Whether a beacon stamped ``sent_s`` speaks of now.
+
+        A beacon much later than the recent quickest one sat in a buffer through an outage; one
+        much earlier is stamped ahead (a forged or stepped clock): neither tells anything of the
+        link now. If they all are out of line for ``STALE_RESET_S``, a clock stepped or the
+        path changed: the yardstick starts anew.
+        """
+        transit = now - sent_s  # plus an unknown constant clock offset
+        quickest = min(self._transits, default=transit)
+        if abs(transit - quickest) > LINK_SILENCE_S:
+            if self._odd_since is None:
+                self._odd_since = now
+            if now - self._odd_since <= STALE_RESET_S:
+                return False
+            self._transits.clear()
+        self._odd_since = None
+        self._transits.append(transit)
+        return True
+
+    def on_beacon(
+        self, now: float, beacon: LinkBeacon, *, rate_hz: float, waiting: bool, sent_seq: int
+    ) -> bytes | None:
+        """Take in a beacon that is in line (``in_line``): the held message to send now, if any.
+
+        ``rate_hz`` is the rate in force and ``waiting`` whether a first allocation is still
+        awaited. Keeps holding off, holds, or releases after an outage; a returned message has
+        already been counted by the limiter.
+        """
+        start = self.hold_start(now)
+        if not beacon.up:
+            # Repeated outage beacons do not extend the hold: it began once.
+            self._hold_from = now if start is None else start
+            self.link_deadline, self._release_at, self._back_at = -math.inf, None, None
+            self._probe_turn = _turn(beacon.release_s, self.topic)
+            return None
+        if start is None:
+            self.link_deadline = now + LINK_SILENCE_S
+            self._confirmed_seq = sent_seq
+            return None
+        # Back: go at our place in the release order, once our backlog is through.
+        if self._back_at is None:
+            self._back_at = now
+        if self._release_at is None and self._clear(now, beacon.heard, sent_seq):
+            self._release_at = now + beacon.release_s.get(self.topic, 0.0)
+        if self._release_at is None or now < self._release_at:
+            return None
+        # A slow source may not publish again soon: its held message goes now, unless the
+        # channel still waits for a first allocation.
+        held = None if waiting else self.held
+        went = self._release(now, rate_hz, sent_seq, send=held is not None)
+        return held if went else None
+
+    def admit(
+        self, now: float, payload: bytes, *, rate_hz: float, waiting: bool, sent_seq: int
+    ) -> Admission:
+        """Whether ``payload``, offered outside the steady state, goes; the limiter counts it.
+
+        Not held: ``OPEN``, the first-allocation and fail-safe rules decide. Held: probe at our
+        turn, release at our place, else keep the newest message (``HOLD``); past
+        ``HOLD_MAX_S``, the fail-safe minimum (``EXPIRED`` once, then ``OUTLASTED``).
+        """
+        start = self.hold_start(now)
+        if start is None:
+            return Admission.OPEN
+        if now - start > HOLD_MAX_S:
+            self.held = None
+            expired, self._expiry_noted = not self._expiry_noted, True
+            return Admission.EXPIRED if expired else Admission.OUTLASTED
+        if waiting:
+            self.held = None  # never allocated: nothing of it may cross, now or at the release
+            return Admission.HOLD
+        if self._release_at is not None:
+            if now >= self._release_at:  # this newer message replaces the held one
+                sent = self._release(now, rate_hz, sent_seq, send=True)
+                return Admission.SEND if sent else Admission.HOLD
+        elif now >= self._probe_at and self._my_turn(now, start):
+            probe_hz = min(rate_hz, PROBE_RATE_HZ)
+            if probe_hz != self._limiter.rate_hz:
+                self._limiter.set_rate(probe_hz, now)
+            if self._limiter.allow(now):
+                self._probe_at, self.held = now + PROBE_INTERVAL_S, None
+                return Admission.SEND
+        self.held = payload
+        return Admission.HOLD
+
+    def _release(self, now: float, rate_hz: float, sent_seq: int, *, send: bool) -> bool:
+        """Leave the hold: True if a message is to ``send`` now and the limiter has a frame.
+
+        The credit left is at most one frame (the message that goes now, or the next one), so
+        the outage's time is never banked into a burst; a probe that just went leaves less.
+        What was sent since the last beacon is owed (``OWED_WINDOW_S``): it arrives now too.
+        """
+        self._hold_from, self._release_at, self._probe_turn, self.held = None, None, None, None
+        self._back_at = None
+        self.link_deadline = now + LINK_SILENCE_S
+        self._expiry_noted = False
+        owed = min(float(sent_seq - self._confirmed_seq), rate_hz * OWED_WINDOW_S)
+        self._confirmed_seq = sent_seq
+        self._limiter.restart(rate_hz, now, owed_frames=owed)
+        return send and self._limiter.allow(now)
+
+    def _clear(self, now: float, heard: frozenset[str] | None, sent_seq: int) -> bool:
+        """Whether nothing we sent is still stuck in the link (see ``HEARD_WAIT_S``)."""
+        if sent_seq == self._confirmed_seq or heard is None or self.topic in heard:
+            return True
+        return self._back_at is not None and now - self._back_at >= HEARD_WAIT_S
+
+    def _my_turn(self, now: float, start: float) -> bool:
+        """Whether this channel probes in the current ``PROBE_INTERVAL_S`` of the hold."""
+        if self._probe_turn is None:
+            return False  # no release order heard: the hold's bound is the way out
+        place, count = self._probe_turn
+        return int((now - start) / PROBE_INTERVAL_S) % count == place
+
+
+def _turn(release_s: Mapping[str, float], topic: str) -> tuple[int, int] | None:
+    """``topic``'s place in a release order and its length (None: not in it)."""
+    if topic not in release_s:
+        return None
+    order = sorted(release_s, key=lambda t: (release_s[t], t))
+    return order.index(topic), len(order)

@@ -1,0 +1,101 @@
+"""The restoration after an outage: the urgent channel first, every window within its budget."""
+
+from __future__ import annotations
+
+import random
+from dataclasses import replace
+
+import pytest
+
+from dbml.experiment.analysis import WINDOW_S, Arrival, Outage, Tick, outages
+from dbml.experiment.analysis.outage import worst_windows
+from tests.experiment.analysis.frames import stream
+
+
+def test_an_outage_reports_the_urgent_first_frame_the_backlog_and_the_worst_window() -> None:
+    before = stream(0, hz=10, start=0.0, end=6.0, delay=0.05, size=84_000)
+    # the backlog: three frames sent as the link went down, delivered after it came back
+    backlog = [Arrival(0, 60 + k, 6.0 + 0.1 * k, 9.5 + 0.06 * k, 84_000, 10.0) for k in range(3)]
+    fresh = [Arrival(0, 70 + k, 9.7 + 0.1 * k, 9.75 + 0.1 * k, 84_000, 10.0) for k in range(20)]
+    calm = [Arrival(1, k, 9.2 + 0.5 * k, 9.25 + 0.5 * k, 21_000, 2.0) for k in range(4)]
+    ticks = [
+        Tick(t_s=t, allocated_hz=(10.0, 2.0), budget_mbit=8.0, estimate_mbit=None)
+        for t in (5.0, 9.5, 12.0)
+    ]
+    (outage,) = outages(
+        [*before, *backlog, *fresh, *calm],
+        ticks,
+        robots=["R1", "R2"],
+        t0=0.0,
+        schedule=((0.0, 11.0), (6.0, 0.0), (9.0, 11.0)),
+        urgent_at=lambda t_s: 0 if t_s >= 9 else 1,
+    )
+    assert (outage.start_s, outage.end_s, outage.urgent) == (6.0, 9.0, "R1")
+    assert outage.first_urgent_s == pytest.approx(0.5)  # a stale frame
+    assert outage.first_fresh_urgent_s == pytest.approx(0.75)
+    assert outage.stale == 3
+    assert outage.lost == 7  # seq 63..69 never came
+    assert outage.budget_mbit == 8.0
+    # R1's 10 fresh frames a second are 6.72 Mbit/s, R2 adds two 21 KB frames: 7.06
+    assert outage.worst_sent_after_mbit == pytest.approx(7.056)
+    # the backlog lands in the same second: the wire carried 3 frames more than the release
+    assert outage.worst_window_mbit == pytest.approx(7.728)
+    assert outage.release_over_budget_mbit == pytest.approx(7.056 - 8.0)
+
+
+def _steady_outage(budgets: tuple[tuple[float, float], ...]) -> Outage:
+    """R1 at 10 Hz of 84 KB (6.72 Mbit/s), the link down 6-9 s; ``budgets``: (t_s, Mbit/s)."""
+    before = stream(0, hz=10, start=0.0, end=6.0, delay=0.05, size=84_000)
+    after = stream(0, hz=10, start=9.0, end=14.0, delay=0.05, size=84_000)
+    after = [replace(f, seq=100 + k) for k, f in enumerate(after)]
+    ticks = [
+        Tick(t_s=t, allocated_hz=(10.0,), budget_mbit=b, estimate_mbit=None) for t, b in budgets
+    ]
+    (outage,) = outages(
+        [*before, *after],
+        ticks,
+        robots=["R1"],
+        t0=0.0,
+        schedule=((0.0, 11.0), (6.0, 0.0), (9.0, 11.0)),
+        urgent_at=lambda _t: 0,
+    )
+    return outage
+
+
+def test_an_outage_s_windows_are_judged_against_the_budget_in_force_then() -> None:
+    """A budget cut after the restoration: the larger budget before it hides nothing."""
+    outage = _steady_outage(((5.0, 8.0), (9.5, 8.0), (11.0, 4.0)))
+    assert outage.budget_mbit == 8.0  # the largest in force, as reported
+    # the windows from 11 s on carried 6.72 Mbit/s (10 frames, or 11 on the rounding edge)
+    # against a budget of 4; against 8 every window would look within it
+    over = outage.release_over_budget_mbit
+    assert over is not None
+    assert 6.72 - 4.0 - 1e-6 <= over <= 11 * 84_000 * 8e-6 - 4.0 + 1e-6
+    assert outage.over_budget_mbit == over
+
+
+def test_a_window_across_a_raise_is_owed_the_mean_budget_over_it() -> None:
+    """The estimator raises the budget 0.5 s after the restoration; a window is owed its mean."""
+    outage = _steady_outage(((5.0, 4.0), (9.5, 9.4)))
+    over = outage.release_over_budget_mbit
+    assert over is not None
+    # the first window (9.05-10.05 s) is owed 0.45 s at 4 and 0.55 s at 9.4: 6.97 Mbit/s;
+    # judged against 4 alone it would read 2.72 over. One frame of rounding on its edge.
+    assert over <= 6.72 - 6.97 + 84_000 * 8e-6 + 1e-6
+    assert over >= 6.72 - 6.97 - 1e-6
+
+
+def test_the_worst_window_is_the_brute_force_one() -> None:
+    """The one-pass sliding window finds what summing every window finds."""
+    rng = random.Random(7)
+    times = sorted(rng.uniform(0.0, 6.0) for _ in range(400))
+    sizes = [rng.randrange(1_000, 90_000) for _ in times]
+    ticks = [Tick(t_s=0.0, allocated_hz=(), budget_mbit=5.0, estimate_mbit=None)]
+    worst, over = worst_windows(times, sizes, 6.0, ticks)
+    brute = max(
+        sum(b for t, b in zip(times, sizes, strict=True) if start <= t < start + WINDOW_S)
+        for start in times
+        if start <= 6.0 - WINDOW_S + 1e-9
+    )
+    assert worst == pytest.approx(brute * 8e-6)
+    assert over == pytest.approx(brute * 8e-6 - 5.0)

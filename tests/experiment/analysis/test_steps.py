@@ -1,0 +1,30 @@
+"""A run step by step: rate, latency, losses and goodput per robot."""
+
+from __future__ import annotations
+
+import pytest
+
+from dbml.experiment.analysis import Tick, analyse
+from tests.experiment.analysis.frames import stream
+
+
+def test_steps_measure_rate_latency_losses_and_goodput() -> None:
+    t0 = 1000.0
+    frames = [
+        *stream(0, hz=10, start=t0, end=t0 + 4, delay=0.05, size=100_000, skip=25),
+        *stream(1, hz=4, start=t0, end=t0 + 4, delay=0.2, size=10_000),
+    ]
+    ticks = [Tick(t0 + 0.5, (10.0, 4.0), 9.0, None)]
+    result = analyse(frames, ticks, robots=["R1", "R2"], t0=t0, step_s=2.0, steps=2, link_mbit=11.0)
+    first, second = result.steps
+    r1, r2 = first.robots
+    assert r1.delivered_hz == pytest.approx(10.0, rel=1e-6)
+    assert r2.delivered_hz == pytest.approx(4.0, rel=1e-6)
+    assert r1.latency_p50_ms == pytest.approx(50.0)
+    assert r2.latency_p95_ms == pytest.approx(200.0)
+    assert r1.lost == 0
+    assert second.robots[0].lost == 1  # frame 25, sent at 2.5 s
+    # goodput over the measured part of the step: 10 x 100 kB + 4 x 10 kB per second
+    assert first.goodput_mbit == pytest.approx((10 * 100_000 + 4 * 10_000) * 8e-6, rel=0.1)
+    assert first.budget_mbit == 9.0
+    assert first.link_mbit == 11.0

@@ -1,0 +1,75 @@
+"""The ros1 graph's polling thread: a failed poll is retried, and its death is said."""
+
+from __future__ import annotations
+
+import threading
+from typing import Any
+
+import pytest
+
+from dbml.core.errors import TransportError
+from dbml.transports.worker import dead_threads
+from tests.conftest import wait_for
+from tests.ros1.rosnet import require_ros1
+
+TIMEOUT_S = 10.0
+"""How long a test waits for a poll (one every ``POLL_S``)."""
+POLL_S = 0.01
+"""The test's polling period: fast, so that a few polls take no time."""
+
+
+class Master:
+    """A master API whose ``getSystemState`` fails as told, then lists ``node`` publishing."""
+
+    caller_id = "/graph_test"
+
+    def __init__(self, *failures: BaseException) -> None:
+        self.failures = list(failures)
+        self.polls = 0
+        self.lock = threading.Lock()
+
+    def call(self, method: str, *args: Any, missing_ok: bool = False) -> Any:
+        if method == "lookupNode":
+            return None  # no URI: the node is left out, with no ping to make
+        assert method == "getSystemState", method
+        with self.lock:
+            self.polls += 1
+            if self.failures:
+                raise self.failures.pop(0)
+        return [[["/r1/camera", ["/camera"]]], [], []]
+
+
+@pytest.fixture(autouse=True)
+def _ros1() -> None:
+    require_ros1()
+
+
+def test_a_poll_that_raises_anything_is_logged_and_retried(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    from dbml.transports.ros1 import _Ros1Graph
+
+    master = Master(TransportError("master away"), ValueError("a malformed answer"))
+    graph = _Ros1Graph(master, POLL_S)  # type: ignore[arg-type]
+    try:
+        graph.watch(lambda: None)
+        wait_for(lambda: master.polls >= 3, timeout_s=TIMEOUT_S, what="polls after failures")
+        assert graph.alive
+        assert "graph: master away" in caplog.text
+        assert "dbml-ros1-graph: tick failed" in caplog.text
+    finally:
+        graph.close()
+
+
+def test_a_polling_thread_that_dies_says_so(caplog: pytest.LogCaptureFixture) -> None:
+    from dbml.transports.ros1 import _Ros1Graph
+
+    master = Master(SystemExit("ends the thread"))
+    graph = _Ros1Graph(master, POLL_S)  # type: ignore[arg-type]
+    try:
+        graph.watch(lambda: None)
+        wait_for(lambda: not graph.alive, timeout_s=TIMEOUT_S, what="the thread's death")
+        assert "dbml-ros1-graph" in dead_threads()
+        assert "dbml-ros1-graph: the thread died" in caplog.text
+    finally:
+        graph.close()

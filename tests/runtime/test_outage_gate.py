@@ -1,0 +1,306 @@
+"""The outage gate alone: beacons, a rate limiter and plain numbers for the clock.
+
+What ``test_publisher_outage.py`` shows through a fleet on memory transports is checked here
+one rule at a time, with the facts the publisher would pass in (the rate in force, whether a
+first allocation is awaited, how many messages went) set by hand.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import pytest
+
+from dbml.runtime.estimator import LinkBeacon
+from dbml.runtime.outage import (
+    BEACON_WINDOW,
+    HEARD_WAIT_S,
+    HOLD_MAX_S,
+    LINK_SILENCE_S,
+    OWED_WINDOW_S,
+    PROBE_INTERVAL_S,
+    PROBE_RATE_HZ,
+    STALE_RESET_S,
+    Admission,
+    OutageGate,
+)
+from dbml.runtime.rate import RateLimiter
+
+TOPIC = "/r1/camera"
+OTHER = "/r2/camera"
+RATE_HZ = 10.0
+PERIOD_S = 1 / RATE_HZ
+START_S = 100.0
+
+
+class Channel:
+    """A gate, its limiter and the publisher's side of the bargain, on a hand-moved clock."""
+
+    def __init__(self, topic: str = TOPIC, *, rate_hz: float = RATE_HZ) -> None:
+        self.now = START_S
+        self.rate_hz = rate_hz
+        self.waiting = False
+        self.sent = 0
+        self.limiter = RateLimiter(rate_hz)
+        self.gate = OutageGate(topic, self.limiter)
+
+    def advance(self, seconds: float) -> None:
+        self.now += seconds
+
+    def beacon(
+        self,
+        up: bool,
+        *,
+        release_s: Mapping[str, float] | None = None,
+        heard: frozenset[str] | None = None,
+    ) -> bytes | None:
+        """Hear a beacon stamped now (in line with the others); what it releases, counted."""
+        beacon = LinkBeacon(up, dict(release_s or {}), sent_s=self.now, heard=heard)
+        assert self.gate.in_line(self.now, beacon.sent_s)
+        released = self.gate.on_beacon(
+            self.now, beacon, rate_hz=self.rate_hz, waiting=self.waiting, sent_seq=self.sent
+        )
+        self.sent += released is not None
+        return released
+
+    def admit(self, payload: bytes = b"frame") -> Admission:
+        admission = self.gate.admit(
+            self.now, payload, rate_hz=self.rate_hz, waiting=self.waiting, sent_seq=self.sent
+        )
+        self.sent += admission is Admission.SEND
+        return admission
+
+    def steady(self) -> bool:
+        """A message at the allocation, as ``publish`` sends it while the link is up."""
+        went = self.limiter.allow(self.now)
+        self.sent += went
+        return went
+
+
+def silent(channel: Channel) -> Channel:
+    """Heard up once, nothing sent since, then the beacons stopped."""
+    channel.beacon(up=True)
+    channel.advance(LINK_SILENCE_S + 0.01)
+    return channel
+
+
+def test_without_a_beacon_nothing_is_ever_held() -> None:
+    channel = Channel()
+    channel.advance(10 * HOLD_MAX_S)
+    assert not channel.gate.holding(channel.now)
+    assert channel.admit() is Admission.OPEN
+    assert channel.gate.link_deadline == float("inf")
+
+
+def test_beacon_silence_holds_the_newest_message_and_the_next_up_releases_it() -> None:
+    channel = silent(Channel())
+    assert channel.gate.holding(channel.now)
+    assert [channel.admit(f"{k}".encode()) for k in range(3)] == [Admission.HOLD] * 3
+    assert channel.gate.held == b"2"
+    assert channel.beacon(up=True, release_s={TOPIC: 0.0}) == b"2"
+    assert not channel.gate.holding(channel.now)
+    assert channel.gate.held is None
+
+
+def test_an_up_beacon_keeps_the_link_deadline_ahead() -> None:
+    channel = Channel()
+    channel.beacon(up=True)
+    assert channel.gate.link_deadline == START_S + LINK_SILENCE_S
+    channel.advance(LINK_SILENCE_S)
+    assert not channel.gate.holding(channel.now)
+    channel.beacon(up=True)
+    channel.advance(LINK_SILENCE_S)
+    assert not channel.gate.holding(channel.now)
+
+
+def test_the_release_waits_for_its_place_in_the_order() -> None:
+    channel = silent(Channel())
+    channel.admit(b"newest")
+    order = {OTHER: 0.0, TOPIC: 0.25}
+    assert channel.beacon(up=True, release_s=order) is None
+    assert channel.gate.holding(channel.now)
+    channel.advance(PERIOD_S)
+    assert channel.admit(b"newer") is Admission.HOLD  # not yet its place
+    channel.advance(0.25 - PERIOD_S)
+    assert channel.admit(b"newest of all") is Admission.SEND  # a publish at its place
+    assert not channel.gate.holding(channel.now)
+
+
+def test_the_release_banks_no_credit_from_the_outage() -> None:
+    channel = silent(Channel())
+    channel.advance(HOLD_MAX_S - 1.0)
+    assert channel.beacon(up=True) is None  # nothing held: nothing to send
+    assert [channel.steady() for _ in range(3)] == [True, False, False]
+    channel.advance(PERIOD_S)
+    assert channel.steady()
+
+
+def test_the_release_owes_what_went_into_the_dead_link() -> None:
+    channel = Channel()
+    channel.beacon(up=True)
+    unheard = 3
+    for _ in range(unheard):  # the link died just after the beacon
+        channel.advance(PERIOD_S)
+        assert channel.steady()
+    channel.advance(LINK_SILENCE_S)
+    assert channel.admit(b"held") is Admission.HOLD
+    assert channel.beacon(up=True, release_s={TOPIC: 0.0}) is None  # the owed frames first
+    went = []
+    for _ in range(unheard + 1):
+        channel.advance(PERIOD_S)
+        went.append(channel.steady())
+    assert went == [False, False, True, True]  # 3 owed less the frame the release had
+
+
+def test_what_a_release_owes_is_bounded_by_one_window_of_the_rate() -> None:
+    channel = Channel(rate_hz=1.0)
+    channel.beacon(up=True)
+    channel.sent += 100  # far more than a window went unconfirmed (the fail-safe's, say)
+    channel.advance(LINK_SILENCE_S + 0.01)
+    channel.admit(b"held")
+    assert channel.beacon(up=True, release_s={TOPIC: 0.0}) is None  # its frame is owed
+    channel.advance(OWED_WINDOW_S - 0.01)  # one window at 1 Hz is one frame, not 100
+    assert not channel.steady()
+    channel.advance(0.02)
+    assert channel.steady()
+
+
+def test_a_backlog_releases_once_heard_or_after_the_wait() -> None:
+    heard = Channel()
+    heard.beacon(up=True)
+    heard.advance(PERIOD_S)
+    assert heard.steady()  # into the dead link
+    heard.advance(LINK_SILENCE_S + 0.01)
+    heard.admit(b"held")
+    nobody: frozenset[str] = frozenset()
+    assert heard.beacon(up=True, release_s={TOPIC: 0.0}, heard=frozenset({OTHER})) is None
+    assert heard.gate.holding(heard.now)
+    heard.advance(HEARD_WAIT_S - 0.01)
+    assert heard.beacon(up=True, release_s={TOPIC: 0.0}, heard=nobody) is None
+    assert heard.gate.holding(heard.now)
+    heard.advance(0.02)
+    heard.beacon(up=True, release_s={TOPIC: 0.0}, heard=nobody)
+    assert not heard.gate.holding(heard.now)  # never heard: the wait is bounded
+
+
+def test_a_channel_heard_again_releases_at_once() -> None:
+    channel = Channel()
+    channel.beacon(up=True)
+    channel.advance(PERIOD_S)
+    assert channel.steady()
+    channel.advance(LINK_SILENCE_S + 0.01)
+    channel.admit(b"held")
+    channel.beacon(up=True, release_s={TOPIC: 0.0}, heard=frozenset({TOPIC}))
+    assert not channel.gate.holding(channel.now)
+
+
+def test_what_went_before_the_last_up_beacon_is_neither_owed_nor_awaited() -> None:
+    channel = Channel()
+    for _ in range(3):
+        channel.advance(PERIOD_S)
+        assert channel.steady()
+    channel.beacon(up=True)  # the link carried them
+    channel.advance(LINK_SILENCE_S + 0.01)
+    channel.admit(b"held")
+    assert channel.beacon(up=True, release_s={TOPIC: 0.0}, heard=frozenset()) == b"held"
+
+
+def test_nothing_sent_into_the_dead_link_need_not_be_heard() -> None:
+    channel = silent(Channel())
+    channel.admit(b"held")
+    assert channel.beacon(up=True, release_s={TOPIC: 0.0}, heard=frozenset()) == b"held"
+
+
+def test_a_hold_lasts_at_most_its_bound_and_says_so_once() -> None:
+    channel = silent(Channel())
+    start = channel.now - 0.01
+    channel.advance(start + HOLD_MAX_S - channel.now)
+    assert channel.gate.holding(channel.now)
+    assert channel.admit() is Admission.HOLD
+    channel.advance(0.02)
+    assert not channel.gate.holding(channel.now)
+    assert channel.admit() is Admission.EXPIRED
+    assert channel.admit() is Admission.OUTLASTED
+    assert channel.gate.held is None
+
+
+def test_repeated_outage_beacons_do_not_extend_the_hold() -> None:
+    channel = Channel()
+    channel.beacon(up=True)
+    for _ in range(round((HOLD_MAX_S + 1.0) / PERIOD_S)):
+        channel.beacon(up=False)
+        channel.advance(PERIOD_S)
+    assert not channel.gate.holding(channel.now)
+    assert channel.admit() is Admission.EXPIRED
+
+
+def test_a_channel_awaiting_its_first_allocation_holds_nothing() -> None:
+    channel = silent(Channel())
+    channel.waiting = True
+    assert channel.admit(b"unallocated") is Admission.HOLD
+    assert channel.gate.held is None
+    assert channel.beacon(up=True, release_s={TOPIC: 0.0}) is None
+    assert channel.sent == 0
+
+
+@pytest.mark.parametrize(("topic", "turns"), [(TOPIC, [0, 2]), (OTHER, [1, 3])])
+def test_the_release_order_takes_turns_to_probe(topic: str, turns: list[int]) -> None:
+    channel = Channel(topic)
+    channel.beacon(up=True)
+    channel.advance(PERIOD_S)
+    channel.beacon(up=False, release_s={TOPIC: 0.0, OTHER: 0.1})
+    start = channel.now
+    probed = []
+    for _ in range(round(4 * PROBE_INTERVAL_S / PERIOD_S)):
+        if channel.admit() is Admission.SEND:
+            probed.append(int((channel.now - start) / PROBE_INTERVAL_S))
+        channel.advance(PERIOD_S)
+    assert probed == turns
+    assert channel.gate.holding(channel.now)
+
+
+def test_without_a_release_order_nobody_probes() -> None:
+    channel = silent(Channel())
+    admitted = set()
+    for _ in range(round(HOLD_MAX_S / PERIOD_S) - 1):
+        admitted.add(channel.admit())
+        channel.advance(PERIOD_S)
+    assert admitted == {Admission.HOLD}
+
+
+def test_a_probe_never_exceeds_the_channels_own_rate() -> None:
+    slow_hz = PROBE_RATE_HZ / 4
+    channel = Channel(rate_hz=slow_hz)
+    channel.beacon(up=True)
+    channel.beacon(up=False, release_s={TOPIC: 0.0})
+    hold_s = HOLD_MAX_S - 0.5
+    probes = 0
+    for _ in range(round(hold_s / PERIOD_S)):
+        probes += channel.admit() is Admission.SEND
+        channel.advance(PERIOD_S)
+    assert 1 <= probes <= RateLimiter.BANKED_FRAMES + hold_s * slow_hz
+    assert channel.limiter.rate_hz == slow_hz
+
+
+def test_a_beacon_buffered_through_the_outage_is_out_of_line() -> None:
+    gate = OutageGate(TOPIC, RateLimiter(RATE_HZ))
+    now = START_S
+    for _ in range(BEACON_WINDOW):
+        assert gate.in_line(now, now - 0.01)
+        now += PERIOD_S
+    assert not gate.in_line(now, now - 2.0)  # sat in a buffer for 2 s
+    assert not gate.in_line(now, now + 2.0)  # stamped ahead
+    assert gate.in_line(now, now - 0.01)
+
+
+def test_beacons_out_of_line_for_long_are_a_new_clock_offset() -> None:
+    gate = OutageGate(TOPIC, RateLimiter(RATE_HZ))
+    now = START_S
+    assert gate.in_line(now, now)
+    lines = []
+    for _ in range(round(STALE_RESET_S / PERIOD_S) + 2):
+        now += PERIOD_S
+        lines.append(gate.in_line(now, now - 2.0))  # the estimator's clock stepped back 2 s
+    assert lines[0] is False
+    assert lines[-1] is True
+    assert gate.in_line(now + PERIOD_S, now + PERIOD_S - 2.0)  # the new yardstick holds

@@ -1,0 +1,44 @@
+"""A command's lifetime: a dead dbml thread ends it with exit code 1."""
+
+from __future__ import annotations
+
+import logging
+import threading
+
+import pytest
+
+from dbml.runtime.serve import Lifetime
+from dbml.transports.worker import BackgroundThread
+from tests.conftest import wait_for
+
+
+def test_a_run_ends_when_stopped_and_exits_zero() -> None:
+    stop = threading.Event()
+    life = Lifetime(stop, None)
+    assert not life.over()
+    stop.set()
+    assert life.over()
+    assert life.exit_code() == 0
+
+
+def test_a_run_ends_after_its_duration() -> None:
+    life = Lifetime(threading.Event(), 0.0)
+    assert life.over()
+    assert life.exit_code() == 0
+
+
+def test_a_thread_that_dies_during_the_run_ends_it_with_exit_code_1(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    life = Lifetime(threading.Event(), None)
+
+    def fail() -> None:
+        raise RuntimeError("broken")
+
+    with caplog.at_level(logging.CRITICAL):
+        thread = BackgroundThread(fail, name="doomed", log=logging.getLogger("test")).start()
+        wait_for(lambda: not thread.alive, timeout_s=5.0, what="the thread's death")
+    assert life.over()
+    assert life.exit_code() == 1
+    assert "a worker thread died" in caplog.text
+    assert not Lifetime(threading.Event(), None).over()  # a later run starts clean
