@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import os
 import time
 from collections.abc import Callable, Iterator
@@ -56,3 +57,21 @@ def ros(tmp_path: Path) -> Iterator[RosNet]:
 
     with rosnet(tmp_path) as net:
         yield net
+
+
+@pytest.fixture(autouse=True)
+def isolated_logging() -> Iterator[None]:
+    """A ``main()`` run in-process may configure the root logger: undo it after each test.
+
+    Its handler writes to the test's captured stderr, which is closed once the test ends; left
+    in place it would turn every later log line of the session into a logging error.
+    """
+    root = logging.getLogger()
+    handlers, level = list(root.handlers), root.level
+    try:
+        yield
+    finally:
+        for handler in root.handlers:
+            if handler not in handlers:
+                root.removeHandler(handler)
+        root.setLevel(level)

@@ -115,7 +115,9 @@ def test_require_names_what_needs_the_module_and_the_extra(
 
 
 def test_require_names_the_package_as_pip_knows_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    # Both: another test of the run may have imported the submodule already.
     monkeypatch.setitem(sys.modules, "zenoh_ros2_sdk", None)
+    monkeypatch.setitem(sys.modules, "zenoh_ros2_sdk.session", None)
     with pytest.raises(MissingExtraError, match=r"needs zenoh-ros2-sdk, .*'dbml\[ros2\]'$"):
         require("zenoh_ros2_sdk.session", extra="ros2", what="a peer", package="zenoh-ros2-sdk")
 

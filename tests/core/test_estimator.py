@@ -11,6 +11,8 @@ from hypothesis import strategies as st
 
 from dbml.core.errors import SpecError
 from dbml.core.estimator import (
+    MAX_SAMPLES,
+    MAX_STREAMS,
     Arrival,
     BandwidthEstimator,
     Estimate,
@@ -253,3 +255,37 @@ def test_a_state_travels_as_json_and_reads_as_a_line() -> None:
 def test_a_malformed_state_names_the_field_and_the_value(text: str, match: str) -> None:
     with pytest.raises(SpecError, match=match):
         EstimatorState.decode(text)
+
+
+def test_streams_are_bounded_by_evicting_the_one_silent_the_longest() -> None:
+    """Stream names come from any peer's reports: one more evicts the silent one."""
+    estimator = BandwidthEstimator(max_mbit=10.0)
+    over = 10
+    for i in range(MAX_STREAMS):
+        estimator.observe(Arrival(f"s{i}", 0, 0.0, 0.01, 1_000))
+    estimator.observe(Arrival("s0", 1, 0.1, 0.11, 1_000))  # heard again: now the newest
+    for i in range(MAX_STREAMS, MAX_STREAMS + over):
+        estimator.observe(Arrival(f"s{i}", 0, 0.2, 0.21, 1_000))
+    streams = estimator._streams
+    assert len(streams) == MAX_STREAMS
+    assert estimator.streams_evicted == over
+    assert "s0" in streams
+    assert not any(f"s{i}" in streams for i in range(1, over + 1))
+    assert estimator._samples == sum(len(s.samples) for s in streams.values())
+
+
+def test_frames_kept_are_bounded_and_their_sequence_numbers_still_count() -> None:
+    estimator = BandwidthEstimator(max_mbit=10.0)
+    over = 10
+    for seq in range(MAX_SAMPLES + over):
+        estimator.observe(Arrival("a", seq, seq * 1e-6, seq * 1e-6 + 0.01, 1_000))
+    assert estimator._samples == len(estimator._streams["a"].samples) == MAX_SAMPLES
+    assert estimator.samples_refused == over
+    estimator.observe(Arrival("a", MAX_SAMPLES + over + 1, 3.0, 3.01, 1_000))  # one lost
+    assert estimator.update(3.02).lost == 1
+    # Every frame kept left the base window: room again (the newest was refused, too).
+    estimator.observe(Arrival("a", MAX_SAMPLES + over + 2, 20.0, 20.01, 1_000))
+    estimator.update(20.02)
+    assert estimator._samples == 0
+    estimator.observe(Arrival("a", MAX_SAMPLES + over + 3, 20.1, 20.11, 1_000))
+    assert estimator._samples == 1

@@ -7,6 +7,7 @@ plain zenoh and rosbags, a third view, so a mistake the SDK and dbml share would
 from __future__ import annotations
 
 import json
+import logging
 import os
 import queue
 import struct
@@ -371,3 +372,60 @@ def test_the_operator_reports_each_frame_and_the_parameters_in_force(router: str
         assert all(0 <= r.arrival_s - t < 0.5 for r, t in zip(mine, stamps, strict=True)), (
             "arrival after the send time"
         )
+
+
+class _StdinUntil:
+    """stdin giving ``lines``, then held open (no EOF, which would end the role) until ``eof``."""
+
+    def __init__(self, *lines: str) -> None:
+        self.lines = lines
+        self.eof = threading.Event()
+
+    def __iter__(self) -> Iterator[str]:
+        yield from self.lines
+        self.eof.wait(READY_TIMEOUT_S)
+
+
+class _DeadCameraSdk:
+    """An SDK session whose image publisher fails: the camera driver's thread dies."""
+
+    def __init__(self, endpoint: str) -> None:
+        self.store = sdk_like_store()
+        self.closed = False
+
+    def publisher(self, topic: str, msg_type: str, *, node_name: str) -> Any:
+        failing = msg_type == IMAGE_TYPE
+
+        class Publisher:
+            def publish(self, **fields: Any) -> None:
+                if failing:
+                    raise RuntimeError("camera unplugged")
+
+            def close(self) -> None:
+                pass
+
+        return Publisher()
+
+    def close(self) -> None:
+        self.closed = True
+
+
+def test_a_camera_whose_driver_dies_ends_early_and_exits_1(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A camera peer that sends no frame must not look alive: the runner fails the run."""
+    step_s = 3.0
+    stdin = _StdinUntil(f"start {time.time()!r}\n")
+    monkeypatch.setattr(sys, "stdin", stdin)
+    monkeypatch.setattr(ros2peers, "SdkSession", _DeadCameraSdk)
+    spec = RoleSpec(step_s=step_s, transport="zenoh", connect=("tcp/127.0.0.1:7447",))
+    started = time.monotonic()
+    try:
+        with caplog.at_level(logging.CRITICAL, logger="dbml"):
+            code = ros2peers.main(["r1", spec.to_json()])
+    finally:
+        stdin.eof.set()
+    assert code == 1
+    assert time.monotonic() - started < step_s * len(STEPS) / 2  # not at the last step
+    assert "camera-r1: the thread died" in caplog.text
+    assert "RuntimeError: camera unplugged" in caplog.text

@@ -1,11 +1,24 @@
+import logging
 import os
 import queue
 import signal
 import sys
+import threading
 import time
+from collections.abc import Iterator
 from typing import Any
 
-from dbml.harness.processes import Message, RoleProcesses, stop_on_signals, wait_ready
+import pytest
+
+from dbml.harness.processes import (
+    Message,
+    RoleProcesses,
+    read_commands,
+    stop_on_signals,
+    wait_ready,
+)
+from dbml.transports.worker import death_count
+from tests.conftest import wait_for
 
 ECHO = """
 import queue
@@ -29,6 +42,16 @@ with stop_on_signals() as stop:
 emit_json({"type": "stopped"})
 """
 """A process that reads no stdin (as ``dbml optimizer``): only a signal ends it early."""
+GARBLED = """
+import sys
+sys.stderr.write("garbled: about to fail\\n")
+sys.stderr.flush()
+sys.stdout.buffer.write(b"\\xff\\xfe not UTF-8\\n")
+sys.stdout.flush()
+sys.stdin.readline()  # until told to stop
+sys.exit(3)
+"""
+"""A process whose output cannot be read (not UTF-8), exiting 3 when told to stop."""
 TIMEOUT_S = 30.0
 
 
@@ -79,3 +102,43 @@ def test_a_process_that_reads_no_stdin_gets_its_stop_signal_without_the_grace_ti
     assert time.monotonic() - start < 4.0  # the grace time of a role that reads stdin is 5 s
     assert roles.children["deaf"].returncode == 0  # its handler ended it, not SIGTERM's default
     assert take(roles.messages, "deaf", "stopped") == {"type": "stopped"}
+
+
+def test_a_reader_that_dies_ends_its_role_and_is_counted(caplog: pytest.LogCaptureFixture) -> None:
+    """The runner sees the role end, and its own ``Lifetime`` sees a thread of its died."""
+    roles = RoleProcesses()
+    deaths = death_count()
+    try:
+        with caplog.at_level(logging.CRITICAL, logger="dbml"):
+            roles.spawn("garbled", [sys.executable, "-c", GARBLED])
+            assert roles.messages.get(timeout=TIMEOUT_S) == ("garbled", None)
+            wait_for(lambda: death_count() == deaths + 1, what="the reader's death counted")
+        assert roles.exit_code("garbled") is None  # it still runs
+    finally:
+        codes = roles.close()
+    assert codes == {"garbled": 3}
+    assert roles.exit_code("garbled") == 3
+    assert "garbled: about to fail" in roles.log_tail("garbled")  # kept after close
+    assert "read-garbled: the thread died" in caplog.text
+    assert "UnicodeDecodeError" in caplog.text
+
+
+class _FailingStdin:
+    """stdin that fails at once."""
+
+    def __iter__(self) -> Iterator[str]:
+        raise OSError("stdin is gone")
+
+
+def test_a_dead_command_reader_sets_stop_and_is_counted(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    monkeypatch.setattr(sys, "stdin", _FailingStdin())
+    stop = threading.Event()
+    deaths = death_count()
+    with caplog.at_level(logging.CRITICAL, logger="dbml"):
+        read_commands(stop)
+        assert stop.wait(TIMEOUT_S)
+        wait_for(lambda: death_count() == deaths + 1, what="the reader's death counted")
+    assert "commands: the thread died" in caplog.text
+    assert "OSError: stdin is gone" in caplog.text

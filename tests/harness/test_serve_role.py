@@ -26,7 +26,7 @@ serve_role("r1", threading.Event(), lambda t0: print("ran", t0))
 class Stdin:
     """Gives ``lines``, then ends (EOF) once ``eof`` is set; or fails with ``error`` there."""
 
-    def __init__(self, *lines: str, error: Exception | None = None) -> None:
+    def __init__(self, *lines: str, error: BaseException | None = None) -> None:
         self.lines = lines
         self.error = error
         self.eof = threading.Event()
@@ -77,6 +77,17 @@ def test_a_control_thread_failing_during_the_run_stops_it_and_raises(
 ) -> None:
     stop = threading.Event()
     stdin = Stdin("start 1.0\n", error=OSError("stdin is gone"))
+    with pytest.raises(DbmlError, match="role r1: its control thread failed: stdin is gone"):
+        serve(monkeypatch, stdin, stop)
+    assert stop.is_set()
+
+
+def test_a_control_thread_ended_by_system_exit_still_fails_the_role(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Not an ``Exception``: still handed to the role's thread, never lost."""
+    stop = threading.Event()
+    stdin = Stdin("start 1.0\n", error=SystemExit("stdin is gone"))
     with pytest.raises(DbmlError, match="role r1: its control thread failed: stdin is gone"):
         serve(monkeypatch, stdin, stop)
     assert stop.is_set()

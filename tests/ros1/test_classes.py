@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import io
+import subprocess
+from pathlib import Path
 
 import pytest
 
@@ -64,3 +66,21 @@ def test_dbm_classes_allocate_throttle_and_deliver_images(ros: RosNet) -> None:
     # On the camera's own host the subscriber takes the full-rate topic.
     local = ros.node("viewer", "/r1/camera", host="127.0.0.2", module=MODULE)
     assert lines(local, 1)[0]["optimized"] is False
+
+
+def test_a_start_thread_that_dies_ends_the_spinning_node_with_exit_code_1(ros: RosNet) -> None:
+    """A node whose camera thread died must not look alive: a supervisor restarts it."""
+    ros.rosparam("set", "/dbm/max_bandwidth_in_mbit", "4")
+    node = ros.node("/r1/camera", host="127.0.0.2", module="tests.ros1.dying_nodes")
+    try:
+        code = node.popen.wait(timeout=60)
+    except subprocess.TimeoutExpired:
+        pytest.fail(f"the node still runs after its thread died:\n{node.stderr()}")
+    assert code == 1, node.stderr()
+    assert lines(node, 1) == [{"alive": False}]
+    # rospy sends Python logging to the node's log file, where a ROS user looks.
+    logs = Path(ros.env["ROS_LOG_DIR"]).glob("dying_*.log")
+    text = "".join(log.read_text(errors="replace") for log in logs)
+    assert "dbm-publisher /r1/camera: the thread died" in text
+    assert "RuntimeError: camera unplugged" in text
+    assert "a worker thread died (see above); exiting so a supervisor restarts it" in text

@@ -13,6 +13,7 @@ from dbml.runtime import bridge as bridge_module
 from dbml.runtime.bridge import Bridge
 from dbml.runtime.publisher import ManagedPublisher
 from dbml.transports import ManualClock, MemoryNetwork, MemoryTransport, Sample, Variant
+from dbml.transports.worker import death_count
 from tests.conftest import wait_for
 
 CAMERA = "/r1/camera"
@@ -257,3 +258,53 @@ def test_close_waits_for_a_send_in_progress_and_logs_a_slow_thread(
     assert not bridge.alive
     robot.declare_publisher(CAMERA).put(b"late")
     assert not bridge.forward()  # closed: nothing more goes out
+
+
+def test_a_pacing_thread_that_dies_is_said_and_ends_run_bridge_with_1(
+    network: MemoryNetwork, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A bridge that forwards nothing must not look alive: ``dbml bridge`` exits 1."""
+
+    def broken_publish(self: ManagedPublisher, payload: bytes) -> bool:
+        raise RuntimeError("the optimized copy is gone")
+
+    monkeypatch.setattr(ManagedPublisher, "publish", broken_publish)
+    robot = MemoryTransport(network, host="r1")
+    original = MemoryTransport(network, host="r1b").declare_publisher(CAMERA)
+    stop = threading.Event()
+
+    def source() -> None:
+        while not stop.wait(0.01):
+            original.put(b"frame")
+
+    feeder = threading.Thread(target=source, daemon=True)
+    feeder.start()
+    deaths = death_count()
+    try:
+        with caplog.at_level(logging.CRITICAL, logger="dbml"):
+            code = run_bridge(robot, [CHANNEL], stop=stop, duration_s=20.0, wait_s=5.0)
+    finally:
+        stop.set()
+        feeder.join(timeout=5)
+    assert code == 1
+    assert death_count() == deaths + 1
+    assert "dbml-bridge /r1/camera: the thread died" in caplog.text
+    assert "RuntimeError: the optimized copy is gone" in caplog.text
+    assert "a bridge's thread died" in caplog.text
+
+
+def test_a_dead_pacing_thread_makes_the_bridge_not_alive(
+    network: MemoryNetwork, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    def broken_publish(self: ManagedPublisher, payload: bytes) -> bool:
+        raise RuntimeError("the optimized copy is gone")
+
+    monkeypatch.setattr(ManagedPublisher, "publish", broken_publish)
+    robot = MemoryTransport(network, host="r1")
+    bridge = Bridge(robot, CHANNEL)
+    robot.declare_publisher(CAMERA).put(b"first")
+    deaths = death_count()
+    bridge.start(timeout_s=0)
+    wait_for(lambda: not bridge.alive, what="the pacing thread's death")
+    wait_for(lambda: death_count() == deaths + 1, what="the death counted")
+    bridge.close()

@@ -11,6 +11,7 @@ import pytest
 from dbml.core import DbmSettings, LinkSpec, Status, Strategy
 from dbml.protocol import names
 from dbml.runtime import ManagedPublisher, ManagedSubscriber, OptimizerNode, Round
+from dbml.runtime.optimizer import MAX_CHANNELS
 from dbml.transports import ManualClock, MemoryNetwork, MemoryTransport, ParamValue, Role, Variant
 from tests.conftest import wait_for
 
@@ -308,3 +309,39 @@ def test_a_publisher_seen_without_its_parameters_is_asked_again_once_a_period() 
     clock.advance(5.0)
     optimizer.optimize()
     assert asked == [R1]  # complete now: nothing to ask
+
+
+def test_the_channels_tracked_are_bounded_the_known_ones_stay_and_a_flood_is_said_once(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Publishers announced by any peer cannot make the optimizer track (remember) more."""
+    fleet = Fleet()
+    fleet.watch_remotely(R1)
+    optimizer = fleet.optimizer
+    assert R1 in optimizer.optimize().rates_hz  # tracked before the flood
+    peer = MemoryTransport(fleet.network, host="peer")
+    over = 50
+    # Sorted ahead of the robots' topics: only what was tracked already keeps its place.
+    flood = [
+        peer.graph.announce(Role.PUBLISHER, f"/a/{i:05d}", Variant.FULL)
+        for i in range(MAX_CHANNELS + over)
+    ]
+    with caplog.at_level(logging.WARNING, logger="dbml.optimizer"):
+        for _ in range(3):
+            result = optimizer.optimize()
+            assert len(optimizer._tracked) == MAX_CHANNELS
+            assert {c.topic for c in result.channels} == {R1, R2}  # the robots' stay
+            assert R1 in result.rates_hz
+            assert f"{over + 2} channels ignored: more than {MAX_CHANNELS}" in result.message
+            assert len(optimizer._pushed) <= MAX_CHANNELS
+        for handle in flood[: over + 2]:
+            handle.close()
+        result = optimizer.optimize()
+        assert "channels ignored" not in result.message
+    # What the flood says (a run's earlier logging setup may let the rounds' INFO lines in too).
+    messages = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert messages == [
+        f"{MAX_CHANNELS + over + 2} channels, more than the {MAX_CHANNELS} tracked at most: "
+        f"{over + 2} ignored (told once until every channel is tracked again)",
+        f"every channel is tracked again ({over + 2} were ignored)",
+    ]

@@ -15,7 +15,7 @@ from dbml.cli.commands import set_priority
 from dbml.core import DbmSettings, Strategy, TransportError
 from dbml.protocol import names
 from dbml.runtime import ManagedPublisher, ManagedSubscriber, OptimizerNode
-from dbml.runtime.params import DbmParams, ParamView, valid_values
+from dbml.runtime.params import MAX_PROBLEMS, MAX_VALUES, DbmParams, ParamView, valid_values
 from dbml.transports import MemoryNetwork, MemoryTransport
 from dbml.transports.base import Closer, Handle, ParamValue
 from tests.conftest import wait_for
@@ -257,3 +257,56 @@ def test_typed_reads_do_not_copy_every_value(monkeypatch: pytest.MonkeyPatch) ->
     assert view.channel(CAMERA).priority == 0.5
     assert view.channel("/r7/camera").size_bytes == 84_000.0
     assert view.dbm().period_s == 0.5
+
+
+def test_a_view_keeps_a_bounded_number_of_names_and_says_so_once(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Fed by a store that bounds nothing (ROS 1's mirror), the view bounds itself."""
+    view = ParamView.of(MemoryTransport(MemoryNetwork(), host="me").params)
+    heard: list[str] = []
+    view.watch(lambda name, _value: heard.append(name))
+    over = 100
+    with caplog.at_level(logging.WARNING, logger="dbml.params"):
+        for i in range(MAX_VALUES + over):
+            view._take(f"/flood/{i}", i)  # what the store notifies, called directly
+        assert len(view.values()) == MAX_VALUES
+        assert view.get(f"/flood/{MAX_VALUES}") is None  # refused: kept nowhere, told to nobody
+        assert len(heard) == MAX_VALUES
+        view._take("/flood/0", -1)  # a name held is still updated
+        assert view.get("/flood/0") == -1
+        for i in range(MAX_VALUES // 2):
+            view._take(f"/flood/{i}", None)  # deletions make room
+        assert len(view.values()) == MAX_VALUES // 2
+    messages = [r.getMessage() for r in caplog.records]
+    assert messages == [
+        f"parameter names viewed: {MAX_VALUES} held, the most kept; refusing new ones "
+        "(told once until half of them are gone)",
+        f"parameter names viewed: room again; {over} refused meanwhile",
+    ]
+
+
+def test_a_flood_of_bad_values_lists_a_bounded_number_and_logs_the_rest_once(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Problems end up in the status message: a flood of bad names must not make it huge."""
+    view = ParamView.of(MemoryTransport(MemoryNetwork(), host="me").params)
+    over = 10
+    with caplog.at_level(logging.WARNING, logger="dbml.params"):
+        for _ in range(2):  # the same bad values again: nothing more logged
+            for i in range(MAX_PROBLEMS + over):
+                view._take(names.priority(f"/r{i}/camera"), "high")
+        problems = view.problems()
+        assert len(problems) == MAX_PROBLEMS + 1
+        assert problems[-1] == f"more than {MAX_PROBLEMS} bad values: the others are not listed"
+        assert len(view._problems) == MAX_PROBLEMS
+        for i in range(MAX_PROBLEMS // 2):
+            view._take(names.priority(f"/r{i}/camera"), 0.5)  # good values end problems
+        assert len(view.problems()) == MAX_PROBLEMS // 2  # and the flood
+    messages = [r.getMessage() for r in caplog.records]
+    assert sum("is not a number" in m or "high" in m for m in messages) == MAX_PROBLEMS
+    assert messages[MAX_PROBLEMS:] == [
+        f"bad parameter values: {MAX_PROBLEMS} held, the most kept; refusing new ones "
+        "(told once until half of them are gone)",
+        f"bad parameter values: room again; {2 * over} refused meanwhile",
+    ]

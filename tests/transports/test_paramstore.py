@@ -15,11 +15,18 @@ from dbml.protocol.keys import (
     MAX_WRITE_BYTES,
     decode_batch,
     decode_param,
+    encode_batch,
     encode_param,
     param_key,
 )
 from dbml.transports.base import ParamValue
-from dbml.transports.paramstore import MAX_CLOCK_AHEAD_NS, MAX_QUEUED_WRITES, ReplicatedParams
+from dbml.transports.paramstore import (
+    MAX_CLOCK_AHEAD_NS,
+    MAX_PARAMS,
+    MAX_QUEUED_WRITES,
+    MAX_WARNED_KEYS,
+    ReplicatedParams,
+)
 
 
 class Wire:
@@ -360,3 +367,46 @@ def test_a_write_stamped_too_far_ahead_is_refused(
     assert "ahead of this clock" in caplog.text
     a.set("/dbm/max_bandwidth_in_mbit", 5)  # and the next honest write wins as ever
     assert a.get("/dbm/max_bandwidth_in_mbit") == 5
+
+
+def test_names_from_the_network_are_bounded_and_a_flood_is_logged_once(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A peer writing endless new names fills the store to its bound, no further."""
+    store = quiet()
+    over = 100
+    with caplog.at_level(logging.WARNING, logger="dbml.zenoh"):
+        for i in range(MAX_PARAMS + over):
+            store.on_write(param_key(f"/flood/{i}"), encode_param(i, 10, "peer"))
+        store.on_batch(encode_batch({"/flood/batch/a": 1, "/flood/0": -1}, 11, "peer"))
+        assert len(store._values) == MAX_PARAMS
+        assert store.get(f"/flood/{MAX_PARAMS}") is None  # refused
+        assert store.get("/flood/batch/a") is None  # refused, in a batch too
+        assert store.get("/flood/0") == -1  # a name held is still updated
+        # This process's own writes are always taken: read-your-writes, served as owned.
+        store.set("/mine", 1)
+        store.set_many({"/mine/a": 2, "/mine/b": 3})
+        assert [store.get(n) for n in ("/mine", "/mine/a", "/mine/b")] == [1, 2, 3]
+        assert ("/mine", store.held("/mine")) in store.owned(lambda _writer: True)
+    full = [r.getMessage() for r in caplog.records if "parameter names" in r.getMessage()]
+    assert full == [
+        "parameter names: 65536 held, the most kept; refusing new ones "
+        "(told once until half of them are gone)"
+    ]
+    assert store._full.total == over + 1
+    store.close()
+
+
+def test_malformed_keys_are_logged_for_a_bounded_number_of_keys(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    store = quiet()
+    with caplog.at_level(logging.WARNING, logger="dbml.zenoh"):
+        for i in range(MAX_WARNED_KEYS + 50):
+            store.on_write(param_key(f"/bad/{i}"), b"{not json")
+            store.on_write(param_key(f"/bad/{i}"), b"{not json")  # the same key: once
+    messages = [r.getMessage() for r in caplog.records]
+    assert sum(m.startswith("ignoring /bad/") for m in messages) == MAX_WARNED_KEYS
+    assert messages[-1] == f"{MAX_WARNED_KEYS} distinct bad keys logged: no more are logged"
+    assert len(messages) == MAX_WARNED_KEYS + 1
+    store.close()

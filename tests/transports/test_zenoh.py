@@ -2,12 +2,19 @@
 
 from __future__ import annotations
 
+import logging
 import threading
 from collections.abc import Callable
+from dataclasses import dataclass
+from typing import cast
+
+import pytest
+import zenoh
 
 from dbml.harness.processes import free_port
-from dbml.transports import ParamValue, Variant
-from dbml.transports.zenoh import ZenohTransport
+from dbml.protocol import keys
+from dbml.transports import ParamValue, Role, Variant
+from dbml.transports.zenoh import MAX_GRAPH_ENTRIES, ZenohTransport, _ZenohGraph
 from tests.conftest import wait_for
 
 
@@ -77,9 +84,7 @@ def test_a_newcomer_costs_each_session_answers_of_its_own_values_only() -> None:
                 transport.params.set(f"/r{i}/camera/dbm/{field}", 1.0)
         wait_for(
             lambda: all(
-                len(t.params.snapshot()) == 15
-                and len(t._sync._live) == 4
-                and t._sync._fetching == 0
+                len(t.params.snapshot()) == 15 and len(t._sync._live) == 4 and settled(t)
                 for t in old
             ),
             timeout_s=20,
@@ -153,8 +158,7 @@ def settled(session: ZenohTransport) -> bool:
     """No meeting due, none queued and no fetch waiting for its answers."""
     sync = session._sync
     with sync._lock:
-        quiet = not sync._meet_again and sync._fetching == 0
-    return quiet and sync._fetches.empty()
+        return not sync._meet_again and sync._fetching == 0 and not sync._queued
 
 
 def test_a_publishing_session_fetches_its_channels_values_when_it_starts_hearing_them() -> None:
@@ -174,3 +178,70 @@ def test_a_publishing_session_fetches_its_channels_values_when_it_starts_hearing
         wait_for(lambda: robot.params.get("/r1/cam/dbm/priority") == 0.3, timeout_s=10)
     finally:
         close_all([robot, fleet])
+
+
+class _Token:
+    def undeclare(self) -> None:
+        pass
+
+
+class _FakeLiveliness:
+    def liveliness(self) -> _FakeLiveliness:
+        return self
+
+    def declare_token(self, _key: str) -> _Token:
+        return _Token()
+
+
+class _FakeTransport:
+    """What the graph uses of its transport: who it is, and the fetch a new entry asks for."""
+
+    node_id = "0123456789abcdef"
+    host = "base"
+
+    def __init__(self) -> None:
+        self.session = _FakeLiveliness()
+        self.fetched: list[str] = []
+
+    def fetch_owner_of(self, uid: str) -> None:
+        self.fetched.append(uid)
+
+
+@dataclass(frozen=True)
+class _FakeSample:
+    key_expr: str
+    kind: zenoh.SampleKind
+
+
+def _graph_token(i: int, *, gone: bool = False) -> zenoh.Sample:
+    key = keys.graph_key(
+        Role.PUBLISHER.value, "r1", f"{i:016x}.1", Variant.FULL.value, f"/r1/cam{i}"
+    )
+    kind = zenoh.SampleKind.DELETE if gone else zenoh.SampleKind.PUT
+    return cast(zenoh.Sample, _FakeSample(key, kind))
+
+
+def test_graph_entries_from_peers_are_bounded_and_a_flood_is_logged_once(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    transport = _FakeTransport()
+    graph = _ZenohGraph(cast(ZenohTransport, transport))
+    with caplog.at_level(logging.WARNING, logger="dbml.zenoh"):
+        for i in range(MAX_GRAPH_ENTRIES + 100):
+            graph.on_sample(_graph_token(i))
+        assert len(graph.entries()) == MAX_GRAPH_ENTRIES
+        assert len(transport.fetched) == MAX_GRAPH_ENTRIES  # a refused entry fetches nothing
+        # This process's own declarations are always in its graph (its code bounds them).
+        mine = graph.announce(Role.PUBLISHER, "/base/cam", Variant.FULL)
+        assert any(e.topic == "/base/cam" for e in graph.entries())
+        assert len(graph.entries()) == MAX_GRAPH_ENTRIES + 1
+        for i in range(MAX_GRAPH_ENTRIES // 2 + 1):
+            graph.on_sample(_graph_token(i, gone=True))
+        mine.close()
+    messages = [record.getMessage() for record in caplog.records]
+    assert messages == [
+        "graph entries: 16384 held, the most kept; refusing new ones "
+        "(told once until half of them are gone)",
+        "graph entries: room again; 100 refused meanwhile",
+    ]
+    assert len(graph.entries()) == MAX_GRAPH_ENTRIES // 2 - 1

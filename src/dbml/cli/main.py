@@ -14,6 +14,7 @@ import os
 import sys
 import threading
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +28,7 @@ from dbml.core.config import BridgeChannel, DbmSettings, load_bridge_channels, l
 from dbml.core.errors import DbmlError
 from dbml.core.extras import require
 from dbml.core.spec import LinkSpec
+from dbml.experiment.analysis import SeriesPoint
 from dbml.harness.processes import stop_on_signals
 from dbml.runtime.monitor import MonitorView
 from dbml.scenarios.reproduce import RobotRow, reproduce_table2
@@ -313,6 +315,38 @@ def _show(
         console.print(f"plot written to {args.plot}")
 
 
+@dataclass(frozen=True, slots=True)
+class ExperimentPlot:
+    """What ``--plot`` draws of a demo or testbed run."""
+
+    series: Sequence[SeriesPoint]
+    step_s: float
+    title: str
+    budget_label: str = "budget"
+
+
+def _show_run(
+    args: argparse.Namespace,
+    console: Console,
+    document: dict[str, Any],
+    table: Callable[[], None],
+    plot: ExperimentPlot,
+) -> None:
+    """A demo's or testbed's result, and with ``--plot`` its PNG."""
+    from dbml.cli.plots import plot_series
+
+    def draw(path: Path) -> None:
+        plot_series(
+            plot.series,
+            path,
+            step_s=plot.step_s,
+            title=plot.title,
+            budget_label=plot.budget_label,
+        )
+
+    _show(args, console, document, table, draw)
+
+
 def _require_plot(args: argparse.Namespace) -> None:
     """Before a run, not after it: ``--plot`` without matplotlib would lose the run."""
     if args.plot:
@@ -322,7 +356,6 @@ def _require_plot(args: argparse.Namespace) -> None:
 def _cmd_demo(args: argparse.Namespace) -> int:
     _require_plot(args)
     from dbml.cli.documents import demo_document
-    from dbml.cli.plots import plot_series
     from dbml.demo.runner import DemoOptions, run_teleop_demo
 
     options = DemoOptions(step_seconds=args.step_seconds, transport=args.transport)
@@ -332,16 +365,13 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         Console(stderr=True), title=title, step_s=options.step_seconds, show=not args.json
     ) as view:
         result = run_teleop_demo(options, observe=view.update)
-    _show(
+    _show_run(
         args,
         console,
         demo_document(result),
         lambda: console.print(render.demo_table(result)),
-        lambda path: plot_series(
-            result.series,
-            path,
-            step_s=options.step_seconds,
-            title=f"dbml teleoperation demo over {options.transport}",
+        ExperimentPlot(
+            result.series, options.step_seconds, f"dbml teleoperation demo over {options.transport}"
         ),
     )
     if result.interrupted:
@@ -352,7 +382,6 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 def _cmd_testbed(args: argparse.Namespace) -> int:
     _require_plot(args)
     from dbml.cli.documents import testbed_document
-    from dbml.cli.plots import plot_series
     from dbml.scenarios.fleet import fleet_cameras
     from dbml.testbed.runner import TestbedOptions, run_teleop_testbed
 
@@ -380,16 +409,15 @@ def _cmd_testbed(args: argparse.Namespace) -> int:
         show=not args.json,
     ) as view:
         result = run_teleop_testbed(options, observe=view.update)
-    _show(
+    _show_run(
         args,
         console,
         testbed_document(result),
         lambda: console.print(render.testbed_table(result)),
-        lambda path: plot_series(
+        ExperimentPlot(
             result.series,
-            path,
-            step_s=options.step_seconds,
-            title=f"dbml testbed teleop: policy {options.policy} on a tc-shaped link",
+            options.step_seconds,
+            f"dbml testbed teleop: policy {options.policy} on a tc-shaped link",
             budget_label="budget (estimate)" if options.estimate else "budget",
         ),
     )

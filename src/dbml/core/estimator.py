@@ -26,6 +26,11 @@ those delays. Pure: every time is an argument, so it runs in a simulation as in 
 
 What the estimator tells others is an :class:`EstimatorState`: its phase, what it measured and,
 for a decrease, when it was decided, carried as JSON so a reader takes the fields as they are.
+
+Streams and frames come from the network, so what is kept of them is bounded: ``MAX_STREAMS``
+streams (one more evicts the one silent the longest) and ``MAX_SAMPLES`` frames over all of
+them (past it a frame's delay is not kept, its sequence number still counts); the estimator
+counts both, for its node to log.
 """
 
 from __future__ import annotations
@@ -43,6 +48,8 @@ from dbml.core.errors import SpecError
 from dbml.core.spec import bytes_per_s_to_mbit, check_number, short_repr
 
 __all__ = [
+    "MAX_SAMPLES",
+    "MAX_STREAMS",
     "Arrival",
     "BandwidthEstimator",
     "Estimate",
@@ -57,6 +64,19 @@ _RHYTHM_FRAMES = 3
 """Frames needed before a silence can be judged against the streams' usual gaps."""
 _SPARSE_WINDOWS = 4
 """A slow stream's trend may reach this many windows back for its last few frames."""
+MAX_STREAMS = 4096
+"""The most streams (a publisher's topic as one receiver gets it) followed at once. A fleet of
+160 robots with 4 channels, received by a base station and an operator each, has 1,280: this is
+three times that. Stream names come from reception reports, which any peer can send, so one
+more evicts the stream silent the longest (its history restarts if it returns, as after a
+pause): the active ones stay. A stream costs its frames (``MAX_SAMPLES``) and a few hundred
+bytes."""
+MAX_SAMPLES = 1 << 21
+"""The most frames kept over all streams (each for ``base_window_s``). The fleet above at 30 Hz
+holds 1,280 x 30 x 15 = 576,000 over the default 15 s; this is 3.6 times that, and a frame is
+about 150 bytes (300 MB at most; a smaller ``base_window_s`` keeps fewer). Any peer can report
+frames, so past this a frame's delay is not kept (its sequence number still counts losses)
+until older frames leave the window."""
 
 
 class Phase(enum.StrEnum):
@@ -275,6 +295,13 @@ class BandwidthEstimator:
             raise SpecError(f"estimator initial_mbit={initial_mbit!r} must be a positive number")
         self._estimate = min(start, self._max_mbit)
         self._streams: dict[str, _Stream] = {}
+        """By name, the one heard from longest ago first (``MAX_STREAMS`` at most)."""
+        self._samples = 0
+        """Frames kept over all streams (``MAX_SAMPLES`` at most)."""
+        self.streams_evicted = 0
+        """Streams evicted (silent the longest) to make room for a new one, over its life."""
+        self.samples_refused = 0
+        """Frames whose delay was not kept because ``MAX_SAMPLES`` were kept, over its life."""
         self._lost = 0
         self._last_update: float | None = None
         self._frozen_until = -math.inf
@@ -301,17 +328,26 @@ class BandwidthEstimator:
 
     def observe(self, arrival: Arrival) -> None:
         """Take in one received frame (any order of streams; each stream in order)."""
-        stream = self._streams.get(arrival.stream)
+        stream = self._streams.pop(arrival.stream, None)
         if stream is None:
-            stream = self._streams[arrival.stream] = _Stream()
+            stream = _Stream()
+            if len(self._streams) >= MAX_STREAMS:
+                silent = self._streams.pop(next(iter(self._streams)))
+                self._samples -= len(silent.samples)
+                self.streams_evicted += 1
+        self._streams[arrival.stream] = stream  # now the one heard from last
         last = stream.last_seq
         if last is not None and arrival.seq > last + 1:
             self._lost += arrival.seq - last - 1
         if last is None or arrival.seq > last or arrival.seq == 0:
             stream.last_seq = arrival.seq  # seq 0 again: the publisher restarted
-        stream.samples.append(
-            (arrival.arrival_s, arrival.arrival_s - arrival.sent_s, arrival.size_bytes)
-        )
+        if self._samples < MAX_SAMPLES:
+            stream.samples.append(
+                (arrival.arrival_s, arrival.arrival_s - arrival.sent_s, arrival.size_bytes)
+            )
+            self._samples += 1
+        else:
+            self.samples_refused += 1
         if not self._recent or arrival.arrival_s >= self._recent[-1]:
             self._recent.append(arrival.arrival_s)
         self._fresh = True
@@ -341,6 +377,7 @@ class BandwidthEstimator:
             # second outage.
             self._outage_since = None
             self._streams.clear()
+            self._samples = 0
             newest = self._recent[-1]
             self._recent.clear()
             self._recent.append(newest)
@@ -374,6 +411,7 @@ class BandwidthEstimator:
             samples = self._streams[name].samples
             while samples and samples[0][0] < now_s - s.base_window_s:
                 samples.popleft()
+                self._samples -= 1
             if not samples:
                 del self._streams[name]  # a stream that stopped; its seq restarts if it returns
                 continue

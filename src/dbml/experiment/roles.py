@@ -15,6 +15,10 @@ As a process (``python -m dbml.experiment.roles ROLE SPEC_JSON``) a role opens i
 prints ``{"type": "ready"}``, waits for ``start <t0>`` on stdin and ends at the last step, on
 ``stop``, stdin EOF, SIGINT or SIGTERM. Over the memory transport the runner calls
 :func:`run_role` in a thread instead.
+
+A role whose process loses a dbml thread meanwhile (its own, a node's, the transport's) would go
+on reporting a run that is not the one measured: it ends early, without ``done``, and its
+process exits 1, so the runner fails the run naming it.
 """
 
 from __future__ import annotations
@@ -32,7 +36,7 @@ from typing import Any
 
 from dbml.core.allocation import Strategy
 from dbml.core.config import DbmSettings
-from dbml.core.errors import SpecError, TransportError
+from dbml.core.errors import DbmlError, SpecError, TransportError
 from dbml.core.estimator import EstimatorState
 from dbml.core.spec import LinkSpec
 from dbml.experiment.analysis import Arrival, Tick
@@ -45,12 +49,13 @@ from dbml.runtime.priority import collision_priority_source
 from dbml.runtime.publisher import ManagedPublisher
 from dbml.runtime.rate import Rate
 from dbml.runtime.reception import ReceptionReporter
-from dbml.runtime.serve import run_optimizer
+from dbml.runtime.serve import Lifetime, run_optimizer
 from dbml.runtime.subscriber import ManagedSubscriber
 from dbml.scenarios.fleet import fleet_cameras, fleet_steps
 from dbml.scenarios.teleop import LINK_MBIT, MAX_RATE_HZ, MIN_RATE_HZ, ROBOTS, STEPS, RobotCamera
 from dbml.transports.base import Handle, Sample, Transport, Variant
 from dbml.transports.registry import open_transport
+from dbml.transports.worker import BackgroundThread
 
 __all__ = [
     "HOSTS",
@@ -84,6 +89,8 @@ PERIOD_S = 1.0
 """The optimisation period (the paper's 1 s): the publishers' heartbeat."""
 PEER_WAIT_S = 10.0
 """How long a role waits to reach the others before it reports ready."""
+_URGENT_JOIN_S = 5.0
+"""How long robot R1 waits for its urgent streams' last tick (a send in progress)."""
 
 
 URGENT_SIZE_BYTES = 1_000
@@ -179,14 +186,14 @@ def wait_until(wall_s: float, stop: threading.Event) -> bool:
     return not stop.wait(max(0.0, wall_s - time.time()))
 
 
-def _optimizer(transport: Transport, t0: float, spec: RoleSpec, stop: threading.Event) -> None:
+def _optimizer(transport: Transport, t0: float, spec: RoleSpec, stop: threading.Event) -> int:
     settings = DbmSettings(spec.link_mbit, spec.utilization, PERIOD_S, Strategy(spec.strategy))
     topics = {camera.robot: camera.topic for camera in fleet_cameras(spec.robots)}
     links = tuple(
         LinkSpec(f"uplink-{robot}", mbit, (topics[robot],))
         for robot, mbit in sorted(spec.uplinks_mbit.items())
     )
-    run_optimizer(
+    return run_optimizer(
         transport,
         settings=settings,
         links=links,
@@ -197,7 +204,13 @@ def _optimizer(transport: Transport, t0: float, spec: RoleSpec, stop: threading.
 
 
 def _managed_robot(
-    transport: Transport, index: int, t0: float, spec: RoleSpec, stop: threading.Event
+    transport: Transport,
+    index: int,
+    t0: float,
+    spec: RoleSpec,
+    stop: threading.Event,
+    *,
+    life: Lifetime,
 ) -> None:
     camera = fleet_cameras(spec.robots)[index]
     frame = transport.camera_frame(camera.topic, camera.size_bytes)  # first: it may set the type
@@ -216,24 +229,29 @@ def _managed_robot(
             event = step.events[index]
             priority.update(event.distance_m, event.speed_m_per_s)
 
-    events = threading.Thread(target=replay_events, name=f"events-{camera.robot}", daemon=True)
+    events = BackgroundThread(replay_events, name=f"events-{camera.robot}", log=log)
     try:
         publisher.publish(frame)  # the first frame makes the size known before step 1
         events.start()
         wait_until(t0 + fleet_phase_s(index, spec.robots), stop)
         publisher.rate.reset()
-        while not stop.is_set() and time.time() < t0 + spec.duration_s:
+        while not life.over() and time.time() < t0 + spec.duration_s:
             publisher.rate.sleep()
             publisher.publish(frame)
     finally:
         finished.set()
-        if events.is_alive():
-            events.join(timeout=2)
+        events.join(2.0)
         publisher.close()
 
 
 def _unmanaged_robot(
-    transport: Transport, index: int, t0: float, spec: RoleSpec, stop: threading.Event
+    transport: Transport,
+    index: int,
+    t0: float,
+    spec: RoleSpec,
+    stop: threading.Event,
+    *,
+    life: Lifetime,
 ) -> None:
     """What a robot does without dbml: publish every frame at the camera's maximum rate."""
     camera = fleet_cameras(spec.robots)[index]
@@ -244,7 +262,7 @@ def _unmanaged_robot(
     try:
         wait_until(t0, stop)
         rate.reset()
-        while not stop.is_set() and time.time() < t0 + spec.duration_s:
+        while not life.over() and time.time() < t0 + spec.duration_s:
             rate.sleep()
             publisher.put(frame, attachment=pack_meta(seq, time.time_ns(), MAX_RATE_HZ))
             seq += 1
@@ -252,7 +270,9 @@ def _unmanaged_robot(
         publisher.close()
 
 
-def _urgent_streams(transport: Transport, t0: float, spec: RoleSpec, stop: threading.Event) -> None:
+def _urgent_streams(
+    transport: Transport, t0: float, spec: RoleSpec, stop: threading.Event, *, life: Lifetime
+) -> None:
     """Publish ``URGENT_STREAMS`` at ``URGENT_RATE_HZ``, both at one moment each tick."""
     payload = bytes(URGENT_SIZE_BYTES)
     publishers = [
@@ -271,7 +291,7 @@ def _urgent_streams(transport: Transport, t0: float, spec: RoleSpec, stop: threa
             publisher.publish(payload)
         wait_until(t0, stop)
         pace = Rate(lambda: URGENT_RATE_HZ)
-        while not stop.is_set() and time.time() < t0 + spec.duration_s:
+        while not life.over() and time.time() < t0 + spec.duration_s:
             pace.sleep()
             for publisher in publishers:
                 publisher.publish(payload)
@@ -316,7 +336,13 @@ def _estimator_state(value: object) -> EstimatorState | None:
 
 
 def _operator(
-    transport: Transport, t0: float, spec: RoleSpec, stop: threading.Event, emit: Emit
+    transport: Transport,
+    t0: float,
+    spec: RoleSpec,
+    stop: threading.Event,
+    *,
+    life: Lifetime,
+    emit: Emit,
 ) -> None:
     lock = threading.Lock()
     rows: list[Arrival] = []
@@ -366,10 +392,11 @@ def _operator(
         return operator_tick(view, batch, variants, cameras=cameras).encode()
 
     try:
-        while not stop.is_set() and time.time() < t0 + spec.duration_s + TAIL_S:
+        while not life.over() and time.time() < t0 + spec.duration_s + TAIL_S:
             stop.wait(TICK_S)
             emit(tick())
-        emit({"type": "done"})
+        if not life.failed:  # a run that lost a thread is not done: the runner fails it
+            emit({"type": "done"})
     finally:
         for handle in handles:
             handle.close()
@@ -380,31 +407,46 @@ def _operator(
 def run_role(
     role: str, transport: Transport, spec: RoleSpec, *, t0: float, stop: threading.Event, emit: Emit
 ) -> None:
-    """Run ``role`` from ``t0`` (wall clock of step 1) to its end; reports go to ``emit``."""
-    urgent: threading.Thread | None = None
+    """Run ``role`` from ``t0`` (wall clock of step 1) to its end; reports go to ``emit``.
+
+    ``DbmlError`` naming the role when a dbml thread of this process died during the run (said
+    critical, with why, as it died): the role ends within a period of it, not at the last step.
+    """
+    life = Lifetime(stop, None)
+    urgent: BackgroundThread | None = None
     if spec.urgent_stream and role == ROLES[2]:  # robot R1
-        urgent = threading.Thread(
-            target=_urgent_streams, args=(transport, t0, spec, stop), name="urgent", daemon=True
-        )
-        urgent.start()
+        urgent = BackgroundThread(
+            lambda: _urgent_streams(transport, t0, spec, stop, life=life), name="urgent", log=log
+        ).start()
     try:
-        _run_role(role, transport, spec, t0=t0, stop=stop, emit=emit)
+        code = _run_role(role, transport, spec, t0=t0, stop=stop, life=life, emit=emit)
     finally:
         if urgent is not None:
-            urgent.join()
+            urgent.join(_URGENT_JOIN_S)
+    if code != 0 or life.exit_code() != 0:  # the optimizer said it already
+        raise DbmlError(f"role {role}: a dbml thread died during the run (see above)")
 
 
 def _run_role(
-    role: str, transport: Transport, spec: RoleSpec, *, t0: float, stop: threading.Event, emit: Emit
-) -> None:
+    role: str,
+    transport: Transport,
+    spec: RoleSpec,
+    *,
+    t0: float,
+    stop: threading.Event,
+    life: Lifetime,
+    emit: Emit,
+) -> int:
+    """The role's run; its exit code (the optimizer's, which ends at a death of its own)."""
     if role == "operator":
-        _operator(transport, t0, spec, stop, emit)
+        _operator(transport, t0, spec, stop, life=life, emit=emit)
     elif role == "optimizer":
-        _optimizer(transport, t0, spec, stop)
+        return _optimizer(transport, t0, spec, stop)
     elif spec.managed:
-        _managed_robot(transport, robot_index(role), t0, spec, stop)
+        _managed_robot(transport, robot_index(role), t0, spec, stop, life=life)
     else:
-        _unmanaged_robot(transport, robot_index(role), t0, spec, stop)
+        _unmanaged_robot(transport, robot_index(role), t0, spec, stop, life=life)
+    return 0
 
 
 def _open(role: str, spec: RoleSpec) -> Transport:
@@ -435,6 +477,7 @@ def main(argv: list[str] | None = None) -> int:
     if role not in fleet:
         parser.error(f"role={role!r} is not one of {', '.join(sorted(fleet))}")
     with stop_on_signals() as stop:
+        life = Lifetime(stop, None)  # the process's: a thread dead before the run counts too
         transport = _open(role, spec)
         # After the node starts: rospy replaces the root handlers with its own log file.
         logging.basicConfig(
@@ -447,9 +490,12 @@ def main(argv: list[str] | None = None) -> int:
                 stop,
                 lambda t0: run_role(role, transport, spec, t0=t0, stop=stop, emit=emit_json),
             )
+        except DbmlError as err:  # a dead thread, or a malformed control line: said, exit 1
+            sys.stderr.write(f"{role}: {err}\n")
+            return 1
         finally:
             transport.close()
-    return 0
+    return life.exit_code()
 
 
 if __name__ == "__main__":

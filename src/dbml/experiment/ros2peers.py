@@ -20,6 +20,8 @@ the evidence of interoperability.
 As a process (``python -m dbml.experiment.ros2peers ROLE SPEC_JSON``) a peer speaks the roles'
 protocol (``harness.processes.serve_role``) and meets the others at the zenoh router at
 ``spec.connect[0]``, as ROS 2 nodes do. The SDK keeps one session per process: one peer each.
+As ``roles``' processes, a peer that loses a dbml thread (the camera driver, its transport's)
+ends early, without ``done``, and exits 1.
 """
 
 from __future__ import annotations
@@ -43,9 +45,11 @@ from dbml.experiment.analysis import Arrival
 from dbml.experiment.roles import TAIL_S, TICK_S, RoleSpec, operator_tick, robot_index, wait_until
 from dbml.harness.processes import emit_json, serve_role, stop_on_signals
 from dbml.runtime.params import ParamView
+from dbml.runtime.serve import Lifetime
 from dbml.scenarios.teleop import MAX_RATE_HZ, ROBOTS, STEPS, Step
 from dbml.transports.base import PRIORITY_SUFFIX, Variant
 from dbml.transports.registry import open_transport
+from dbml.transports.worker import BackgroundThread
 
 __all__ = [
     "DEFINITIONS",
@@ -104,6 +108,8 @@ _NS_PER_S = 1_000_000_000
 _FIRST_FRAMES_POLL_S = 0.05
 _SHM_OFF = "transport/shared_memory/enabled=false"
 _OVERRIDE_ENV = "ZENOH_CONFIG_OVERRIDE"
+_DRIVER_JOIN_S = 5.0
+"""How long a camera waits for its driver's frame in progress when it ends."""
 
 
 def router_address(endpoint: str) -> tuple[str, int]:
@@ -231,12 +237,15 @@ def _publish_frames(publisher: Any, types: Any, size_bytes: int, stop: threading
 
 
 def _replay_priorities(
-    publisher: Any, index: int, t0: float, spec: RoleSpec, stop: threading.Event
+    publisher: Any, index: int, t0: float, spec: RoleSpec, stop: threading.Event, *, life: Lifetime
 ) -> None:
-    """Table 2's priority of each step from its start, again every ``PRIORITY_REPEAT_S``."""
+    """Table 2's priority of each step from its start, again every ``PRIORITY_REPEAT_S``.
+
+    Until the last step, ``stop``, or a dbml thread's death (``life``).
+    """
     if not wait_until(t0, stop):
         return
-    while not stop.is_set():
+    while not life.over():
         now = time.time()
         k = int((now - t0) // spec.step_s)
         if k >= len(STEPS):
@@ -246,13 +255,15 @@ def _replay_priorities(
             return
 
 
-def _serve_camera(role: str, spec: RoleSpec, stop: threading.Event) -> None:
+def _serve_camera(role: str, spec: RoleSpec, stop: threading.Event) -> int:
+    """A camera peer's run; 1 when a dbml thread (its driver's) died meanwhile, else 0."""
     index = robot_index(role)
     camera = ROBOTS[index]
     sdk = SdkSession(spec.connect[0])
     publishers: list[Any] = []
-    driver: threading.Thread | None = None
+    driver: BackgroundThread | None = None
     camera_stop = threading.Event()
+    life = Lifetime(stop, None)
     try:
         frames = sdk.publisher(camera.topic, IMAGE_TYPE, node_name=f"{role}_camera")
         publishers.append(frames)
@@ -260,21 +271,24 @@ def _serve_camera(role: str, spec: RoleSpec, stop: threading.Event) -> None:
             camera.topic + PRIORITY_SUFFIX, FLOAT64_TYPE, node_name=f"{role}_collision"
         )
         publishers.append(priority)
-        driver = threading.Thread(
-            target=_publish_frames,
-            args=(frames, sdk.store.types, camera.size_bytes, camera_stop),
+        types, size_bytes = sdk.store.types, camera.size_bytes
+        driver = BackgroundThread(
+            lambda: _publish_frames(frames, types, size_bytes, camera_stop),
             name=f"camera-{role}",
-            daemon=True,
+            log=log,
         )
         driver.start()  # from the start, as a camera driver: the bridge waits for a frame
-        serve_role(role, stop, lambda t0: _replay_priorities(priority, index, t0, spec, stop))
+        serve_role(
+            role, stop, lambda t0: _replay_priorities(priority, index, t0, spec, stop, life=life)
+        )
     finally:
         camera_stop.set()
         if driver is not None:
-            driver.join(timeout=5.0)
+            driver.join(_DRIVER_JOIN_S)
         for publisher in publishers:
             publisher.close()
         sdk.close()
+    return life.exit_code()
 
 
 class _Recorder:
@@ -335,7 +349,9 @@ def _wait_first_frames(recorder: _Recorder, topics: Sequence[str], stop: threadi
         )
 
 
-def _serve_operator(spec: RoleSpec, stop: threading.Event) -> None:
+def _serve_operator(spec: RoleSpec, stop: threading.Event) -> int:
+    """The operator peer's run; 1 when a dbml thread (its transport's) died meanwhile, else 0."""
+    life = Lifetime(stop, None)
     sdk = SdkSession(spec.connect[0])
     recorder = _Recorder(sdk.store)
     topics = [camera.topic + OPTIMIZED_SUFFIX for camera in ROBOTS]
@@ -355,10 +371,11 @@ def _serve_operator(spec: RoleSpec, stop: threading.Event) -> None:
     variants = [Variant.OPTIMIZED.value for _ in ROBOTS]  # what the operator subscribes to
 
     def operate(t0: float) -> None:
-        while not stop.is_set() and time.time() < t0 + spec.duration_s + TAIL_S:
+        while not life.over() and time.time() < t0 + spec.duration_s + TAIL_S:
             stop.wait(TICK_S)
             emit_json(operator_tick(view, recorder.take(), variants).encode())
-        emit_json({"type": "done"})
+        if not life.failed:  # a run that lost a thread is not done: the runner fails it
+            emit_json({"type": "done"})
 
     try:
         for i, topic in enumerate(topics):
@@ -378,6 +395,7 @@ def _serve_operator(spec: RoleSpec, stop: threading.Event) -> None:
             subscriber.close()
         transport.close()
         sdk.close()
+    return life.exit_code()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -394,13 +412,11 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with stop_on_signals() as stop:
             if role == "operator":
-                _serve_operator(spec, stop)
-            else:
-                _serve_camera(role, spec, stop)
+                return _serve_operator(spec, stop)
+            return _serve_camera(role, spec, stop)
     except DbmlError as err:
         sys.stderr.write(f"{role}: {err}\n")
         return 2
-    return 0
 
 
 if __name__ == "__main__":

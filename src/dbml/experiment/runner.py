@@ -7,11 +7,18 @@ ready, sends step 1's wall-clock time, pumps the operator's reports until it is 
 deadline passes), hands a :class:`Snapshot` to the observer after each report (progress, live
 view) and returns a :class:`Recording`. Every process it started is ended by PID on the way
 out, also on error, Ctrl-C and SIGTERM (raised here as ``KeyboardInterrupt``).
+
+A run is failed (``DbmlError`` naming the role) when a role or helper exits non-zero, whenever
+that happens (a role that lost a dbml thread exits 1), and when a thread of the runner's own
+process dies (its readers, ``on_start``, the roles run as threads): a run with a dead part
+measured something else.
 """
 
 from __future__ import annotations
 
 import contextlib
+import functools
+import logging
 import queue
 import signal
 import socket
@@ -28,8 +35,10 @@ from dbml.experiment.analysis import Analysis, Arrival, Tick, analyse
 from dbml.experiment.report import TICK, OperatorReport
 from dbml.experiment.roles import RoleSpec, run_role
 from dbml.harness.processes import Message, RoleProcesses, wait_ready
+from dbml.runtime.serve import Lifetime
 from dbml.scenarios.teleop import ROBOTS, STEPS
 from dbml.transports.memory import MemoryNetwork, MemoryTransport
+from dbml.transports.worker import BackgroundThread
 
 __all__ = [
     "HELPER_LISTEN_TIMEOUT_S",
@@ -53,6 +62,11 @@ robot's first frame (sent at once, at the 1 Hz minimum, to make its size known) 
 period old, so the rate limiter lets step 1's frames through at the allocated rate."""
 REPORT_DEADLINE_S = 30.0
 """The operator's last report may come this long after the last step, then the run fails."""
+
+_CLOSE_WAIT_S = 5.0
+"""How long closing waits for each role run as a thread."""
+
+log = logging.getLogger("dbml.experiment")
 
 Command = Callable[[str, list[str]], tuple[list[str], Mapping[str, str] | None]]
 """A role and the argv that runs it -> the argv and environment to start (netns exec, env)."""
@@ -156,7 +170,8 @@ class RoleThreads:
         self._stop = threading.Event()
         self._started = threading.Event()
         self._t0 = 0.0
-        self._threads: list[threading.Thread] = []
+        self._threads: dict[str, BackgroundThread] = {}
+        self._ended: set[str] = set()
         self._errors: dict[str, str] = {}
 
     def spawn(self, role: str, spec: RoleSpec) -> None:
@@ -176,11 +191,10 @@ class RoleThreads:
                 self._errors[role] = traceback.format_exc()
             finally:
                 transport.close()
+                self._ended.add(role)
                 self.messages.put((role, None))
 
-        thread = threading.Thread(target=body, name=f"role-{role}", daemon=True)
-        thread.start()
-        self._threads.append(thread)
+        self._threads[role] = BackgroundThread(body, name=f"role-{role}", log=log).start()
 
     def start(self, t0: float) -> None:
         """Every role starts step 1 at ``t0``."""
@@ -191,12 +205,22 @@ class RoleThreads:
         """The traceback of a role that failed."""
         return self._errors.get(role, "")
 
-    def close(self) -> None:
-        """Stop every role and wait for it."""
+    def exit_code(self, role: str, *, timeout_s: float = 0.0) -> int | None:
+        """1 for a role that raised, 0 for one that returned; None while it runs."""
+        self._threads[role].join(timeout_s)
+        if role not in self._ended:
+            return None
+        return 1 if role in self._errors else 0
+
+    def close(self) -> dict[str, int]:
+        """Stop every role and wait for it; each one's ``exit_code`` (-1: it still runs)."""
         self._stop.set()
         self._started.set()
-        for thread in self._threads:
-            thread.join(timeout=5.0)
+        codes: dict[str, int] = {}
+        for role in self._threads:
+            code = self.exit_code(role, timeout_s=_CLOSE_WAIT_S)
+            codes[role] = -1 if code is None else code
+        return codes
 
 
 @contextlib.contextmanager
@@ -227,10 +251,11 @@ def _start_helpers(
                 _wait_listening(what, helper, roles)
 
 
-def _exited_early(what: str, role: str, tail: str) -> DbmlError:
-    """One line: the role and the last lines of its log."""
+def _exited_early(what: str, role: str, tail: str, *, code: int | None = None) -> DbmlError:
+    """One line: the role, how it ended (early, or failed with ``code``) and its log's end."""
     lines = " | ".join(tail.strip().splitlines()[-3:])
-    return DbmlError(f"{what} role {role} exited early{': ' + lines if lines else ''}")
+    how = "exited early" if code is None or code <= 0 else f"failed (exit code {code})"
+    return DbmlError(f"{what} role {role} {how}{': ' + lines if lines else ''}")
 
 
 def run_experiment(
@@ -257,6 +282,8 @@ def run_experiment(
     ticks: list[Tick] = []
     t0: float | None = None
     stop = threading.Event()
+    life = Lifetime(stop, None)
+    codes: dict[str, int] = {}
     with sigterm_as_interrupt():
         try:
             _start_helpers(what, helpers, roles, before=None)
@@ -278,8 +305,11 @@ def run_experiment(
             t0 = time.time() + START_MARGIN_S
             roles.start(t0)
             if on_start is not None:
-                threading.Thread(target=on_start, args=(t0, stop), daemon=True).start()
+                start = functools.partial(on_start, t0, stop)
+                BackgroundThread(start, name="on-start", log=log).start()
             while True:
+                if life.failed:
+                    raise DbmlError(f"{what}: a thread of the runner died (see above)")
                 try:
                     role, message = roles.messages.get(timeout=0.5)
                 except queue.Empty:
@@ -287,10 +317,11 @@ def run_experiment(
                         raise DbmlError(f"{what} timed out waiting for the operator") from None
                     continue
                 if message is None:
+                    code = roles.exit_code(role)  # None if not yet: ``close`` has it then
+                    if (code is not None and code > 0) or time.time() < t0 + total_s:
+                        raise _exited_early(what, role, roles.log_tail(role), code=code)
                     if role == "operator":
                         break
-                    if time.time() < t0 + total_s:
-                        raise _exited_early(what, role, roles.log_tail(role))
                     continue
                 if message.get("type") == "done":
                     break
@@ -306,5 +337,11 @@ def run_experiment(
             return Recording(t0, tuple(arrivals), tuple(ticks), interrupted=True)
         finally:
             stop.set()
-            roles.close()
+            codes = roles.close()
+    # The first role, in start order, that exited non-zero on its own (not ended by a signal).
+    failed = next((role for role, code in codes.items() if code > 0), None)
+    if failed is not None:
+        raise _exited_early(what, failed, roles.log_tail(failed), code=codes[failed])
+    if life.failed:
+        raise DbmlError(f"{what}: a thread of the runner died (see above)")
     return Recording(t0, tuple(arrivals), tuple(ticks), interrupted=False)

@@ -8,12 +8,16 @@ process's end, and ``close()`` ends every process it started, by PID (ask, termi
 The role side is :func:`serve_role`: announce readiness, wait for the start time, run, and end on
 ``stop``, stdin EOF or a signal (:func:`stop_on_signals`). A process that takes commands of its
 own (a benchmark's workers) reads them with :func:`read_commands`.
+
+Each thread here is a ``BackgroundThread``: should one die, it is said (critical) and counted,
+so the process's ``Lifetime`` (or its role's run) ends non-zero.
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import math
 import queue
 import signal
@@ -27,6 +31,7 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import IO, Any
 
 from dbml.core.errors import DbmlError
+from dbml.transports.worker import BackgroundThread
 
 __all__ = [
     "Emit",
@@ -41,12 +46,16 @@ __all__ = [
     "wait_ready",
 ]
 
+log = logging.getLogger("dbml.harness")
+
 Emit = Callable[[dict[str, Any]], None]
 """A role's report sink: one JSON-able message."""
 Message = tuple[str, dict[str, Any] | None]
 """A role's name and one of its reports; None when the role ended."""
 _EMIT_LOCK = threading.Lock()
 """One report is one line, also when several threads of a role report at once."""
+_TAIL_CHARS = 2000
+"""How much of a role's stderr ``log_tail`` keeps."""
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -92,7 +101,8 @@ class RoleProcesses:
         self.messages: queue.Queue[Message] = queue.Queue()
         self.children: dict[str, subprocess.Popen[str]] = {}
         self._logs: dict[str, IO[str]] = {}
-        self._readers: list[threading.Thread] = []
+        self._tails: dict[str, str] = {}
+        self._readers: list[BackgroundThread] = []
         self._stop_signals: dict[str, int] = {}
 
     def spawn(
@@ -110,20 +120,19 @@ class RoleProcesses:
         """
         if stop_signal is not None:
             self._stop_signals[role] = stop_signal
-        log = tempfile.TemporaryFile("w+")  # noqa: SIM115 - closed in close()
-        self._logs[role] = log
+        stderr = tempfile.TemporaryFile("w+")  # noqa: SIM115 - closed in close()
+        self._logs[role] = stderr
         child = subprocess.Popen(
             list(argv),
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
-            stderr=log,
+            stderr=stderr,
             text=True,
             env=None if env is None else dict(env),
         )
         self.children[role] = child
-        reader = threading.Thread(target=self._read, args=(role, child), daemon=True)
-        reader.start()
-        self._readers.append(reader)
+        reader = BackgroundThread(lambda: self._read(role, child), name=f"read-{role}", log=log)
+        self._readers.append(reader.start())
 
     def _read(self, role: str, child: subprocess.Popen[str]) -> None:
         assert child.stdout is not None
@@ -151,13 +160,26 @@ class RoleProcesses:
         self.send(f"start {t0!r}")
 
     def log_tail(self, role: str) -> str:
-        """The end of what ``role`` wrote on stderr."""
-        log = self._logs[role]
-        log.seek(0)
-        return log.read()[-2000:]
+        """The end of what ``role`` wrote on stderr (also after ``close``)."""
+        if role in self._tails:
+            return self._tails[role]
+        stderr = self._logs[role]
+        stderr.seek(0)
+        return stderr.read()[-_TAIL_CHARS:]
 
-    def close(self) -> None:
-        """Ask, then terminate, then kill: every process started here, by PID."""
+    def exit_code(self, role: str, *, timeout_s: float = 0.0) -> int | None:
+        """``role``'s exit code, waiting up to ``timeout_s`` for its end; None while it runs."""
+        try:
+            return self.children[role].wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            return None
+
+    def close(self) -> dict[str, int]:
+        """Ask, then terminate, then kill: every process started here, by PID.
+
+        Each process's exit code, by role: negative for one ended by a signal after the grace
+        time, positive for one that failed on its own (a dead thread's role exits 1).
+        """
         self.send("stop")
         for role, sig in self._stop_signals.items():
             child = self.children[role]
@@ -179,12 +201,15 @@ class RoleProcesses:
                 with contextlib.suppress(OSError):
                     child.stdin.close()
         for reader in self._readers:
-            reader.join(timeout=2.0)  # EOF follows the exit
+            reader.join(2.0)  # EOF follows the exit
         for child in self.children.values():
             if child.stdout is not None:
                 child.stdout.close()
-        for log in self._logs.values():
-            log.close()
+        for role, stderr in self._logs.items():
+            if role not in self._tails:
+                self._tails[role] = self.log_tail(role)
+            stderr.close()
+        return {role: child.returncode for role, child in self.children.items()}
 
 
 def wait_ready(messages: queue.Queue[Message], roles: set[str], *, timeout_s: float) -> str | None:
@@ -215,7 +240,8 @@ def read_commands(stop: threading.Event) -> queue.Queue[str]:
     """Lines of stdin, read by a thread into the queue returned; ``stop`` or EOF sets ``stop``.
 
     For a process that takes commands besides ``stop``: EOF means its parent went away, so it
-    ends then too, as a role does.
+    ends then too, as a role does. Should the thread die (stdin failing), ``stop`` is set as
+    well, and the death is said and counted (for the process's ``Lifetime``, which exits 1).
     """
     commands: queue.Queue[str] = queue.Queue()
 
@@ -228,7 +254,7 @@ def read_commands(stop: threading.Event) -> queue.Queue[str]:
         finally:
             stop.set()
 
-    threading.Thread(target=read, name="commands", daemon=True).start()
+    BackgroundThread(read, name="commands", log=log).start()
     return commands
 
 
@@ -253,12 +279,13 @@ def serve_role(role: str, stop: threading.Event, run: Callable[[float], None]) -
     ``stop`` is set by ``stop`` or EOF on stdin (and by the caller's signal handlers), so a role
     whose parent went away ends too. The thread reading stdin sets ``stop`` however it ends: a
     malformed line, or stdin failing, ends the role too, and then ``DbmlError`` says why, so the
-    process exits non-zero instead of waiting for a start that never comes.
+    process exits non-zero instead of waiting for a start that never comes. Whatever ends that
+    thread is handed to this one (never left to race ``stop`` as an uncounted death).
     """
     emit_json({"type": "ready", "role": role})
     start_at: list[float] = []
     started = threading.Event()
-    failed: list[Exception] = []
+    failed: list[BaseException] = []
 
     def control() -> None:
         try:
@@ -268,12 +295,12 @@ def serve_role(role: str, stop: threading.Event, run: Callable[[float], None]) -
                 if line.startswith("start ") and not started.is_set():  # the first one counts
                     start_at.append(_start_time(line))
                     started.set()
-        except Exception as err:  # said by serve_role, on the main thread
+        except BaseException as err:  # said by serve_role, on the main thread: it exits non-zero
             failed.append(err)
         finally:
             stop.set()  # stdin closed, told to stop, or the thread failed
 
-    threading.Thread(target=control, name="control", daemon=True).start()
+    BackgroundThread(control, name="control", log=log).start()
     while not started.is_set() and not stop.is_set():
         started.wait(0.1)
     if not stop.is_set():

@@ -28,9 +28,11 @@ from dbml.runtime.optimizer import OptimizerNode, Round
 from dbml.runtime.params import ParamView
 from dbml.runtime.publisher import FAILSAFE_PERIODS, ManagedPublisher
 from dbml.runtime.rate import Rate
+from dbml.runtime.serve import Lifetime
 from dbml.runtime.subscriber import ManagedSubscriber
 from dbml.transports.base import Sample, Variant, check_topic
 from dbml.transports.ros1 import Ros1Transport, serialize
+from dbml.transports.worker import BackgroundThread
 
 __all__ = ["DBMOptimizer", "DBMPublisher", "DBMRate", "DBMSubscriber", "ros1_transport"]
 
@@ -38,6 +40,8 @@ log = logging.getLogger("dbml.ros1")
 
 _JOIN_TIMEOUT_S = 5.0
 """How long ``unregister`` waits for a ``start`` thread's current message before closing."""
+_SPIN_POLL_S = 0.1
+"""How often ``DBMOptimizer.spin`` looks whether ROS shut down or a dbml thread died."""
 
 
 def ros1_transport() -> Ros1Transport:
@@ -99,8 +103,10 @@ class DBMPublisher:
             failsafe_periods=failsafe_periods,
         )
         self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._failed = False
+        self._thread: BackgroundThread | None = None
+        self._ended = threading.Event()
+        """Set when the ``start`` loop ended: unregistered, ROS's shutdown, or its death."""
+        self._start_ident: int | None = None
         _PUBLISHERS[self.name] = self
 
     @property
@@ -119,7 +125,8 @@ class DBMPublisher:
     @property
     def alive(self) -> bool:
         """Whether the ``start`` thread runs: False before ``start``, after it failed or ended."""
-        return self._thread is not None and self._thread.is_alive() and not self._failed
+        thread = self._thread
+        return thread is not None and thread.alive and not self._ended.is_set()
 
     def start(self, get_message: Callable[[], Any], *, full_rate: bool = True) -> None:
         """Publish ``get_message()`` in a background thread, as the original package's nodes do.
@@ -127,8 +134,10 @@ class DBMPublisher:
         ``full_rate=True`` calls it at ``max_frequency``: every message goes to ``[name]`` (for
         local readers) and the allocated share to ``[name]/optimized``. ``full_rate=False``
         calls it only at the allocated frequency (no capture that would be dropped). The thread
-        ends with ``unregister()`` or ROS's shutdown; an exception from ``get_message`` or the
-        publish ends it too, logged, and ``alive`` turns False. One ``start`` per publisher.
+        ends with ``unregister()`` or ROS's shutdown. An exception from ``get_message`` or the
+        publish is the thread's death: logged (critical), ``alive`` turns False and it counts
+        as a dead dbml thread, so ``DBMOptimizer.spin`` in this process exits 1. One ``start``
+        per publisher.
         """
         if self._thread is not None:
             raise SpecError(f"DBMPublisher({self.name!r}).start(): already started")
@@ -141,18 +150,20 @@ class DBMPublisher:
         rate = Rate((lambda: max_hz) if full_rate else self._managed.current_rate_hz, sleep=pause)
 
         def loop() -> None:
+            self._start_ident = threading.get_ident()
             try:
                 while not self._stop.is_set() and not rospy.is_shutdown():
                     rate.sleep()
                     self.publish(get_message())
             except _StoppedError:
                 return
-            except Exception:
-                self._failed = True
-                log.exception("%s: the DBMPublisher's start thread failed; it stops", self.name)
+            except Exception:  # its death, with the traceback, is said by BackgroundThread
+                log.error("%s: the DBMPublisher's start thread failed; it stops", self.name)
+                raise
+            finally:
+                self._ended.set()
 
-        self._thread = threading.Thread(target=loop, name=f"dbm-publisher {self.name}", daemon=True)
-        self._thread.start()
+        self._thread = BackgroundThread(loop, name=f"dbm-publisher {self.name}", log=log).start()
 
     def unregister(self) -> None:
         """Stop publishing (and a ``start`` thread) and withdraw the channel."""
@@ -160,9 +171,9 @@ class DBMPublisher:
         if _PUBLISHERS.get(self.name) is self:
             del _PUBLISHERS[self.name]  # a DBMRate(name) made later must not follow this one
         thread = self._thread
-        if thread is not None and thread is not threading.current_thread():
-            thread.join(timeout=_JOIN_TIMEOUT_S)
-            if thread.is_alive():
+        if thread is not None:
+            thread.join(_JOIN_TIMEOUT_S)  # at once from the thread itself (get_message's)
+            if not self._ended.is_set() and threading.get_ident() != self._start_ident:
                 log.warning(
                     "%s: the start thread did not stop within %g s; closing anyway",
                     self.name,
@@ -323,9 +334,21 @@ class DBMOptimizer:
         self._node.stop()
 
     def spin(self) -> None:
-        """Run until ROS shuts down (or Ctrl-C)."""
+        """Run until ROS shuts down (or Ctrl-C), as ``rospy.spin()``.
+
+        When a dbml thread of this process dies meanwhile (this optimizer's, a ``DBMPublisher``
+        ``start`` thread's, the transport's), it raises ``SystemExit(1)``: the node exits
+        non-zero, so roslaunch's ``respawn`` or a supervisor restarts it, instead of a node that
+        looks alive and allocates nothing.
+        """
         self.start()
+        life = Lifetime(threading.Event(), None)
         try:
-            rospy.spin()
+            while not rospy.is_shutdown() and not life.over():
+                rospy.rostime.wallsleep(_SPIN_POLL_S)
+        except KeyboardInterrupt:  # as rospy.spin() with signals disabled
+            rospy.signal_shutdown("keyboard interrupt")
         finally:
             self.stop()
+        if life.exit_code() != 0:
+            raise SystemExit(1)

@@ -18,6 +18,7 @@ from dbml.core.errors import TransportError
 from dbml.runtime.publisher import FAILSAFE_PERIODS, ManagedPublisher
 from dbml.runtime.rate import Rate
 from dbml.transports.base import Handle, Sample, Transport, Variant
+from dbml.transports.worker import BackgroundThread
 
 __all__ = ["FIRST_MESSAGE_TIMEOUT_S", "Bridge"]
 
@@ -62,7 +63,9 @@ class Bridge:
         self._sending = threading.Lock()
         """Held across one send, and by ``close`` around the publisher's close: never both."""
         self._publisher: ManagedPublisher | None = None
-        self._thread: threading.Thread | None = None
+        self._thread: BackgroundThread | None = None
+        self._paced = threading.Event()
+        """Set when the pacing loop ended, by ``close`` or by dying."""
         self.forwarded = 0
         """Messages sent on ``[topic]/optimized`` so far."""
         if channel.msg_type is not None:
@@ -124,16 +127,19 @@ class Bridge:
             republish_full=False,
         )
         if pace:
-            self._thread = threading.Thread(
-                target=self._run, name=f"dbml-bridge {channel.topic}", daemon=True
-            )
-            self._thread.start()
+            self._thread = BackgroundThread(
+                self._run, name=f"dbml-bridge {channel.topic}", log=log
+            ).start()
         return self
 
     @property
     def alive(self) -> bool:
-        """Whether the pacing thread runs (False once it died or was stopped)."""
-        return self._thread is not None and self._thread.is_alive()
+        """Whether the pacing thread runs (False once it died or was stopped).
+
+        A death is also counted by ``dbml.transports.worker``, so ``dbml bridge`` exits 1.
+        """
+        thread = self._thread
+        return thread is not None and thread.alive and not self._paced.is_set()
 
     def forward(self) -> bool:
         """Send the newest unsent message if the rate allows; True if one went out.
@@ -164,7 +170,7 @@ class Bridge:
         publisher = self._publisher
         assert publisher is not None
         rate = Rate(publisher.current_rate_hz, clock=self._transport.now, sleep=self._sleep)
-        try:
+        try:  # an exception out of here is the thread's death, said by ``BackgroundThread``
             while not self._stop.is_set():
                 rate.sleep()  # one tick at the rate in force
                 while not self._arrived.wait(_STOP_POLL_S):  # the tick waits for a message
@@ -173,9 +179,8 @@ class Bridge:
                 self.forward()
         except _StoppedError:
             return
-        except Exception:
-            log.exception("%s: the bridge's pacing thread failed", self.topic)
-            raise
+        finally:
+            self._paced.set()
 
     def close(self) -> None:
         """Stop pacing, unsubscribe and withdraw the managed publisher.
@@ -186,8 +191,8 @@ class Bridge:
         self._stop.set()
         thread = self._thread
         if thread is not None:
-            thread.join(timeout=_JOIN_TIMEOUT_S)
-            if thread.is_alive():
+            thread.join(_JOIN_TIMEOUT_S)
+            if not self._paced.is_set():
                 log.warning(
                     "%s: the bridge's pacing thread did not stop within %g s; "
                     "closing once its send returns",

@@ -13,6 +13,9 @@ Only channels with a subscriber to ``[topic]/optimized`` on another host are man
 run at their maximum. Decreases are pushed first and acknowledged before increases go out, so the
 budget is not exceeded while rates change. Infeasibility is logged and written to ``/dbm/status``
 and ``/dbm/status_message``, with rates that still fit the budget.
+
+It tracks at most ``MAX_CHANNELS`` channels, so what it remembers per channel is bounded however
+many topics the graph shows; the channels past it are ignored, said in the status message.
 """
 
 from __future__ import annotations
@@ -38,7 +41,7 @@ from dbml.runtime.params import (
 from dbml.runtime.worker import PeriodicWorker
 from dbml.transports.base import GraphEntry, Handle, ParamValue, Role, Transport
 
-__all__ = ["ChannelState", "OptimizerNode", "Round"]
+__all__ = ["MAX_CHANNELS", "ChannelState", "OptimizerNode", "Round"]
 
 log = logging.getLogger("dbml.optimizer")
 
@@ -57,6 +60,12 @@ ACK_TIMEOUT_S = 0.25
 """How long increases wait for publishers to acknowledge the decreases pushed before them."""
 COALESCE_S = 0.002
 """Triggers within this time of the first run one round."""
+MAX_CHANNELS = 4096
+"""The most channels (published topics) the optimizer tracks: what it remembers per channel
+(rates pushed, publishers asked again) and each round's allocation grow with them. A fleet of
+160 robots with 4 channels has 640, six times less. Any peer can announce publishers, so past
+this the channels tracked already stay, the new ones are ignored (pushed nothing), logged once
+per flood with a count and named by count in ``/dbm/status_message`` every round."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -129,7 +138,12 @@ class OptimizerNode:
         self._rounds = 0
         self._incomplete_since: dict[str, float] = {}
         self._asked: dict[str, float] = {}
-        """Publishers seen without parameters: since when, and when they were last asked."""
+        """Publishers seen without parameters: since when, and when they were last asked.
+        Rebuilt each round from the tracked channels' publishers in the graph."""
+        self._tracked: frozenset[str] = frozenset()
+        """The channels tracked in the last round (``MAX_CHANNELS`` at most)."""
+        self._ignored = 0
+        """How many channels the last round ignored, past ``MAX_CHANNELS``."""
         self._acks = threading.Condition()
         self.last_round: Round | None = None
         params = transport.params
@@ -208,14 +222,44 @@ class OptimizerNode:
         """What may be allocated: the estimate, else bandwidth times utilization."""
         return self.dbm().budget_mbit
 
+    def _track(self, topics: Iterable[str]) -> list[str]:
+        """The channels to track this round, sorted: at most ``MAX_CHANNELS``.
+
+        Those tracked already keep their place; new ones take what is left, in topic order.
+        """
+        live = set(topics)
+        if len(live) <= MAX_CHANNELS:
+            tracked = live
+        else:
+            kept = sorted(live & self._tracked)[:MAX_CHANNELS]
+            fresh = sorted(live - self._tracked)[: MAX_CHANNELS - len(kept)]
+            tracked = {*kept, *fresh}
+        ignored = len(live) - len(tracked)
+        if ignored and not self._ignored:
+            log.warning(
+                "%d channels, more than the %d tracked at most: %d ignored (told once until "
+                "every channel is tracked again)",
+                len(live),
+                MAX_CHANNELS,
+                ignored,
+            )
+        elif self._ignored and not ignored:
+            log.warning("every channel is tracked again (%d were ignored)", self._ignored)
+        self._ignored = ignored
+        self._tracked = frozenset(tracked)
+        return sorted(tracked)
+
     def channels(self) -> tuple[ChannelState, ...]:
-        """Every live channel whose publisher declared valid bounds, by topic."""
+        """Every live channel whose publisher declared valid bounds, by topic.
+
+        At most ``MAX_CHANNELS``: the ones tracked already, then new ones by topic.
+        """
         entries = self._transport.graph.entries()
         graph = summarize(entries)  # one pass, not one per channel
         values = self._view.values()  # one copy for the round, not one per channel
         states = []
         incomplete: set[str] = set()
-        for topic in sorted(graph.publishers):
+        for topic in self._track(graph.publishers):
             params = channel_params(values, topic)
             if params.bounded:  # else a publisher that has not declared valid bounds yet
                 managed = topic in graph.managed
@@ -295,6 +339,8 @@ class OptimizerNode:
         for channel in channels:
             if not channel.managed and channel.params.max_rate_hz is not None:
                 rates[channel.topic] = channel.params.max_rate_hz
+        if self._ignored:
+            message = f"{message}; {self._ignored} channels ignored: more than {MAX_CHANNELS}"
         problems = self._view.problems()
         if problems:
             message = f"{message}; ignored: {'; '.join(problems)}"

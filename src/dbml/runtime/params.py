@@ -10,6 +10,9 @@ thread and never takes a channel out of the allocation.
 ``DbmParams`` and ``ChannelParams`` are what the optimizer, the publishers, the estimator and
 the monitor read; ``DbmParams.budget_mbit`` is the one budget rule: an estimate, when one runs,
 else bandwidth times utilization (an estimate never above that).
+
+What a view keeps is bounded as its store is (``MAX_VALUES`` names, ``MAX_PROBLEMS`` problems):
+past a bound a new name is refused and the flood logged once, with a count.
 """
 
 from __future__ import annotations
@@ -28,8 +31,12 @@ from dbml.protocol import names
 from dbml.protocol.schema import ParamError, check_param
 from dbml.transports.base import Closer, Handle, ParamStore, ParamValue
 from dbml.transports.callbacks import CallbackList
+from dbml.transports.overflow import Overflow
+from dbml.transports.paramstore import MAX_PARAMS
 
 __all__ = [
+    "MAX_PROBLEMS",
+    "MAX_VALUES",
     "ChannelParams",
     "DbmParams",
     "ParamView",
@@ -40,6 +47,19 @@ __all__ = [
 ]
 
 log = logging.getLogger("dbml.params")
+
+MAX_VALUES = 2 * MAX_PARAMS
+"""The most names whose last good value a view keeps. A view holds what its store holds: the
+zenoh store keeps up to ``MAX_PARAMS`` names from the network and this process's own besides,
+so this is twice that, and bounds a store that does not bound itself (ROS 1's mirror of a
+parameter server anyone can write). Past it a new name is refused (not kept, nobody told) and
+the flood logged once, with a count; names held are still updated and deleted."""
+MAX_PROBLEMS = 64
+"""The most bad values ``problems()`` lists, each once in the log: they end up in
+``/dbm/status_message``, which every process fetches, so a flood of bad names must not make it
+megabytes (a misconfigured fleet shows a handful). Past it a new bad name is neither kept nor
+logged by itself: the flood is logged once with a count, and ``problems()`` ends with a line
+saying that more are not listed."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -158,7 +178,11 @@ class ParamView:
     def __init__(self, store: ParamStore) -> None:
         self._lock = threading.Lock()
         self._values: dict[str, ParamValue] = {}
+        """The last good value per name (``MAX_VALUES`` names at most)."""
+        self._values_full = Overflow("parameter names viewed", MAX_VALUES, log=log)
         self._problems: dict[str, str] = {}
+        """The bad value standing per name, as its error says it (``MAX_PROBLEMS`` at most)."""
+        self._problems_full = Overflow("bad parameter values", MAX_PROBLEMS, log=log)
         self._listeners: CallbackList[[str, ParamValue]] = CallbackList()
         self._dbm_listeners: CallbackList[[str, ParamValue]] = CallbackList()
         self._channel_listeners: dict[str, CallbackList[[str, ParamValue]]] = {}
@@ -181,19 +205,20 @@ class ParamView:
         try:
             good = check_param(name, value)
         except ParamError as err:
-            with self._lock:
-                known = self._problems.get(name) == str(err)
-                self._problems[name] = str(err)
-            if not known:
-                log.warning("ignoring %s (the last good value stands)", err)
+            self._problem(name, str(err))
             return
         split = None if from_snapshot else names.topic_of(name)
         with self._lock:
-            self._problems.pop(name, None)
+            if self._problems.pop(name, None) is not None:
+                self._problems_full.room(len(self._problems))
             if good is None:
                 self._values.pop(name, None)
-            else:
+                self._values_full.room(len(self._values))
+            elif name in self._values or len(self._values) < MAX_VALUES:
                 self._values[name] = good
+            else:
+                self._values_full.refuse()
+                return
             channel = None if split is None else self._channel_listeners.get(split[0])
         if from_snapshot:
             return
@@ -202,6 +227,18 @@ class ParamView:
             self._dbm_listeners.fire(name, good)
         elif channel is not None:
             channel.fire(split[1], good)
+
+    def _problem(self, name: str, problem: str) -> None:
+        """A bad value of ``name``: listed and logged once, unless ``MAX_PROBLEMS`` stand."""
+        with self._lock:
+            known = self._problems.get(name)
+            full = known is None and len(self._problems) >= MAX_PROBLEMS
+            if not full:
+                self._problems[name] = problem
+        if full:
+            self._problems_full.refuse()
+        elif known != problem:
+            log.warning("ignoring %s (the last good value stands)", problem)
 
     def watch(self, callback: Callable[[str, ParamValue], object]) -> Handle:
         """Call ``callback(name, value)`` for every valid value taken in from now on."""
@@ -245,9 +282,15 @@ class ParamView:
             return dict(self._values)
 
     def problems(self) -> tuple[str, ...]:
-        """The bad values standing now, one line each (key and value named)."""
+        """The bad values standing now, one line each (key and value named).
+
+        At most ``MAX_PROBLEMS``, and then a line saying that more are not listed.
+        """
         with self._lock:
-            return tuple(self._problems[name] for name in sorted(self._problems))
+            listed = tuple(self._problems[name] for name in sorted(self._problems))
+        if self._problems_full.flooding:
+            listed += (f"more than {MAX_PROBLEMS} bad values: the others are not listed",)
+        return listed
 
     def dbm(self) -> DbmParams:
         """The ``/dbm/...`` parameters, with their defaults where unset."""

@@ -19,8 +19,10 @@ from dbml.protocol import keys
 from dbml.runtime.metadata import MessageMeta
 from dbml.runtime.worker import PeriodicWorker
 from dbml.transports.base import Sample, Transport
+from dbml.transports.overflow import Overflow
 
 __all__ = [
+    "MAX_FRAMES",
     "RECEPTION_TOPIC",
     "REPORT_INTERVAL_S",
     "ReceivedFrame",
@@ -34,8 +36,12 @@ RECEPTION_TOPIC = keys.RECEPTION_TOPIC
 REPORT_INTERVAL_S = 0.05
 """How often a reporter sends what it recorded: the estimator judges this much and half again
 in the past (frames still on their way to it), so it is part of the time to a cut."""
-_MAX_FRAMES = 10_000
-"""Frames kept between flushes at most; beyond that the oldest are dropped (nobody reads)."""
+MAX_FRAMES = 10_000
+"""Frames kept between two flushes at most. A base station that subscribes to every channel of
+160 robots with 4 channels at 30 Hz records about a thousand per ``REPORT_INTERVAL_S``: this is
+ten times that (a flush late by half a second). What any peer publishes is recorded, so past
+this the oldest half is dropped (they are stale by then), logged once per flood with a count
+(the flood ends when a flush takes what is left). A frame is about 200 bytes: 2 MB at most."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -85,6 +91,8 @@ class ReceptionReporter:
         self._transport = transport
         self._publisher = transport.declare_publisher(RECEPTION_TOPIC)
         self._frames: list[ReceivedFrame] = []
+        """Recorded since the last flush, oldest first (``MAX_FRAMES`` at most)."""
+        self._full = Overflow("received frames recorded", MAX_FRAMES, log=log, evicts=True)
         self._lock = threading.Lock()
         self._worker = PeriodicWorker(
             self.flush, interval_s=interval_s, name="dbml-reception", log=log
@@ -102,14 +110,16 @@ class ReceptionReporter:
             sample.topic, meta.seq, meta.sent_ns, self._transport.now(), len(sample.payload)
         )
         with self._lock:
-            if len(self._frames) >= _MAX_FRAMES:
-                del self._frames[: _MAX_FRAMES // 2]
+            if len(self._frames) >= MAX_FRAMES:
+                del self._frames[: MAX_FRAMES // 2]
+                self._full.refuse(MAX_FRAMES // 2)
             self._frames.append(frame)
 
     def flush(self) -> int:
         """Publish what was recorded since the last flush; returns the frames sent."""
         with self._lock:
             frames, self._frames = self._frames, []
+        self._full.room(0)
         if not frames or not self._publisher.has_subscribers:
             return 0
         report = ReceptionReport(self._transport.host, self._transport.now(), tuple(frames))

@@ -3,26 +3,31 @@
 ``dbml router`` only listens; the testbed's router topology (a router per host, as ROS 2 fleets
 run rmw_zenoh's) also needs each robot's router to connect to the operator's, across the shaped
 link. Run as ``python -m dbml.testbed.router --listen EP [--connect EP]`` inside a namespace;
-it ends on SIGINT, SIGTERM, ``stop`` or EOF on stdin (its parent went away).
+it ends on SIGINT, SIGTERM, ``stop`` or EOF on stdin (its parent went away), and with exit
+code 1 when the thread reading stdin dies (it could no longer be told to stop).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import logging
 import sys
-import threading
 
 import zenoh
 
 from dbml.harness.processes import stop_on_signals
+from dbml.runtime.serve import Lifetime
+from dbml.transports.worker import BackgroundThread
 
 __all__ = ["CONNECT_RETRY_MAX_MS", "main", "open_meshed_router"]
 
 CONNECT_RETRY_MAX_MS = 1000
 """A router retries a peer router that is not up yet at most this often (ms)."""
 POLL_S = 0.5
-"""How often the main thread looks whether a signal asked it to stop."""
+"""How often the main thread looks whether a signal asked it to stop, or a thread died."""
+
+log = logging.getLogger("dbml.testbed")
 
 
 def open_meshed_router(*, listen: list[str], connect: list[str]) -> zenoh.Session:
@@ -61,13 +66,14 @@ def main(argv: list[str] | None = None) -> int:
                     break
             stop.set()
 
-        threading.Thread(target=watch_stdin, name="stdin", daemon=True).start()
+        life = Lifetime(stop, None)
+        BackgroundThread(watch_stdin, name="stdin", log=log).start()
         try:
-            while not stop.wait(POLL_S):
-                pass
+            while not life.over():
+                stop.wait(POLL_S)
         finally:
             session.close()  # type: ignore[no-untyped-call]  # unannotated in the stubs
-    return 0
+    return life.exit_code()
 
 
 if __name__ == "__main__":

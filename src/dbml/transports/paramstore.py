@@ -18,6 +18,8 @@ At most ``MAX_QUEUED_WRITES`` wait: a name's newer write replaces its older one 
 and past the bound the oldest is dropped (logged once per stall).
 No writer's clock can pin a value: a write stamped more than ``MAX_CLOCK_AHEAD_NS`` ahead of the
 receiver's clock is refused, and a local write always supersedes what is held.
+No peer can fill the memory either: past ``MAX_PARAMS`` names, a write of a new name from the
+network is refused (logged once per flood); this process's own writes are always taken.
 
 The store knows nothing of the middleware: it is given a function that sends one message and is
 fed what arrives. The zenoh transport wires it to a session; the unit tests use plain functions.
@@ -45,9 +47,10 @@ from dbml.protocol.keys import (
 from dbml.protocol.names import check_topic
 from dbml.transports.base import Handle, ParamValue, check_param_value
 from dbml.transports.callbacks import CallbackList
+from dbml.transports.overflow import LogOnce, Overflow
 from dbml.transports.worker import DEFAULT_SENDER_CAPACITY, OrderedSender
 
-__all__ = ["MAX_CLOCK_AHEAD_NS", "ReplicatedParams"]
+__all__ = ["MAX_CLOCK_AHEAD_NS", "MAX_PARAMS", "MAX_WARNED_KEYS", "ReplicatedParams"]
 
 log = logging.getLogger("dbml.zenoh")
 
@@ -59,9 +62,19 @@ FLUSH_TIMEOUT_S = 2.0
 MAX_QUEUED_WRITES = DEFAULT_SENDER_CAPACITY
 """The most writes waiting for the network: a name's newer write replaces its queued one, so
 this bounds batches and distinct names; past it the oldest is dropped (``OrderedSender``)."""
+MAX_PARAMS = 65_536
+"""The most parameter names held from the network (deletions included: a deleted name is kept,
+so a newcomer does not revive it). A fleet of 160 robots with 4 channels writes 7 names per
+channel and a dozen global ones, about 4,500: this is 14 times that (the optimizer tracks up to
+4,096 channels, 28,672 names). Any peer can write, so past this a write of a new name from the
+network is refused, and logged once (a name is never forgotten, so the store stays full);
+names held are still updated, and this process's own writes are always taken (its code bounds
+them, and read-your-writes and serving what it owns depend on them). A name costs a few hundred
+bytes: tens of MB at most."""
+MAX_WARNED_KEYS = 1_000
+"""Malformed writes are logged once per key, for this many keys; then one line says that no more
+are (a flood must not flood the log, nor fill the memory with the keys it named)."""
 _NS_PER_S = 1e9
-_WARNED_KEYS = 1_000
-"""Malformed writes are logged once per key, for this many keys (a flood must not flood logs)."""
 
 Send: TypeAlias = Callable[[str, bytes], None]
 """Sends one encoded message under its key to every peer; may block (on the sender thread)."""
@@ -88,7 +101,10 @@ class ReplicatedParams:
         self._clock_ns = clock_ns
         self._lock = threading.Lock()
         self._values: dict[str, _Entry] = {}
-        self._warned: set[str] = set()
+        """The newest write of each name: up to ``MAX_PARAMS`` from the network, and ours."""
+        self._full = Overflow("parameter names", MAX_PARAMS, log=log)
+        self._warnings = LogOnce(log, bound=MAX_WARNED_KEYS)
+        """Keys whose malformed writes were logged (``MAX_WARNED_KEYS`` at most)."""
         self.watchers: CallbackList[[str, ParamValue]] = CallbackList()
         self._sender: OrderedSender[tuple[str, bytes]] = OrderedSender(
             lambda item: self._send(*item),
@@ -226,19 +242,19 @@ class ReplicatedParams:
         return True
 
     def _merge(self, name: str, value: ParamValue, stamp: int, writer: str) -> bool:
+        """Hold a write from the network if it is newer, and if it names a new name, if room."""
         with self._lock:
             old = self._values.get(name)
+            if old is None and len(self._values) >= MAX_PARAMS:
+                self._full.refuse()
+                return False
             if old is not None and (old[1], old[2]) >= (stamp, writer):
                 return False
             self._values[name] = (value, stamp, writer)
         return True
 
     def _warn(self, key: str, reason: str) -> None:
-        with self._lock:
-            if key in self._warned or len(self._warned) >= _WARNED_KEYS:
-                return
-            self._warned.add(key)
-        log.warning("ignoring %s: %s", key, reason)
+        self._warnings.warning(key, "ignoring %s: %s", key, reason)
 
     # -- serving ------------------------------------------------------------------------------
 

@@ -79,6 +79,13 @@ MAX_QUEUED_WRITES = 4096
 """The most parameter writes waiting for the master. A name's newer write replaces its queued
 one, so this is room for a process's own parameters (a fleet optimizer writes one per channel);
 past it the oldest is dropped, logged once per stall."""
+MAX_EARLY_PUSHES = 4096
+"""The most pushes kept while the parameter subscription's call runs (they are newer than the
+tree it returns, so they are applied after it). That call lasts at most ``CALL_TIMEOUT_S``, and
+a fleet's writes in that time are a few per channel: 160 robots with 4 channels write a few
+hundred. Anyone can call the push endpoint, so past this a push is not kept: the whole tree is
+read again once the subscription is in (what the pushes said is in it), and the flood is
+logged once, with a count."""
 _OPTIMIZED = "/" + Variant.OPTIMIZED.value
 _STRING = std_msgs.msg.String
 _SCALARS = (bool, int, float, str)
@@ -156,6 +163,11 @@ def _use_host(host: str) -> None:
     sys.argv.insert(1, f"__hostname:={resolve_host(host)}")
 
 
+def _typed(value: ParamValue) -> tuple[type, ParamValue]:
+    """A value with its type, so ``True`` and ``1`` compare as different writes."""
+    return type(value), value
+
+
 def _under(name: str, namespace: str) -> bool:
     return namespace in {"/", name} or name.startswith(namespace + "/")
 
@@ -175,6 +187,8 @@ class _Ros1Params:
         self._watchers: CallbackList[[str, ParamValue]] = CallbackList()
         # Pushes that arrive while the subscription call runs, applied after the tree it returns.
         self._early: list[tuple[str, object]] | None = []
+        self._early_dropped = 0
+        """Pushes not kept in ``_early``, which was full (``MAX_EARLY_PUSHES``)."""
         self._server = SimpleXMLRPCServer((bind, 0), logRequests=False, allow_none=True)
         self._server.register_function(self._param_update, "paramUpdate")  # type: ignore[arg-type]
         self._server.register_function(lambda _caller: [1, "", os.getpid()], "getPid")
@@ -207,27 +221,73 @@ class _Ros1Params:
                 changes += self._apply(pushed_key, pushed_value)
             self._early = None
         self._notify(changes)
+        if self._early_dropped:
+            self._reread()
+
+    def _reread(self) -> None:
+        """Pushes were dropped while subscribing: read the whole tree again and apply it.
+
+        Pushes that arrive meanwhile are newer than the tree read: kept and applied after it,
+        as at the subscription (once: a flood that outlasts it is not chased).
+        """
+        with self._lock:
+            dropped, self._early_dropped = self._early_dropped, 0
+            self._early = []
+        log.warning(
+            "%d parameter pushes arrived while subscribing, more than the %d kept: reading "
+            "every parameter again",
+            MAX_EARLY_PUSHES + dropped,
+            MAX_EARLY_PUSHES,
+        )
+        try:
+            tree: object = self._subscriber.call("getParam", "/")
+        except TransportError as err:
+            log.warning("reading the parameters again failed: %s", err)
+            tree = None
+        changes: list[tuple[str, ParamValue]] = []
+        with self._lock:
+            if tree is not None:
+                changes += self._apply("/", tree)
+            for pushed_key, pushed_value in self._early or []:
+                changes += self._apply(pushed_key, pushed_value)
+            self._early = None
+            dropped, self._early_dropped = self._early_dropped, 0
+        self._notify(changes)
+        if dropped:
+            log.warning("%d more parameter pushes were not kept while reading again", dropped)
 
     def _param_update(self, _caller: str, key: str, value: object) -> list[object]:
         """The master's push: a key (with a trailing ``/``) and its new value; ``{}`` deletes."""
         with self._lock:
             if self._early is not None:  # newer than the subscription's tree, which is not in yet
-                self._early.append((key, value))
+                if len(self._early) < MAX_EARLY_PUSHES:
+                    self._early.append((key, value))
+                else:
+                    self._early_dropped += 1  # read again whole once subscribed
                 return _OK
             changes = self._apply(key, value)
         self._notify(changes)
         return _OK
 
     def _apply(self, key: str, value: object) -> list[tuple[str, ParamValue]]:
-        """Update the mirror (under the lock) from one push; the changes, deletions first."""
+        """Update the mirror (under the lock) from one push; the changes, deletions first.
+
+        A value the mirror holds already (this process's own write, echoed by the master) is no
+        change: its watchers heard it when it was set.
+        """
         namespace = key.rstrip("/") or "/"
         fresh: dict[str, ParamValue] = {}
         _flatten(namespace, value, fresh)
         gone = [k for k in self._mirror if _under(k, namespace) and k not in fresh]
         for name in gone:
             del self._mirror[name]
+        changed = [
+            (name, new)
+            for name, new in fresh.items()
+            if name not in self._mirror or _typed(self._mirror[name]) != _typed(new)
+        ]
         self._mirror.update(fresh)
-        return [(name, None) for name in gone] + list(fresh.items())
+        return [(name, None) for name in gone] + changed
 
     def _notify(self, changes: list[tuple[str, ParamValue]]) -> None:
         for name, value in changes:

@@ -55,6 +55,7 @@ from dbml.transports.base import (
     check_topic,
 )
 from dbml.transports.callbacks import CallbackList
+from dbml.transports.overflow import LogOnce
 from dbml.transports.ros2msg import (
     ADMIN_SPACE,
     FLOAT64_TYPE,
@@ -91,8 +92,6 @@ _DBML_NODE_ID = re.compile(r"[0-9a-f]{16}")
 """A dbml node id as ``ZenohTransport`` makes it; any other shape is not dbml's."""
 _ZID = re.compile(r"[0-9a-f]{1,32}")
 """A zenoh id: up to 16 bytes in lower-case hex."""
-_MAX_LOGGED = 1024
-"""Malformed keys remembered so each is logged once; beyond this, no more are logged."""
 _MAX_FOREIGN = 4096
 """ROS 2 subscriptions of ``/optimized`` topics remembered at most (beyond: ignored, logged)."""
 _MAX_SEEN_TYPES = 4096
@@ -130,21 +129,6 @@ def _guarded(callback: Callable[[zenoh.Sample], None]) -> Callable[[zenoh.Sample
             log.exception("ignoring %s: it could not be handled", str(sample.key_expr)[:160])
 
     return run
-
-
-class _LogOnce:
-    """Logs each distinct problem once: the network may repeat a bad key or value forever."""
-
-    def __init__(self) -> None:
-        self._seen: set[str] = set()
-        self._lock = threading.Lock()
-
-    def warning(self, key: str, message: str, *args: object) -> None:
-        with self._lock:
-            if key in self._seen or len(self._seen) >= _MAX_LOGGED:
-                return
-            self._seen.add(key)
-        log.warning(message, *args)
 
 
 class _ThrottledLog:
@@ -397,7 +381,7 @@ class Ros2Transport(TransportBase):
         self._lock = threading.Lock()
         self._changed = threading.Condition(self._lock)
         self._closed = False
-        self._log = _LogOnce()
+        self._log = LogOnce(log)
         self._priority_log = _ThrottledLog(_PRIORITY_LOG_INTERVAL_S)
         self._declared_types: dict[str, str] = {}
         self._seen_types: dict[str, tuple[str, str, str]] = {}

@@ -42,6 +42,7 @@ from dbml.transports.base import (
     resolve_host,
 )
 from dbml.transports.callbacks import CallbackList
+from dbml.transports.overflow import LogOnce, Overflow
 from dbml.transports.zenohsync import ParamSync
 
 try:
@@ -53,6 +54,7 @@ except ImportError as err:  # pragma: no cover - eclipse-zenoh is a declared dep
 
 __all__ = [
     "DEFAULT_PORT",
+    "MAX_GRAPH_ENTRIES",
     "PRIORITY_LINK_RANGES",
     "ZENOH_PRIORITY",
     "ZenohTransport",
@@ -78,6 +80,13 @@ if _register is not None:
 
 DEFAULT_PORT = 17447
 """The loopback rendezvous port of the no-flags mode; ``DBML_ZENOH_PORT`` overrides it."""
+MAX_GRAPH_ENTRIES = 16_384
+"""The most graph entries (publishers and subscribers) a session keeps from others' tokens.
+A fleet of 160 robots with 4 channels each declares about four per channel (the publisher, a
+local subscriber, the base station's of ``/optimized``, a monitor's): 2,560, six times less.
+Any peer can declare tokens, so past this a new one is refused (its entry is not seen, its
+owner's values not fetched for it) and logged once per flood, with a count; this process's own
+declarations are always kept (its code bounds them). An entry costs a few hundred bytes."""
 
 ZENOH_PRIORITY: dict[TransportPriority, zenoh.Priority] = {
     TransportPriority.REAL_TIME: zenoh.Priority.REAL_TIME,
@@ -263,6 +272,9 @@ class _ZenohGraph:
         self._transport = transport
         self._lock = threading.Lock()
         self._entries: dict[str, GraphEntry] = {}
+        """Every live entry by token key: ours and, up to ``MAX_GRAPH_ENTRIES``, others'."""
+        self._full = Overflow("graph entries", MAX_GRAPH_ENTRIES, log=log)
+        self._malformed = LogOnce(log)
         # A dropped token is undeclared: keep each until it is withdrawn.
         self._tokens: dict[str, zenoh.LivelinessToken] = {}
         self.watchers: CallbackList[[]] = CallbackList()
@@ -286,6 +298,7 @@ class _ZenohGraph:
             with self._lock:
                 self._entries.pop(key, None)
                 self._tokens.pop(key, None)
+                self._full.room(len(self._entries))
             _undeclare(token)
             self.watchers.fire()
 
@@ -308,15 +321,20 @@ class _ZenohGraph:
                 Role(fields.role), fields.host, fields.topic, Variant(fields.variant), fields.uid
             )
         except ValueError:
-            log.warning("ignoring malformed graph token %s", key)
+            self._malformed.warning(key, "ignoring malformed graph token %s", key)
             return
         with self._lock:
             if sample.kind == zenoh.SampleKind.PUT:
                 if key in self._entries:
                     return
+                if len(self._entries) >= MAX_GRAPH_ENTRIES:
+                    self._full.refuse()
+                    return
                 self._entries[key] = entry
             elif self._entries.pop(key, None) is None:
                 return
+            else:
+                self._full.room(len(self._entries))
         if sample.kind == zenoh.SampleKind.PUT:
             # A publisher declares its parameters before it announces itself: what its session
             # owns now includes them, even if their writes went out before they could reach us.

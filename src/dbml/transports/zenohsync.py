@@ -13,10 +13,10 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import queue
 import re
 import threading
 import time
+from collections import OrderedDict
 from typing import TypeAlias
 
 import zenoh
@@ -24,12 +24,16 @@ import zenoh
 from dbml.core.errors import TransportError
 from dbml.protocol import keys
 from dbml.protocol.names import check_topic
+from dbml.transports.overflow import LogOnce, Overflow
 from dbml.transports.paramstore import ReplicatedParams
+from dbml.transports.worker import BackgroundThread
 
 __all__ = [
     "CONFIRM_POLL_S",
     "CONFIRM_QUERY_S",
     "LINK_POLL_S",
+    "MAX_QUEUED_FETCHES",
+    "MAX_SESSIONS",
     "MEET_AGAIN_S",
     "SYNC_TIMEOUT_S",
     "ParamSync",
@@ -47,6 +51,18 @@ LINK_POLL_S = 0.25
 """How often a session looks for direct links that have just come up."""
 MEET_AGAIN_S = 1.0
 """When two sessions that met meet once more (writes lost to a route not yet up come back)."""
+MAX_SESSIONS = 4096
+"""The most other dbml sessions a session keeps as met. A fleet of 160 robots, each with a
+process per channel (4) and a few of its own, and the base station's, is under a thousand;
+any peer can declare node tokens, so past this a new session is refused (not met, its values
+not fetched; what it writes still arrives) and logged once per flood, with a count. A session
+costs a few hundred bytes here: the bound is about a megabyte."""
+MAX_QUEUED_FETCHES = 2 * MAX_SESSIONS
+"""The most fetches and announcements waiting for the sync thread: one of each per session,
+for every session at once (a newcomer meeting a full fleet). Each is queued once (a second
+request for one already waiting is that one); past the bound a new request is refused and
+logged once per flood (the optimizer asks again each period for what it misses). Any peer can
+ask (a pull, a graph entry), hence the bound."""
 
 _OWN_ANY = keys.own_key("*")
 """Any session's owned values."""
@@ -88,25 +104,29 @@ class ParamSync:
         self._lock = threading.Lock()
         self._declared: list[_Declared] = []
         self._peers = threading.Event()
-        self._live: set[str] = set()
-        """The dbml sessions met and still alive, by node id."""
+        self._live: dict[str, str] = {}
+        """The dbml sessions met and still alive: node id to zenoh id (``MAX_SESSIONS``)."""
+        self._live_full = Overflow("dbml sessions met", MAX_SESSIONS, log=log)
+        self._malformed = LogOnce(log)
         self._fetching = 0
-        self._due: set[str] = set()
-        """Sessions whose values a queued fetch will ask for."""
         self._zids: dict[str, str] = {}
-        """The live sessions' zenoh ids, to their node ids."""
+        """The live sessions' zenoh ids, to their node ids: one per live session at most."""
         self._linked: set[str] = set()
-        """The zenoh ids this session has a direct link to, as last seen."""
-        self._meet_again: list[tuple[float, str]] = []
-        """Sessions to meet once more, and when."""
+        """The zenoh ids this session has a direct link to, as last seen (zenoh bounds them)."""
+        self._meet_again: dict[str, float] = {}
+        """Live sessions to meet once more, and when: a subset of ``_live``."""
         self._synced = threading.Condition(self._lock)
-        self._fetches: queue.SimpleQueue[tuple[str, bool] | None] = queue.SimpleQueue()
+        self._queued: OrderedDict[tuple[str, bool], None] = OrderedDict()
+        """The sync thread's work, oldest first, each once: ``(node, False)`` fetches what
+        ``node`` owns, ``(node, True)`` tells it to fetch ours (``MAX_QUEUED_FETCHES``)."""
+        self._queued_full = Overflow("parameter fetches queued", MAX_QUEUED_FETCHES, log=log)
+        self._work = threading.Condition(self._lock)
         self._replier = node_id.encode()
         self._follow_all = follow_all
         self._followed: set[str] = set()
         """The channels whose parameters this session hears, when it does not hear them all."""
         self.params = ReplicatedParams(node_id, send=self._send)
-        threading.Thread(target=self._fetch_loop, name="dbml-param-sync", daemon=True).start()
+        self._thread = BackgroundThread(self._fetch_loop, name="dbml-param-sync", log=log).start()
         heard = f"{keys.PARAM}/**" if follow_all else keys.global_params_filter()
         self._declared += [
             session.declare_subscriber(heard, self._on_param),
@@ -176,6 +196,11 @@ class ParamSync:
     def _on_batch(self, sample: zenoh.Sample) -> None:
         self.params.on_batch(sample.payload.to_bytes())
 
+    @property
+    def alive(self) -> bool:
+        """False once the sync thread or the store's sender thread died."""
+        return self._thread.alive and self.params.alive
+
     def _is_live(self, node: str) -> bool:
         with self._lock:
             return node == self.node_id or node in self._live
@@ -206,7 +231,7 @@ class ParamSync:
 
     def _on_node(self, sample: zenoh.Sample) -> None:
         parsed = keys.parse_node_key(str(sample.key_expr))
-        if parsed is None:
+        if parsed is None or not _NODE_ID.fullmatch(parsed[0]):
             log.warning("ignoring malformed session token %s", str(sample.key_expr)[:80])
             return
         node, zid = parsed
@@ -214,13 +239,18 @@ class ParamSync:
             return
         with self._lock:
             if sample.kind != zenoh.SampleKind.PUT:
-                self._live.discard(node)
-                if self._zids.get(zid) == node:
-                    del self._zids[zid]
+                met_as = self._live.pop(node, None)
+                if met_as is not None and self._zids.get(met_as) == node:
+                    del self._zids[met_as]
+                self._meet_again.pop(node, None)
+                self._live_full.room(len(self._live))
                 return
             if node in self._live:
                 return
-            self._live.add(node)
+            if len(self._live) >= MAX_SESSIONS:
+                self._live_full.refuse()
+                return
+            self._live[node] = zid
             self._zids[zid] = node
         self._peers.set()
         self._meet(node)
@@ -233,11 +263,11 @@ class ParamSync:
         declaration (or, from a peer's answer, before the link to it is up), so the meeting is
         repeated once ``MEET_AGAIN_S`` later, and whenever a direct link to it comes up.
         """
-        self._fetches.put((node, True))
+        with self._lock:
+            self._queue_locked(node, announce=True)
+            if again and node in self._live:  # one time per session, the latest meeting's
+                self._meet_again[node] = time.monotonic() + MEET_AGAIN_S
         self._schedule_fetch(node)
-        if again:
-            with self._lock:
-                self._meet_again.append((time.monotonic() + MEET_AGAIN_S, node))
 
     def _new_links(self) -> None:
         """Meet again the sessions whose direct link has just come up, or whose time came."""
@@ -249,8 +279,9 @@ class ParamSync:
         with self._lock:
             fresh = [self._zids[z] for z in linked - self._linked if z in self._zids]
             self._linked = linked
-            due = [node for at, node in self._meet_again if at <= now and node in self._live]
-            self._meet_again = [(at, node) for at, node in self._meet_again if at > now]
+            due = [node for node, at in self._meet_again.items() if at <= now]
+            for node in due:
+                del self._meet_again[node]
         for node in fresh:
             self._meet(node)
         for node in due:
@@ -271,31 +302,55 @@ class ParamSync:
     def _schedule_fetch(self, node: str) -> None:
         """Fetch ``node``'s values soon, once: a fetch already waiting covers this one too."""
         if not _NODE_ID.fullmatch(node):
-            log.warning("ignoring a fetch request from a malformed node id %s", node[:40])
+            self._malformed.warning(
+                node, "ignoring a fetch request from a malformed node id %s", node[:40]
+            )
             return
         with self._lock:
-            if node in self._due:
-                return
-            self._due.add(node)
-            self._fetching += 1
-        self._fetches.put((node, False))
+            if self._queue_locked(node, announce=False):
+                self._fetching += 1
+
+    def _queue_locked(self, node: str, *, announce: bool) -> bool:
+        """Queue work for the sync thread, unless the same is queued or the queue is full.
+
+        True when queued anew (under the lock).
+        """
+        item = (node, announce)
+        if item in self._queued:
+            return False
+        if len(self._queued) >= MAX_QUEUED_FETCHES:
+            self._queued_full.refuse()
+            return False
+        self._queued[item] = None
+        self._work.notify_all()
+        return True
+
+    def _next(self) -> tuple[str, bool] | None:
+        """The oldest work queued, waiting for some up to ``LINK_POLL_S``; None if there is none."""
+        with self._lock:
+            if not self._work.wait_for(
+                lambda: bool(self._queued) or self._closed, timeout=LINK_POLL_S
+            ):
+                return None
+            if self._closed:
+                return None
+            item, _ = self._queued.popitem(last=False)
+            self._queued_full.room(len(self._queued))
+            return item
 
     def _fetch_loop(self) -> None:
         """Ask sessions for their values, or to ask for ours; answers arrive on zenoh's threads.
 
         A failure is logged and the loop goes on: a dead loop would leave this session deaf to
-        every value written before it could hear it.
+        every value written before it could hear it. Should it end all the same (something
+        other than an ``Exception``), its death is logged and ``alive`` turns False.
         """
         while not self._closed:
             try:
                 self._new_links()
-                try:
-                    item = self._fetches.get(timeout=LINK_POLL_S)
-                except queue.Empty:
-                    continue
-                if item is None:
-                    return
-                self._fetch_one(*item)
+                item = self._next()
+                if item is not None:
+                    self._fetch_one(*item)
             except Exception:
                 if not self._closed:
                     log.exception("parameter sync")
@@ -307,8 +362,6 @@ class ParamSync:
                 f"{prefix}?{_PULL}={self.node_id}", lambda _reply: None, priority=self._priority
             )
             return
-        with self._lock:
-            self._due.discard(node)
 
         def on_reply(reply: zenoh.Reply) -> None:
             sample = reply.ok
@@ -385,7 +438,10 @@ class ParamSync:
                 return
             self._closed = True
             declared, self._declared = self._declared, []
+            self._fetching -= sum(1 for _, announce in self._queued if not announce)
+            self._queued.clear()
+            self._work.notify_all()
+            self._synced.notify_all()
         self.params.close()
-        self._fetches.put(None)
         for item in declared:
             _undeclare(item)
