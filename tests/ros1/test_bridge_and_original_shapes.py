@@ -87,7 +87,9 @@ def test_dbm_rate_of_a_topic_without_a_publisher_follows_the_parameter_server(
     assert lines(follower, 1)[0]["frequency"] == 1.0  # the minimum before an allocation
     ros.wait_param("/r1/camera/dbm/frequency/max", lambda v: v == 16.0, what="its bounds")
     assert ros.param("/r1/camera/dbm/frequency/min") == 1.0
-    for allocated, kept in ((5.0, 5.0), (50.0, 16.0)):  # above the maximum: clamped
+    # Above the maximum: capped. Below the minimum (an infeasible budget's share): kept, so the
+    # budget still holds.
+    for allocated, kept in ((5.0, 5.0), (50.0, 16.0), (0.5, 0.5)):
         ros.rosparam("set", "/r1/camera/dbm/frequency/current_value", str(allocated))
         for line in follower.json_lines(timeout_s=20):
             if line["frequency"] == kept:

@@ -200,10 +200,14 @@ class _Allocation:
         self._view = ParamView.of(transport.params)
 
     def rate_hz(self) -> float:
-        """The allocation, clamped to the bounds; ``default_frequency`` (or min) before one."""
+        """The allocation, capped at the maximum; ``default_frequency`` (or min) before one.
+
+        Not raised to the minimum: an infeasible budget's rates sit below the minimums on
+        purpose, so that they still fit it (as ``ManagedPublisher`` applies them).
+        """
         value = self._view.get(names.current_value(self._topic))
         rate = value if isinstance(value, float) else self._initial
-        return min(max(rate, self.min_hz), self.max_hz)
+        return min(rate, self.max_hz)
 
 
 class DBMRate:

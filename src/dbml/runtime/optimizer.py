@@ -6,12 +6,14 @@ allocates, and pushes each publisher its rate through ``[topic]/dbm/frequency/cu
 - every ``/dbm/optimization_rate_in_seconds``, and
 - at once when a priority, a size, a bound, the budget or the graph changes, coalescing bursts.
 
-A round pushes one batch (``set_many``) holding only what changed: rates, ``managed`` flags,
-the status, and ``/dbm/round``, the heartbeat that tells publishers their rate still stands. A
-rate is pushed again when its channel's publishers change (a restarted publisher heard nothing).
-Only channels with a subscriber to ``[topic]/optimized`` on another host are managed; the others
-run at their maximum. Decreases are pushed first and acknowledged before increases go out, so the
-budget is not exceeded while rates change. Infeasibility is logged and written to ``/dbm/status``
+A round pushes only what changed: rates, ``managed`` flags, the status, and ``/dbm/round``, the
+heartbeat that tells publishers their rate still stands. When some rates go down and others up it
+is two writes (``set_many``): the decreases first, acknowledged (or ``ACK_TIMEOUT_S`` passed)
+before the increases go out, so the budget is not exceeded while rates change; otherwise one.
+Each write is one message where the middleware allows (zenoh's batch), one write per name over
+ROS 1. A rate is pushed again when its channel's publishers change (a restarted publisher heard
+nothing). Only channels with a subscriber to ``[topic]/optimized`` on another host are managed;
+the others run at their maximum. Infeasibility is logged and written to ``/dbm/status``
 and ``/dbm/status_message``, with rates that still fit the budget.
 
 It tracks at most ``MAX_CHANNELS`` channels, so what it remembers per channel is bounded however

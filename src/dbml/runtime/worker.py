@@ -1,7 +1,8 @@
 """One periodic worker thread, for every node part that acts on a period (and on a poke).
 
-The optimizer (every period and at once on a trigger), the estimator (every 0.1 s), the
-reception reporter (every 0.1 s) and each managed subscriber (following the graph) share it. It
+The optimizer (every period and at once on a trigger), the estimator (``ESTIMATE_INTERVAL_S``),
+the reception reporter (``REPORT_INTERVAL_S``) and each managed subscriber (following the graph)
+share it. It
 lives in ``dbml.transports.worker`` (the transports need it and must not import the runtime);
 this module keeps the runtime's name for it.
 """
