@@ -6,6 +6,7 @@ anywhere on the path of a command fails it here.
 """
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -20,6 +21,7 @@ OPTIONAL = ("matplotlib", "cryptography", "rosbags", "zenoh_ros2_sdk")
 """What the extras bring, by the names they are imported as."""
 WITHOUT_EXTRAS = f"import sys\nfor name in {OPTIONAL!r}:\n    sys.modules[name] = None\n"
 DBML = WITHOUT_EXTRAS + "from dbml.cli import main\nsys.exit(main(sys.argv[1:]))\n"
+PATH = [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
 
 
 def run(code: str, *argv: str, cwd: Path = REPO) -> subprocess.CompletedProcess[str]:
@@ -60,6 +62,24 @@ def test_allocate_works_without_extras() -> None:
     result = run(DBML, "allocate", "examples/teleop.yaml", "--json")
     assert result.returncode == 0, result.stderr
     assert json.loads(result.stdout)["status"] == "optimal"
+
+
+@pytest.mark.integration
+def test_the_demo_runs_without_extras_in_every_process(tmp_path: Path) -> None:
+    """The main job, live: its role processes too start without any optional package."""
+    (tmp_path / "sitecustomize.py").write_text(WITHOUT_EXTRAS)  # every child imports it first
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(tmp_path), *PATH]))}
+    result = subprocess.run(
+        [sys.executable, "-c", DBML, "demo", "teleop", "--step-seconds", "1", "--json"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=REPO,
+        env=env,
+        check=False,
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert json.loads(result.stdout)["ok"] is True
 
 
 def test_secure_init_names_the_secure_extra(tmp_path: Path) -> None:

@@ -89,6 +89,20 @@ def test_the_architecture_tree_names_every_subpackage() -> None:
     assert not missing, f"the Architecture tree omits {missing}"
 
 
+def test_the_architecture_tree_names_every_module_on_its_packages_lines() -> None:
+    entries = tree_entries(architecture_tree())
+    missing = []
+    for package in subpackages():
+        top = package.partition("/")[0]
+        words = set(re.findall(r"[a-z0-9_]+", entries.get(f"{top}/", "")))
+        missing += [
+            f"{package}/{module.name}"
+            for module in (PACKAGE / package).glob("*.py")
+            if module.stem != "__init__" and module.stem not in words
+        ]
+    assert not missing, f"the Architecture tree's lines omit {sorted(missing)}"
+
+
 def test_the_architecture_tree_names_nothing_that_is_gone() -> None:
     packages = {p.partition("/")[0] for p in subpackages()}
     stale = [

@@ -151,6 +151,28 @@ def test_the_optimizer_command_exits_non_zero_when_its_worker_dies(
     assert "exiting so a supervisor restarts" in caplog.text
 
 
+def test_the_subscriber_command_exits_non_zero_when_a_part_of_it_ends(
+    caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Its run watches the subscriber: one no longer following the graph ends it, exit 1."""
+    monkeypatch.setattr(ManagedSubscriber, "alive", property(lambda _self: False))
+    out = io.StringIO()
+    with caplog.at_level(logging.CRITICAL, logger="dbml"):
+        code = run_subscriber(
+            MemoryTransport(MemoryNetwork(), host="operator"),
+            "/cam",
+            as_json=True,
+            stop=threading.Event(),
+            duration_s=10.0,
+            out=out,
+        )
+    assert code == 1
+    assert out.getvalue() == ""  # over before its first line
+    assert [r.getMessage() for r in caplog.records if r.levelno >= logging.CRITICAL] == [
+        "a worker thread died (see above); exiting so a supervisor restarts it"
+    ]
+
+
 def test_budget_writes_bandwidth_and_utilization_for_everyone() -> None:
     network = MemoryNetwork()
     reader = MemoryTransport(network, host="base")

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from dbml.cli.render import monitor_table
-from dbml.protocol import schema
 from dbml.runtime.monitor import ChannelRow, MonitorView
 
 
@@ -27,9 +26,9 @@ def test_the_monitor_shows_the_schemas_columns_and_a_rows_values() -> None:
         "topic",
         "host",
         "managed",
-        schema.PRIORITY.column,
-        schema.SIZE.column,
-        schema.CURRENT.column,
+        "priority",
+        "size B",
+        "allocated Hz",
         "share",
         "status",
     ]

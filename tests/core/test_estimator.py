@@ -267,7 +267,7 @@ def test_streams_are_bounded_by_evicting_the_one_silent_the_longest() -> None:
     for i in range(MAX_STREAMS, MAX_STREAMS + over):
         estimator.observe(Arrival(f"s{i}", 0, 0.2, 0.21, 1_000))
     streams = estimator._streams
-    assert len(streams) == MAX_STREAMS
+    assert len(streams) == estimator.stream_count == MAX_STREAMS
     assert estimator.streams_evicted == over
     assert "s0" in streams
     assert not any(f"s{i}" in streams for i in range(1, over + 1))
@@ -279,13 +279,13 @@ def test_frames_kept_are_bounded_and_their_sequence_numbers_still_count() -> Non
     over = 10
     for seq in range(MAX_SAMPLES + over):
         estimator.observe(Arrival("a", seq, seq * 1e-6, seq * 1e-6 + 0.01, 1_000))
-    assert estimator._samples == len(estimator._streams["a"].samples) == MAX_SAMPLES
+    assert estimator.sample_count == len(estimator._streams["a"].samples) == MAX_SAMPLES
     assert estimator.samples_refused == over
     estimator.observe(Arrival("a", MAX_SAMPLES + over + 1, 3.0, 3.01, 1_000))  # one lost
     assert estimator.update(3.02).lost == 1
     # Every frame kept left the base window: room again (the newest was refused, too).
     estimator.observe(Arrival("a", MAX_SAMPLES + over + 2, 20.0, 20.01, 1_000))
     estimator.update(20.02)
-    assert estimator._samples == 0
+    assert estimator.sample_count == 0
     estimator.observe(Arrival("a", MAX_SAMPLES + over + 3, 20.1, 20.11, 1_000))
     assert estimator._samples == 1

@@ -100,3 +100,11 @@ def test_each_key_family_is_spelled_in_one_module(key: str) -> None:
         if key in path.read_text(encoding="utf-8")
     )
     assert spelled == ["protocol/keys.py"]
+
+
+def test_node_ids_are_made_and_checked_in_one_place() -> None:
+    made = {keys.new_node_id() for _ in range(100)}
+    assert len(made) == 100
+    assert all(keys.is_node_id(node) for node in made)
+    for bad in ("", "0123456789ABCDEF", "0123456789abcde", "0123456789abcdef0", "../own/x"):
+        assert not keys.is_node_id(bad), bad

@@ -81,6 +81,25 @@ def test_a_start_thread_that_dies_ends_the_spinning_node_with_exit_code_1(ros: R
     # rospy sends Python logging to the node's log file, where a ROS user looks.
     logs = Path(ros.env["ROS_LOG_DIR"]).glob("dying_*.log")
     text = "".join(log.read_text(errors="replace") for log in logs)
-    assert "dbm-publisher /r1/camera: the thread died" in text
+    assert text.count("dbm-publisher /r1/camera: the thread died") == 1  # said once
     assert "RuntimeError: camera unplugged" in text
     assert "a worker thread died (see above); exiting so a supervisor restarts it" in text
+
+
+def test_a_start_thread_stopped_by_ros_shutdown_is_no_death_and_the_node_exits_0(
+    ros: RosNet,
+) -> None:
+    """Ctrl-C shuts ROS down between the thread's check and its call: rospy raises, no death."""
+    ros.rosparam("set", "/dbm/max_bandwidth_in_mbit", "4")
+    node = ros.node("/r1/camera", "stopping", host="127.0.0.2", module="tests.ros1.dying_nodes")
+    try:
+        code = node.popen.wait(timeout=60)
+    except subprocess.TimeoutExpired:
+        pytest.fail(f"the node still runs after ROS shut down:\n{node.stderr()}")
+    assert code == 0, node.stderr()
+    assert lines(node, 1) == [{"alive": False, "deaths": 0}]
+    logs = Path(ros.env["ROS_LOG_DIR"]).glob("stopping_*.log")
+    text = "".join(log.read_text(errors="replace") for log in logs)
+    assert "signal_shutdown [keyboard interrupt]" in text  # the node's log, as it ended
+    assert "the thread died" not in text
+    assert "a worker thread died" not in text

@@ -8,7 +8,7 @@ from typing import Any
 import pytest
 
 from dbml.core.errors import TransportError
-from dbml.transports.worker import dead_threads
+from dbml.transports.worker import death_count
 from tests.conftest import wait_for
 from tests.ros1.rosnet import require_ros1
 
@@ -66,10 +66,11 @@ def test_a_polling_thread_that_dies_says_so(caplog: pytest.LogCaptureFixture) ->
 
     master = Master(SystemExit("ends the thread"))
     graph = _Ros1Graph(master, POLL_S)  # type: ignore[arg-type]
+    deaths = death_count()
     try:
         graph.watch(lambda: None)
         wait_for(lambda: not graph.alive, timeout_s=TIMEOUT_S, what="the thread's death")
-        assert "dbml-ros1-graph" in dead_threads()
+        assert death_count() == deaths + 1
         assert "dbml-ros1-graph: the thread died" in caplog.text
     finally:
         graph.close()

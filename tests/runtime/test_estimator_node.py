@@ -6,12 +6,19 @@ import logging
 
 import pytest
 
+from dbml.core import estimator as core_estimator
 from dbml.core.estimator import EstimatorState, Phase
 from dbml.protocol import names
-from dbml.runtime.estimator import LINK_TOPIC, LinkBeacon, LinkEstimator
+from dbml.runtime import estimator as node_estimator
+from dbml.runtime.estimator import LINK_TOPIC, MAX_REPORTERS, LinkBeacon, LinkEstimator
 from dbml.runtime.metadata import pack_meta
 from dbml.runtime.optimizer import OptimizerNode
-from dbml.runtime.reception import RECEPTION_TOPIC, ReceptionReport, ReceptionReporter
+from dbml.runtime.reception import (
+    RECEPTION_TOPIC,
+    ReceivedFrame,
+    ReceptionReport,
+    ReceptionReporter,
+)
 from dbml.runtime.subscriber import ManagedSubscriber
 from dbml.transports import MemoryNetwork, MemoryTransport, Variant
 from dbml.transports.base import Sample
@@ -204,7 +211,7 @@ def test_clock_offsets_are_kept_for_at_most_max_reporters_hosts(
     link.run(0.5)
     assert list(link.estimator._offsets) == ["op"]
     forger = link.operator.declare_publisher(RECEPTION_TOPIC)
-    bound = LinkEstimator.MAX_REPORTERS
+    bound = MAX_REPORTERS
     with caplog.at_level(logging.WARNING, logger="dbml.estimator"):
         for i in range(bound + 5):
             forger.put(ReceptionReport(f"forged-{i}", 0.0, ()).encode())
@@ -213,7 +220,66 @@ def test_clock_offsets_are_kept_for_at_most_max_reporters_hosts(
     assert "op" not in offsets  # silent the longest: evicted first
     assert "forged-0" not in offsets
     assert f"forged-{bound + 4}" in offsets
-    assert caplog.text.count(f"more than {bound} hosts report receptions") == 1
+    assert [r.getMessage() for r in caplog.records if r.name == "dbml.estimator"] == [
+        f"reporting hosts: {bound} held, the most kept; evicting the oldest "
+        "(told once until half of them are gone)"
+    ]
     link.run(0.5)  # the real host reports again: its offset is learnt anew
     assert "op" in offsets
     assert len(offsets) == bound
+
+
+def test_streams_and_frames_past_the_estimators_bounds_are_logged_once_per_flood(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The core estimator only counts what it evicts and refuses: its node says it, unlocked."""
+    for module in (core_estimator, node_estimator):
+        monkeypatch.setattr(module, "MAX_STREAMS", 8)
+        monkeypatch.setattr(module, "MAX_SAMPLES", 16)
+    clock = ManualClock(0.0)
+    base = MemoryTransport(MemoryNetwork(), host="base", clock=clock)
+    base.params.set(names.BANDWIDTH, 10.0)
+    estimator = LinkEstimator(base)
+    told: list[tuple[str, bool]] = []  # each warning, and whether the estimator's lock was held
+
+    class Told(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            if record.levelno >= logging.WARNING:
+                told.append((record.getMessage(), estimator._lock.locked()))
+
+    def report(*frames: tuple[str, int]) -> None:
+        received = tuple(ReceivedFrame(topic, seq, 0, 0.0, 1_000) for topic, seq in frames)
+        payload = ReceptionReport("h", clock(), received).encode()
+        estimator._on_report(Sample(RECEPTION_TOPIC, payload, None))
+
+    handler = Told()
+    logging.getLogger("dbml.estimator").addHandler(handler)
+    try:
+        assert estimator.tick() is not None  # the core estimator is made by the first tick
+        report(*((f"/t{i}", 0) for i in range(12)))  # 4 streams more than the bound
+        report(*((f"/t{i}", 1) for i in range(8, 12)))  # heard again: nothing evicted
+        report(*(("/t11", seq) for seq in range(2, 22)))  # 12 held: 4 more kept, 16 refused
+        core = estimator._estimator
+        assert core is not None
+        assert (core.streams_evicted, core.samples_refused) == (4, 16)
+        assert (core.stream_count, core.sample_count) == (8, 16)
+        clock.advance(20.0)  # every frame leaves the base window: both floods are over
+        estimator.tick()
+        assert (core.stream_count, core.sample_count) == (0, 0)
+    finally:
+        logging.getLogger("dbml.estimator").removeHandler(handler)
+        estimator.close()
+    assert told == [
+        (
+            "streams followed: 8 held, the most kept; evicting the oldest "
+            "(told once until half of them are gone)",
+            False,
+        ),
+        (
+            "frames kept: 16 held, the most kept; refusing new ones "
+            "(told once until half of them are gone)",
+            False,
+        ),
+        ("streams followed: room again; 4 evicted meanwhile", False),
+        ("frames kept: room again; 16 refused meanwhile", False),
+    ]

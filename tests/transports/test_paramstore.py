@@ -20,11 +20,11 @@ from dbml.protocol.keys import (
     param_key,
 )
 from dbml.transports.base import ParamValue
+from dbml.transports.overflow import MAX_LOGGED_KEYS
 from dbml.transports.paramstore import (
     MAX_CLOCK_AHEAD_NS,
     MAX_PARAMS,
     MAX_QUEUED_WRITES,
-    MAX_WARNED_KEYS,
     ReplicatedParams,
 )
 
@@ -297,10 +297,11 @@ def test_a_stalled_network_drops_the_oldest_write_past_the_bound_and_says_so_onc
         assert store.get("/x0") == 0  # every write holds here, sent or not
         assert len(store._sender.pending()) == MAX_QUEUED_WRITES + 1
         assert store._sender.dropped == over
-        assert caplog.text.count("dropping the oldest") == 1
+        assert "unsent items" not in caplog.text  # told by the sender's thread, not under a lock
         send.release.set()
         assert store.flush(timeout_s=10.0)
-        assert caplog.text.count(f"caught up; {over} items were dropped") == 1
+        assert caplog.text.count("evicting the oldest") == 1
+        assert caplog.text.count(f"room again; {over} evicted meanwhile") == 1
     names = [key for key, _ in send.sent]
     kept = [param_key(f"/x{i}") for i in (0, *range(1 + over, MAX_QUEUED_WRITES + 1 + over))]
     assert names == kept  # the oldest queued went, in order; the newest all arrived
@@ -402,11 +403,11 @@ def test_malformed_keys_are_logged_for_a_bounded_number_of_keys(
 ) -> None:
     store = quiet()
     with caplog.at_level(logging.WARNING, logger="dbml.zenoh"):
-        for i in range(MAX_WARNED_KEYS + 50):
+        for i in range(MAX_LOGGED_KEYS + 50):
             store.on_write(param_key(f"/bad/{i}"), b"{not json")
             store.on_write(param_key(f"/bad/{i}"), b"{not json")  # the same key: once
     messages = [r.getMessage() for r in caplog.records]
-    assert sum(m.startswith("ignoring /bad/") for m in messages) == MAX_WARNED_KEYS
-    assert messages[-1] == f"{MAX_WARNED_KEYS} distinct bad keys logged: no more are logged"
-    assert len(messages) == MAX_WARNED_KEYS + 1
+    assert sum(m.startswith("ignoring /bad/") for m in messages) == MAX_LOGGED_KEYS
+    assert messages[-1] == f"{MAX_LOGGED_KEYS} distinct bad keys logged: no more are logged"
+    assert len(messages) == MAX_LOGGED_KEYS + 1
     store.close()

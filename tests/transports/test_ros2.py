@@ -689,7 +689,7 @@ def test_concurrent_managed_publishers_share_one_priority_subscription(
     for thread in threads:
         thread.join(timeout=TIMEOUT_S)
     assert calls == ["/r1/cam/dbm/priority"]
-    assert transport._priorities["/r1/cam"][1] == 2
+    assert transport._priorities["/r1/cam"].users == 2
     for publisher in made:
         publisher.close()
     assert transport._priorities == {}

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import logging
 import threading
 from collections.abc import Iterator
 from typing import Any
 
 import pytest
 
-from dbml.transports import Publisher, Variant
+from dbml.transports import Publisher, Variant, ros2
 from dbml.transports.ros2 import Ros2Transport
 from tests.transports.ros2_network import Factory, ros2_network
 
@@ -57,14 +58,14 @@ def test_a_priority_subscription_is_declared_outside_every_lock(
     release.set()
     first.join(timeout=TIMEOUT_S)
     assert set(made) == {"/r1/cam", "/r2/cam"}
-    assert {topic: count for topic, (_, count) in transport._priorities.items()} == {
+    assert {topic: hearing.users for topic, hearing in transport._priorities.items()} == {
         "/r1/cam": 1,
         "/r2/cam": 1,
     }
     for publisher in made.values():
         publisher.close()
     assert transport._priorities == {}
-    assert transport._declaring == {}
+    assert transport._handles == set()  # the publishers and their subscriptions
 
 
 def test_a_failed_declaration_lets_a_waiting_publisher_declare_its_own(
@@ -104,6 +105,79 @@ def test_a_failed_declaration_lets_a_waiting_publisher_declare_its_own(
         thread.join(timeout=TIMEOUT_S)
     assert [str(err) for err in failures] == ["refused"]
     assert calls == ["/r1/cam/dbm/priority", "/r1/cam/dbm/priority"]
-    assert transport._priorities["/r1/cam"][1] == 1
+    assert transport._priorities["/r1/cam"].users == 1
     made[0].close()
     assert transport._priorities == {}
+
+
+class HeldDeclaration:
+    """``_subscribe_key`` for the transport: its priority subscriptions wait to be released."""
+
+    def __init__(self, transport: Ros2Transport) -> None:
+        self._real = transport._subscribe_key
+        self.declaring = threading.Event()
+        self.release = threading.Event()
+
+    def __call__(self, name: str, *args: Any) -> Any:
+        if name.endswith("/dbm/priority"):
+            self.declaring.set()
+            assert self.release.wait(TIMEOUT_S), "the test never released the declaration"
+        return self._real(name, *args)
+
+
+def test_a_publisher_waits_for_a_hung_declaration_only_so_long_then_shares_it(
+    make: Factory, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    transport = make("robot-1")
+    assert isinstance(transport, Ros2Transport)
+    held = HeldDeclaration(transport)
+    monkeypatch.setattr(transport, "_subscribe_key", held)
+    monkeypatch.setattr(ros2, "_PRIORITY_WAIT_S", 0.05)  # the declaration is held till released
+    made: list[Publisher] = []
+    first = threading.Thread(
+        target=lambda: made.append(transport.declare_publisher("/r1/cam", Variant.OPTIMIZED)),
+        daemon=True,
+    )
+    first.start()
+    assert held.declaring.wait(TIMEOUT_S)
+    with caplog.at_level(logging.WARNING, logger="dbml.ros2"):
+        second = transport.declare_publisher("/r1/cam", Variant.OPTIMIZED)  # not held for good
+    assert [r.getMessage() for r in caplog.records if r.name == "dbml.ros2"] == [
+        "/r1/cam: its priority subscription is still being declared after 0.05 s; going on, "
+        "hearing priority once it is"
+    ]
+    hearing = transport._priorities["/r1/cam"]
+    assert (hearing.users, hearing.done.is_set()) == (2, False)
+    second.close()  # during the declaration: taken off at once
+    assert hearing.users == 1
+    held.release.set()
+    first.join(timeout=TIMEOUT_S)
+    assert not first.is_alive()
+    assert transport._priorities == {"/r1/cam": hearing}
+    assert (hearing.users, hearing.done.is_set()) == (1, True)
+    made[0].close()  # the last user: the subscription is undeclared
+    assert transport._priorities == {}
+    assert transport._handles == set()
+
+
+def test_a_subscription_whose_users_all_closed_during_its_declaration_is_undeclared_at_once(
+    make: Factory, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    transport = make("robot-1")
+    assert isinstance(transport, Ros2Transport)
+    held = HeldDeclaration(transport)
+    monkeypatch.setattr(transport, "_subscribe_key", held)
+    heard: list[ros2._PriorityHearing] = []
+    declaring = threading.Thread(
+        target=lambda: heard.append(transport._hear_priority("/r1/cam")), daemon=True
+    )
+    declaring.start()
+    assert held.declaring.wait(TIMEOUT_S)
+    pending = transport._priorities["/r1/cam"]
+    transport._unhear_priority("/r1/cam", pending)  # finds no subscription yet: recorded
+    held.release.set()
+    declaring.join(timeout=TIMEOUT_S)
+    assert heard == [pending]
+    assert pending.handle is not None  # declared, then undeclared at once by the declaration
+    assert transport._priorities == {}
+    assert transport._handles == set()

@@ -7,7 +7,7 @@ import threading
 
 import pytest
 
-from dbml.transports.worker import BackgroundThread, OrderedSender, PeriodicWorker, dead_threads
+from dbml.transports.worker import BackgroundThread, OrderedSender, PeriodicWorker, death_count
 from tests.conftest import wait_for
 
 TIMEOUT_S = 10.0
@@ -60,11 +60,19 @@ def test_a_full_queue_drops_its_oldest_item_and_says_so_once_per_stall(
             sender.put(item)
         assert sender.pending() == ["in flight", "3", "4", "5"]
         assert sender.dropped == 2
-        assert caplog.text.count("test-send: 3 items queued") == 1
+        assert caplog.records == []  # ``put`` logs nothing: its caller may hold a lock
         gate.opened.set()
         assert sender.flush(TIMEOUT_S)
-        assert caplog.text.count("test-send: caught up; 2 items were dropped") == 1
     assert gate.sent == ["in flight", "3", "4", "5"]
+    # Told by the sender's thread once the stalled send returned, and the end of the stall too.
+    assert [(r.threadName, r.getMessage()) for r in caplog.records] == [
+        (
+            "test-send",
+            "test-send: unsent items: 3 held, the most kept; evicting the oldest "
+            "(told once until half of them are gone)",
+        ),
+        ("test-send", "test-send: unsent items: room again; 2 evicted meanwhile"),
+    ]
     sender.close(TIMEOUT_S)
 
 
@@ -109,31 +117,39 @@ def test_a_sender_whose_thread_dies_says_so(caplog: pytest.LogCaptureFixture) ->
     def send(_item: str) -> None:
         raise SystemExit("not an Exception: it ends the thread")
 
+    deaths = death_count()
     sender: OrderedSender[str] = OrderedSender(send, name="test-send-dies", log=log)
     sender.put("x")
     wait_for(lambda: not sender.alive, timeout_s=TIMEOUT_S, what="the thread's death")
-    assert "test-send-dies" in dead_threads()
+    assert death_count() == deaths + 1
     assert "test-send-dies: the thread died" in caplog.text
 
 
-def test_a_background_thread_that_raises_is_dead_and_listed() -> None:
+def test_a_background_thread_that_raises_is_dead_and_counted(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
     ended = threading.Event()
 
     def target() -> None:
         ended.set()
         raise RuntimeError("broken loop")
 
+    deaths = death_count()
     thread = BackgroundThread(target, name="test-loop-dies", log=log).start()
     assert ended.wait(TIMEOUT_S)
     wait_for(lambda: not thread.alive, timeout_s=TIMEOUT_S, what="the thread's death")
-    assert "test-loop-dies" in dead_threads()
+    assert death_count() == deaths + 1
+    assert "test-loop-dies: the thread died" in caplog.text
     clean = BackgroundThread(lambda: None, name="test-loop-ends", log=log).start()
     clean.join(TIMEOUT_S)
     assert clean.alive  # returning is a normal end, not a death
-    assert "test-loop-ends" not in dead_threads()
+    assert death_count() == deaths + 1
+    assert "test-loop-ends" not in caplog.text
 
 
-def test_a_periodic_worker_survives_a_failing_tick_and_reports_its_death() -> None:
+def test_a_periodic_worker_survives_a_failing_tick_and_reports_its_death(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
     ticks: list[int] = []
 
     def tick() -> None:
@@ -143,7 +159,23 @@ def test_a_periodic_worker_survives_a_failing_tick_and_reports_its_death() -> No
         if len(ticks) == 2:
             raise SystemExit("ends the thread")
 
+    deaths = death_count()
     worker = PeriodicWorker(tick, interval_s=0.01, name="test-worker-dies", log=log).start()
     wait_for(lambda: not worker.alive, timeout_s=TIMEOUT_S, what="the thread's death")
     assert len(ticks) == 2
-    assert "test-worker-dies" in dead_threads()
+    assert death_count() == deaths + 1
+    assert "test-worker-dies: the thread died" in caplog.text
+
+
+def test_a_background_thread_tells_its_own_calls_from_others_from_its_first_instruction() -> None:
+    seen: list[bool] = []
+
+    def target() -> None:
+        seen.append(thread.is_current())  # at once: no window before the thread is known
+
+    thread = BackgroundThread(target, name="test-current", log=log)
+    assert not thread.is_current()
+    thread.start()
+    thread.join(TIMEOUT_S)
+    assert seen == [True]
+    assert not thread.is_current()

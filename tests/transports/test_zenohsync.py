@@ -16,7 +16,7 @@ import pytest
 import zenoh
 
 from dbml.protocol import keys
-from dbml.transports.worker import dead_threads
+from dbml.transports.worker import death_count
 from dbml.transports.zenohsync import MAX_QUEUED_FETCHES, MAX_SESSIONS, ParamSync
 from tests.conftest import wait_for
 
@@ -195,9 +195,38 @@ def test_the_sync_thread_survives_a_failure_and_reports_its_death(
         wait_for(lambda: not sync._queued, timeout_s=TIMEOUT_S, what="the fetch after a failure")
         assert sync.alive
         assert "parameter sync" in caplog.text
+        deaths = death_count()
         session.fail = SystemExit("not an Exception: it ends the thread")
         wait_for(lambda: not sync.alive, timeout_s=TIMEOUT_S, what="the thread's death")
-        assert "dbml-param-sync" in dead_threads()
+        assert death_count() == deaths + 1
         assert "dbml-param-sync: the thread died" in caplog.text
     finally:
         sync.close()
+
+
+def test_a_channel_subscriber_declared_as_the_sync_closes_is_undeclared_outside_the_lock(
+    session: FakeSession, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Whoever waits for the sync's lock must not wait for a middleware call."""
+    sync = ParamSync(
+        cast(zenoh.Session, session),
+        "0123456789abcdef",
+        follow_all=False,
+        priority=zenoh.Priority.INTERACTIVE_HIGH,
+    )
+    session.running.set()
+    locked_at_undeclare: list[bool] = []
+
+    class Declared(_Declared):
+        def undeclare(self) -> None:
+            locked_at_undeclare.append(sync._lock.locked())
+
+    def declare_closing(*_args: object, **_kwargs: object) -> _Declared:
+        sync.close()  # while the channel's subscriber is declared: ``_follow`` holds no lock
+        return Declared()
+
+    monkeypatch.setattr(session, "declare_subscriber", declare_closing)
+    sync._follow(keys.param_key("/r1/cam/dbm/min_rate"))
+    assert locked_at_undeclare == [False]
+    assert sync._declared == []
+    assert session.gets == []  # nothing asked for a channel no longer heard

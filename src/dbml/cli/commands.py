@@ -137,11 +137,8 @@ def run_bridge(
                 bridge.topic,
                 bridge.channel.msg_type or "bytes",
             )
-        life = Lifetime(stop, duration_s)
+        life = Lifetime(stop, duration_s, watching=bridges)
         while not life.over():
-            if not all(bridge.alive for bridge in bridges):
-                log.critical("a bridge's thread died (see above); exiting")
-                return 1
             stop.wait(0.1)
     finally:
         for bridge in bridges:
@@ -184,12 +181,9 @@ def run_subscriber(
     meter = _Meter(deque(), threading.Lock())
     reporter = ReceptionReporter(transport).start()  # for an optimizer that estimates
     subscriber = ManagedSubscriber(transport, topic, meter.add, reporter=reporter)
-    life = Lifetime(stop, duration_s)
+    life = Lifetime(stop, duration_s, watching=(reporter, subscriber))
     try:
         while not life.over():
-            if not reporter.alive or not subscriber.alive:
-                log.critical("the reception reporter or the subscriber died (see above); exiting")
-                return 1
             stop.wait(1.0)
             rate_hz, bytes_per_s = meter.window(1.0)
             variant = subscriber.variant.value

@@ -27,7 +27,7 @@ from dbml.experiment.analysis import (
     link_at,
 )
 from dbml.experiment.roles import URGENT_RATE_HZ, URGENT_SIZE_BYTES
-from dbml.runtime.monitor import MONITOR_COLUMNS, MonitorView
+from dbml.runtime.monitor import MONITOR_PARAMETERS, MonitorView
 from dbml.scenarios.reproduce import RobotRow
 from dbml.scenarios.teleop import LINK_MBIT, ROBOTS, STEPS
 
@@ -119,17 +119,19 @@ def monitor_table(view: MonitorView) -> Table:
         if view.estimator is not None:
             title += f" ({view.estimator})"
     table = Table(title=title)
-    for name in ("topic", "host", "managed", *MONITOR_COLUMNS, "share", "status"):
+    columns = [p.column for p in MONITOR_PARAMETERS if p.column is not None]
+    for name in ("topic", "host", "managed", *(c.title for c in columns), "share", "status"):
         table.add_column(name, justify="left" if name in {"topic", "host", "status"} else "right")
     for row in view.rows:
         table.add_row(
             row.topic,
             row.host,
             "yes" if row.managed else "no",
-            f"{row.priority:.2f}",
-            "-" if row.size_bytes is None else f"{row.size_bytes:,.0f}",
-            "-" if row.allocated_hz is None else f"{row.allocated_hz:.2f}",
-            "-" if row.share is None else f"{row.share:.1%}",
+            *(
+                _fmt(row.value(p), column.format)
+                for p, column in zip(MONITOR_PARAMETERS, columns, strict=True)
+            ),
+            _fmt(row.share, ".1%"),
             row.status,
         )
     if view.status_message is not None:

@@ -30,7 +30,7 @@ for a decrease, when it was decided, carried as JSON so a reader takes the field
 Streams and frames come from the network, so what is kept of them is bounded: ``MAX_STREAMS``
 streams (one more evicts the one silent the longest) and ``MAX_SAMPLES`` frames over all of
 them (past it a frame's delay is not kept, its sequence number still counts); the estimator
-counts both, for its node to log.
+counts both, and its node (``dbml.runtime.estimator``) logs them once per flood.
 """
 
 from __future__ import annotations
@@ -325,6 +325,16 @@ class BandwidthEstimator:
     def estimate_mbit(self) -> float:
         """The usable bandwidth now."""
         return self._estimate
+
+    @property
+    def stream_count(self) -> int:
+        """How many streams are followed now (``MAX_STREAMS`` at most)."""
+        return len(self._streams)
+
+    @property
+    def sample_count(self) -> int:
+        """How many frames are kept now over all streams (``MAX_SAMPLES`` at most)."""
+        return self._samples
 
     def observe(self, arrival: Arrival) -> None:
         """Take in one received frame (any order of streams; each stream in order)."""

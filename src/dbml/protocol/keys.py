@@ -18,13 +18,15 @@ secure fleet's access rules build their keys from these functions and constants.
 from __future__ import annotations
 
 import json
+import re
+import uuid
 from collections.abc import Mapping
 from dataclasses import dataclass
 
 from dbml.core.errors import TransportError
 from dbml.core.spec import short_repr
 from dbml.protocol.names import check_topic
-from dbml.protocol.schema import GLOBAL_PREFIX, ParamValue, check_param_value
+from dbml.protocol.schema import GLOBAL_PREFIX, ParamValue, check_param_value, split_channel_name
 
 __all__ = [
     "BATCH",
@@ -45,6 +47,8 @@ __all__ = [
     "encode_param",
     "global_params_filter",
     "graph_key",
+    "is_node_id",
+    "new_node_id",
     "node_key",
     "own_key",
     "own_name",
@@ -72,6 +76,18 @@ _GRAPH_SPLITS = 6
 """``dbml/graph/<role>/<host>/<uid>/<variant>/<topic...>``: the topic keeps its slashes."""
 _NODE_PARTS = 4
 _OWN_PARTS = 4
+_NODE_ID_HEX = 16
+_NODE_ID = re.compile(rf"[0-9a-f]{{{_NODE_ID_HEX}}}")
+
+
+def new_node_id() -> str:
+    """A session's id on the wire: hex digits of a random UUID, unique per session."""
+    return uuid.uuid4().hex[:_NODE_ID_HEX]
+
+
+def is_node_id(text: str) -> bool:
+    """Whether ``text`` is a session id as ``new_node_id`` makes them (a peer's is untrusted)."""
+    return _NODE_ID.fullmatch(text) is not None
 
 
 def data_key(topic: str) -> str:
@@ -96,10 +112,8 @@ def channel_params_filter(key: str) -> str | None:
     """
     if not key.startswith(PARAM + "/"):
         return None
-    end = key.find(GLOBAL_PREFIX + "/", len(PARAM))
-    if end <= len(PARAM):
-        return None
-    return key[: end + len(GLOBAL_PREFIX) + 1] + "**"
+    split = split_channel_name(key[len(PARAM) :])
+    return None if split is None else f"{param_key(split[0])}{GLOBAL_PREFIX}/**"
 
 
 def own_key(node_id: str, name: str = "") -> str:

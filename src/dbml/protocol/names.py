@@ -67,7 +67,6 @@ MANAGED_FIELD = schema.MANAGED.field
 PRIORITY_SUFFIX = f"/{schema.PRIORITY.relative}"
 """A channel's priority parameter after its topic (over ROS 2 also a ``Float64`` topic)."""
 
-_CHANNEL = f"{schema.GLOBAL_PREFIX}/"
 _RESERVED_SEGMENT = schema.GLOBAL_PREFIX[1:]
 _TOPIC = re.compile(r"^(/[A-Za-z0-9_\-.~]+)+$")
 
@@ -132,9 +131,5 @@ def check_channel(topic: str) -> str:
     return topic
 
 
-def topic_of(name: str) -> tuple[str, str] | None:
-    """Split ``/r1/camera/dbm/priority`` into ``('/r1/camera', 'priority')``; None if global."""
-    head, sep, tail = name.rpartition(_CHANNEL)
-    if not sep or not head:
-        return None
-    return head, tail
+topic_of = schema.split_channel_name
+"""Split ``/r1/camera/dbm/priority`` into ``('/r1/camera', 'priority')``; None if global."""

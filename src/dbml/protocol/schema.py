@@ -49,6 +49,7 @@ __all__ = [
     "STATUS_MESSAGE",
     "STRATEGY",
     "UTILIZATION",
+    "Column",
     "Kind",
     "ParamError",
     "ParamValue",
@@ -59,6 +60,7 @@ __all__ = [
     "check_param_value",
     "lookup",
     "ownership_table",
+    "split_channel_name",
 ]
 
 ParamValue: TypeAlias = bool | int | float | str | None
@@ -104,6 +106,14 @@ class Kind(enum.StrEnum):
 
 
 @dataclass(frozen=True, slots=True)
+class Column:
+    """How ``dbml monitor`` shows a parameter: its header and its number format."""
+
+    title: str
+    format: str
+
+
+@dataclass(frozen=True, slots=True)
 class Parameter:
     """One parameter: the paper's field name, where it lives, its values and its writers."""
 
@@ -117,7 +127,7 @@ class Parameter:
     maximum: float | None = None
     exclusive_minimum: bool = False
     choices: tuple[str, ...] = ()
-    column: str | None = None
+    column: Column | None = None
     """Its column in ``dbml monitor`` (None: not shown as a column)."""
 
     @property
@@ -285,7 +295,7 @@ SIZE = Parameter(
     minimum=0.0,
     exclusive_minimum=True,
     maximum=MAX_SIZE_BYTES,
-    column="size B",
+    column=Column("size B", ",.0f"),
 )
 PRIORITY = Parameter(
     "priority",
@@ -295,7 +305,7 @@ PRIORITY = Parameter(
     "The channel's raw priority in [0, 1]: an operator's, or the robot's own priority source.",
     minimum=0.0,
     maximum=1.0,
-    column="priority",
+    column=Column("priority", ".2f"),
 )
 CURRENT = Parameter(
     "frequency/current_value",
@@ -303,7 +313,7 @@ CURRENT = Parameter(
     Kind.NUMBER,
     _OPTIMIZER,
     "The allocated rate, pushed by the optimizer to the publisher.",
-    column="allocated Hz",
+    column=Column("allocated Hz", ".2f"),
     minimum=0.0,
     exclusive_minimum=True,
     maximum=MAX_RATE_HZ,
@@ -352,16 +362,28 @@ _FIELDS: Mapping[str, Parameter] = {p.field: p for p in PARAMETERS if p.scope is
 _CHANNEL_SEGMENT = f"{GLOBAL_PREFIX}/"
 
 
+def split_channel_name(name: str) -> tuple[str, str] | None:
+    """``/r1/camera/dbm/priority`` as ``('/r1/camera', 'priority')``; None if not a channel's.
+
+    The one reading of ``[topic]/dbm/<field>``: a channel's topic never holds a ``dbm``
+    segment (``dbml.protocol.names.check_channel``), so the split is unambiguous.
+    """
+    topic, sep, tail = name.rpartition(_CHANNEL_SEGMENT)
+    if not sep or not topic:
+        return None
+    return topic, tail
+
+
 def lookup(name: str) -> tuple[Parameter, str | None] | None:
     """The parameter ``name`` is, and its channel's topic (None for a global); None if unknown."""
     parameter = _GLOBALS.get(name)
     if parameter is not None:
         return parameter, None
-    topic, sep, tail = name.rpartition(_CHANNEL_SEGMENT)
-    if not sep or not topic:
+    split = split_channel_name(name)
+    if split is None:
         return None
-    parameter = _FIELDS.get(tail)
-    return None if parameter is None else (parameter, topic)
+    parameter = _FIELDS.get(split[1])
+    return None if parameter is None else (parameter, split[0])
 
 
 def check_param_value(value: object) -> ParamValue:

@@ -106,7 +106,6 @@ class DBMPublisher:
         self._thread: BackgroundThread | None = None
         self._ended = threading.Event()
         """Set when the ``start`` loop ended: unregistered, ROS's shutdown, or its death."""
-        self._start_ident: int | None = None
         _PUBLISHERS[self.name] = self
 
     @property
@@ -134,10 +133,10 @@ class DBMPublisher:
         ``full_rate=True`` calls it at ``max_frequency``: every message goes to ``[name]`` (for
         local readers) and the allocated share to ``[name]/optimized``. ``full_rate=False``
         calls it only at the allocated frequency (no capture that would be dropped). The thread
-        ends with ``unregister()`` or ROS's shutdown. An exception from ``get_message`` or the
-        publish is the thread's death: logged (critical), ``alive`` turns False and it counts
-        as a dead dbml thread, so ``DBMOptimizer.spin`` in this process exits 1. One ``start``
-        per publisher.
+        ends with ``unregister()`` or ROS's shutdown, quietly also when ``get_message`` or the
+        publish raises meanwhile (rospy does, shutting down). Any other exception from them is
+        the thread's death: logged (critical), ``alive`` turns False and it counts as a dead dbml
+        thread, so ``DBMOptimizer.spin`` in this process exits 1. One ``start`` per publisher.
         """
         if self._thread is not None:
             raise SpecError(f"DBMPublisher({self.name!r}).start(): already started")
@@ -149,21 +148,29 @@ class DBMPublisher:
         max_hz = self._managed.max_rate_hz
         rate = Rate((lambda: max_hz) if full_rate else self._managed.current_rate_hz, sleep=pause)
 
+        def stopping() -> bool:
+            return self._stop.is_set() or rospy.is_shutdown()
+
         def loop() -> None:
-            self._start_ident = threading.get_ident()
             try:
-                while not self._stop.is_set() and not rospy.is_shutdown():
+                while not stopping():
                     rate.sleep()
                     self.publish(get_message())
             except _StoppedError:
                 return
-            except Exception:  # its death, with the traceback, is said by BackgroundThread
-                log.error("%s: the DBMPublisher's start thread failed; it stops", self.name)
-                raise
+            except Exception:
+                # Between the check and the call, ROS may shut down (or ``unregister`` close the
+                # channel), and rospy raises: that is the end asked for, not a death.
+                if stopping():
+                    log.debug("%s: start thread stopped", self.name, exc_info=True)
+                    return
+                raise  # BackgroundThread says it died, with the traceback: once
             finally:
                 self._ended.set()
 
-        self._thread = BackgroundThread(loop, name=f"dbm-publisher {self.name}", log=log).start()
+        # Known before it runs: ``get_message`` may call ``unregister`` at once.
+        self._thread = BackgroundThread(loop, name=f"dbm-publisher {self.name}", log=log)
+        self._thread.start()
 
     def unregister(self) -> None:
         """Stop publishing (and a ``start`` thread) and withdraw the channel."""
@@ -173,7 +180,7 @@ class DBMPublisher:
         thread = self._thread
         if thread is not None:
             thread.join(_JOIN_TIMEOUT_S)  # at once from the thread itself (get_message's)
-            if not self._ended.is_set() and threading.get_ident() != self._start_ident:
+            if not self._ended.is_set() and not thread.is_current():
                 log.warning(
                     "%s: the start thread did not stop within %g s; closing anyway",
                     self.name,

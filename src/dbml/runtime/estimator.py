@@ -29,6 +29,8 @@ from typing import Any
 
 from dbml.core.errors import TransportError
 from dbml.core.estimator import (
+    MAX_SAMPLES,
+    MAX_STREAMS,
     Arrival,
     BandwidthEstimator,
     Estimate,
@@ -42,11 +44,13 @@ from dbml.runtime.params import ParamView
 from dbml.runtime.reception import RECEPTION_TOPIC, REPORT_INTERVAL_S, ReceptionReport
 from dbml.runtime.worker import PeriodicWorker
 from dbml.transports.base import Sample, Transport
+from dbml.transports.overflow import Overflow
 
 __all__ = [
     "ESTIMATE_INTERVAL_S",
     "HEARD_MAX",
     "LINK_TOPIC",
+    "MAX_REPORTERS",
     "RELEASE_MAX_S",
     "LinkBeacon",
     "LinkEstimator",
@@ -70,6 +74,11 @@ RELEASE_MAX_S = 2.0
 together at it, and a beacon naming one outside ``[0, RELEASE_MAX_S]`` is malformed."""
 HEARD_MAX = 4096
 """The most channels a beacon names as heard; a beacon naming more is malformed."""
+MAX_REPORTERS = 1024
+"""The most reporting hosts whose clock offsets are kept (a fleet has tens). A host name comes
+from the network: a report from one more host evicts the one silent the longest, whose offset
+is learnt again from its next report, so a flood of made-up names costs at most this much
+memory. The table never shrinks otherwise: such a flood is logged once in the node's life."""
 _DECODE_ERRORS = (ValueError, OverflowError, RecursionError, TypeError, KeyError, AttributeError)
 """What untrusted JSON can raise on its way in (``UnicodeDecodeError`` is a ``ValueError``)."""
 
@@ -155,13 +164,12 @@ def release_offsets(
 
 
 class LinkEstimator:
-    """Estimate the shared link from reception reports; ``budget_mbit`` feeds the optimizer."""
+    """Estimate the shared link from reception reports; ``budget_mbit`` feeds the optimizer.
 
-    MAX_REPORTERS = 1024
-    """The most reporting hosts whose clock offsets are kept (a fleet has tens). A host name
-    comes from the network: a report from one more host evicts the one silent the longest,
-    whose offset is learnt again from its next report, so a flood of made-up names costs at
-    most this much memory."""
+    What the network fills is bounded, and a flood is logged once with a count (an
+    ``Overflow`` each, told outside the lock): the reporting hosts here (``MAX_REPORTERS``),
+    the streams and frames in :class:`~dbml.core.estimator.BandwidthEstimator`.
+    """
 
     def __init__(
         self,
@@ -183,8 +191,11 @@ class LinkEstimator:
         self._estimator: BandwidthEstimator | None = None
         self._offsets: dict[str, float] = {}
         """Per reporting host, its clock's offset to ours; the longest silent first."""
-        self._evicted_reporters = 0
-        """Hosts evicted from ``_offsets`` since that was last logged (logged once per flood)."""
+        self._reporters_full = Overflow("reporting hosts", MAX_REPORTERS, log=log, evicts=True)
+        self._streams_full = Overflow("streams followed", MAX_STREAMS, log=log, evicts=True)
+        self._samples_full = Overflow("frames kept", MAX_SAMPLES, log=log)
+        self._told = (0, 0)
+        """The estimator's ``streams_evicted`` and ``samples_refused`` handed on so far."""
         self._published: tuple[float, str] | None = None
         self._view = ParamView.of(transport.params)
         self._worker = PeriodicWorker(
@@ -218,40 +229,39 @@ class LinkEstimator:
             log.warning("%s", err)
             return
         now = self._transport.now()
+        evicted = refused = 0
         with self._lock:
+            known = self._offsets.pop(report.host, math.inf)
+            full = len(self._offsets) >= MAX_REPORTERS  # a new host, with every place taken
+            if full:
+                del self._offsets[next(iter(self._offsets))]  # the one silent the longest
             # arrival on our clock = arrival on theirs + offset; transit >= 0 bounds the offset
-            offset = min(self._offset_locked(report.host), now - report.now_s)
+            offset = min(known, now - report.now_s)
             self._offsets[report.host] = offset  # now the most recent
-            if self._estimator is None:
-                return
-            for frame in report.frames:
-                arrived = self._arrived
-                if frame.topic in arrived or len(arrived) < HEARD_MAX:
-                    arrived[frame.topic] = max(arrived.get(frame.topic, -math.inf), now)
-                self._estimator.observe(
-                    Arrival(
-                        stream=f"{report.host}{frame.topic}",
-                        seq=frame.seq,
-                        sent_s=frame.sent_ns / 1e9,
-                        arrival_s=frame.arrival_s + offset,
-                        size_bytes=frame.size_bytes,
+            estimator = self._estimator
+            if estimator is not None:
+                for frame in report.frames:
+                    arrived = self._arrived
+                    if frame.topic in arrived or len(arrived) < HEARD_MAX:
+                        arrived[frame.topic] = max(arrived.get(frame.topic, -math.inf), now)
+                    estimator.observe(
+                        Arrival(
+                            stream=f"{report.host}{frame.topic}",
+                            seq=frame.seq,
+                            sent_s=frame.sent_ns / 1e9,
+                            arrival_s=frame.arrival_s + offset,
+                            size_bytes=frame.size_bytes,
+                        )
                     )
-                )
-
-    def _offset_locked(self, host: str) -> float:
-        """The offset known of ``host``, taken out of ``_offsets`` (inf: none), making room."""
-        known = self._offsets.pop(host, math.inf)
-        if len(self._offsets) >= self.MAX_REPORTERS:  # a new host, with every place taken
-            del self._offsets[next(iter(self._offsets))]  # the one silent the longest
-            if self._evicted_reporters == 0:
-                log.warning(
-                    "more than %d hosts report receptions: forgetting the silent ones' clocks",
-                    self.MAX_REPORTERS,
-                )
-            self._evicted_reporters += 1
-        elif len(self._offsets) < self.MAX_REPORTERS // 2:
-            self._evicted_reporters = 0  # the flood is over: say it again if another comes
-        return known
+                told = self._told
+                self._told = (estimator.streams_evicted, estimator.samples_refused)
+                evicted, refused = self._told[0] - told[0], self._told[1] - told[1]
+        if full:
+            self._reporters_full.refuse()
+        if evicted:
+            self._streams_full.refuse(evicted)
+        if refused:
+            self._samples_full.refuse(refused)
 
     def tick(self) -> Estimate | None:
         """One estimator update (the thread calls this every ``interval_s``)."""
@@ -265,6 +275,9 @@ class LinkEstimator:
             estimate = self._estimator.update(
                 self._transport.now() - self._report_lag_s, max_mbit=cap
             )
+            streams, samples = self._estimator.stream_count, self._estimator.sample_count
+        self._streams_full.room(streams)  # an update forgets streams and frames gone quiet
+        self._samples_full.room(samples)
         self._publish(estimate)
         self._send_beacon(estimate)
         return estimate

@@ -8,16 +8,16 @@ from typing import Any
 from dbml.core.errors import SpecError
 from dbml.core.estimator import EstimatorState
 from dbml.core.spec import mbit_to_bytes_per_s
-from dbml.protocol import names
-from dbml.protocol.schema import PARAMETERS
+from dbml.protocol import names, schema
+from dbml.protocol.schema import PARAMETERS, Parameter
 from dbml.runtime.graph import is_managed, published_topics, publisher_hosts
 from dbml.runtime.params import channel_params, dbm_params, valid_values
 from dbml.transports.base import Transport
 
-__all__ = ["MONITOR_COLUMNS", "ChannelRow", "MonitorView", "channel_rows", "monitor_view"]
+__all__ = ["MONITOR_PARAMETERS", "ChannelRow", "MonitorView", "channel_rows", "monitor_view"]
 
-MONITOR_COLUMNS = tuple(p.column for p in PARAMETERS if p.column is not None)
-"""The headers of the parameters a row shows (priority, size, allocated rate), from the schema."""
+MONITOR_PARAMETERS = tuple(p for p in PARAMETERS if p.column is not None)
+"""The parameters a row shows, in the schema's order, each with its header and format."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -34,6 +34,15 @@ class ChannelRow:
     status: str
     estimate_mbit: float | None = None
     estimator: str | None = None
+
+    def value(self, parameter: Parameter) -> float | None:
+        """The row's value of one of ``MONITOR_PARAMETERS``."""
+        values = {
+            schema.PRIORITY: self.priority,
+            schema.SIZE: self.size_bytes,
+            schema.CURRENT: self.allocated_hz,
+        }
+        return values[parameter]
 
     def as_json(self) -> dict[str, Any]:
         """The row as ``dbml monitor --json`` prints it."""

@@ -42,6 +42,7 @@ from dbml.runtime.params import (
 )
 from dbml.runtime.worker import PeriodicWorker
 from dbml.transports.base import GraphEntry, Handle, ParamValue, Role, Transport
+from dbml.transports.overflow import Overflow
 
 __all__ = ["MAX_CHANNELS", "ChannelState", "OptimizerNode", "Round"]
 
@@ -67,7 +68,8 @@ MAX_CHANNELS = 4096
 (rates pushed, publishers asked again) and each round's allocation grow with them. A fleet of
 160 robots with 4 channels has 640, six times less. Any peer can announce publishers, so past
 this the channels tracked already stay, the new ones are ignored (pushed nothing), logged once
-per flood with a count and named by count in ``/dbm/status_message`` every round."""
+per flood with a count (an ``Overflow``: the flood is over once the channels fall to half the
+bound) and named by count in ``/dbm/status_message`` every round."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -146,6 +148,7 @@ class OptimizerNode:
         """The channels tracked in the last round (``MAX_CHANNELS`` at most)."""
         self._ignored = 0
         """How many channels the last round ignored, past ``MAX_CHANNELS``."""
+        self._channels_full = Overflow("channels tracked", MAX_CHANNELS, log=log)
         self._acks = threading.Condition()
         self.last_round: Round | None = None
         params = transport.params
@@ -237,16 +240,9 @@ class OptimizerNode:
             fresh = sorted(live - self._tracked)[: MAX_CHANNELS - len(kept)]
             tracked = {*kept, *fresh}
         ignored = len(live) - len(tracked)
-        if ignored and not self._ignored:
-            log.warning(
-                "%d channels, more than the %d tracked at most: %d ignored (told once until "
-                "every channel is tracked again)",
-                len(live),
-                MAX_CHANNELS,
-                ignored,
-            )
-        elif self._ignored and not ignored:
-            log.warning("every channel is tracked again (%d were ignored)", self._ignored)
+        if ignored > self._ignored:  # the ones ignored since the last round (as counts tell)
+            self._channels_full.refuse(ignored - self._ignored)
+        self._channels_full.room(len(live))
         self._ignored = ignored
         self._tracked = frozenset(tracked)
         return sorted(tracked)

@@ -51,9 +51,9 @@ log = logging.getLogger("dbml.params")
 MAX_VALUES = 2 * MAX_PARAMS
 """The most names whose last good value a view keeps. A view holds what its store holds: the
 zenoh store keeps up to ``MAX_PARAMS`` names from the network and this process's own besides,
-so this is twice that, and bounds a store that does not bound itself (ROS 1's mirror of a
-parameter server anyone can write). Past it a new name is refused (not kept, nobody told) and
-the flood logged once, with a count; names held are still updated and deleted."""
+so this is twice that (ROS 1's mirror is bounded alike), and it bounds any store that does not
+bound itself. Past it a new name is refused (not kept, nobody told) and the flood logged once,
+with a count; names held are still updated and deleted."""
 MAX_PROBLEMS = 64
 """The most bad values ``problems()`` lists, each once in the log: they end up in
 ``/dbm/status_message``, which every process fetches, so a flood of bad names must not make it

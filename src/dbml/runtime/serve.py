@@ -1,7 +1,8 @@
 """A node served until stopped: the optimizer as ``dbml optimizer`` and the experiment run it.
 
 It waits for its peers, runs the optimizer (and the estimator when asked), and exits 1 when a
-worker thread dies, so a supervisor restarts it. ``Lifetime`` is every command's run.
+worker thread dies, so a supervisor restarts it. ``Lifetime`` is every command's run, and the
+one place that tells a dead thread's end of it.
 """
 
 from __future__ import annotations
@@ -9,6 +10,8 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Iterable
+from typing import Protocol
 
 from dbml.core.config import DbmSettings
 from dbml.core.spec import LinkSpec
@@ -18,7 +21,7 @@ from dbml.runtime.optimizer import OptimizerNode
 from dbml.transports.base import Transport
 from dbml.transports.worker import death_count
 
-__all__ = ["PEER_WAIT_S", "Lifetime", "run_optimizer"]
+__all__ = ["PEER_WAIT_S", "Lifetime", "Running", "run_optimizer"]
 
 log = logging.getLogger("dbml")
 
@@ -26,26 +29,42 @@ PEER_WAIT_S = 2.0
 """How long a command waits to reach a running dbml process before going on alone."""
 
 
+class Running(Protocol):
+    """What a run watches: a node part whose ``alive`` turns False when its work ended."""
+
+    @property
+    def alive(self) -> bool:
+        """False once its thread died or ended."""
+
+
 class Lifetime:
     """A command's run: over at ``stop``, after ``duration_s``, or when a dbml thread dies.
 
     ``duration_s`` None runs until stopped. A thread of this process that died since the run
     began makes its exit code 1, so a supervisor restarts it (a process that looks alive and does
-    nothing is worse).
+    nothing is worse). So does the end of anything in ``watching`` while the run lasts, death or
+    not (a bridge's loop that returned): ``over`` looks, so closing them after the run is none.
     """
 
-    def __init__(self, stop: threading.Event, duration_s: float | None) -> None:
+    def __init__(
+        self, stop: threading.Event, duration_s: float | None, *, watching: Iterable[Running] = ()
+    ) -> None:
         self._stop = stop
         self._deadline = None if duration_s is None else time.monotonic() + duration_s
         self._deaths = death_count()
+        self._watching = tuple(watching)
+        self._ended = False
+        """Whether ``over`` found one of ``watching`` no longer alive."""
 
     @property
     def failed(self) -> bool:
-        """Whether a dbml thread of this process died since the run began."""
-        return death_count() > self._deaths
+        """Whether a dbml thread of this process died, or one watched ended, during the run."""
+        return self._ended or death_count() > self._deaths
 
     def over(self) -> bool:
         """Whether the run should end now."""
+        if not self._ended and not all(running.alive for running in self._watching):
+            self._ended = True
         return (
             self._stop.is_set()
             or (self._deadline is not None and time.monotonic() >= self._deadline)
@@ -53,7 +72,7 @@ class Lifetime:
         )
 
     def exit_code(self) -> int:
-        """1 when a thread died (said once, critical), else 0."""
+        """1 when a thread died or one watched ended (said once, critical), else 0."""
         if not self.failed:
             return 0
         log.critical("a worker thread died (see above); exiting so a supervisor restarts it")
@@ -88,12 +107,9 @@ def run_optimizer(
         log.info("estimating the bandwidth from reception reports (at most the configured)")
     node.start()
     log.info("optimizer running on host %s", transport.host)
-    life = Lifetime(stop, duration_s)
+    life = Lifetime(stop, duration_s, watching=(node,) if estimator is None else (node, estimator))
     try:
         while not life.over():
-            if not node.alive or (estimator is not None and not estimator.alive):
-                log.critical("a worker thread died (see above); exiting so a supervisor restarts")
-                return 1
             stop.wait(0.1)
     finally:
         node.stop()

@@ -9,6 +9,6 @@ this module keeps the runtime's name for it.
 
 from __future__ import annotations
 
-from dbml.transports.worker import PeriodicWorker, dead_threads
+from dbml.transports.worker import PeriodicWorker
 
-__all__ = ["PeriodicWorker", "dead_threads"]
+__all__ = ["PeriodicWorker"]

@@ -13,6 +13,8 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 from dbml.core.errors import DbmlError
+from dbml.protocol import keys
+from dbml.protocol.schema import GLOBAL_PREFIX
 
 __all__ = [
     "DEFAULT_BASE_PORT",
@@ -29,7 +31,7 @@ default stays clear of zenohd's 7447 and of dbml's loopback rendezvous 17447."""
 
 _NAME = re.compile(r"^[A-Za-z](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?$")
 """A node name is a host name label that is also a topic segment and a key expression chunk."""
-_RESERVED = frozenset({"ca", "dbm", "dbml"})
+_RESERVED = frozenset({"ca", keys.ROOT, GLOBAL_PREFIX.lstrip("/")})
 """``ca`` names the CA's files; a robot ``dbm`` or ``dbml`` would own dbml's own key space."""
 _DNS_LABEL = re.compile(r"^[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?$")
 _MAX_DNS_NAME = 253

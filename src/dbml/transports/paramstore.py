@@ -48,17 +48,15 @@ from dbml.protocol.names import check_topic
 from dbml.transports.base import Handle, ParamValue, check_param_value
 from dbml.transports.callbacks import CallbackList
 from dbml.transports.overflow import LogOnce, Overflow
-from dbml.transports.worker import DEFAULT_SENDER_CAPACITY, OrderedSender
+from dbml.transports.worker import DEFAULT_SENDER_CAPACITY, FLUSH_TIMEOUT_S, OrderedSender
 
-__all__ = ["MAX_CLOCK_AHEAD_NS", "MAX_PARAMS", "MAX_WARNED_KEYS", "ReplicatedParams"]
+__all__ = ["MAX_CLOCK_AHEAD_NS", "MAX_PARAMS", "ReplicatedParams"]
 
 log = logging.getLogger("dbml.zenoh")
 
 MAX_CLOCK_AHEAD_NS = 30 * 1_000_000_000
 """A write stamped further ahead of this process's clock is refused: a peer's wrong clock (or a
 lie) must not make its value win every comparison for good. Fleet clocks agree far better."""
-FLUSH_TIMEOUT_S = 2.0
-"""How long ``close`` waits for queued writes to be sent."""
 MAX_QUEUED_WRITES = DEFAULT_SENDER_CAPACITY
 """The most writes waiting for the network: a name's newer write replaces its queued one, so
 this bounds batches and distinct names; past it the oldest is dropped (``OrderedSender``)."""
@@ -71,9 +69,6 @@ network is refused, and logged once (a name is never forgotten, so the store sta
 names held are still updated, and this process's own writes are always taken (its code bounds
 them, and read-your-writes and serving what it owns depend on them). A name costs a few hundred
 bytes: tens of MB at most."""
-MAX_WARNED_KEYS = 1_000
-"""Malformed writes are logged once per key, for this many keys; then one line says that no more
-are (a flood must not flood the log, nor fill the memory with the keys it named)."""
 _NS_PER_S = 1e9
 
 Send: TypeAlias = Callable[[str, bytes], None]
@@ -103,8 +98,8 @@ class ReplicatedParams:
         self._values: dict[str, _Entry] = {}
         """The newest write of each name: up to ``MAX_PARAMS`` from the network, and ours."""
         self._full = Overflow("parameter names", MAX_PARAMS, log=log)
-        self._warnings = LogOnce(log, bound=MAX_WARNED_KEYS)
-        """Keys whose malformed writes were logged (``MAX_WARNED_KEYS`` at most)."""
+        self._warnings = LogOnce(log)
+        """Keys whose malformed writes were logged (``MAX_LOGGED_KEYS`` at most)."""
         self.watchers: CallbackList[[str, ParamValue]] = CallbackList()
         self._sender: OrderedSender[tuple[str, bytes]] = OrderedSender(
             lambda item: self._send(*item),

@@ -30,8 +30,10 @@ import struct
 import sys
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Mapping
-from typing import Any, Final
+from dataclasses import dataclass, field
+from typing import Any, Final, TypeAlias
 from urllib.parse import urlparse
 from xmlrpc.server import SimpleXMLRPCServer
 
@@ -51,8 +53,16 @@ from dbml.transports.base import (
     resolve_host,
 )
 from dbml.transports.callbacks import CallbackList
+from dbml.transports.overflow import Overflow
+from dbml.transports.paramstore import MAX_PARAMS
 from dbml.transports.rosapi import CALL_TIMEOUT_S, ROSPY_MISSING, MasterClient
-from dbml.transports.worker import BackgroundThread, OrderedSender, PeriodicWorker
+from dbml.transports.worker import (
+    DEFAULT_SENDER_CAPACITY,
+    FLUSH_TIMEOUT_S,
+    BackgroundThread,
+    OrderedSender,
+    PeriodicWorker,
+)
 
 try:
     import rosgraph.network
@@ -73,12 +83,20 @@ NODE_PING_TIMEOUT_S = 0.5
 """How long a node has to answer ``getPid`` before it counts as gone."""
 RECEIVE_BUFFER_BYTES = 1 << 24
 """rospy's receive buffer per subscription: room for a few large camera frames."""
-FLUSH_TIMEOUT_S = 2 * CALL_TIMEOUT_S
-"""How long closing waits for queued parameter writes: one timed-out call, and the next."""
-MAX_QUEUED_WRITES = 4096
-"""The most parameter writes waiting for the master. A name's newer write replaces its queued
-one, so this is room for a process's own parameters (a fleet optimizer writes one per channel);
-past it the oldest is dropped, logged once per stall."""
+MAX_MIRRORED_PARAMS = MAX_PARAMS
+"""The most parameter names mirrored from the parameter server: the zenoh store's bound, for the
+same fleet. Anyone can write there, so past it a push of a new name is refused and logged once
+per flood (names held are still updated and deleted); this process's own writes are always
+taken (its code bounds them, and read-your-writes depends on them)."""
+ECHO_WAIT_S = 5.0
+"""How long this process's write of a name waits for its echo, the master's push of it back;
+until then pushes of that name are older than it and skipped. Counted from the write while it is
+queued, then from when it is handed to the master (its call lasts at most ``CALL_TIMEOUT_S``; a
+live master pushes at once). Past it the echo is taken as lost: the master's pushes apply."""
+MAX_AWAITED_ECHOES = 64
+"""The most writes of one name handed to the master whose echoes are awaited: a live master
+echoes within milliseconds, so there are a few. Past it the oldest is forgotten (its echo, when
+it comes, is skipped as an older push): a name written fast while echoes are lost stays bounded."""
 MAX_EARLY_PUSHES = 4096
 """The most pushes kept while the parameter subscription's call runs (they are newer than the
 tree it returns, so they are applied after it). That call lasts at most ``CALL_TIMEOUT_S``, and
@@ -172,18 +190,55 @@ def _under(name: str, namespace: str) -> bool:
     return namespace in {"/", name} or name.startswith(namespace + "/")
 
 
+_Write: TypeAlias = tuple[str, ParamValue]
+"""A write queued for the master: name and value (None deletes)."""
+
+
+@dataclass(slots=True)
+class _Awaited:
+    """This process's writes of one name whose echo (the master's push of it) has not come."""
+
+    queued: _Write | None = None
+    """The newest write, not handed to the master yet: every push of the name is older."""
+    queued_until: float = 0.0
+    """When a write still queued stops holding pushes back (dropped by a full queue, or stalled)."""
+    sent: deque[tuple[ParamValue, float]] = field(default_factory=deque)
+    """Values handed to the master, oldest first (their echoes come in this order), each with
+    when its echo counts as lost; at most ``MAX_AWAITED_ECHOES``."""
+
+
 class _Ros1Params:
     """The parameter server, mirrored in this process from the master's pushes.
 
     ``set`` applies a write to the mirror and tells this process's watchers at once, then
     queues it for the master: it never blocks, also on the push endpoint's thread or with the
-    master stalled. The master's push of it later reports it again, as anyone's write.
+    master stalled. The master pushes every write back, ours too, in the order it took them: so
+    until the echo of this process's newest write of a name comes, a push of that name is older
+    (an echo of our earlier write, or another's that ours overwrote) and is skipped, never taking
+    the mirror back; the echo itself is no change. An echo not back within ``ECHO_WAIT_S`` is
+    taken as lost, and pushes apply again.
+
+    At most ``MAX_MIRRORED_PARAMS`` names are mirrored: past it a push of a new name is refused
+    (logged once per flood); this process's own writes are always taken.
     """
 
-    def __init__(self, master: MasterClient, node_name: str, host: str, bind: str) -> None:
+    def __init__(
+        self,
+        master: MasterClient,
+        node_name: str,
+        host: str,
+        bind: str,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         self._master = master
+        self._clock = clock
         self._lock = threading.Lock()
         self._mirror: dict[str, ParamValue] = {}
+        """Every name's value: up to ``MAX_MIRRORED_PARAMS`` from pushes, and our writes."""
+        self._full = Overflow("parameter names mirrored", MAX_MIRRORED_PARAMS, log=log)
+        self._own: dict[str, _Awaited] = {}
+        """Our writes whose echo has not come, by name (bounded by the names we write)."""
         self._watchers: CallbackList[[str, ParamValue]] = CallbackList()
         # Pushes that arrive while the subscription call runs, applied after the tree it returns.
         self._early: list[tuple[str, object]] | None = []
@@ -200,11 +255,11 @@ class _Ros1Params:
         self._thread = BackgroundThread(
             self._server.serve_forever, name="dbml-ros1-params", log=log
         ).start()
-        self._sender: OrderedSender[tuple[str, ParamValue]] = OrderedSender(
+        self._sender: OrderedSender[_Write] = OrderedSender(
             self._write,
             name="dbml-ros1-param-send",
             log=log,
-            capacity=MAX_QUEUED_WRITES,
+            capacity=DEFAULT_SENDER_CAPACITY,  # one per name: a fleet optimizer's, many times
             describe=lambda item: f"parameter write {item[0]}",
             on_exit=master.close,  # the sender thread's own connection
         )
@@ -216,7 +271,7 @@ class _Ros1Params:
             raise
         changes: list[tuple[str, ParamValue]] = []
         with self._lock:
-            _flatten("/", tree, self._mirror)
+            self._apply("/", tree)  # the first values: nobody watches yet
             for pushed_key, pushed_value in self._early or []:
                 changes += self._apply(pushed_key, pushed_value)
             self._early = None
@@ -272,22 +327,67 @@ class _Ros1Params:
     def _apply(self, key: str, value: object) -> list[tuple[str, ParamValue]]:
         """Update the mirror (under the lock) from one push; the changes, deletions first.
 
-        A value the mirror holds already (this process's own write, echoed by the master) is no
-        change: its watchers heard it when it was set.
+        A value the mirror holds already (the echo of this process's newest write) is no change:
+        its watchers heard it when it was set. Names of our writes still awaiting their echo are
+        left as they are (``_awaiting_echo``); a new name past ``MAX_MIRRORED_PARAMS`` is refused.
         """
         namespace = key.rstrip("/") or "/"
         fresh: dict[str, ParamValue] = {}
         _flatten(namespace, value, fresh)
-        gone = [k for k in self._mirror if _under(k, namespace) and k not in fresh]
+        awaiting = self._awaiting_echo(namespace, fresh)
+        gone = [
+            k for k in self._mirror if _under(k, namespace) and k not in fresh and k not in awaiting
+        ]
         for name in gone:
             del self._mirror[name]
-        changed = [
-            (name, new)
-            for name, new in fresh.items()
-            if name not in self._mirror or _typed(self._mirror[name]) != _typed(new)
-        ]
-        self._mirror.update(fresh)
+        changed: list[tuple[str, ParamValue]] = []
+        refused = 0
+        for name, new in fresh.items():
+            if name in awaiting:
+                continue
+            if name in self._mirror:
+                if _typed(self._mirror[name]) == _typed(new):
+                    continue
+            elif len(self._mirror) >= self._full.bound:
+                refused += 1
+                continue
+            self._mirror[name] = new
+            changed.append((name, new))
+        if refused:
+            self._full.refuse(refused)
+        self._full.room(len(self._mirror))
         return [(name, None) for name in gone] + changed
+
+    def _awaiting_echo(self, namespace: str, fresh: Mapping[str, ParamValue]) -> set[str]:
+        """The names under a push's ``namespace`` whose push is older than our write of them.
+
+        The master pushes in the order it took the writes: until the echo of our newest write of
+        a name, a push of that name was taken before it. Our writes' echoes (our values, pushed
+        at that very name, in the order sent) are counted off; the newest one's ends the wait,
+        and so does ``ECHO_WAIT_S``: the push then applies as any other (no change, for an echo).
+        """
+        if not self._own:
+            return set()
+        now = self._clock()
+        awaiting: set[str] = set()
+        for name in [n for n in self._own if _under(n, namespace)]:
+            own = self._own[name]
+            if own.queued is not None and now >= own.queued_until:
+                own.queued = None
+            while own.sent and now >= own.sent[0][1]:
+                own.sent.popleft()  # lost
+            if (
+                own.sent
+                and name == namespace
+                and fresh.keys() <= {name}  # a value or a deletion at the name, as we write
+                and _typed(fresh.get(name)) == _typed(own.sent[0][0])
+            ):
+                own.sent.popleft()  # the echo of our oldest write sent
+            if own.sent or own.queued is not None:
+                awaiting.add(name)
+            else:
+                del self._own[name]
+        return awaiting
 
     def _notify(self, changes: list[tuple[str, ParamValue]]) -> None:
         for name, value in changes:
@@ -297,23 +397,45 @@ class _Ros1Params:
         """Write here and notify at once; the sender thread writes it on the parameter server."""
         check_param_value(value)
         check_topic(name)
+        write: _Write = (name, value)
         with self._lock:  # read-your-writes before the master has it
             if value is None:
                 self._mirror.pop(name, None)
             else:
                 self._mirror[name] = value
+            own = self._own.setdefault(name, _Awaited())
+            own.queued, own.queued_until = write, self._clock() + ECHO_WAIT_S
             # Queued under the lock, so the master gets a name's writes in the mirror's order;
             # a newer one replaces its older one still queued.
-            self._sender.put((name, value), slot=name)
+            self._sender.put(write, slot=name)
+        self._full.room(len(self._mirror))
         self._watchers.fire(name, value)
 
-    def _write(self, item: tuple[str, ParamValue]) -> None:
+    def _write(self, write: _Write) -> None:
         """One write on the parameter server (on the sender thread)."""
-        name, value = item
-        if value is None:
-            self._master.call("deleteParam", name, missing_ok=True)
-        else:
-            self._master.call("setParam", name, value)
+        name, value = write
+        awaited = (value, self._clock() + ECHO_WAIT_S)
+        with self._lock:
+            own = self._own.setdefault(name, _Awaited())  # gone if it waited past ECHO_WAIT_S
+            if own.queued is write:
+                own.queued = None
+            if len(own.sent) >= MAX_AWAITED_ECHOES:
+                own.sent.popleft()
+            own.sent.append(awaited)
+        echoed = False
+        try:
+            if value is None:  # deleting a name the master lacks changes nothing: no push
+                echoed = self._master.call("deleteParam", name, missing_ok=True) is not None
+            else:
+                echoed = self._master.call("setParam", name, value) is not None
+        finally:
+            if not echoed:  # failed, or nothing to push back: await no echo of it
+                with self._lock:
+                    left = self._own.get(name)
+                    if left is not None and left.sent and left.sent[-1] is awaited:
+                        left.sent.pop()
+                        if not left.sent and left.queued is None:
+                            del self._own[name]
 
     def set_many(self, values: Mapping[str, ParamValue]) -> None:
         """Write each on the parameter server (ROS 1 has no multi-set); all checked first."""

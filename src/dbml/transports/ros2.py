@@ -88,8 +88,6 @@ DEFAULT_LISTEN = "tcp/localhost:0"
 _OPTIMIZED_SUFFIX = Variant.OPTIMIZED.key("")
 _NODE_PREFIX = "dbml_"
 _NOT_IN_NAME = re.compile(r"[^A-Za-z0-9_]")
-_DBML_NODE_ID = re.compile(r"[0-9a-f]{16}")
-"""A dbml node id as ``ZenohTransport`` makes it; any other shape is not dbml's."""
 _ZID = re.compile(r"[0-9a-f]{1,32}")
 """A zenoh id: up to 16 bytes in lower-case hex."""
 _MAX_FOREIGN = 4096
@@ -102,6 +100,11 @@ _MAX_NODES_PER_SESSION = 16
 """dbml node tokens remembered per session (one ``ZenohTransport`` declares one)."""
 _PRIORITY_LOG_INTERVAL_S = 10.0
 """A managed topic's bad priorities are logged at most once per this many seconds."""
+_PRIORITY_WAIT_S = 5.0
+"""How long a managed publisher waits for another's declaration of their channel's priority
+subscription (one takes milliseconds). Past it, it stops waiting and shares the declaration
+still under way (logged): it hears priority once that returns, so a hung declaration holds up
+only the publisher that made it."""
 _NODE_ENTITY = 0
 """rmw_zenoh's node token repeats the node's id as its entity id."""
 _HOST_PREFIX = "ros2:"
@@ -160,6 +163,21 @@ class _ThrottledLog:
             ignored,
             self._interval_s,
         )
+
+
+class _PriorityHearing:
+    """A channel's priority subscription, shared by its managed publishers of this transport."""
+
+    __slots__ = ("done", "handle", "users")
+
+    def __init__(self) -> None:
+        self.done = threading.Event()
+        """Set (under the transport's lock) once the declaration returned or failed."""
+        self.handle: Handle | None = None
+        """The subscription, once declared."""
+        self.users = 1
+        """The publishers hearing through it, the declaring one first. One closed while it is
+        declared is taken off at once: the declaration undeclares it if none is left."""
 
 
 class _Ros2Publisher:
@@ -390,11 +408,9 @@ class Ros2Transport(TransportBase):
         """Type hashes by type, as ``topic_type`` found them on publishers' tokens."""
         self._entity = _NODE_ENTITY
         self._handles: set[Handle] = set()
-        self._priorities: dict[str, tuple[Handle, int]] = {}
-        """Managed channels' priority subscriptions, and how many publishers share each."""
-        self._declaring: dict[str, threading.Event] = {}
-        """Priority subscriptions being declared (outside any lock), set once they are in
-        ``_priorities`` or failed: a second publisher of the channel waits for the first."""
+        self._priorities: dict[str, _PriorityHearing] = {}
+        """Managed channels' priority subscriptions, declared or being declared (outside any
+        lock): a second publisher of the channel waits for the first's declaration."""
         liveliness = self.session.liveliness()
         self._node_token = liveliness.declare_token(self._token(TokenKind.NODE).key())
         self._subscribers = [
@@ -541,16 +557,17 @@ class Ros2Transport(TransportBase):
             self._token(TokenKind.PUBLISHER, name, msg_type).key()
         )
         managed = variant is Variant.OPTIMIZED
+        hearing: _PriorityHearing | None = None
 
         def closed() -> None:
             with self._lock:
                 self._handles.discard(publisher)
-            if managed:
-                self._unhear_priority(topic)
+            if hearing is not None:
+                self._unhear_priority(topic, hearing)
 
         try:
             if managed:
-                self._hear_priority(topic)
+                hearing = self._hear_priority(topic)
             try:
                 publisher = _Ros2Publisher(
                     self.session,
@@ -562,8 +579,8 @@ class Ros2Transport(TransportBase):
                     express=express,
                 )
             except BaseException:
-                if managed:
-                    self._unhear_priority(topic)
+                if hearing is not None:
+                    self._unhear_priority(topic, hearing)
                 raise
         except BaseException:
             _undeclare(token)
@@ -617,24 +634,37 @@ class Ros2Transport(TransportBase):
 
     # -- priority from ROS 2 ------------------------------------------------------------------
 
-    def _hear_priority(self, topic: str) -> None:
-        """Subscribe to ``topic``'s priority topic, or count one more user of the subscription.
+    def _hear_priority(self, topic: str) -> _PriorityHearing:
+        """Subscribe to ``topic``'s priority topic, or share the subscription; what to unhear.
 
         The declaration runs outside every lock (zenoh may call back into this transport
-        meanwhile); a concurrent declare of the same channel waits for it, then shares it, or
-        declares it itself if it failed.
+        meanwhile). A concurrent declare of the same channel waits for it, then shares it, or
+        declares it itself if it failed; after ``_PRIORITY_WAIT_S`` it shares the declaration
+        still under way without waiting (it hears priority once that returns).
         """
         while True:
             with self._lock:
-                held = self._priorities.get(topic)
-                if held is not None:
-                    self._priorities[topic] = (held[0], held[1] + 1)
-                    return
-                declaring = self._declaring.get(topic)
-                if declaring is None:
-                    done = self._declaring[topic] = threading.Event()
-                    break
-            declaring.wait()  # set in a finally below: never left unset
+                hearing = self._priorities.get(topic)
+                if hearing is None:
+                    hearing = self._priorities[topic] = _PriorityHearing()
+                    break  # this publisher declares it
+                if hearing.done.is_set():
+                    hearing.users += 1
+                    return hearing
+            if hearing.done.wait(_PRIORITY_WAIT_S):
+                continue  # declared (shared now) or failed (declared anew)
+            with self._lock:
+                joined = not hearing.done.is_set()
+                if joined:
+                    hearing.users += 1
+            if joined:
+                log.warning(
+                    "%s: its priority subscription is still being declared after %g s; "
+                    "going on, hearing priority once it is",
+                    topic,
+                    _PRIORITY_WAIT_S,
+                )
+                return hearing
         try:
             name = topic + PRIORITY_SUFFIX
             key = data_key(self.domain_id, name, FLOAT64_TYPE, self.types.type_hash(FLOAT64_TYPE))
@@ -643,23 +673,41 @@ class Ros2Transport(TransportBase):
                 self._on_priority(name, sample.payload.to_bytes())
 
             handle = self._subscribe_key(name, key, FLOAT64_TYPE, _guarded(on_sample))
+        except BaseException:
             with self._lock:
-                self._priorities[topic] = (handle, 1)
-        finally:
-            with self._lock:
-                del self._declaring[topic]
-            done.set()
-
-    def _unhear_priority(self, topic: str) -> None:
-        """One user less of ``topic``'s priority subscription; the last one undeclares it."""
+                del self._priorities[topic]  # the next publisher declares it anew
+                hearing.done.set()
+                stranded = hearing.users - 1
+            if stranded > 0:
+                log.error(
+                    "%s: its priority subscription could not be declared: %d publishers that "
+                    "stopped waiting for it do not hear priority",
+                    topic,
+                    stranded,
+                )
+            raise
         with self._lock:
-            handle, count = self._priorities.get(topic, (None, 0))
-            if handle is None:
-                return
-            if count > 1:
-                self._priorities[topic] = (handle, count - 1)
-                return
-            del self._priorities[topic]
+            hearing.handle = handle
+            hearing.done.set()
+            unused = hearing.users <= 0
+            if unused:
+                del self._priorities[topic]
+        if unused:  # every user closed while it was declared: undeclared at once, unlocked
+            handle.close()
+        return hearing
+
+    def _unhear_priority(self, topic: str, hearing: _PriorityHearing) -> None:
+        """One user less of ``hearing``; the last one undeclares it.
+
+        While it is being declared, the declaration does once it returns (it finds no user).
+        """
+        with self._lock:
+            hearing.users -= 1
+            handle = hearing.handle
+            if hearing.users > 0 or handle is None:
+                return  # still shared, being declared, or never declared
+            if self._priorities.get(topic) is hearing:
+                del self._priorities[topic]
         handle.close()  # outside the lock: an undeclaration is a middleware call too
 
     def _on_priority(self, name: str, payload: bytes) -> None:
@@ -685,7 +733,7 @@ class Ros2Transport(TransportBase):
         if parsed is None:
             return  # dbml's own transport logs malformed ones
         node_id, zid = parsed
-        if not (_DBML_NODE_ID.fullmatch(node_id) and _ZID.fullmatch(zid)):
+        if not (keys.is_node_id(node_id) and _ZID.fullmatch(zid)):
             self._log.warning(key, "ignoring dbml node token %r: not <16 hex>/<zenoh id>", key)
             return
         if sample.kind == zenoh.SampleKind.PUT:

@@ -3,7 +3,7 @@
 A middleware callback must never block, so slow work (sending, polling, following the graph)
 runs on threads of dbml's own. A thread that ends by an exception would leave a process that
 looks alive and does nothing: every thread made here logs why it died (critical), turns its
-``alive`` False and is listed by ``dead_threads()``, for the node's command to exit non-zero
+``alive`` False and is counted by ``death_count()``, for the node's command to exit non-zero
 (a supervisor then restarts it).
 
 - ``PeriodicWorker``: ``tick()`` every interval and soon after ``wake()`` (a tick that raises
@@ -25,14 +25,15 @@ from collections import OrderedDict
 from collections.abc import Callable, Hashable
 from typing import Generic, TypeVar
 
+from dbml.transports.overflow import Overflow
+
 __all__ = [
     "DEFAULT_SENDER_CAPACITY",
-    "MAX_DEATHS_LISTED",
+    "FLUSH_TIMEOUT_S",
     "STOP_TIMEOUT_S",
     "BackgroundThread",
     "OrderedSender",
     "PeriodicWorker",
-    "dead_threads",
     "death_count",
 ]
 
@@ -43,35 +44,22 @@ DEFAULT_SENDER_CAPACITY = 4096
 item per name, so this is room for the writes of about a thousand channels (an optimizer over
 ROS 1 writes one per channel per round) plus batches queued through a long stall; an item is
 a write or a round's allocation, KiB, so a stalled network costs megabytes, not the process."""
+FLUSH_TIMEOUT_S = 4.0
+"""How long closing a parameter store waits for its ``OrderedSender``'s queued writes: a send
+that times out (a ROS 1 master call gives up after 2 s) and the next one."""
 STOP_TIMEOUT_S = 5.0
 """How long stopping a thread waits for the work in progress (a tick, a send)."""
 
-MAX_DEATHS_LISTED = 64
-"""How many dead threads ``dead_threads()`` names: one is reason enough to exit; the log has
-every one (a thread made and killed over and over must not grow the list)."""
-
 _deaths_lock = threading.Lock()
-_deaths: list[str] = []
 _death_count = 0
 
 
 def _died(name: str, log: logging.Logger) -> None:
-    """Say why the calling thread ends, and list it for ``dead_threads()``."""
-    global _death_count  # noqa: PLW0603  # one count per process, as the deaths' list
+    """Say why the calling thread ends (the log names every death), and count it."""
+    global _death_count  # noqa: PLW0603  # one count per process: any death fails its run
     log.critical("%s: the thread died", name, exc_info=True)
     with _deaths_lock:
         _death_count += 1
-        if len(_deaths) < MAX_DEATHS_LISTED:
-            _deaths.append(name)
-
-
-def dead_threads() -> tuple[str, ...]:
-    """The names of this process's dbml threads that died (empty while every one runs).
-
-    The first ``MAX_DEATHS_LISTED`` of them.
-    """
-    with _deaths_lock:
-        return tuple(_deaths)
 
 
 def death_count() -> int:
@@ -81,7 +69,7 @@ def death_count() -> int:
 
 
 class BackgroundThread:
-    """Run ``target()`` on a daemon thread; an exception out of it is a death, said and listed.
+    """Run ``target()`` on a daemon thread; an exception out of it is a death, said and counted.
 
     ``target`` returning is a normal end (a ``serve_forever`` after ``shutdown()``).
     """
@@ -114,6 +102,13 @@ class BackgroundThread:
         """Wait (bounded) for the thread to end; at once from the thread itself."""
         if self._thread.ident is not None and self._thread is not threading.current_thread():
             self._thread.join(timeout=timeout_s)
+
+    def is_current(self) -> bool:
+        """Whether the caller is this thread (``target`` calling back into its owner).
+
+        Known from construction: no window in which the thread runs but is not known yet.
+        """
+        return self._thread is threading.current_thread()
 
 
 class PeriodicWorker:
@@ -211,7 +206,8 @@ class OrderedSender(Generic[T]):
     An item put under a ``slot`` replaces the one of that slot still queued, and goes to the
     back (a parameter's newest write supersedes the older ones). When the queue is full the
     oldest item is dropped: the newest state is what matters, and memory stays bounded. The
-    drop is logged once per stall (until the queue empties again), with a count.
+    drops are told once per stall with a count (an ``Overflow``), by the sender's thread once
+    its send in flight returns: ``put``'s callers may hold locks of theirs, so it logs nothing.
 
     ``send`` raising ``Exception`` loses that item (logged with ``describe(item)``); the
     thread goes on with the next. ``on_exit`` runs on the thread when it ends after ``close``
@@ -240,10 +236,11 @@ class OrderedSender(Generic[T]):
         self._queue: OrderedDict[Hashable, T] = OrderedDict()
         self._in_flight: list[T] = []
         self._closing = False
-        self._dropped = 0
-        self._overflowing = False
         self.dropped = 0
         """How many items were dropped because the queue was full (over the sender's life)."""
+        self._untold = 0
+        """Drops not handed to ``_full`` yet: the thread does, outside every lock."""
+        self._full = Overflow(f"{name}: unsent items", capacity, log=log, evicts=True)
         self._thread = BackgroundThread(self._loop, name=name, log=log).start()
 
     @property
@@ -252,10 +249,12 @@ class OrderedSender(Generic[T]):
         return self._thread.alive
 
     def put(self, item: T, *, slot: Hashable | None = None) -> None:
-        """Queue ``item`` (replacing the one queued under ``slot``); returns at once."""
+        """Queue ``item`` (replacing the one queued under ``slot``); returns at once.
+
+        It never logs: its caller may hold a lock (the sender's thread tells of drops).
+        """
         with self._changed:
             if self._closing:
-                self._log.debug("%s: closed, not sending %s", self._name, self._describe(item))
                 return
             key: Hashable = object() if slot is None else slot
             if key in self._queue:
@@ -263,15 +262,7 @@ class OrderedSender(Generic[T]):
             elif len(self._queue) >= self._capacity:
                 self._queue.popitem(last=False)
                 self.dropped += 1
-                self._dropped += 1
-                if not self._overflowing:
-                    self._overflowing = True
-                    self._log.warning(
-                        "%s: %d items queued, none sent for a while: dropping the oldest "
-                        "(told once until the queue empties)",
-                        self._name,
-                        self._capacity,
-                    )
+                self._untold += 1
             self._queue[key] = item
             self._changed.notify_all()
 
@@ -284,10 +275,13 @@ class OrderedSender(Generic[T]):
         while True:
             with self._changed:
                 self._changed.wait_for(lambda: bool(self._queue) or self._closing)
+                untold, self._untold = self._untold, 0
                 if not self._queue:
                     break  # closing, and everything was sent
                 _, item = self._queue.popitem(last=False)
                 self._in_flight = [item]
+                size = len(self._queue)
+            self._tell(untold, size)
             try:
                 self._send(item)
             except Exception as err:  # a closed session or a network error: keep sending
@@ -295,15 +289,16 @@ class OrderedSender(Generic[T]):
             finally:
                 with self._changed:
                     self._in_flight = []
-                    if not self._queue and self._overflowing:
-                        self._overflowing = False
-                        self._log.warning(
-                            "%s: caught up; %d items were dropped", self._name, self._dropped
-                        )
-                        self._dropped = 0
                     self._changed.notify_all()
+        self._tell(untold, 0)
         if self._on_exit is not None:
             self._on_exit()
+
+    def _tell(self, dropped: int, size: int) -> None:
+        """Hand drops to ``_full`` and say how full the queue is (on the thread, no lock held)."""
+        if dropped:
+            self._full.refuse(dropped)
+        self._full.room(size)
 
     def flush(self, timeout_s: float) -> bool:
         """Wait until every queued item was handed to ``send``; False after ``timeout_s``."""

@@ -21,7 +21,6 @@ import logging
 import os
 import threading
 import time
-import uuid
 import weakref
 from collections.abc import Callable, Iterable
 from pathlib import Path
@@ -367,7 +366,7 @@ class ZenohTransport(TransportBase):
         priority_links: bool = False,
     ) -> None:
         self.host = resolve_host(host)
-        self.node_id = uuid.uuid4().hex[:16]
+        self.node_id = keys.new_node_id()
         if port is None:
             port = int(os.environ.get("DBML_ZENOH_PORT", DEFAULT_PORT))
         config = _config(

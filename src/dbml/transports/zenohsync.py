@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import re
 import threading
 import time
 from collections import OrderedDict
@@ -70,8 +69,6 @@ _HELD = "held"
 """The query parameter asking every session for the one value named, owned or not."""
 _PULL = "pull"
 """The query parameter telling a session to fetch what the named session owns."""
-_NODE_ID = re.compile(r"[0-9a-f]{16}")
-"""A session's node id: 16 hex digits of a random UUID."""
 
 _Declared: TypeAlias = "zenoh.Subscriber[None] | zenoh.Queryable[None] | zenoh.LivelinessToken"
 
@@ -166,10 +163,12 @@ class ParamSync:
         except zenoh.ZError:
             return  # closing: nothing left to hear
         with self._lock:
-            if self._closed:
-                _undeclare(subscriber)
-                return
-            self._declared.append(subscriber)
+            closed = self._closed
+            if not closed:
+                self._declared.append(subscriber)
+        if closed:  # closed meanwhile: undeclared here, outside the lock (a middleware call)
+            _undeclare(subscriber)
+            return
         # What others wrote there between the meetings' fetches and now, from its owners.
         own = f"{_OWN_ANY}/{channel[len(keys.PARAM) + 1 :]}"
         self.session.get(
@@ -187,7 +186,7 @@ class ParamSync:
         if sample is None:
             return
         owned = keys.own_name(str(sample.key_expr))
-        if owned is not None and _NODE_ID.fullmatch(owned[0]):
+        if owned is not None and keys.is_node_id(owned[0]):
             self.params.on_value(owned[1], sample.payload.to_bytes())
 
     def _on_param(self, sample: zenoh.Sample) -> None:
@@ -231,7 +230,7 @@ class ParamSync:
 
     def _on_node(self, sample: zenoh.Sample) -> None:
         parsed = keys.parse_node_key(str(sample.key_expr))
-        if parsed is None or not _NODE_ID.fullmatch(parsed[0]):
+        if parsed is None or not keys.is_node_id(parsed[0]):
             log.warning("ignoring malformed session token %s", str(sample.key_expr)[:80])
             return
         node, zid = parsed
@@ -296,12 +295,12 @@ class ParamSync:
     def refresh(self, uid: str) -> None:
         """Meet the session that made graph entry ``uid`` again: both fetch what the other owns."""
         node = uid.partition(".")[0]
-        if node != self.node_id and _NODE_ID.fullmatch(node):
+        if node != self.node_id and keys.is_node_id(node):
             self._meet(node, again=False)
 
     def _schedule_fetch(self, node: str) -> None:
         """Fetch ``node``'s values soon, once: a fetch already waiting covers this one too."""
-        if not _NODE_ID.fullmatch(node):
+        if not keys.is_node_id(node):
             self._malformed.warning(
                 node, "ignoring a fetch request from a malformed node id %s", node[:40]
             )
