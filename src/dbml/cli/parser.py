@@ -70,7 +70,7 @@ def _transport_options(parser: argparse.ArgumentParser) -> None:
         "--domain-id",
         type=int,
         metavar="N",
-        help="ros2: the ROS 2 domain, 0-232 (default: $ROS_DOMAIN_ID, else 0)",
+        help="ros2, rclpy: the ROS 2 domain, 0-232 (default: $ROS_DOMAIN_ID, else 0)",
     )
     group.add_argument(
         "--ros-distro",

@@ -119,6 +119,28 @@ def _open_ros2(options: TransportOptions) -> Transport:
     return transport
 
 
+def _open_rclpy(options: TransportOptions) -> Transport:
+    _no_endpoints(
+        "rclpy",
+        options,
+        ": DDS discovery finds peers (ROS_DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE, "
+        "ROS_STATIC_PEERS)",
+    )
+    _no_network("rclpy", options)
+    _no_priority_links("rclpy", options)
+    for option, value in (("ros_distro", options.ros_distro), ("msg_paths", options.msg_paths)):
+        if value:
+            raise TransportError(
+                f"transport='rclpy' takes no {option} ({value!r}): rclpy brings its own types"
+            )
+    try:
+        module = importlib.import_module("dbml.transports.rclpy")
+    except ImportError as err:
+        raise TransportError(str(err)) from err
+    transport: Transport = module.RclpyTransport(host=options.host, domain_id=options.domain_id)
+    return transport
+
+
 def _open_zenoh(options: TransportOptions) -> Transport:
     _no_network("zenoh", options)
     _no_ros2_options("zenoh", options)
@@ -171,6 +193,15 @@ TRANSPORTS: Mapping[str, TransportEntry] = types.MappingProxyType(
             params_complete_at_start=True,
             typed_topics=True,
         ),
+        "rclpy": TransportEntry(
+            factory=_open_rclpy,
+            summary="real ROS 2 through rclpy on its RMW (Fast DDS by default): topics and "
+            "parameters on /dbm and [topic]/dbm",
+            spans_processes=True,
+            carries_metadata=False,
+            params_complete_at_start=False,
+            typed_topics=True,
+        ),
         "ros2": TransportEntry(
             factory=_open_ros2,
             summary="ROS 2 topics as rmw_zenoh carries them, via the zenoh router of this host",
@@ -214,6 +245,7 @@ def open_transport(
     ``follow_all_params=False`` is for a process that only publishes: over zenoh it then hears
     the global parameters, the optimizer's allocations and its own channels' parameters, not
     every other publisher's reports (ROS 1's parameter server and memory hold everything anyway).
+    ``rclpy`` joins ROS 2 domain ``domain_id`` (else ``ROS_DOMAIN_ID``) through rclpy.
     ``ros2`` joins rmw_zenoh's router of this host (or ``connect``/``listen``) in ROS 2 domain
     ``domain_id`` (else ``ROS_DOMAIN_ID``), with the types of ``ros_distro`` and the ``.msg``
     files under ``msg_paths``; the other transports refuse these options. ``priority_links``

@@ -1,0 +1,630 @@
+"""dbml's parameters as real ROS 2 parameters: ``ros2 param set`` does what ``rosparam set`` did.
+
+The paper's globals live on the optimizer's node ``/dbm`` (``ros2 param set /dbm
+max_bandwidth_in_mbit 5``), a channel's on ``[topic]/dbm``, hosted by the process that publishes
+or bridges the channel (``ros2 param set /r1/camera/dbm priority 0.8``). Each node declares the
+wire schema's parameters of its scope (``dbml.protocol.schema``, ``frequency.min`` for
+``frequency/min``) with their values, so ``ros2 param list/get/describe`` show them.
+
+What carries what, and why:
+
+- **Every process's view** is fed by ``/parameter_events`` (the node that hosts a value announces
+  each change) and, for a node met for the first time, one ``GetParameters`` call: the node is
+  the value's single source, as ROS 2 intends.
+- **An operator's write** (``ros2 param set``, ``dbml param set``, ``dbml priority``) goes through
+  the hosting node's ``SetParameters`` service. The node validates it with the schema and refuses,
+  with the reason, a value out of range or one that dbml owns: a service call names no caller,
+  so only the values anyone may write are taken from it.
+- **The optimizer's allocation** (``frequency.current_value``, ``managed`` of every channel) is
+  one message per round on the dbml topic ``/dbm/allocation``, sent by the ``/dbm`` node: one
+  message, not a service call per channel, and its sender is known (the publisher's GID), so the
+  channel's host takes it from the optimizer's node only and applies it to its own parameter.
+- **A process's own parameters** (a publisher's sizes and rates, the optimizer's status) are set
+  on the node it hosts, which announces them.
+
+Writing never blocks: ``set`` updates this process's view at once and hands the write to the
+transport's executor thread, where every rclpy call of the store runs (no lock is held across
+one). A write for a node nobody hosts yet makes this process its provisional host, so values can
+precede the process that owns them (an operator's priority before the robot starts); a
+provisional host gives the node up once another process hosts it too, pushing its values there
+first.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Set as AbstractSet
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+from dbml.core.errors import TransportError
+from dbml.protocol import keys
+from dbml.protocol.names import check_topic
+from dbml.protocol.schema import (
+    GLOBAL_PREFIX,
+    PARAMETERS,
+    ParamError,
+    Parameter,
+    Scope,
+    Writer,
+    check_param,
+    lookup,
+)
+from dbml.transports.base import Handle, ParamValue, check_param_value
+from dbml.transports.callbacks import CallbackList
+from dbml.transports.overflow import LogOnce, Overflow
+from dbml.transports.paramstore import MAX_PARAMS
+
+if TYPE_CHECKING:
+    from rclpy.node import Node
+    from rclpy.publisher import Publisher as RosPublisher
+
+    from dbml.transports.rclpy import RclpyTransport
+
+__all__ = [
+    "ALLOCATION_TOPIC",
+    "HOSTING_WRITERS",
+    "MAX_PARAM_NODES",
+    "RclpyParams",
+    "node_of",
+]
+
+log = logging.getLogger("dbml.rclpy")
+
+ALLOCATION_TOPIC = f"{GLOBAL_PREFIX}/allocation"
+"""Where the optimizer's ``/dbm`` node sends a round's allocation (``std_msgs/msg/String``,
+``dbml.protocol.keys``' batch encoding)."""
+HOSTING_WRITERS: Mapping[Scope, frozenset[Writer]] = {
+    Scope.GLOBAL: frozenset({Writer.OPTIMIZER, Writer.ESTIMATOR}),
+    Scope.CHANNEL: frozenset({Writer.PUBLISHER}),
+}
+"""Whose writes make a process host a node: a parameter only these roles write is written by the
+process the paper puts it on (the optimizer's ``/dbm``, the publisher's ``[topic]/dbm``)."""
+MAX_PARAM_NODES = 8_192
+"""The most parameter nodes remembered (met, fetched); beyond, new ones are ignored (logged)."""
+MAX_CLIENTS = 256
+"""Service clients kept open to other processes' nodes; the least recently used is closed."""
+_DBM_NODE = GLOBAL_PREFIX[1:]
+"""Every parameter node's own name: ``dbm``, in the namespace ``/`` or ``[topic]``."""
+_ROS_OWN = frozenset({"use_sim_time", "start_type_description_service"})
+"""Parameters every rclpy node declares: not dbml's, never reported."""
+
+
+def node_of(name: str) -> tuple[Parameter, str, str]:
+    """The parameter ``name`` is, its node (``/dbm``, ``/r1/camera/dbm``) and its name there.
+
+    ``TransportError`` for a name outside dbml's schema: ROS 2 parameters live on nodes, so a
+    name must say which.
+    """
+    found = lookup(name)
+    if found is None:
+        raise TransportError(
+            f"parameter name={name!r} is not one of dbml's: over rclpy a parameter lives on a "
+            "node, /dbm/<field> or [topic]/dbm/<field>"
+        )
+    parameter, topic = found
+    node = GLOBAL_PREFIX if topic is None else f"{topic}{GLOBAL_PREFIX}"
+    return parameter, node, parameter.ros2_name
+
+
+def _full_name(node: str, ros2_name: str) -> str | None:
+    """The store's name of parameter ``ros2_name`` on node ``node``; None if not dbml's."""
+    if ros2_name in _ROS_OWN:
+        return None
+    name = f"{node}/{ros2_name.replace('.', '/')}"
+    found = lookup(name)
+    if found is None:
+        return None
+    expected = GLOBAL_PREFIX if found[1] is None else f"{found[1]}{GLOBAL_PREFIX}"
+    return name if expected == node else None
+
+
+def _scope_of(node: str) -> Scope:
+    return Scope.GLOBAL if node == GLOBAL_PREFIX else Scope.CHANNEL
+
+
+def is_param_node(namespace: str, name: str) -> str | None:
+    """The fully qualified name of a parameter node (``/dbm``, ``/r1/camera/dbm``), else None."""
+    if name != _DBM_NODE:
+        return None
+    if namespace == "/":
+        return GLOBAL_PREFIX
+    try:
+        check_topic(namespace)
+    except TransportError:
+        return None
+    return f"{namespace}{GLOBAL_PREFIX}"
+
+
+def _hosts_it(parameter: Parameter) -> bool:
+    """Whether writing ``parameter`` makes this process its node's host (see HOSTING_WRITERS)."""
+    return parameter.writers <= HOSTING_WRITERS[parameter.scope]
+
+
+def _allocated(parameter: Parameter) -> bool:
+    """A channel's parameter only the optimizer writes: it travels in ``/dbm/allocation``."""
+    return parameter.scope is Scope.CHANNEL and parameter.writers == {Writer.OPTIMIZER}
+
+
+def _value_of(message: Any) -> object:
+    """A ``ParameterValue`` as Python (``None`` for NOT_SET; arrays are returned as lists)."""
+    from rclpy.parameter import parameter_value_to_python
+
+    value: object = parameter_value_to_python(message)
+    return value
+
+
+@dataclass
+class _Hosted:
+    """A parameter node this process hosts."""
+
+    node: Node
+    provisional: bool
+    """Hosted only because nobody did when this process wrote: given up once another hosts it."""
+    allocation: RosPublisher[Any] | None = None
+    """The ``/dbm`` node's allocation publisher (None on a channel's node)."""
+    priority: Handle | None = None
+    """A channel node's ``std_msgs/msg/Float64`` priority subscription."""
+
+
+class RclpyParams:
+    """The ``ParamStore`` of ``RclpyTransport``: a view of every dbml parameter node's values.
+
+    Constructed and used by the transport; every method that touches rclpy runs on its
+    executor thread (``_on_*``, ``_drain``, ``poll``); the public ones only touch the view.
+    """
+
+    def __init__(self, transport: RclpyTransport) -> None:
+        self._transport = transport
+        self._lock = threading.Lock()
+        self._values: dict[str, ParamValue] = {}
+        self._watchers: CallbackList[[str, ParamValue]] = CallbackList()
+        self._pending: OrderedDict[str, ParamValue] = OrderedDict()
+        """Writes not yet handed to rclpy, oldest first; a name's newer write replaces its own."""
+        self._confirmed: dict[str, bool] = {}
+        """Per name written here: whether a node of another process took the latest write."""
+        self._overflow = Overflow("parameter names", MAX_PARAMS, log=log)
+        self._nodes_overflow = Overflow("parameter nodes", MAX_PARAM_NODES, log=log)
+        self._bad = LogOnce(log)
+        # Executor-thread state: never touched elsewhere.
+        self._hosted: dict[str, _Hosted] = {}
+        self._internal = False
+        """True while this process sets its own node's parameters (not a service request)."""
+        self._live: dict[str, int] = {}
+        """Parameter nodes other processes host (fully qualified name: how many host it)."""
+        self._fetched: set[str] = set()
+        """Live nodes whose values were fetched once (a node met again is fetched again)."""
+        self._fetching: set[str] = set()
+        self._clients: OrderedDict[tuple[str, str], Any] = OrderedDict()
+        self._waiting: OrderedDict[str, dict[str, ParamValue]] = OrderedDict()
+        """Operator writes for nodes that another process will host, by node, until it does."""
+        self._allocation_senders: AbstractSet[bytes] = frozenset()
+        """GIDs of ``/dbm``'s allocation publishers, as the graph last showed them."""
+
+    # -- the ParamStore protocol: any thread, never blocks -------------------------------------
+
+    def set(self, name: str, value: ParamValue) -> None:
+        """Hold ``value`` here at once; the executor thread hands it to its node."""
+        self.set_many({name: value})
+
+    def set_many(self, values: Mapping[str, ParamValue]) -> None:
+        """Hold every value here at once; the executor thread sends them, one message per node."""
+        checked = {name: check_param_value(value) for name, value in values.items()}
+        for name in checked:
+            node_of(name)
+        changes = []
+        with self._lock:
+            for name, value in checked.items():
+                self._pending[name] = value
+                self._pending.move_to_end(name)
+                self._confirmed[name] = False
+                if self._values.get(name) != value:
+                    changes.append((name, value))
+                    self._store_locked(name, value)
+        self._transport.call_soon(self._drain)
+        for name, value in changes:
+            self._watchers.fire(name, value)
+
+    def get(self, name: str) -> ParamValue:
+        """The value held for ``name``; None when unset."""
+        with self._lock:
+            return self._values.get(name)
+
+    def snapshot(self, prefix: str = "/") -> dict[str, ParamValue]:
+        """Every set value whose name starts with ``prefix``."""
+        with self._lock:
+            return {n: v for n, v in self._values.items() if n.startswith(prefix) and v is not None}
+
+    def watch(self, callback: Callable[[str, ParamValue], None]) -> Handle:
+        """Call ``callback(name, value)`` on every change of the view."""
+        return self._watchers.add(callback)
+
+    def confirmed(self, name: str) -> bool:
+        """Whether a node of another process took this process's latest write of ``name``."""
+        with self._lock:
+            return self._confirmed.get(name, False)
+
+    def settled(self) -> bool:
+        """Whether every live parameter node met was fetched once (its values are in the view)."""
+        with self._lock:
+            return not self._pending and set(self._live) <= self._fetched
+
+    def _store_locked(self, name: str, value: ParamValue) -> bool:
+        """Hold ``value``; False (refused, logged once per flood) past ``MAX_PARAMS`` names."""
+        if name not in self._values and len(self._values) >= MAX_PARAMS:
+            self._overflow.refuse()
+            return False
+        self._values[name] = value
+        return True
+
+    def _learn(self, node: str, values: Iterable[tuple[str, object]]) -> None:
+        """Values a node announced or returned: validated, then held; changes are reported."""
+        changes = []
+        with self._lock:
+            for ros2_name, raw in values:
+                name = _full_name(node, ros2_name)
+                if name is None:
+                    continue
+                try:
+                    value = check_param(name, check_param_value(raw))
+                except (ParamError, TransportError) as err:
+                    self._bad.warning(name, "ignoring %s from node %s: %s", name, node, err)
+                    continue
+                if name in self._pending:
+                    continue  # this process's newer write is on its way
+                if self._values.get(name) != value and self._store_locked(name, value):
+                    changes.append((name, value))
+        for name, value in changes:
+            self._watchers.fire(name, value)
+
+    # -- executor thread -----------------------------------------------------------------------
+
+    def _drain(self) -> None:
+        """Hand every pending write to rclpy: local nodes, allocation, other processes' nodes."""
+        with self._lock:
+            pending, self._pending = self._pending, OrderedDict()
+        by_node: dict[str, dict[str, tuple[Parameter, ParamValue]]] = {}
+        allocation: dict[str, ParamValue] = {}
+        for name, value in pending.items():
+            parameter, node, ros2_name = node_of(name)
+            if _allocated(parameter) and node not in self._hosted:
+                allocation[name] = value
+                continue
+            by_node.setdefault(node, {})[ros2_name] = (parameter, value)
+        if allocation:
+            self._send_allocation(allocation)
+        for node, writes in by_node.items():
+            hosting = any(_hosts_it(p) for p, _v in writes.values())
+            hosted = self._hosted.get(node)
+            if hosted is None and (hosting or node not in self._live):
+                hosted = self._host(node, provisional=not hosting)
+            elif hosted is not None and hosted.provisional and hosting:
+                self._claim(node, hosted)
+            if hosted is not None:
+                self._set_local(node, hosted, {n: v for n, (_p, v) in writes.items()})
+            else:
+                self._set_remote(node, {n: v for n, (_p, v) in writes.items()})
+
+    def _host(self, node: str, *, provisional: bool) -> _Hosted | None:
+        """Create node ``node`` here, declaring its scope's parameters with the view's values."""
+        from rcl_interfaces.msg import ParameterDescriptor
+        from rclpy.node import Node
+
+        scope = _scope_of(node)
+        namespace = "/" if scope is Scope.GLOBAL else node[: -len(GLOBAL_PREFIX)]
+        ros_node = Node(
+            _DBM_NODE,
+            namespace=namespace,
+            context=self._transport.context,
+            start_parameter_services=True,
+        )
+        ros_node.add_on_set_parameters_callback(lambda parameters: self._on_set(node, parameters))
+        hosted = _Hosted(ros_node, provisional)
+        self._hosted[node] = hosted
+        self._internal = True
+        try:
+            for parameter in PARAMETERS:
+                if parameter.scope is not scope:
+                    continue
+                name = parameter.name if scope is Scope.GLOBAL else f"{node}/{parameter.field}"
+                ros_node.declare_parameter(
+                    parameter.ros2_name,
+                    self.get(name),
+                    ParameterDescriptor(
+                        dynamic_typing=True,
+                        description=f"{parameter.doc} Written by: "
+                        + ", ".join(sorted(w.value for w in parameter.writers))
+                        + ".",
+                    ),
+                )
+        finally:
+            self._internal = False
+        if not provisional:
+            self._claim(node, hosted)
+        self._transport.add_node(ros_node)
+        log.debug("hosting %s%s", node, " (provisionally)" if provisional else "")
+        return hosted
+
+    def _claim(self, node: str, hosted: _Hosted) -> None:
+        """Host ``node`` for good: its role's endpoint says so to every provisional host.
+
+        The ``/dbm`` node's allocation publisher, a channel node's priority subscription.
+        """
+        hosted.provisional = False
+        if node == GLOBAL_PREFIX:
+            hosted.allocation = self._transport.string_publisher(hosted.node, ALLOCATION_TOPIC)
+        else:
+            hosted.priority = self._transport.hear_priority(
+                node[: -len(GLOBAL_PREFIX)], hosted.node
+            )
+
+    def _set_local(self, node: str, hosted: _Hosted, writes: Mapping[str, ParamValue]) -> None:
+        """Set parameters of a node this process hosts (its announcement reaches everyone)."""
+        from rclpy.parameter import Parameter as RosParameter
+
+        self._internal = True
+        try:
+            for ros2_name, value in writes.items():
+                if value is None:
+                    # Unset, and declared again with no value: ``ros2 param list`` still shows it.
+                    hosted.node.set_parameters([RosParameter(ros2_name, RosParameter.Type.NOT_SET)])
+                    hosted.node.declare_parameter(ros2_name, None, _dynamic())
+                    continue
+                results = hosted.node.set_parameters([RosParameter(ros2_name, value=value)])
+                if not results[0].successful:
+                    log.warning("%s/%s=%r not set: %s", node, ros2_name, value, results[0].reason)
+        finally:
+            self._internal = False
+
+    def _on_set(self, node: str, parameters: list[Any]) -> Any:
+        """A hosted node's set: this process's own writes pass; a service request is checked."""
+        from rcl_interfaces.msg import SetParametersResult
+
+        taken: list[tuple[str, ParamValue]] = []
+        for parameter in parameters:
+            name = _full_name(node, parameter.name)
+            if name is None:
+                if parameter.name in _ROS_OWN:
+                    continue
+                return SetParametersResult(
+                    successful=False, reason=f"{parameter.name!r} is not a dbml parameter"
+                )
+            try:
+                checked = check_param(name, check_param_value(parameter.value))
+            except (ParamError, TransportError) as err:
+                return SetParametersResult(successful=False, reason=str(err))
+            found = lookup(name)
+            assert found is not None
+            if not self._internal and Writer.OPERATOR not in found[0].writers:
+                owners = ", ".join(sorted(w.value for w in found[0].writers))
+                return SetParametersResult(
+                    successful=False,
+                    reason=f"{name} is written by dbml's {owners}, not by an operator",
+                )
+            taken.append((name, checked))
+        if not self._internal:
+            for name, value in taken:
+                self._take_remote(name, value)
+        return SetParametersResult(successful=True)
+
+    def _take_remote(self, name: str, value: ParamValue) -> None:
+        """Another process set ``name`` on a node hosted here: the view follows at once."""
+        with self._lock:
+            self._pending.pop(name, None)
+            changed = self._values.get(name) != value and self._store_locked(name, value)
+        if changed:
+            self._watchers.fire(name, value)
+
+    def _client(self, kind: str, node: str) -> Any:
+        """A cached service client of ``node``'s ``get_parameters``/``set_parameters``."""
+        from rcl_interfaces.srv import GetParameters, SetParameters
+
+        key = (kind, node)
+        client = self._clients.get(key)
+        if client is None:
+            service = GetParameters if kind == "get" else SetParameters
+            client = self._transport.node.create_client(service, f"{node}/{kind}_parameters")
+            self._clients[key] = client
+            if len(self._clients) > MAX_CLIENTS:
+                _old, oldest = self._clients.popitem(last=False)
+                self._transport.node.destroy_client(oldest)
+        self._clients.move_to_end(key)
+        return client
+
+    def _set_remote(self, node: str, writes: Mapping[str, ParamValue]) -> None:
+        """Ask another process's node to take operator writes (its ``SetParameters``)."""
+        from rcl_interfaces.srv import SetParameters
+        from rclpy.parameter import Parameter as RosParameter
+
+        client = self._client("set", node)
+        if not client.service_is_ready():
+            self._waiting.setdefault(node, {}).update(writes)
+            self._waiting.move_to_end(node)
+            while len(self._waiting) > MAX_PARAM_NODES:
+                self._waiting.popitem(last=False)
+                self._nodes_overflow.refuse()
+            return
+        request = SetParameters.Request()
+        request.parameters = [
+            RosParameter(name, RosParameter.Type.NOT_SET).to_parameter_msg()
+            if value is None
+            else RosParameter(name, value=value).to_parameter_msg()
+            for name, value in writes.items()
+        ]
+        future = client.call_async(request)
+        names = list(writes)
+        future.add_done_callback(lambda done: self._on_set_reply(node, names, done))
+
+    def _on_set_reply(self, node: str, names: list[str], future: Any) -> None:
+        response = future.result()
+        if response is None:
+            return
+        refused = False
+        for ros2_name, result in zip(names, response.results, strict=False):
+            name = _full_name(node, ros2_name)
+            if name is None:
+                continue
+            if result.successful:
+                with self._lock:
+                    if name not in self._pending:
+                        self._confirmed[name] = True
+            else:
+                refused = True
+                log.warning("%s refused %s: %s", node, name, result.reason)
+        if refused:
+            self._fetch(node)  # the view held the refused value: take the node's again
+
+    def _send_allocation(self, values: Mapping[str, ParamValue]) -> None:
+        """One round's channel values from the ``/dbm`` node hosted here; dropped elsewhere."""
+        hosted = self._hosted.get(GLOBAL_PREFIX)
+        if hosted is None or hosted.allocation is None:
+            for name in values:
+                self._bad.warning(
+                    name, "%s not sent: only the optimizer's /dbm node allocates", name
+                )
+            return
+        from std_msgs.msg import String
+
+        data = keys.encode_batch(values, time.time_ns(), self._transport.host)
+        hosted.allocation.publish(String(data=data.decode()))
+
+    def on_allocation(self, data: str, sender_gid: bytes | None) -> None:
+        """``/dbm/allocation``: values for the channels hosted here, from ``/dbm``'s node only."""
+        if sender_gid is None or sender_gid not in self._allocation_senders:
+            self._bad.warning(
+                "allocation-sender",
+                "ignoring allocations from a publisher that is not the /dbm node (gid %s)",
+                None if sender_gid is None else sender_gid.hex(),
+            )
+            return
+        try:
+            values, _stamp, _writer = keys.decode_batch(data.encode())
+        except TransportError as err:
+            self._bad.warning("allocation", "ignoring an allocation: %s", err)
+            return
+        by_node: dict[str, dict[str, ParamValue]] = {}
+        for name, value in values.items():
+            found = lookup(name)
+            if found is None or not _allocated(found[0]):
+                self._bad.warning(name, "ignoring %s in an allocation: not the optimizer's", name)
+                continue
+            try:
+                checked = check_param(name, value)
+            except ParamError as err:
+                self._bad.warning(name, "ignoring an allocation: %s", err)
+                continue
+            _parameter, node, ros2_name = node_of(name)
+            if node in self._hosted:
+                by_node.setdefault(node, {})[ros2_name] = checked
+        for node, writes in by_node.items():
+            self._set_local(node, self._hosted[node], writes)
+            self._learn(node, writes.items())
+
+    def on_event(self, node: str, changed: Iterable[tuple[str, object]]) -> None:
+        """``/parameter_events`` of a parameter node: its new, changed and deleted values.
+
+        A node that announces is hosted somewhere, even before the graph poll shows it: a write
+        for it then goes there instead of making this process a second host.
+        """
+        if node not in self._hosted and node not in self._live:
+            with self._lock:
+                self._live[node] = 1
+        self._learn(node, changed)
+
+    def _fetch(self, node: str) -> None:
+        """Ask ``node`` for its values once it answers (``GetParameters``)."""
+        from rcl_interfaces.srv import GetParameters
+
+        if node in self._fetching:
+            return
+        client = self._client("get", node)
+        if not client.service_is_ready():
+            return  # the next poll tries again
+        scope = _scope_of(node)
+        names = [p.ros2_name for p in PARAMETERS if p.scope is scope]
+        self._fetching.add(node)
+        future = client.call_async(GetParameters.Request(names=names))
+
+        def done(finished: Any) -> None:
+            self._fetching.discard(node)
+            response = finished.result()
+            if response is None:
+                return
+            self._learn(
+                node, ((n, _value_of(v)) for n, v in zip(names, response.values, strict=False))
+            )
+            with self._lock:
+                self._fetched.add(node)
+
+        future.add_done_callback(done)
+
+    def poll(
+        self,
+        hosts: Mapping[str, frozenset[bytes]],
+        claimed: Mapping[str, frozenset[bytes]],
+        own: bytes | None,
+        allocation_senders: AbstractSet[bytes],
+    ) -> None:
+        """The graph's parameter nodes now: fetch new ones, give provisional ones up, resend.
+
+        ``hosts`` gives each node's hosting participants (GID prefixes), ``claimed`` those that
+        host it for good (``_claim``), ``own`` this process's participant.
+        """
+        self._allocation_senders = allocation_senders
+        if len(hosts) > MAX_PARAM_NODES:
+            self._nodes_overflow.refuse(len(hosts) - MAX_PARAM_NODES)
+            hosts = dict(list(hosts.items())[:MAX_PARAM_NODES])
+        live = {node: len(by - {own}) for node, by in hosts.items() if by - {own}}
+        with self._lock:
+            self._live = live
+            self._fetched &= set(live)
+            fetch = [n for n in live if n not in self._fetched]
+        for node in fetch:
+            self._fetch(node)
+        for node, hosted in list(self._hosted.items()):
+            others = hosts.get(node, frozenset()) - {own}
+            if not hosted.provisional or not others or own is None:
+                continue
+            if claimed.get(node, frozenset()) - {own} or min(others) < own:
+                self._give_up(node, hosted)
+        for node in [n for n in self._waiting if n in live]:
+            writes = self._waiting.pop(node)
+            self._set_remote(node, writes)
+
+    def _give_up(self, node: str, hosted: _Hosted) -> None:
+        """Another process hosts ``node`` too: push what anyone may write there, then leave it."""
+        writes = {}
+        for name, value in self.snapshot(f"{node}/").items():
+            found = lookup(name)
+            if found is not None and Writer.OPERATOR in found[0].writers:
+                writes[found[0].ros2_name] = value
+        self._close_hosted(node, hosted)
+        if writes:
+            self._set_remote(node, writes)
+        log.debug("%s is hosted elsewhere now: gave it up", node)
+
+    def _close_hosted(self, node: str, hosted: _Hosted) -> None:
+        del self._hosted[node]
+        if hosted.priority is not None:
+            hosted.priority.close()
+        self._transport.remove_node(hosted.node)
+
+    def hosts(self, node: str) -> bool:
+        """Whether this process hosts ``node`` (executor thread)."""
+        return node in self._hosted
+
+    def close(self) -> None:
+        """Destroy the hosted nodes and the clients (executor stopped)."""
+        for node, hosted in list(self._hosted.items()):
+            self._close_hosted(node, hosted)
+        self._clients.clear()
+
+
+def _dynamic() -> Any:
+    from rcl_interfaces.msg import ParameterDescriptor
+
+    return ParameterDescriptor(dynamic_typing=True)

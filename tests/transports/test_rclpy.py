@@ -1,0 +1,274 @@
+"""The rclpy transport against real rclpy: names, framing, parameters as ROS 2 sees them, graph.
+
+Each test claims its own ROS 2 domain; the ROS 2 side of a check (``ros2 param set``, a foreign
+node) is a plain rclpy node in a context of its own, as another process's would be.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from dbml.core.errors import TransportError
+from dbml.harness.ros2env import claim_domain
+from dbml.protocol.keys import encode_batch
+from dbml.transports.base import Role, Variant
+from dbml.transports.rclpy import (
+    BYTES_TYPE,
+    RclpyTransport,
+    frame_bytes,
+    gid_host_id,
+    host_of_node,
+    message_class,
+    node_name_for,
+    unframe_bytes,
+)
+from tests.conftest import wait_for
+
+rclpy = pytest.importorskip("rclpy")
+
+from rcl_interfaces.srv import SetParameters  # noqa: E402
+from rclpy.context import Context  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from rclpy.signals import SignalHandlerOptions  # noqa: E402
+from std_msgs.msg import Float64, String  # noqa: E402
+
+CALL_TIMEOUT_S = 5.0
+
+
+@given(st.from_regex(r"[A-Za-z0-9_\-.~]{1,40}", fullmatch=True))
+def test_a_node_name_says_its_host(host: str) -> None:
+    name = node_name_for(host)
+    assert host_of_node(name) == host
+    assert name.replace("_", "").isalnum()
+
+
+def test_a_foreign_node_name_says_no_host() -> None:
+    assert host_of_node("camera_driver") is None
+    assert host_of_node("dbml_r1") is None
+
+
+@given(st.binary(max_size=2_000))
+def test_bytes_travel_framed_as_uint8_multi_array(payload: bytes) -> None:
+    assert unframe_bytes(frame_bytes(payload)) == payload
+
+
+def test_the_framing_is_rclpys_own_uint8_multi_array() -> None:
+    from rclpy.serialization import deserialize_message, serialize_message
+    from std_msgs.msg import UInt8MultiArray
+
+    assert BYTES_TYPE == "std_msgs/msg/UInt8MultiArray"
+    parsed = deserialize_message(frame_bytes(b"abc"), UInt8MultiArray)
+    assert bytes(parsed.data) == b"abc"
+    assert unframe_bytes(serialize_message(UInt8MultiArray(data=list(b"xyz")))) == b"xyz"
+
+
+def test_a_missing_type_names_what_to_install() -> None:
+    with pytest.raises(TransportError, match=r"pip install ros-nav2-msgs"):
+        message_class("nav2_msgs/msg/Costmap")
+    with pytest.raises(TransportError, match=r"type='Image' must look like"):
+        message_class("Image")
+
+
+def test_gid_host_id_reads_fast_dds_gids_only() -> None:
+    assert gid_host_id(bytes.fromhex("010f78fd0d4e6b040000000000001503")) == 0xFD78
+    assert gid_host_id(bytes.fromhex("01100000000000000000000000000000")) is None
+    assert gid_host_id(b"\x01\x0f") is None
+
+
+@contextmanager
+def plain_node(domain_id: int, name: str, namespace: str = "/") -> Iterator[Node]:
+    """A ROS 2 node that knows nothing of dbml, spun on a thread of its own."""
+    import threading
+
+    context = Context()
+    rclpy.init(context=context, domain_id=domain_id, signal_handler_options=SignalHandlerOptions.NO)
+    node = Node(name, namespace=namespace, context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    stop = threading.Event()
+
+    def spin() -> None:
+        while not stop.is_set():
+            executor.spin_once(timeout_sec=0.05)
+
+    thread = threading.Thread(target=spin, daemon=True)
+    thread.start()
+    try:
+        yield node
+    finally:
+        stop.set()
+        thread.join(5.0)
+        executor.shutdown(timeout_sec=1.0)
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+
+
+def param_set(node: Node, target: str, name: str, value: Any) -> Any:
+    """What ``ros2 param set TARGET NAME VALUE`` does: one SetParameters call; its result."""
+    client: Any = node.create_client(SetParameters, f"{target}/set_parameters")
+    try:
+        assert client.wait_for_service(timeout_sec=CALL_TIMEOUT_S), f"{target} never answered"
+        request = SetParameters.Request(
+            parameters=[Parameter(name, value=value).to_parameter_msg()]
+        )
+        future = client.call_async(request)
+        wait_for(future.done, timeout_s=CALL_TIMEOUT_S, what="the SetParameters reply")
+        response: Any = future.result()
+        return response.results[0]
+    finally:
+        node.destroy_client(client)
+
+
+@pytest.fixture
+def domain() -> Iterator[int]:
+    with claim_domain() as domain_id:
+        yield domain_id
+
+
+@pytest.mark.integration
+def test_ros2_param_set_on_the_optimizers_node(domain: int) -> None:
+    optimizer = RclpyTransport(host="ground", domain_id=domain)
+    observer = RclpyTransport(host="observer", domain_id=domain)
+    try:
+        optimizer.params.set("/dbm/status", "optimal")  # the optimizer's write: it hosts /dbm
+        optimizer.params.set("/dbm/max_bandwidth_in_mbit", 11.0)
+        with plain_node(domain, "operator") as operator:
+            result = param_set(operator, "/dbm", "max_bandwidth_in_mbit", 5)  # an integer
+            assert result.successful, result.reason
+            wait_for(lambda: observer.params.get("/dbm/max_bandwidth_in_mbit") == 5.0, what="5")
+            assert optimizer.params.get("/dbm/max_bandwidth_in_mbit") == 5.0
+
+            refused = param_set(operator, "/dbm", "max_bandwidth_in_mbit", -3)
+            assert not refused.successful
+            assert "max_bandwidth_in_mbit=-3" in refused.reason
+
+            owned = param_set(operator, "/dbm", "status", "infeasible")
+            assert not owned.successful
+            assert "optimizer" in owned.reason
+        assert optimizer.params.get("/dbm/max_bandwidth_in_mbit") == 5.0
+        assert optimizer.params.get("/dbm/status") == "optimal"
+        assert observer.params.get("/dbm/status") == "optimal"
+    finally:
+        observer.close()
+        optimizer.close()
+
+
+@pytest.mark.integration
+def test_a_channels_parameters_live_on_its_publishers_node(domain: int) -> None:
+    robot = RclpyTransport(host="r1", domain_id=domain)
+    ground = RclpyTransport(host="ground", domain_id=domain)
+    try:
+        robot.params.set("/r1/camera/dbm/frequency/max", 16.0)  # the publisher's own
+        wait_for(lambda: ground.params.get("/r1/camera/dbm/frequency/max") == 16.0, what="max")
+        ground.params.set("/r1/camera/dbm/priority", 0.8)  # an operator's, through the service
+        wait_for(lambda: robot.params.get("/r1/camera/dbm/priority") == 0.8, what="priority")
+        wait_for(lambda: ground.confirm_param("/r1/camera/dbm/priority", timeout_s=0), what="ack")
+        with plain_node(domain, "operator") as operator:
+            refused = param_set(operator, "/r1/camera/dbm", "frequency.max", 100.0)
+            assert not refused.successful
+            assert "publisher" in refused.reason
+            assert robot.params.get("/r1/camera/dbm/frequency/max") == 16.0
+    finally:
+        ground.close()
+        robot.close()
+
+
+@pytest.mark.integration
+def test_a_float64_priority_sets_the_channels_priority(domain: int) -> None:
+    robot = RclpyTransport(host="r1", domain_id=domain)
+    try:
+        robot.params.set("/r1/camera/dbm/frequency/min", 1.0)
+        with plain_node(domain, "mission") as mission:
+            publisher = mission.create_publisher(Float64, "/r1/camera/dbm/priority", 10)
+            wait_for(lambda: publisher.get_subscription_count() > 0, what="the host's subscription")
+            publisher.publish(Float64(data=7.0))  # out of range: ignored
+            publisher.publish(Float64(data=0.3))
+            wait_for(lambda: robot.params.get("/r1/camera/dbm/priority") == 0.3, what="0.3")
+    finally:
+        robot.close()
+
+
+@pytest.mark.integration
+def test_only_the_dbm_node_allocates(domain: int) -> None:
+    robot = RclpyTransport(host="r1", domain_id=domain)
+    optimizer = RclpyTransport(host="ground", domain_id=domain)
+    try:
+        robot.params.set("/r1/camera/dbm/frequency/max", 16.0)
+        optimizer.params.set("/dbm/status", "optimal")
+        wait_for(lambda: optimizer.params.get("/r1/camera/dbm/frequency/max") == 16.0, what="max")
+        with plain_node(domain, "forger") as forger:
+            fake = forger.create_publisher(String, "/dbm/allocation", 10)
+            wait_for(lambda: fake.get_subscription_count() >= 2, what="the forger's matches")
+            batch = encode_batch({"/r1/camera/dbm/frequency/current_value": 16.0}, 1, "x")
+            fake.publish(String(data=batch.decode()))
+            optimizer.params.set("/r1/camera/dbm/frequency/current_value", 4.0)
+            wait_for(
+                lambda: robot.params.get("/r1/camera/dbm/frequency/current_value") == 4.0,
+                what="the optimizer's allocation",
+            )
+            fake.publish(String(data=batch.decode()))
+            optimizer.params.set("/r1/camera/dbm/managed", True)  # sent after the forgery
+            wait_for(lambda: robot.params.get("/r1/camera/dbm/managed") is True, what="managed")
+            assert robot.params.get("/r1/camera/dbm/frequency/current_value") == 4.0
+    finally:
+        optimizer.close()
+        robot.close()
+
+
+@pytest.mark.integration
+def test_the_graph_is_the_dds_endpoints_by_host(domain: int) -> None:
+    robot = RclpyTransport(host="r1", domain_id=domain)
+    ground = RclpyTransport(host="ground", domain_id=domain)
+    try:
+        publisher = robot.declare_publisher("/r1/camera", Variant.OPTIMIZED)
+        handle = ground.subscribe("/r1/camera", lambda _s: None, Variant.OPTIMIZED)
+        wanted = {
+            (Role.PUBLISHER, "r1", "/r1/camera", Variant.OPTIMIZED),
+            (Role.SUBSCRIBER, "ground", "/r1/camera", Variant.OPTIMIZED),
+        }
+
+        def seen() -> set[tuple[Role, str, str, Variant]]:
+            return {(e.role, e.host, e.topic, e.variant) for e in robot.graph.entries()}
+
+        wait_for(lambda: wanted <= seen(), what="both endpoints with their hosts")
+        handle.close()
+        wait_for(
+            lambda: (Role.SUBSCRIBER, "ground", "/r1/camera", Variant.OPTIMIZED) not in seen(),
+            what="the subscription's departure",
+        )
+        publisher.close()
+    finally:
+        ground.close()
+        robot.close()
+
+
+@pytest.mark.integration
+def test_a_foreign_subscription_of_the_optimized_copy_is_remote(domain: int) -> None:
+    robot = RclpyTransport(host="r1", domain_id=domain)
+    try:
+        robot.set_topic_type("/r1/camera", "sensor_msgs/msg/Image")
+        robot.declare_publisher("/r1/camera", Variant.OPTIMIZED)
+        from sensor_msgs.msg import Image
+
+        with plain_node(domain, "rviz") as rviz:
+            rviz.create_subscription(Image, "/r1/camera/optimized", lambda _m: None, 10)
+
+            def foreign() -> set[str]:
+                return {
+                    e.host
+                    for e in robot.graph.entries()
+                    if e.role is Role.SUBSCRIBER and e.variant is Variant.OPTIMIZED
+                }
+
+            wait_for(lambda: bool(foreign()) and "r1" not in foreign(), what="a remote consumer")
+        wait_for(lambda: not foreign(), what="its departure")
+    finally:
+        robot.close()
