@@ -7,8 +7,6 @@ node) is a plain rclpy node in a context of its own, as another process's would 
 from __future__ import annotations
 
 from collections.abc import Iterator
-from contextlib import contextmanager
-from typing import Any
 
 import pytest
 from hypothesis import given
@@ -32,15 +30,9 @@ from tests.conftest import wait_for
 
 rclpy = pytest.importorskip("rclpy")
 
-from rcl_interfaces.srv import SetParameters  # noqa: E402
-from rclpy.context import Context  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
-from rclpy.node import Node  # noqa: E402
-from rclpy.parameter import Parameter  # noqa: E402
-from rclpy.signals import SignalHandlerOptions  # noqa: E402
 from std_msgs.msg import Float64, String  # noqa: E402
 
-CALL_TIMEOUT_S = 5.0
+from tests.rclpy_tools import param_set, plain_node  # noqa: E402
 
 
 @given(st.from_regex(r"[A-Za-z0-9_\-.~]{1,40}", fullmatch=True))
@@ -81,50 +73,6 @@ def test_gid_host_id_reads_fast_dds_gids_only() -> None:
     assert gid_host_id(bytes.fromhex("010f78fd0d4e6b040000000000001503")) == 0xFD78
     assert gid_host_id(bytes.fromhex("01100000000000000000000000000000")) is None
     assert gid_host_id(b"\x01\x0f") is None
-
-
-@contextmanager
-def plain_node(domain_id: int, name: str, namespace: str = "/") -> Iterator[Node]:
-    """A ROS 2 node that knows nothing of dbml, spun on a thread of its own."""
-    import threading
-
-    context = Context()
-    rclpy.init(context=context, domain_id=domain_id, signal_handler_options=SignalHandlerOptions.NO)
-    node = Node(name, namespace=namespace, context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    stop = threading.Event()
-
-    def spin() -> None:
-        while not stop.is_set():
-            executor.spin_once(timeout_sec=0.05)
-
-    thread = threading.Thread(target=spin, daemon=True)
-    thread.start()
-    try:
-        yield node
-    finally:
-        stop.set()
-        thread.join(5.0)
-        executor.shutdown(timeout_sec=1.0)
-        node.destroy_node()
-        rclpy.try_shutdown(context=context)
-
-
-def param_set(node: Node, target: str, name: str, value: Any) -> Any:
-    """What ``ros2 param set TARGET NAME VALUE`` does: one SetParameters call; its result."""
-    client: Any = node.create_client(SetParameters, f"{target}/set_parameters")
-    try:
-        assert client.wait_for_service(timeout_sec=CALL_TIMEOUT_S), f"{target} never answered"
-        request = SetParameters.Request(
-            parameters=[Parameter(name, value=value).to_parameter_msg()]
-        )
-        future = client.call_async(request)
-        wait_for(future.done, timeout_s=CALL_TIMEOUT_S, what="the SetParameters reply")
-        response: Any = future.result()
-        return response.results[0]
-    finally:
-        node.destroy_client(client)
 
 
 @pytest.fixture
