@@ -23,12 +23,12 @@ from tests.integration.procs import Proc
 
 pytest.importorskip("rclpy")
 
-from rclpy.node import Node  # noqa: E402
-from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
-from sensor_msgs.msg import Image  # noqa: E402
-from std_msgs.msg import Float64  # noqa: E402
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import Image
+from std_msgs.msg import Float64
 
-from tests.rclpy_tools import param_set, plain_node  # noqa: E402
+from tests.rclpy_tools import param_set, plain_node
 
 pytestmark = pytest.mark.integration
 
@@ -162,8 +162,11 @@ def test_a_driver_is_managed_at_the_allocated_rate(ros2: Ros2Run, qos: str) -> N
 
 
 def test_hostile_nodes_leave_the_budget_on_the_wire_intact(ros2: Ros2Run) -> None:
-    """Bad values through the services, a foreign publisher of the optimized copy, a flood of
-    priorities: the bridge's bytes still fit the budget, and the bad values change nothing."""
+    """Hostile nodes change nothing: the bridge's bytes still fit the budget.
+
+    Bad values through the services, a foreign publisher of the optimized copy, a flood of
+    priorities.
+    """
     _start_managed(ros2, "reliable")
     with (
         plain_node(ros2.domain_id, "operator") as operator,
