@@ -17,7 +17,7 @@ from dbml.core.errors import DbmlError, MissingExtraError
 from dbml.core.extras import EXTRAS, require
 
 REPO = Path(__file__).resolve().parents[1]
-OPTIONAL = ("matplotlib", "cryptography", "rosbags", "zenoh_ros2_sdk")
+OPTIONAL = ("matplotlib", "cryptography", "rclpy", "rosbags", "zenoh_ros2_sdk")
 """What the extras bring, by the names they are imported as."""
 WITHOUT_EXTRAS = f"import sys\nfor name in {OPTIONAL!r}:\n    sys.modules[name] = None\n"
 DBML = WITHOUT_EXTRAS + "from dbml.cli import main\nsys.exit(main(sys.argv[1:]))\n"
@@ -108,6 +108,15 @@ def test_the_ros2_transport_names_the_ros2_extra() -> None:
     assert result.stderr == installing("transport 'ros2'", "rosbags", "ros2")
 
 
+def test_the_rclpy_transport_names_the_rclpy_extra_and_ros2s_own_install() -> None:
+    result = run(DBML, "priority", "/r1/camera", "0.5", "--transport", "rclpy")
+    assert result.returncode == 2
+    assert result.stdout == ""
+    assert result.stderr == installing("transport 'rclpy'", "rclpy", "rclpy").replace(
+        "'\n", "' (or source your ROS 2: . /opt/ros/<distro>/setup.bash)\n"
+    )
+
+
 def test_the_ros2_demo_names_the_ros2_extra() -> None:
     result = run(DBML, "demo", "teleop", "--transport", "ros2", "--json")
     assert result.returncode == 2
@@ -143,7 +152,9 @@ def test_require_names_the_package_as_pip_knows_it(monkeypatch: pytest.MonkeyPat
 
 
 def test_require_refuses_an_extra_that_does_not_exist() -> None:
-    with pytest.raises(ValueError, match=r"^extra='plots' is not one of: plot, ros2, secure$"):
+    with pytest.raises(
+        ValueError, match=r"^extra='plots' is not one of: plot, rclpy, ros2, secure$"
+    ):
         require("json", extra="plots", what="a test")
 
 
@@ -155,5 +166,7 @@ def test_every_extra_is_in_pyproject_and_dev_brings_them_all() -> None:
     ]
     every = f"dbml[{','.join(EXTRAS)}]"
     assert set(EXTRAS) <= set(extras)
-    assert every in extras["dev"]
+    # dev is the ROS 1 environment's "test" (every extra but rclpy, which breaks rospy) and rclpy.
+    assert extras["dev"] == ["dbml[rclpy,test]"]
+    assert f"dbml[{','.join(e for e in EXTRAS if e != 'rclpy')}]" in extras["test"]
     assert extras["all"] == [every]

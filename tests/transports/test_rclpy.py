@@ -20,7 +20,6 @@ from dbml.transports.rclpy import (
     BYTES_TYPE,
     RclpyTransport,
     frame_bytes,
-    gid_host_id,
     host_of_node,
     message_class,
     node_name_for,
@@ -67,12 +66,6 @@ def test_a_missing_type_names_what_to_install() -> None:
         message_class("nav2_msgs/msg/Costmap")
     with pytest.raises(TransportError, match=r"type='Image' must look like"):
         message_class("Image")
-
-
-def test_gid_host_id_reads_fast_dds_gids_only() -> None:
-    assert gid_host_id(bytes.fromhex("010f78fd0d4e6b040000000000001503")) == 0xFD78
-    assert gid_host_id(bytes.fromhex("01100000000000000000000000000000")) is None
-    assert gid_host_id(b"\x01\x0f") is None
 
 
 @pytest.fixture

@@ -45,10 +45,10 @@ class MissingExtraError(DbmlError, ImportError):
     code that already handles a missing module keeps handling it.
     """
 
-    def __init__(self, what: str, package: str, *, extra: str) -> None:
+    def __init__(self, what: str, package: str, *, extra: str, hint: str = "") -> None:
         super().__init__(
             f"{what} needs {package}, which {sys.executable} cannot import: "
-            f"pip install 'dbml[{extra}]'"
+            f"pip install 'dbml[{extra}]'{f' ({hint})' if hint else ''}"
         )
         self.what = what
         self.package = package

@@ -15,14 +15,17 @@ from dbml.core.errors import MissingExtraError
 
 __all__ = ["EXTRAS", "require"]
 
-EXTRAS = ("plot", "ros2", "secure")
+EXTRAS = ("plot", "rclpy", "ros2", "secure")
 """The extras of ``pip install 'dbml[...]'`` (``all`` and ``dev`` include every one)."""
 
 
-def require(module: str, *, extra: str, what: str, package: str | None = None) -> ModuleType:
+def require(
+    module: str, *, extra: str, what: str, package: str | None = None, hint: str = ""
+) -> ModuleType:
     """Import ``module`` for ``what``, or raise ``MissingExtraError`` naming ``extra``.
 
-    ``package`` is the name pip knows (default: ``module``'s top level). Call it before the
+    ``package`` is the name pip knows (default: ``module``'s top level); ``hint`` another way
+    to get it (a sourced ROS 2 brings rclpy). Call it before the
     feature's typed ``import`` lines, so they run only once the module is known to import.
     """
     if extra not in EXTRAS:
@@ -30,4 +33,6 @@ def require(module: str, *, extra: str, what: str, package: str | None = None) -
     try:
         return importlib.import_module(module)
     except ImportError as err:
-        raise MissingExtraError(what, package or module.partition(".")[0], extra=extra) from err
+        raise MissingExtraError(
+            what, package or module.partition(".")[0], extra=extra, hint=hint
+        ) from err

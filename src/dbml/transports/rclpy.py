@@ -40,6 +40,7 @@ from collections.abc import Callable
 from typing import Any
 
 from dbml.core.errors import TransportError
+from dbml.core.extras import require
 from dbml.protocol.names import OPTIMIZED, PRIORITY_SUFFIX, check_topic
 from dbml.protocol.schema import PRIORITY, ParamError
 from dbml.transports.base import (
@@ -54,33 +55,34 @@ from dbml.transports.base import (
     resolve_host,
 )
 from dbml.transports.callbacks import CallbackList
+from dbml.transports.fastdds import gid_host_id
 from dbml.transports.overflow import LogOnce, Overflow
 from dbml.transports.rclpyparams import ALLOCATION_TOPIC, RclpyParams, is_param_node
-from dbml.transports.ros2msg import GID_SIZE_BYTES, IMAGE_TYPE, image_cdr
+from dbml.transports.ros2msg import IMAGE_TYPE, image_cdr
 from dbml.transports.worker import BackgroundThread
 
-try:
-    import rclpy
-    from rclpy.context import Context
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.node import Node
-    from rclpy.qos import (
-        DurabilityPolicy,
-        HistoryPolicy,
-        QoSProfile,
-        ReliabilityPolicy,
-        qos_profile_parameter_events,
-    )
-    from rclpy.signals import SignalHandlerOptions
-except ImportError as _missing:  # pragma: no cover - the message is the point
-    raise TransportError(
-        "--transport rclpy needs rclpy: source your ROS 2 (/opt/ros/<distro>/setup.bash) or "
-        f"pip install 'dbml[rclpy]' ({_missing})"
-    ) from None
+RCLPY_HINT = "or source your ROS 2: . /opt/ros/<distro>/setup.bash"
+"""The other way to rclpy: a ROS 2 install (robots are often aarch64, where no wheels exist)."""
+
+require("rclpy", extra="rclpy", what="transport 'rclpy'", hint=RCLPY_HINT)
+
+import rclpy  # noqa: E402  (after require: its error names the extra)
+from rclpy.context import Context  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+from rclpy.qos import (  # noqa: E402
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+    qos_profile_parameter_events,
+)
+from rclpy.signals import SignalHandlerOptions  # noqa: E402
 
 __all__ = [
     "BYTES_TYPE",
     "GRAPH_POLL_S",
+    "RCLPY_HINT",
     "RclpyTransport",
     "host_of_node",
     "node_name_for",
@@ -110,7 +112,6 @@ _OPTIMIZED_SUFFIX = Variant.OPTIMIZED.key("")
 _BYTES_HEADER = struct.Struct("<4sIII")
 """CDR of an ``UInt8MultiArray`` with no dimensions: encapsulation, dims, offset, data length."""
 _CDR_LE = b"\x00\x01\x00\x00"
-_FASTDDS_VENDOR = b"\x01\x0f"
 _FOREIGN_HOST = "ros2:"
 
 
@@ -130,13 +131,6 @@ def host_of_node(name: str) -> str | None:
     if match is None:
         return None
     return _UNESCAPE.sub(lambda m: chr(int(m.group(1), 16)), match.group(1))
-
-
-def gid_host_id(gid: bytes) -> int | None:
-    """Fast DDS's host id in an endpoint GID (bytes 2-3), None for another vendor's GID."""
-    if len(gid) != GID_SIZE_BYTES or gid[:2] != _FASTDDS_VENDOR:
-        return None
-    return int.from_bytes(gid[2:4], "little")
 
 
 def frame_bytes(payload: bytes) -> bytes:
