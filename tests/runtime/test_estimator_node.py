@@ -9,9 +9,9 @@ import pytest
 from dbml.core import estimator as core_estimator
 from dbml.core.estimator import EstimatorState, Phase
 from dbml.protocol import names
+from dbml.protocol.metadata import pack_meta
 from dbml.runtime import estimator as node_estimator
 from dbml.runtime.estimator import LINK_TOPIC, MAX_REPORTERS, LinkBeacon, LinkEstimator
-from dbml.runtime.metadata import pack_meta
 from dbml.runtime.optimizer import OptimizerNode
 from dbml.runtime.reception import (
     RECEPTION_TOPIC,

@@ -15,6 +15,7 @@ import pytest
 
 from dbml.core.errors import TransportError
 from dbml.protocol import names
+from dbml.protocol.metadata import MessageMeta
 from dbml.runtime import ManagedPublisher
 from dbml.runtime.estimator import (
     HEARD_MAX,
@@ -24,7 +25,6 @@ from dbml.runtime.estimator import (
     LinkEstimator,
     release_offsets,
 )
-from dbml.runtime.metadata import MessageMeta
 from dbml.runtime.publisher import HEARD_WAIT_S, HOLD_MAX_S, LINK_SILENCE_S, PROBE_INTERVAL_S
 from dbml.runtime.rate import RateLimiter
 from dbml.transports import ManualClock, MemoryNetwork, MemoryTransport, Sample, Variant

@@ -6,7 +6,7 @@ import logging
 
 import pytest
 
-from dbml.runtime.metadata import pack_meta
+from dbml.protocol.metadata import pack_meta
 from dbml.runtime.reception import MAX_FRAMES, ReceptionReporter
 from dbml.transports import MemoryNetwork, MemoryTransport, Sample
 

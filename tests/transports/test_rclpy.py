@@ -6,6 +6,8 @@ node) is a plain rclpy node in a context of its own, as another process's would 
 
 from __future__ import annotations
 
+import math
+import time
 from collections.abc import Iterator
 
 import pytest
@@ -15,7 +17,8 @@ from hypothesis import strategies as st
 from dbml.core.errors import TransportError
 from dbml.harness.ros2env import claim_domain
 from dbml.protocol.keys import encode_batch
-from dbml.transports.base import Role, Variant
+from dbml.protocol.metadata import MessageMeta
+from dbml.transports.base import Role, Sample, Variant
 from dbml.transports.rclpy import (
     BYTES_TYPE,
     RclpyTransport,
@@ -23,6 +26,7 @@ from dbml.transports.rclpy import (
     host_of_node,
     message_class,
     node_name_for,
+    sample_meta,
     unframe_bytes,
 )
 from tests.conftest import wait_for
@@ -213,3 +217,31 @@ def test_a_foreign_subscription_of_the_optimized_copy_is_remote(domain: int) -> 
         wait_for(lambda: not foreign(), what="its departure")
     finally:
         robot.close()
+
+
+@pytest.mark.integration
+def test_a_sample_carries_ddss_sequence_and_send_time(domain: int) -> None:
+    """What ``--estimate`` needs travels in DDS's sample info: seq and source timestamp."""
+    robot = RclpyTransport(host="r1", domain_id=domain)
+    ground = RclpyTransport(host="ground", domain_id=domain)
+    try:
+        got: list[Sample] = []
+        ground.subscribe("/r1/camera", got.append, Variant.OPTIMIZED)
+        publisher = robot.declare_publisher("/r1/camera", Variant.OPTIMIZED)
+        wait_for(lambda: publisher.has_subscribers, what="the match")
+        before_ns = time.time_ns()
+        for _ in range(3):
+            publisher.put(b"frame")
+        wait_for(lambda: len(got) == 3, what="three samples")
+        metas = [MessageMeta.decode(sample.attachment) for sample in got]
+        assert [meta.seq for meta in metas] == [1, 2, 3]
+        assert all(before_ns <= meta.sent_ns <= time.time_ns() for meta in metas)
+        assert all(math.isnan(meta.rate_hz) for meta in metas)
+    finally:
+        ground.close()
+        robot.close()
+
+
+def test_sample_info_without_a_sequence_is_no_metadata() -> None:
+    assert sample_meta({"source_timestamp": 5, "publication_sequence_number": None}) is None
+    assert sample_meta(None) is None

@@ -161,10 +161,10 @@ def _run_node(
 
 def _cmd_optimizer(args: argparse.Namespace) -> int:
     entry = TRANSPORTS[args.transport]
-    if args.estimate and not entry.carries_metadata:
+    if args.estimate and not entry.send_times:
         raise DbmlError(
             "--estimate needs per-message send times and sequence numbers, which "
-            f"--transport {args.transport} messages do not carry: use --transport zenoh"
+            f"--transport {args.transport} messages do not carry: use --transport zenoh or rclpy"
         )
     settings: DbmSettings | None = None
     links: tuple[LinkSpec, ...] = ()

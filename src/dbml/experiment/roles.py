@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import re
 import sys
 import threading
@@ -43,7 +44,7 @@ from dbml.experiment.analysis import Arrival, Tick
 from dbml.experiment.report import OperatorReport
 from dbml.harness.processes import Emit, emit_json, serve_role, stop_on_signals
 from dbml.protocol import names
-from dbml.runtime.metadata import MessageMeta, pack_meta
+from dbml.protocol.metadata import MessageMeta, pack_meta
 from dbml.runtime.params import ParamView
 from dbml.runtime.priority import collision_priority_source
 from dbml.runtime.publisher import ManagedPublisher
@@ -141,6 +142,8 @@ class RoleSpec:
     """The fleet's size: robots ``r1``..``rN`` with ``fleet_cameras`` and ``fleet_steps``."""
     config_file: str | None = None
     """A zenoh config file (the testbed's router topology: ``mode: "client"``)."""
+    domain_id: int | None = None
+    """The ROS 2 domain of the ``ros2`` and ``rclpy`` roles (None: ``ROS_DOMAIN_ID``)."""
 
     def to_json(self) -> str:
         """The spec as one JSON object (the role process's argument)."""
@@ -360,7 +363,7 @@ def _operator(
                 sent_s=None if meta is None else meta.sent_ns / 1e9,
                 arrival_s=arrival_s,
                 size_bytes=len(sample.payload),
-                rate_hz=None if meta is None else meta.rate_hz,
+                rate_hz=None if meta is None or math.isnan(meta.rate_hz) else meta.rate_hz,
             )
             with lock:
                 rows.append(row)
@@ -460,6 +463,7 @@ def _open(role: str, spec: RoleSpec) -> Transport:
         listen=spec.listen,
         connect=spec.connect,
         config_file=spec.config_file,
+        domain_id=spec.domain_id,
         # Priority links: the urgent stream's class gets a connection of its own.
         priority_links=spec.transport == "zenoh" and spec.urgent_stream,
         follow_all_params=role in {"operator", "optimizer"},  # a robot only publishes

@@ -1,6 +1,6 @@
-"""The wire schema: parameters, names and keys, written once for every transport and tool."""
+"""The wire schema: parameters, names, keys and message metadata, written once for all."""
 
-from dbml.protocol import keys, names, schema
+from dbml.protocol import keys, metadata, names, schema
 from dbml.protocol.schema import PARAMETERS, ParamError, Parameter, Scope, Writer, check_param
 
 __all__ = [
@@ -11,6 +11,7 @@ __all__ = [
     "Writer",
     "check_param",
     "keys",
+    "metadata",
     "names",
     "schema",
 ]

@@ -1,7 +1,7 @@
 """The dbml runtime: typed parameters, managed publisher and subscriber, the optimizer node."""
 
+from dbml.protocol.metadata import MessageMeta
 from dbml.runtime.graph import is_managed, published_topics, publisher_hosts, remote_subscribers
-from dbml.runtime.metadata import MessageMeta
 from dbml.runtime.optimizer import ChannelState, OptimizerNode, Round
 from dbml.runtime.params import ChannelParams, DbmParams, ParamView
 from dbml.runtime.priority import PrioritySource, collision_priority_source

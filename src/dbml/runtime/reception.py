@@ -16,7 +16,7 @@ from typing import Any
 
 from dbml.core.errors import TransportError
 from dbml.protocol import keys
-from dbml.runtime.metadata import MessageMeta
+from dbml.protocol.metadata import MessageMeta
 from dbml.runtime.worker import PeriodicWorker
 from dbml.transports.base import Sample, Transport
 from dbml.transports.overflow import Overflow

@@ -8,7 +8,9 @@ Tested with Fast DDS (Kilted's ``ros-*`` wheels, ``pip install 'dbml[rclpy]'``);
   comes from ``set_topic_type`` (``--type``) or the graph; topics of dbml's own untyped bytes
   travel as ``std_msgs/msg/UInt8MultiArray`` whose ``data`` is the payload. A subscription
   waits for its topic's type before it exists, and matches its publishers' reliability (a
-  best-effort driver is heard best effort). dbml's per-message metadata does not travel.
+  best-effort driver is heard best effort). dbml's per-message metadata is DDS's own: a
+  sample's writer sequence number and source timestamp (where the RMW fills them, as Fast DDS
+  does) are its ``seq`` and send time, so estimation works; the rate in force does not travel.
 - **Parameters** are real ROS 2 parameters on ``/dbm`` and ``[topic]/dbm``
   (``dbml.transports.rclpyparams``); a ``std_msgs/msg/Float64`` on ``[topic]/dbm/priority``
   sets the priority of a channel hosted here.
@@ -31,6 +33,7 @@ from __future__ import annotations
 import collections
 import importlib
 import logging
+import math
 import re
 import struct
 import threading
@@ -41,6 +44,7 @@ from typing import Any
 
 from dbml.core.errors import TransportError
 from dbml.core.extras import require
+from dbml.protocol.metadata import pack_meta
 from dbml.protocol.names import OPTIMIZED, PRIORITY_SUFFIX, check_topic
 from dbml.protocol.schema import PRIORITY, ParamError
 from dbml.transports.base import (
@@ -146,6 +150,20 @@ def unframe_bytes(data: bytes) -> bytes | None:
     if header != _CDR_LE or dims != 0 or len(data) - _BYTES_HEADER.size < size:
         return None
     return data[_BYTES_HEADER.size : _BYTES_HEADER.size + size]
+
+
+def sample_meta(info: Any) -> bytes | None:
+    """Dbml's metadata of a received message from DDS's own sample info, if the RMW fills it.
+
+    The writer's sequence number (gaps are losses) and its wall-clock source timestamp (the
+    send time) are what estimation needs; the publisher's rate does not travel (NaN).
+    """
+    if not isinstance(info, dict):
+        return None
+    seq, sent_ns = info.get("publication_sequence_number"), info.get("source_timestamp")
+    if not isinstance(seq, int) or not isinstance(sent_ns, int) or seq <= 0 or sent_ns <= 0:
+        return None
+    return pack_meta(seq, sent_ns, math.nan)
 
 
 def message_class(msg_type: str) -> type:
@@ -257,15 +275,19 @@ class _Subscription:
         self.subscription: Any = None
         self.reliable: bool | None = None
 
-    def deliver(self, data: bytes) -> None:
+    def deliver(self, data: bytes, info: Any) -> None:
+        """One message, with what DDS says of it as dbml's metadata (``sample_meta``)."""
         if self.closed:
             return
-        if self._framed:
-            payload = unframe_bytes(data)
-            if payload is None:
-                return
-            data = payload
-        self._callback(Sample(self.topic, data, None))
+        try:
+            if self._framed:
+                payload = unframe_bytes(data)
+                if payload is None:
+                    return
+                data = payload
+            self._callback(Sample(self.topic, data, sample_meta(info)))
+        except Exception:  # the executor thread must outlive any callback
+            log.exception("a subscription callback of %s failed", self.ros_topic)
 
     def ensure(self, msg_type: str, reliable: bool) -> None:
         """Create (or re-create, to match its publishers' reliability) the subscription."""
@@ -279,7 +301,7 @@ class _Subscription:
         self.subscription = node.create_subscription(
             message_class(msg_type),
             self.ros_topic,
-            _guarded(f"subscription of {self.ros_topic}", self.deliver),
+            self.deliver,
             QoSProfile(
                 history=HistoryPolicy.KEEP_LAST,
                 depth=SUBSCRIPTION_DEPTH,

@@ -73,6 +73,9 @@ class TransportEntry:
     typed_topics: bool = False
     """Whether every topic has a message type (ROS 1, ROS 2), so one that cannot be found is
     an error rather than untyped bytes."""
+    send_times: bool = False
+    """Whether a received message says when it was sent and its sequence number (dbml's
+    attachment, or DDS's sample info over rclpy): what ``--estimate`` needs."""
 
 
 def _no_network(name: str, options: TransportOptions) -> None:
@@ -184,6 +187,7 @@ TRANSPORTS: Mapping[str, TransportEntry] = types.MappingProxyType(
             spans_processes=True,
             carries_metadata=True,
             params_complete_at_start=False,
+            send_times=True,
         ),
         "ros1": TransportEntry(
             factory=_open_ros1,
@@ -201,6 +205,7 @@ TRANSPORTS: Mapping[str, TransportEntry] = types.MappingProxyType(
             carries_metadata=False,
             params_complete_at_start=False,
             typed_topics=True,
+            send_times=True,
         ),
         "ros2": TransportEntry(
             factory=_open_ros2,
@@ -216,6 +221,7 @@ TRANSPORTS: Mapping[str, TransportEntry] = types.MappingProxyType(
             spans_processes=False,
             carries_metadata=True,
             params_complete_at_start=False,
+            send_times=True,
         ),
     }
 )

@@ -26,7 +26,8 @@ class MessageMeta:
     sent_ns: int
     """Wall-clock send time (``time.time_ns()``) on the publisher's host."""
     rate_hz: float
-    """The rate the publisher applied to ``[topic]/optimized`` when it sent this message."""
+    """The rate the publisher applied to ``[topic]/optimized`` when it sent this message (NaN
+    where the middleware does not carry it: over rclpy, DDS's sample info gives the rest)."""
 
     @classmethod
     def decode(cls, data: bytes | None) -> MessageMeta:
