@@ -59,6 +59,18 @@ def ros(tmp_path: Path) -> Iterator[RosNet]:
         yield net
 
 
+@pytest.hookimpl(tryfirst=True)  # before -m selects by marker
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Mark ``ros1`` every test using ``ros``: it needs rospy, so it runs in .venv-ros1.
+
+    ROS 1 and ROS 2's wheels cannot share an interpreter: ``make test`` runs ``-m "not ros1"``
+    in .venv and ``-m ros1`` in .venv-ros1 (tests/ros1/conftest.py marks its whole directory).
+    """
+    for item in items:
+        if "ros" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.ros1)
+
+
 @pytest.fixture(autouse=True)
 def isolated_logging() -> Iterator[None]:
     """A ``main()`` run in-process may configure the root logger: undo it after each test.
@@ -75,3 +87,46 @@ def isolated_logging() -> Iterator[None]:
             if handler not in handlers:
                 root.removeHandler(handler)
         root.setLevel(level)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def ros2_process_env(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """This test process's own ROS 2 settings, before any test starts an rclpy context.
+
+    rclpy logs to ``ROS_LOG_DIR`` (else ``~/.ros/log``) and Fast DDS reads its profile once per
+    process, at the first participant: both are set here, for the whole session (the 3-s lease
+    and fast announcements of ``dbml.transports.fastdds``; children get theirs from
+    ``ros2_child_env``).
+    """
+    from dbml.transports.fastdds import apply_discovery_profile
+
+    log_dir = tmp_path_factory.mktemp("ros-log")
+    saved = {k: os.environ.get(k) for k in ("ROS_LOG_DIR", "FASTDDS_DEFAULT_PROFILES_FILE")}
+    os.environ["ROS_LOG_DIR"] = str(log_dir)
+    apply_discovery_profile(log_dir)
+    try:
+        yield
+    finally:
+        for key, value in saved.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
+
+
+@pytest.fixture
+def ros_domain() -> Iterator[int]:
+    """A ROS 2 domain this test holds alone (parallel runs never share one: see ros2env)."""
+    from dbml.harness.ros2env import claim_domain
+
+    with claim_domain() as domain:
+        yield domain
+
+
+@pytest.fixture
+def ros_log_dir(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """A log directory for ROS 2, also ``ROS_LOG_DIR`` here, so rclpy writes nothing to ~/.ros."""
+    log_dir = tmp_path / "ros-log"
+    log_dir.mkdir()
+    monkeypatch.setenv("ROS_LOG_DIR", str(log_dir))
+    return log_dir

@@ -8,14 +8,12 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Iterator
 
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
 from dbml.core.errors import TransportError
-from dbml.harness.ros2env import claim_domain
 from dbml.protocol.keys import encode_batch
 from dbml.protocol.metadata import MessageMeta
 from dbml.transports.base import Role, Sample, Variant
@@ -72,20 +70,14 @@ def test_a_missing_type_names_what_to_install() -> None:
         message_class("Image")
 
 
-@pytest.fixture
-def domain() -> Iterator[int]:
-    with claim_domain() as domain_id:
-        yield domain_id
-
-
 @pytest.mark.integration
-def test_ros2_param_set_on_the_optimizers_node(domain: int) -> None:
-    optimizer = RclpyTransport(host="ground", domain_id=domain)
-    observer = RclpyTransport(host="observer", domain_id=domain)
+def test_ros2_param_set_on_the_optimizers_node(ros_domain: int) -> None:
+    optimizer = RclpyTransport(host="ground", domain_id=ros_domain)
+    observer = RclpyTransport(host="observer", domain_id=ros_domain)
     try:
         optimizer.params.set("/dbm/status", "optimal")  # the optimizer's write: it hosts /dbm
         optimizer.params.set("/dbm/max_bandwidth_in_mbit", 11.0)
-        with plain_node(domain, "operator") as operator:
+        with plain_node(ros_domain, "operator") as operator:
             result = param_set(operator, "/dbm", "max_bandwidth_in_mbit", 5)  # an integer
             assert result.successful, result.reason
             wait_for(lambda: observer.params.get("/dbm/max_bandwidth_in_mbit") == 5.0, what="5")
@@ -107,16 +99,16 @@ def test_ros2_param_set_on_the_optimizers_node(domain: int) -> None:
 
 
 @pytest.mark.integration
-def test_a_channels_parameters_live_on_its_publishers_node(domain: int) -> None:
-    robot = RclpyTransport(host="r1", domain_id=domain)
-    ground = RclpyTransport(host="ground", domain_id=domain)
+def test_a_channels_parameters_live_on_its_publishers_node(ros_domain: int) -> None:
+    robot = RclpyTransport(host="r1", domain_id=ros_domain)
+    ground = RclpyTransport(host="ground", domain_id=ros_domain)
     try:
         robot.params.set("/r1/camera/dbm/frequency/max", 16.0)  # the publisher's own
         wait_for(lambda: ground.params.get("/r1/camera/dbm/frequency/max") == 16.0, what="max")
         ground.params.set("/r1/camera/dbm/priority", 0.8)  # an operator's, through the service
         wait_for(lambda: robot.params.get("/r1/camera/dbm/priority") == 0.8, what="priority")
         wait_for(lambda: ground.confirm_param("/r1/camera/dbm/priority", timeout_s=0), what="ack")
-        with plain_node(domain, "operator") as operator:
+        with plain_node(ros_domain, "operator") as operator:
             refused = param_set(operator, "/r1/camera/dbm", "frequency.max", 100.0)
             assert not refused.successful
             assert "publisher" in refused.reason
@@ -127,11 +119,11 @@ def test_a_channels_parameters_live_on_its_publishers_node(domain: int) -> None:
 
 
 @pytest.mark.integration
-def test_a_float64_priority_sets_the_channels_priority(domain: int) -> None:
-    robot = RclpyTransport(host="r1", domain_id=domain)
+def test_a_float64_priority_sets_the_channels_priority(ros_domain: int) -> None:
+    robot = RclpyTransport(host="r1", domain_id=ros_domain)
     try:
         robot.params.set("/r1/camera/dbm/frequency/min", 1.0)
-        with plain_node(domain, "mission") as mission:
+        with plain_node(ros_domain, "mission") as mission:
             publisher = mission.create_publisher(Float64, "/r1/camera/dbm/priority", 10)
             wait_for(lambda: publisher.get_subscription_count() > 0, what="the host's subscription")
             publisher.publish(Float64(data=7.0))  # out of range: ignored
@@ -142,14 +134,14 @@ def test_a_float64_priority_sets_the_channels_priority(domain: int) -> None:
 
 
 @pytest.mark.integration
-def test_only_the_dbm_node_allocates(domain: int) -> None:
-    robot = RclpyTransport(host="r1", domain_id=domain)
-    optimizer = RclpyTransport(host="ground", domain_id=domain)
+def test_only_the_dbm_node_allocates(ros_domain: int) -> None:
+    robot = RclpyTransport(host="r1", domain_id=ros_domain)
+    optimizer = RclpyTransport(host="ground", domain_id=ros_domain)
     try:
         robot.params.set("/r1/camera/dbm/frequency/max", 16.0)
         optimizer.params.set("/dbm/status", "optimal")
         wait_for(lambda: optimizer.params.get("/r1/camera/dbm/frequency/max") == 16.0, what="max")
-        with plain_node(domain, "forger") as forger:
+        with plain_node(ros_domain, "forger") as forger:
             fake = forger.create_publisher(String, "/dbm/allocation", 10)
             wait_for(lambda: fake.get_subscription_count() >= 2, what="the forger's matches")
             batch = encode_batch({"/r1/camera/dbm/frequency/current_value": 16.0}, 1, "x")
@@ -169,9 +161,9 @@ def test_only_the_dbm_node_allocates(domain: int) -> None:
 
 
 @pytest.mark.integration
-def test_the_graph_is_the_dds_endpoints_by_host(domain: int) -> None:
-    robot = RclpyTransport(host="r1", domain_id=domain)
-    ground = RclpyTransport(host="ground", domain_id=domain)
+def test_the_graph_is_the_dds_endpoints_by_host(ros_domain: int) -> None:
+    robot = RclpyTransport(host="r1", domain_id=ros_domain)
+    ground = RclpyTransport(host="ground", domain_id=ros_domain)
     try:
         publisher = robot.declare_publisher("/r1/camera", Variant.OPTIMIZED)
         handle = ground.subscribe("/r1/camera", lambda _s: None, Variant.OPTIMIZED)
@@ -196,14 +188,14 @@ def test_the_graph_is_the_dds_endpoints_by_host(domain: int) -> None:
 
 
 @pytest.mark.integration
-def test_a_foreign_subscription_of_the_optimized_copy_is_remote(domain: int) -> None:
-    robot = RclpyTransport(host="r1", domain_id=domain)
+def test_a_foreign_subscription_of_the_optimized_copy_is_remote(ros_domain: int) -> None:
+    robot = RclpyTransport(host="r1", domain_id=ros_domain)
     try:
         robot.set_topic_type("/r1/camera", "sensor_msgs/msg/Image")
         robot.declare_publisher("/r1/camera", Variant.OPTIMIZED)
         from sensor_msgs.msg import Image
 
-        with plain_node(domain, "rviz") as rviz:
+        with plain_node(ros_domain, "rviz") as rviz:
             rviz.create_subscription(Image, "/r1/camera/optimized", lambda _m: None, 10)
 
             def foreign() -> set[str]:
@@ -220,10 +212,10 @@ def test_a_foreign_subscription_of_the_optimized_copy_is_remote(domain: int) -> 
 
 
 @pytest.mark.integration
-def test_a_sample_carries_ddss_sequence_and_send_time(domain: int) -> None:
+def test_a_sample_carries_ddss_sequence_and_send_time(ros_domain: int) -> None:
     """What ``--estimate`` needs travels in DDS's sample info: seq and source timestamp."""
-    robot = RclpyTransport(host="r1", domain_id=domain)
-    ground = RclpyTransport(host="ground", domain_id=domain)
+    robot = RclpyTransport(host="r1", domain_id=ros_domain)
+    ground = RclpyTransport(host="ground", domain_id=ros_domain)
     try:
         got: list[Sample] = []
         ground.subscribe("/r1/camera", got.append, Variant.OPTIMIZED)

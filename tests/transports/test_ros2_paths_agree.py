@@ -12,7 +12,6 @@ from typing import Any
 
 import pytest
 
-from dbml.harness.ros2env import claim_domain
 from dbml.transports.ros2msg import IMAGE_OVERHEAD_BYTES, MessageTypes, encode_float64, image_cdr
 
 pytest.importorskip("rclpy")
@@ -76,8 +75,8 @@ def test_dbmls_hand_written_cdr_is_what_rclpy_writes() -> None:
 
 
 @pytest.fixture
-def node() -> Iterator[Any]:
-    with claim_domain() as domain_id, plain_node(domain_id, "hashes") as made:
+def node(ros_domain: int) -> Iterator[Any]:
+    with plain_node(ros_domain, "hashes") as made:
         yield made
 
 
