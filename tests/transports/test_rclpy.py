@@ -17,7 +17,14 @@ from dbml.core.errors import TransportError
 from dbml.protocol.keys import encode_batch
 from dbml.protocol.metadata import MessageMeta
 from dbml.transports.base import Role, Sample, Variant
-from dbml.transports.rclpy import (
+from tests.conftest import wait_for
+
+rclpy = pytest.importorskip("rclpy")  # before dbml's rclpy module: the ROS 1 environment lacks it
+
+from std_msgs.msg import Float64, String  # noqa: E402
+
+from dbml.transports.rclpy import (  # noqa: E402
+    ALLOCATION_QOS,
     BYTES_TYPE,
     RclpyTransport,
     frame_bytes,
@@ -27,12 +34,6 @@ from dbml.transports.rclpy import (
     sample_meta,
     unframe_bytes,
 )
-from tests.conftest import wait_for
-
-rclpy = pytest.importorskip("rclpy")
-
-from std_msgs.msg import Float64, String  # noqa: E402
-
 from tests.rclpy_tools import param_set, plain_node  # noqa: E402
 
 
@@ -142,7 +143,7 @@ def test_only_the_dbm_node_allocates(ros_domain: int) -> None:
         optimizer.params.set("/dbm/status", "optimal")
         wait_for(lambda: optimizer.params.get("/r1/camera/dbm/frequency/max") == 16.0, what="max")
         with plain_node(ros_domain, "forger") as forger:
-            fake = forger.create_publisher(String, "/dbm/allocation", 10)
+            fake = forger.create_publisher(String, "/dbm/allocation", ALLOCATION_QOS)
             wait_for(lambda: fake.get_subscription_count() >= 2, what="the forger's matches")
             batch = encode_batch({"/r1/camera/dbm/frequency/current_value": 16.0}, 1, "x")
             fake.publish(String(data=batch.decode()))

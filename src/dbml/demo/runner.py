@@ -2,17 +2,21 @@
 
 The roles run on loopback: OS processes over zenoh (a rendezvous port of the run's own) or ROS 1
 (the master at ``ROS_MASTER_URI`` when one answers, else one started for the run; each role a
-node with its own ROS_IP, so R1, R2 and the operator are different ROS hosts), ROS 2 (see
-``_ros2_processes``), or threads over the memory transport. Per step and robot the result holds
-tc, priority, the allocated and measured rate, and whether they match Table 2 and each other.
+node with its own ROS_IP, so R1, R2 and the operator are different ROS hosts), ROS 2 over
+rmw_zenoh's format (see ``_ros2_processes``) or over rclpy (see ``_rclpy_processes``), or threads
+over the memory transport. Per step and robot the result holds tc, priority, the allocated and
+measured rate, and whether they match Table 2 and each other.
 """
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import os
 import sys
+import tempfile
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 from dbml.core.errors import DbmlError
 from dbml.experiment.analysis import (
@@ -21,11 +25,13 @@ from dbml.experiment.analysis import (
     StepResult,
     Window,
 )
+from dbml.experiment.rclpypeers import RCLPY_MISSING
 from dbml.experiment.roles import HOSTS, RoleSpec
 from dbml.experiment.ros2peers import IMAGE_TYPE, SDK_MISSING
 from dbml.experiment.ros2peers import ROLES as ROS2_PEER_ROLES
 from dbml.experiment.runner import Command, Helper, Observer, run_experiment
 from dbml.harness.processes import free_port
+from dbml.harness.ros2env import claim_domain, ros2_child_env
 from dbml.harness.rosmaster import RosMaster
 from dbml.scenarios.reproduce import reproduce_table2
 from dbml.scenarios.teleop import LINK_MBIT, MAX_RATE_HZ, MIN_RATE_HZ, ROBOTS, STEPS
@@ -48,6 +54,11 @@ BRIDGE_WAIT_S = 50.0
 """How long a bridge waits for its camera's first frame (the robots start after it)."""
 ROLES_MODULE = "dbml.experiment.roles"
 ROS2_PEERS_MODULE = "dbml.experiment.ros2peers"
+RCLPY_PEERS_MODULE = "dbml.experiment.rclpypeers"
+LOG_PREFIX = "dbml-demo-ros-"
+"""The run's ROS log directory (a temporary one: the demo writes no files of its own)."""
+PEERS_MODULES = {"ros2": ROS2_PEERS_MODULE, "rclpy": RCLPY_PEERS_MODULE}
+"""The transports whose robots and operator are plain ROS 2 nodes, and the module playing them."""
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -150,23 +161,10 @@ def _command(master: RosMaster | None) -> Command:
     return command
 
 
-def _ros2_processes(
-    specs: dict[str, RoleSpec],
-) -> tuple[dict[str, RoleSpec], Command, tuple[Helper, ...]]:
-    """The ROS 2 run: plain ROS 2 robots and operator, dbml's bridges, optimizer and router.
-
-    ROS 2 nodes meet at a zenoh router (``dbml router`` on a free loopback port, as
-    ``rmw_zenohd`` on 7447), which starts first; everyone connects to it and listens on a port
-    of its own. The robots and the operator are ``ros2peers`` (zenoh-ros2-sdk, no dbml); one
-    ``dbml bridge`` per camera, on its robot's host, manages it; the optimizer is ``roles``'.
-    Bridges start after the optimizer and operator, before the robots they bridge.
-    """
-    port = free_port()
-    endpoint = f"tcp/127.0.0.1:{port}"
-    network = ("--transport", "ros2", "--connect", endpoint, "--listen", ROS2_LISTEN)
+def _bridges(network: tuple[str, ...], *, env: dict[str, str] | None) -> tuple[Helper, ...]:
+    """One ``dbml bridge`` per camera, on its robot's host, before the robots start."""
     dbml = (sys.executable, "-m", "dbml")
-    router = Helper(name="router", argv=(*dbml, "router", "--listen", endpoint), port=port)
-    bridges = tuple(
+    return tuple(
         Helper(
             name=f"bridge-{camera.robot.lower()}",
             argv=(
@@ -185,21 +183,62 @@ def _ros2_processes(
                 HOSTS[camera.robot.lower()],
                 *network,
             ),
+            env=env,
             before=ROBOTS[0].robot.lower(),
         )
         for camera in ROBOTS
     )
+
+
+def _peers_command(transport: str, env: dict[str, str]) -> Command:
+    """Roles' argv, with the robots and the operator played by ``transport``'s plain peers."""
+    module = PEERS_MODULES[transport]
+
+    def command(role: str, argv: list[str]) -> tuple[list[str], dict[str, str]]:
+        if role in ROS2_PEER_ROLES:  # the same protocol, played by plain ROS 2 nodes
+            argv = [module if a == ROLES_MODULE else a for a in argv]
+        return argv, env
+
+    return command
+
+
+def _ros2_processes(
+    specs: dict[str, RoleSpec],
+) -> tuple[dict[str, RoleSpec], Command, tuple[Helper, ...]]:
+    """The ROS 2 run: plain ROS 2 robots and operator, dbml's bridges, optimizer and router.
+
+    ROS 2 nodes meet at a zenoh router (``dbml router`` on a free loopback port, as
+    ``rmw_zenohd`` on 7447), which starts first; everyone connects to it and listens on a port
+    of its own. The robots and the operator are ``ros2peers`` (zenoh-ros2-sdk, no dbml); one
+    ``dbml bridge`` per camera, on its robot's host, manages it; the optimizer is ``roles``'.
+    Bridges start after the optimizer and operator, before the robots they bridge.
+    """
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    network = ("--transport", "ros2", "--connect", endpoint, "--listen", ROS2_LISTEN)
+    dbml = (sys.executable, "-m", "dbml")
+    router = Helper(name="router", argv=(*dbml, "router", "--listen", endpoint), port=port)
     specs = {
         role: replace(spec, connect=(endpoint,), listen=(ROS2_LISTEN,))
         for role, spec in specs.items()
     }
+    return specs, _peers_command("ros2", dict(os.environ)), (router, *_bridges(network, env=None))
 
-    def command(role: str, argv: list[str]) -> tuple[list[str], dict[str, str]]:
-        if role in ROS2_PEER_ROLES:  # the same protocol, played by plain ROS 2 nodes
-            argv = [ROS2_PEERS_MODULE if a == ROLES_MODULE else a for a in argv]
-        return argv, dict(os.environ)
 
-    return specs, command, (router, *bridges)
+def _rclpy_processes(
+    specs: dict[str, RoleSpec], *, domain_id: int, log_dir: Path
+) -> tuple[dict[str, RoleSpec], Command, tuple[Helper, ...]]:
+    """The rclpy run: plain rclpy robots and operator, dbml's bridges and optimizer, over DDS.
+
+    Every process joins ROS 2 domain ``domain_id`` (the run's own: DDS discovery needs no
+    router) with its ROS logs under ``log_dir``. The robots and the operator are
+    ``rclpypeers`` (no dbml); one ``dbml bridge --transport rclpy`` per camera, on its robot's
+    host, manages it; the optimizer is ``roles``'. Bridges start before the robots.
+    """
+    env = ros2_child_env(domain_id=domain_id, log_dir=log_dir)
+    network = ("--transport", "rclpy", "--domain-id", str(domain_id))
+    specs = {role: replace(spec, domain_id=domain_id) for role, spec in specs.items()}
+    return specs, _peers_command("rclpy", env), _bridges(network, env=env)
 
 
 def run_teleop_demo(options: DemoOptions, *, observe: Observer | None = None) -> DemoResult:
@@ -211,24 +250,31 @@ def run_teleop_demo(options: DemoOptions, *, observe: Observer | None = None) ->
         )
     if options.transport == "ros2" and importlib.util.find_spec("zenoh_ros2_sdk") is None:
         raise DbmlError(SDK_MISSING)
+    if options.transport == "rclpy" and importlib.util.find_spec("rclpy") is None:
+        raise DbmlError(RCLPY_MISSING)
     specs = {
         role: RoleSpec(step_s=options.step_seconds, transport=options.transport, host=host)
         for role, host in HOSTS.items()
     }
     helpers: tuple[Helper, ...] = ()
-    master = RosMaster.reuse_or_start() if options.transport == "ros1" else None
-    try:
+    with contextlib.ExitStack() as run:
+        master = RosMaster.reuse_or_start() if options.transport == "ros1" else None
+        if master is not None:
+            run.callback(master.stop)
         command: Command | None = None
         if options.transport == "ros2":
             specs, command, helpers = _ros2_processes(specs)
+        elif options.transport == "rclpy":
+            specs, command, helpers = _rclpy_processes(
+                specs,
+                domain_id=run.enter_context(claim_domain()),
+                log_dir=Path(run.enter_context(tempfile.TemporaryDirectory(prefix=LOG_PREFIX))),
+            )
         elif TRANSPORTS[options.transport].spans_processes:
             command = _command(master)
         recording = run_experiment(
             specs, what="demo", command=command, observe=observe, helpers=helpers
         )
-    finally:
-        if master is not None:
-            master.stop()
     if recording.t0 is None:
         return DemoResult(options, interrupted=recording.interrupted)
     analysis = recording.analyse(step_s=options.step_seconds, link_mbit=LINK_MBIT)

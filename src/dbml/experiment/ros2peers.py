@@ -62,12 +62,17 @@ __all__ = [
     "PRIORITY_SUFFIX",
     "ROLES",
     "SDK_MISSING",
+    "FrameRecorder",
     "SdkSession",
     "image_fields",
     "main",
+    "replay_priorities",
+    "report_ticks",
     "router_address",
+    "run_paced",
     "step_priority",
     "type_hash",
+    "wait_first_frames",
 ]
 
 log = logging.getLogger("dbml.experiment.ros2peers")
@@ -223,25 +228,43 @@ class SdkSession:
         self._session.close()
 
 
-def _publish_frames(publisher: Any, types: Any, size_bytes: int, stop: threading.Event) -> None:
-    """A camera driver: one frame every ``1 / MAX_RATE_HZ`` s until ``stop``, never a burst."""
-    period_s = 1.0 / MAX_RATE_HZ
-    data = np.zeros(size_bytes - IMAGE_OVERHEAD_BYTES, dtype=np.uint8)
+def run_paced(send: Callable[[], None], *, rate_hz: float, stop: threading.Event) -> None:
+    """``send()`` every ``1 / rate_hz`` s until ``stop``, as a camera driver: never a burst.
+
+    Paced on an absolute schedule (no drift); a send late by more than a period is not caught up.
+    """
+    period_s = 1.0 / rate_hz
     next_s = time.monotonic()
     while not stop.is_set():
-        publisher.publish(**image_fields(types, size_bytes, time.time_ns(), data))
+        send()
         next_s += period_s
         now = time.monotonic()
         next_s = max(next_s, now - period_s)  # late by more than a frame: do not catch up
         stop.wait(max(0.0, next_s - now))
 
 
-def _replay_priorities(
-    publisher: Any, index: int, t0: float, spec: RoleSpec, stop: threading.Event, *, life: Lifetime
-) -> None:
-    """Table 2's priority of each step from its start, again every ``PRIORITY_REPEAT_S``.
+def _publish_frames(publisher: Any, types: Any, size_bytes: int, stop: threading.Event) -> None:
+    """A camera driver: one frame every ``1 / MAX_RATE_HZ`` s until ``stop``."""
+    data = np.zeros(size_bytes - IMAGE_OVERHEAD_BYTES, dtype=np.uint8)
+    run_paced(
+        lambda: publisher.publish(**image_fields(types, size_bytes, time.time_ns(), data)),
+        rate_hz=MAX_RATE_HZ,
+        stop=stop,
+    )
 
-    Until the last step, ``stop``, or a dbml thread's death (``life``).
+
+def replay_priorities(
+    send: Callable[[float], None],
+    index: int,
+    t0: float,
+    spec: RoleSpec,
+    stop: threading.Event,
+    *,
+    life: Lifetime,
+) -> None:
+    """``send`` Table 2's priority of each step from its start, again every ``PRIORITY_REPEAT_S``.
+
+    Robot ``index``'s, until the last step, ``stop``, or a dbml thread's death (``life``).
     """
     if not wait_until(t0, stop):
         return
@@ -250,7 +273,7 @@ def _replay_priorities(
         k = int((now - t0) // spec.step_s)
         if k >= len(STEPS):
             return
-        publisher.publish(data=step_priority(STEPS[k], index))
+        send(step_priority(STEPS[k], index))
         if not wait_until(min(t0 + (k + 1) * spec.step_s, now + PRIORITY_REPEAT_S), stop):
             return
 
@@ -279,7 +302,11 @@ def _serve_camera(role: str, spec: RoleSpec, stop: threading.Event) -> int:
         )
         driver.start()  # from the start, as a camera driver: the bridge waits for a frame
         serve_role(
-            role, stop, lambda t0: _replay_priorities(priority, index, t0, spec, stop, life=life)
+            role,
+            stop,
+            lambda t0: replay_priorities(
+                lambda value: priority.publish(data=value), index, t0, spec, stop, life=life
+            ),
         )
     finally:
         camera_stop.set()
@@ -291,38 +318,34 @@ def _serve_camera(role: str, spec: RoleSpec, stop: threading.Event) -> int:
     return life.exit_code()
 
 
-class _Recorder:
-    """The operator's record of each frame: robot, count, send and arrival time, size."""
+class FrameRecorder:
+    """An operator's record of each frame: robot, count, send and arrival time, size.
 
-    def __init__(self, store: Any) -> None:
-        self._store = store
+    Fed from subscription callbacks (any thread), read by the tick loop.
+    """
+
+    def __init__(self, robots: int = len(ROBOTS)) -> None:
         self._lock = threading.Lock()
         self._rows: list[Arrival] = []
-        self._counts = [0 for _ in ROBOTS]
+        self._counts = [0 for _ in range(robots)]
 
-    def on_image(self, index: int) -> Callable[[Any], None]:
-        """The subscription callback of robot ``index``'s optimized topic."""
-
-        def record(message: Any) -> None:
-            arrival_s = time.time()
-            size_bytes = len(self._store.serialize_cdr(message, IMAGE_TYPE))
-            stamp = message.header.stamp
-            sent_s = stamp.sec + stamp.nanosec / _NS_PER_S
-            with self._lock:
-                seq = self._counts[index]
-                self._counts[index] += 1
-                self._rows.append(
-                    Arrival(
-                        robot=index,
-                        seq=seq,
-                        sent_s=sent_s,
-                        arrival_s=arrival_s,
-                        size_bytes=size_bytes,
-                        rate_hz=None,  # a plain ROS 2 message carries no rate
-                    )
+    def record(
+        self, index: int, *, arrival_s: float, sent_s: float | None, size_bytes: int
+    ) -> None:
+        """One frame of robot ``index`` (its sequence number is the per-topic count from 0)."""
+        with self._lock:
+            seq = self._counts[index]
+            self._counts[index] += 1
+            self._rows.append(
+                Arrival(
+                    robot=index,
+                    seq=seq,
+                    sent_s=sent_s,
+                    arrival_s=arrival_s,
+                    size_bytes=size_bytes,
+                    rate_hz=None,  # a plain ROS 2 message carries no rate
                 )
-
-        return record
+            )
 
     def counts(self) -> list[int]:
         """Frames received so far, per robot."""
@@ -336,7 +359,9 @@ class _Recorder:
         return rows
 
 
-def _wait_first_frames(recorder: _Recorder, topics: Sequence[str], stop: threading.Event) -> None:
+def wait_first_frames(
+    recorder: FrameRecorder, topics: Sequence[str], stop: threading.Event
+) -> None:
     """Return once every topic delivered a frame; raise naming those that did not."""
     deadline = time.monotonic() + FIRST_FRAMES_TIMEOUT_S
     while not all(recorder.counts()) and time.monotonic() < deadline and not stop.is_set():
@@ -345,15 +370,53 @@ def _wait_first_frames(recorder: _Recorder, topics: Sequence[str], stop: threadi
     if missing and not stop.is_set():
         raise DbmlError(
             f"operator: no frame on {', '.join(missing)} within {FIRST_FRAMES_TIMEOUT_S:g} s "
-            "(are the router, the bridges and the robots running?)"
+            "(are the bridges and the robots running?)"
         )
+
+
+def report_ticks(
+    view: ParamView,
+    recorder: FrameRecorder,
+    t0: float,
+    spec: RoleSpec,
+    stop: threading.Event,
+    *,
+    life: Lifetime,
+) -> None:
+    """The operator's run: a report every ``TICK_S`` in ``roles``' format, then ``done``.
+
+    Every subscription is of an optimized copy; a run that lost a thread is not done (the
+    runner fails it).
+    """
+    variants = [Variant.OPTIMIZED.value for _ in ROBOTS]
+    while not life.over() and time.time() < t0 + spec.duration_s + TAIL_S:
+        stop.wait(TICK_S)
+        emit_json(operator_tick(view, recorder.take(), variants).encode())
+    if not life.failed:
+        emit_json({"type": "done"})
+
+
+def _sdk_image_callback(recorder: FrameRecorder, store: Any, index: int) -> Callable[[Any], None]:
+    """The SDK subscription callback of robot ``index``'s optimized topic."""
+
+    def record(message: Any) -> None:
+        arrival_s = time.time()
+        stamp = message.header.stamp
+        recorder.record(
+            index,
+            arrival_s=arrival_s,
+            sent_s=stamp.sec + stamp.nanosec / _NS_PER_S,
+            size_bytes=len(store.serialize_cdr(message, IMAGE_TYPE)),
+        )
+
+    return record
 
 
 def _serve_operator(spec: RoleSpec, stop: threading.Event) -> int:
     """The operator peer's run; 1 when a dbml thread (its transport's) died meanwhile, else 0."""
     life = Lifetime(stop, None)
     sdk = SdkSession(spec.connect[0])
-    recorder = _Recorder(sdk.store)
+    recorder = FrameRecorder()
     topics = [camera.topic + OPTIMIZED_SUFFIX for camera in ROBOTS]
     subscribers: list[Any] = []
     try:
@@ -368,28 +431,21 @@ def _serve_operator(spec: RoleSpec, stop: threading.Event) -> int:
         sdk.close()
         raise
     view = ParamView.of(transport.params)
-    variants = [Variant.OPTIMIZED.value for _ in ROBOTS]  # what the operator subscribes to
-
-    def operate(t0: float) -> None:
-        while not life.over() and time.time() < t0 + spec.duration_s + TAIL_S:
-            stop.wait(TICK_S)
-            emit_json(operator_tick(view, recorder.take(), variants).encode())
-        if not life.failed:  # a run that lost a thread is not done: the runner fails it
-            emit_json({"type": "done"})
-
     try:
         for i, topic in enumerate(topics):
             subscribers.append(
                 sdk.subscriber(
                     topic,
                     IMAGE_TYPE,
-                    recorder.on_image(i),
+                    _sdk_image_callback(recorder, sdk.store, i),
                     node_name=f"operator_{ROBOTS[i].robot.lower()}",
                 )
             )
         transport.wait_for_peers(spec.peer_wait_s)
-        _wait_first_frames(recorder, topics, stop)
-        serve_role("operator", stop, operate)
+        wait_first_frames(recorder, topics, stop)
+        serve_role(
+            "operator", stop, lambda t0: report_ticks(view, recorder, t0, spec, stop, life=life)
+        )
     finally:
         for subscriber in subscribers:
             subscriber.close()

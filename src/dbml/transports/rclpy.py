@@ -84,6 +84,7 @@ from rclpy.qos import (  # noqa: E402
 from rclpy.signals import SignalHandlerOptions  # noqa: E402
 
 __all__ = [
+    "ALLOCATION_QOS",
     "BYTES_TYPE",
     "GRAPH_POLL_S",
     "RCLPY_HINT",
@@ -107,6 +108,13 @@ MAX_TOPICS = 4_096
 """Topics of the graph read at most per poll (beyond: ignored, logged once per flood)."""
 MAX_SOON = 65_536
 """Work items waiting for the executor thread at most (each a write batch or a release)."""
+ALLOCATION_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=1,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+"""The newest whole allocation, kept for a host that matches the ``/dbm`` node late."""
 _NODE_PREFIX = "dbml_"
 _ESCAPE = re.compile(r"[^A-Za-z0-9]")
 _UNESCAPE = re.compile(r"_([0-9a-f]{2})")
@@ -390,7 +398,7 @@ class RclpyTransport(TransportBase):
                 _string(),
                 ALLOCATION_TOPIC,
                 self._on_allocation,
-                QoSProfile(depth=SUBSCRIPTION_DEPTH, reliability=ReliabilityPolicy.RELIABLE),
+                ALLOCATION_QOS,
             )
             self.node.create_timer(GRAPH_POLL_S, _guarded("the graph poll", self._poll))
         except Exception:
@@ -440,12 +448,8 @@ class RclpyTransport(TransportBase):
         node.destroy_node()
 
     def string_publisher(self, node: Node, topic: str) -> Any:
-        """A reliable ``std_msgs/msg/String`` publisher of ``node`` (the allocation's)."""
-        return node.create_publisher(
-            _string(),
-            topic,
-            QoSProfile(depth=SUBSCRIPTION_DEPTH, reliability=ReliabilityPolicy.RELIABLE),
-        )
+        """``node``'s ``std_msgs/msg/String`` publisher of the newest whole allocation."""
+        return node.create_publisher(_string(), topic, ALLOCATION_QOS)
 
     def hear_priority(self, topic: str, node: Node) -> Handle:
         """Take ``std_msgs/msg/Float64`` on ``[topic]/dbm/priority`` as the channel's priority.

@@ -19,6 +19,8 @@ What carries what, and why:
   one message per round on the dbml topic ``/dbm/allocation``, sent by the ``/dbm`` node: one
   message, not a service call per channel, and its sender is known (the publisher's GID), so the
   channel's host takes it from the optimizer's node only and applies it to its own parameter.
+  The message holds the whole allocation and is sent again with each round's heartbeat on a
+  transient-local topic, so a host that joined or matched late has it all within a round.
 - **A process's own parameters** (a publisher's sizes and rates, the optimizer's status) are set
   on the node it hosts, which announces them.
 
@@ -47,6 +49,7 @@ from dbml.protocol.names import check_topic
 from dbml.protocol.schema import (
     GLOBAL_PREFIX,
     PARAMETERS,
+    ROUND,
     ParamError,
     Parameter,
     Scope,
@@ -86,6 +89,10 @@ HOSTING_WRITERS: Mapping[Scope, frozenset[Writer]] = {
 process the paper puts it on (the optimizer's ``/dbm``, the publisher's ``[topic]/dbm``)."""
 MAX_PARAM_NODES = 8_192
 """The most parameter nodes remembered (met, fetched); beyond, new ones are ignored (logged)."""
+MAX_UNATTRIBUTED = 8
+"""Senders whose allocation waits for the graph to name them (their newest message each)."""
+UNATTRIBUTED_S = 5.0
+"""How long an allocation waits for the graph to name its sender (discovery takes < 1 s)."""
 MAX_CLIENTS = 256
 """Service clients kept open to other processes' nodes; the least recently used is closed."""
 _DBM_NODE = GLOBAL_PREFIX[1:]
@@ -204,6 +211,10 @@ class RclpyParams:
         """Operator writes for nodes that another process will host, by node, until it does."""
         self._allocation_senders: AbstractSet[bytes] = frozenset()
         """GIDs of ``/dbm``'s allocation publishers, as the graph last showed them."""
+        self._unattributed: OrderedDict[bytes, tuple[str, float]] = OrderedDict()
+        """The newest allocation of each sender the graph did not name yet, and when."""
+        self._allocation: dict[str, ParamValue] = {}
+        """Everything this process allocated (it is the optimizer): sent whole every time."""
 
     # -- the ParamStore protocol: any thread, never blocks -------------------------------------
 
@@ -295,8 +306,11 @@ class RclpyParams:
                 allocation[name] = value
                 continue
             by_node.setdefault(node, {})[ros2_name] = (parameter, value)
-        if allocation:
-            self._send_allocation(allocation)
+        if allocation and GLOBAL_PREFIX not in self._hosted:
+            # Only the optimizer writes these: this process is the optimizer, /dbm is its node.
+            self._host(GLOBAL_PREFIX, provisional=False)
+        elif allocation and self._hosted[GLOBAL_PREFIX].provisional:
+            self._claim(GLOBAL_PREFIX, self._hosted[GLOBAL_PREFIX])
         for node, writes in by_node.items():
             hosting = any(_hosts_it(p) for p, _v in writes.values())
             hosted = self._hosted.get(node)
@@ -308,6 +322,8 @@ class RclpyParams:
                 self._set_local(node, hosted, {n: v for n, (_p, v) in writes.items()})
             else:
                 self._set_remote(node, {n: v for n, (_p, v) in writes.items()})
+        if allocation or (self._allocation and ROUND.name in pending):
+            self._send_allocation(allocation)
 
     def _host(self, node: str, *, provisional: bool) -> _Hosted | None:
         """Create node ``node`` here, declaring its scope's parameters with the view's values."""
@@ -479,28 +495,37 @@ class RclpyParams:
             self._fetch(node)  # the view held the refused value: take the node's again
 
     def _send_allocation(self, values: Mapping[str, ParamValue]) -> None:
-        """One round's channel values from the ``/dbm`` node hosted here; dropped elsewhere."""
+        """The whole allocation, changed by ``values``, from the ``/dbm`` node hosted here.
+
+        Whole, and sent again with every round's heartbeat on a transient-local topic: a channel
+        host that matched the publisher late, or missed a message, has it all by the next round.
+        """
         hosted = self._hosted.get(GLOBAL_PREFIX)
         if hosted is None or hosted.allocation is None:
-            for name in values:
-                self._bad.warning(
-                    name, "%s not sent: only the optimizer's /dbm node allocates", name
-                )
             return
+        self._allocation.update(values)
         from std_msgs.msg import String
 
-        data = keys.encode_batch(values, time.time_ns(), self._transport.host)
+        data = keys.encode_batch(self._allocation, time.time_ns(), self._transport.host)
         hosted.allocation.publish(String(data=data.decode()))
 
     def on_allocation(self, data: str, sender_gid: bytes | None) -> None:
-        """``/dbm/allocation``: values for the channels hosted here, from ``/dbm``'s node only."""
-        if sender_gid is None or sender_gid not in self._allocation_senders:
-            self._bad.warning(
-                "allocation-sender",
-                "ignoring allocations from a publisher that is not the /dbm node (gid %s)",
-                None if sender_gid is None else sender_gid.hex(),
-            )
+        """``/dbm/allocation``: values for the channels hosted here, from ``/dbm``'s node only.
+
+        DDS may deliver a new publisher's message before the graph names its node: such a
+        message waits (the newest per sender, a few senders) for the next poll to say whose.
+        """
+        if sender_gid is None:
             return
+        if sender_gid not in self._allocation_senders:
+            self._unattributed[sender_gid] = (data, time.monotonic())
+            self._unattributed.move_to_end(sender_gid)
+            while len(self._unattributed) > MAX_UNATTRIBUTED:
+                self._unattributed.popitem(last=False)
+            return
+        self._apply_allocation(data)
+
+    def _apply_allocation(self, data: str) -> None:
         try:
             values, _stamp, _writer = keys.decode_batch(data.encode())
         except TransportError as err:
@@ -518,11 +543,27 @@ class RclpyParams:
                 self._bad.warning(name, "ignoring an allocation: %s", err)
                 continue
             _parameter, node, ros2_name = node_of(name)
-            if node in self._hosted:
+            hosted = self._hosted.get(node)
+            if hosted is not None and hosted.node.get_parameter(ros2_name).value != checked:
                 by_node.setdefault(node, {})[ros2_name] = checked
         for node, writes in by_node.items():
             self._set_local(node, self._hosted[node], writes)
             self._learn(node, writes.items())
+
+    def _attribute(self) -> None:
+        """Apply the waiting allocations whose sender the graph now shows as ``/dbm``'s."""
+        now = time.monotonic()
+        for gid, (data, heard_s) in list(self._unattributed.items()):
+            if gid in self._allocation_senders:
+                del self._unattributed[gid]
+                self._apply_allocation(data)
+            elif now - heard_s > UNATTRIBUTED_S:
+                del self._unattributed[gid]
+                self._bad.warning(
+                    "allocation-sender",
+                    "ignoring allocations from a publisher that is not the /dbm node (gid %s)",
+                    gid.hex(),
+                )
 
     def on_event(self, node: str, changed: Iterable[tuple[str, object]]) -> None:
         """``/parameter_events`` of a parameter node: its new, changed and deleted values.
@@ -575,6 +616,7 @@ class RclpyParams:
         host it for good (``_claim``), ``own`` this process's participant.
         """
         self._allocation_senders = allocation_senders
+        self._attribute()
         if len(hosts) > MAX_PARAM_NODES:
             self._nodes_overflow.refuse(len(hosts) - MAX_PARAM_NODES)
             hosts = dict(list(hosts.items())[:MAX_PARAM_NODES])

@@ -1,0 +1,364 @@
+"""Plain rclpy peers of the teleoperation demo: the robots' cameras and the operator, no dbml.
+
+``dbml demo teleop --transport rclpy`` shows that dbml manages real ROS 2 topics (rclpy on Fast
+DDS) whose publishers and subscribers know nothing about it: ``dbml bridge`` puts each camera
+under management and the optimizer allocates. The peers here are what a ROS 2 user writes, the
+twins of ``ros2peers`` (which does the same job over rmw_zenoh's wire format):
+
+- ``r1``/``r2``: a camera driver node publishing ``sensor_msgs/msg/Image`` on ``/rN/camera`` at
+  the camera's maximum rate, RELIABLE keep-last like a typical driver, each frame serialising to
+  exactly the camera's size with ``header.stamp`` = send time; and a node publishing the
+  channel's priority the ROS 2 way, ``std_msgs/msg/Float64`` on ``/rN/camera/dbm/priority``:
+  Table 2's value of each step, again every ``PRIORITY_REPEAT_S`` (``ros2peers``' schedule).
+- ``operator``: raw best-effort subscriptions of each ``/rN/camera/optimized`` (best effort
+  matches a reliable publisher as well as a best-effort one), recording each frame's arrival
+  and send time (``header.stamp``, read from the CDR), size and a per-topic count; and, through
+  dbml's ``rclpy`` transport, the parameters in force, reported each tick in ``roles``' format,
+  so the same runner and analysis judge the run.
+
+As a process (``python -m dbml.experiment.rclpypeers ROLE SPEC_JSON``) a peer speaks the roles'
+protocol (``harness.processes.serve_role``) in ROS 2 domain ``spec.domain_id`` (else
+``ROS_DOMAIN_ID``). Each peer has a private context (signals stay the program's), an executor
+spinning on a thread that reports its death, and shuts both down at its end (no
+``/dev/shm/fastdds_*`` left). A peer that loses a thread ends early, without ``done``, and exits
+1. rclpy is imported when a peer runs, so the demo can name this module without it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import struct
+import sys
+import threading
+import time
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+from dbml.core.errors import DbmlError
+from dbml.experiment.roles import RoleSpec, robot_index
+from dbml.experiment.ros2peers import (
+    FLOAT64_TYPE,
+    IMAGE_TYPE,
+    OPTIMIZED_SUFFIX,
+    PRIORITY_REPEAT_S,
+    PRIORITY_SUFFIX,
+    ROLES,
+    FrameRecorder,
+    replay_priorities,
+    report_ticks,
+    run_paced,
+    wait_first_frames,
+)
+from dbml.harness.processes import serve_role, stop_on_signals
+from dbml.runtime.params import ParamView
+from dbml.runtime.serve import Lifetime
+from dbml.scenarios.teleop import MAX_RATE_HZ, ROBOTS
+from dbml.transports.registry import open_transport
+from dbml.transports.worker import BackgroundThread
+
+if TYPE_CHECKING:
+    from rclpy.node import Node
+
+__all__ = [
+    "DRIVER_DEPTH",
+    "FLOAT64_TYPE",
+    "IMAGE_TYPE",
+    "OPTIMIZED_SUFFIX",
+    "PRIORITY_REPEAT_S",
+    "PRIORITY_SUFFIX",
+    "RCLPY_MISSING",
+    "ROLES",
+    "SPIN_TIMEOUT_S",
+    "SUBSCRIPTION_DEPTH",
+    "PrivateRos",
+    "image_message",
+    "image_stamp_ns",
+    "main",
+]
+
+log = logging.getLogger("dbml.experiment.rclpypeers")
+
+RCLPY_MISSING = (
+    "--transport rclpy runs its robots and operator as plain ROS 2 nodes with rclpy, "
+    f"which {sys.executable} cannot import: pip install 'dbml[rclpy]'"
+)
+DRIVER_DEPTH = 10
+"""The camera's and the priority's publishers keep this many (rclpy's usual ``qos=10``)."""
+SUBSCRIPTION_DEPTH = 10
+SPIN_TIMEOUT_S = 0.1
+"""The executor thread's longest wait, so closing is noticed."""
+FRAME_ID = "camera"
+ENCODING = "mono8"
+_NS_PER_S = 1_000_000_000
+_DRIVER_JOIN_S = 5.0
+"""How long a camera waits for its driver's frame in progress when it ends."""
+_SPIN_JOIN_S = 2.0
+_EXECUTOR_SHUTDOWN_S = 1.0
+_PLAIN_CDR = frozenset({0x0000, 0x0001, 0x0006, 0x0007})
+"""Encapsulations whose body is laid out plainly (CDR, CDR2 of a final type; odd: little
+endian). An ``Image`` is final, so its stamp is the body's first 8 bytes in either."""
+_STAMP = {True: struct.Struct("<iI"), False: struct.Struct(">iI")}
+_ENCAPSULATION_BYTES = 4
+
+
+def _rclpy() -> Any:
+    """rclpy, or ``DbmlError(RCLPY_MISSING)`` naming what to install."""
+    try:
+        import rclpy
+    except ImportError:
+        raise DbmlError(RCLPY_MISSING) from None
+    return rclpy
+
+
+def image_message(size_bytes: int) -> Any:
+    """A mono8 ``sensor_msgs/msg/Image`` of frame ``camera`` that serialises to ``size_bytes``.
+
+    One row of zero pixels; its size is measured with rclpy's own serialisation, not assumed,
+    so the size the bridge reports to the optimizer is the camera's.
+    """
+    _rclpy()
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import Image
+
+    image = Image(height=1, encoding=ENCODING, is_bigendian=0)
+    image.header.frame_id = FRAME_ID
+    width = size_bytes - len(serialize_message(image))
+    if width < 0:
+        raise DbmlError(f"size_bytes={size_bytes!r}: an Image takes {size_bytes - width} at least")
+    image.width = image.step = width
+    image.data = bytes(width)
+    if len(serialize_message(image)) != size_bytes:
+        raise DbmlError(f"an Image of {width} pixels does not serialise to {size_bytes} bytes")
+    return image
+
+
+def _image_class() -> Any:
+    """``sensor_msgs.msg.Image`` (imported when a peer runs)."""
+    from sensor_msgs.msg import Image
+
+    return Image
+
+
+def image_stamp_ns(payload: bytes) -> int | None:
+    """``header.stamp`` of a serialised ``Image`` in ns; None if the encapsulation is not plain.
+
+    A raw subscription hands over CDR: the stamp is 8 bytes after the encapsulation header,
+    cheaper to read than deserialising 84 KB.
+    """
+    if len(payload) < _ENCAPSULATION_BYTES + _STAMP[True].size:
+        return None
+    kind = int.from_bytes(payload[:2], "big")
+    if kind not in _PLAIN_CDR:
+        return None
+    sec, nanosec = _STAMP[bool(kind & 1)].unpack_from(payload, _ENCAPSULATION_BYTES)
+    return int(sec) * _NS_PER_S + int(nanosec)
+
+
+class PrivateRos:
+    """rclpy in a context of this object's own: its nodes, one executor, one spinning thread.
+
+    ``domain_id`` None takes ``ROS_DOMAIN_ID``. Signals stay the program's
+    (``SignalHandlerOptions.NO``). The thread's death (an exception, or the context shut down
+    under it) is said and counted, so the peer's ``Lifetime`` fails the run. ``close`` destroys
+    every node and shuts the context down: nothing of Fast DDS is left behind.
+    """
+
+    def __init__(self, *, domain_id: int | None, name: str) -> None:
+        rclpy = _rclpy()
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.signals import SignalHandlerOptions
+
+        self._rclpy = rclpy
+        self._name = name
+        self.context = Context()
+        options: dict[str, Any] = {"signal_handler_options": SignalHandlerOptions.NO}
+        if domain_id is not None:
+            options["domain_id"] = domain_id
+        rclpy.init(context=self.context, **options)
+        self._nodes: list[Node] = []
+        self._closing = threading.Event()
+        self._spinner: BackgroundThread | None = None
+        try:
+            self._executor = SingleThreadedExecutor(context=self.context)
+        except BaseException:
+            rclpy.try_shutdown(context=self.context)
+            raise
+
+    def node(self, name: str) -> Node:
+        """A node of this context, spun by its executor."""
+        from rclpy.node import Node
+
+        node = Node(name, context=self.context)
+        self._nodes.append(node)
+        self._executor.add_node(node)
+        return node
+
+    def start(self) -> PrivateRos:
+        """Start spinning (once)."""
+        if self._spinner is None:
+            self._spinner = BackgroundThread(self._spin, name=f"spin-{self._name}", log=log)
+            self._spinner.start()
+        return self
+
+    def _spin(self) -> None:
+        while not self._closing.is_set():
+            if not self.context.ok():
+                raise DbmlError(f"{self._name}: the ROS 2 context was shut down under the node")
+            self._executor.spin_once(timeout_sec=SPIN_TIMEOUT_S)
+
+    def close(self) -> None:
+        """Stop spinning, destroy the nodes and shut the context down."""
+        self._closing.set()
+        if self._spinner is not None:
+            self._spinner.join(_SPIN_JOIN_S)
+        try:
+            self._executor.shutdown(timeout_sec=_EXECUTOR_SHUTDOWN_S)
+            for node in self._nodes:
+                node.destroy_node()
+        finally:
+            self._rclpy.try_shutdown(context=self.context)
+
+
+def _qos(*, reliable: bool, depth: int) -> Any:
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=depth,
+        reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+        durability=DurabilityPolicy.VOLATILE,
+    )
+
+
+def _frame_sender(publisher: Any, size_bytes: int) -> Callable[[], None]:
+    """Publish one frame stamped now (one ``Image`` reused: a driver's buffer)."""
+    image = image_message(size_bytes)
+    stamp = image.header.stamp
+
+    def send() -> None:
+        stamp.sec, stamp.nanosec = divmod(time.time_ns(), _NS_PER_S)
+        publisher.publish(image)
+
+    return send
+
+
+def _serve_camera(role: str, spec: RoleSpec, stop: threading.Event) -> int:
+    """A camera peer's run; 1 when a thread (its driver's, its executor's) died meanwhile."""
+    from std_msgs.msg import Float64
+
+    index = robot_index(role)
+    camera = ROBOTS[index]
+    life = Lifetime(stop, None)
+    ros = PrivateRos(domain_id=spec.domain_id, name=role)
+    driver: BackgroundThread | None = None
+    camera_stop = threading.Event()
+    try:
+        send_frame = _frame_sender(
+            ros.node(f"{role}_camera").create_publisher(
+                _image_class(), camera.topic, _qos(reliable=True, depth=DRIVER_DEPTH)
+            ),
+            camera.size_bytes,
+        )
+        priority = ros.node(f"{role}_collision").create_publisher(
+            Float64, camera.topic + PRIORITY_SUFFIX, _qos(reliable=True, depth=DRIVER_DEPTH)
+        )
+        ros.start()
+        driver = BackgroundThread(
+            lambda: run_paced(send_frame, rate_hz=MAX_RATE_HZ, stop=camera_stop),
+            name=f"camera-{role}",
+            log=log,
+        )
+        driver.start()  # from the start, as a camera driver: the bridge waits for a frame
+        serve_role(
+            role,
+            stop,
+            lambda t0: replay_priorities(
+                lambda value: priority.publish(Float64(data=value)),
+                index,
+                t0,
+                spec,
+                stop,
+                life=life,
+            ),
+        )
+    finally:
+        camera_stop.set()
+        if driver is not None:
+            driver.join(_DRIVER_JOIN_S)
+        ros.close()
+    return life.exit_code()
+
+
+def _frame_callback(recorder: FrameRecorder, index: int) -> Callable[[bytes], None]:
+    """The raw subscription callback of robot ``index``'s optimized topic."""
+
+    def record(payload: bytes) -> None:
+        arrival_s = time.time()
+        stamp_ns = image_stamp_ns(payload)
+        recorder.record(
+            index,
+            arrival_s=arrival_s,
+            sent_s=None if stamp_ns is None else stamp_ns / _NS_PER_S,
+            size_bytes=len(payload),
+        )
+
+    return record
+
+
+def _serve_operator(spec: RoleSpec, stop: threading.Event) -> int:
+    """The operator peer's run; 1 when a thread (its executor's, its transport's) died."""
+    life = Lifetime(stop, None)
+    recorder = FrameRecorder()
+    topics = [camera.topic + OPTIMIZED_SUFFIX for camera in ROBOTS]
+    ros = PrivateRos(domain_id=spec.domain_id, name="operator")
+    try:
+        node = ros.node("operator")
+        for i, topic in enumerate(topics):
+            node.create_subscription(
+                _image_class(),
+                topic,
+                _frame_callback(recorder, i),
+                _qos(reliable=False, depth=SUBSCRIPTION_DEPTH),
+                raw=True,
+            )
+        ros.start()
+        transport = open_transport(spec.transport, host=spec.host, domain_id=spec.domain_id)
+    except BaseException:
+        ros.close()
+        raise
+    view = ParamView.of(transport.params)
+    try:
+        transport.wait_for_peers(spec.peer_wait_s)
+        wait_first_frames(recorder, topics, stop)
+        serve_role(
+            "operator", stop, lambda t0: report_ticks(view, recorder, t0, spec, stop, life=life)
+        )
+    finally:
+        transport.close()
+        ros.close()
+    return life.exit_code()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """One plain rclpy peer as an OS process, driven over stdin and stdout by the runner."""
+    parser = argparse.ArgumentParser(prog="python -m dbml.experiment.rclpypeers")
+    parser.add_argument("role", choices=ROLES)
+    parser.add_argument("spec", help="the RoleSpec as JSON (domain_id: the ROS 2 domain)")
+    args = parser.parse_args(argv)
+    role, spec = args.role, RoleSpec.from_json(args.spec)
+    logging.basicConfig(level=logging.WARNING, format=f"{role}: %(name)s: %(message)s")
+    try:
+        _rclpy()
+        with stop_on_signals() as stop:
+            if role == "operator":
+                return _serve_operator(spec, stop)
+            return _serve_camera(role, spec, stop)
+    except DbmlError as err:
+        sys.stderr.write(f"{role}: {err}\n")
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
