@@ -28,6 +28,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image
 from std_msgs.msg import Float64
 
+from dbml.transports.rclpy import RclpyTransport
 from tests.rclpy_tools import param_set, plain_node
 
 pytestmark = pytest.mark.integration
@@ -52,6 +53,7 @@ class Viewer:
 
     arrivals: dict[bytes, list[tuple[float, int]]] = field(default_factory=dict)
     lock: threading.Lock = field(default_factory=threading.Lock)
+    subscription: Any = None
 
     def heard(self, data: bytes, info: Any) -> None:
         gid = bytes(info["publisher_gid"]["data"])[:16] if info.get("publisher_gid") else b""
@@ -111,7 +113,7 @@ def _start_managed(ros2: Ros2Run, qos: str) -> None:
 
 def _viewer(node: Node, reliability: ReliabilityPolicy) -> Viewer:
     viewer = Viewer()
-    node.create_subscription(
+    viewer.subscription = node.create_subscription(
         Image,
         f"{CAMERA}/optimized",
         viewer.heard,
@@ -159,6 +161,12 @@ def test_a_driver_is_managed_at_the_allocated_rate(ros2: Ros2Run, qos: str) -> N
         assert all(size == SIZE_BYTES for _t, size in arrivals)
         budget_bytes = BUDGET_MBIT * 1e6 / 8
         assert worst_window_bytes(arrivals) <= budget_bytes + SIZE_BYTES
+        # The remote consumer leaves: the channel is no longer managed (back to its maximum).
+        with RclpyTransport(host="observer", domain_id=ros2.domain_id) as observer:
+            managed = f"{CAMERA}/dbm/managed"
+            wait_for(lambda: observer.params.get(managed) is True, timeout_s=10, what="managed")
+            operator.destroy_subscription(viewer.subscription)
+            wait_for(lambda: observer.params.get(managed) is False, timeout_s=10, what="unmanaged")
 
 
 def test_hostile_nodes_leave_the_budget_on_the_wire_intact(ros2: Ros2Run) -> None:

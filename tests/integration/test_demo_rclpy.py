@@ -1,0 +1,73 @@
+"""``dbml demo teleop --transport rclpy``: plain rclpy robots and operator, dbml's bridges.
+
+The robots and the operator are plain rclpy nodes (``dbml.experiment.rclpypeers``: no dbml in
+their data path); a ``dbml bridge`` per camera and the optimizer are dbml's. Every process is a
+real one, on real ROS 2 (Fast DDS), in a domain of the demo's own; none is left behind, and
+neither are its shared-memory files or ROS logs.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from dbml.harness.ros2env import fastdds_shm_files
+from tests.integration.test_demo import TABLE2_HZ, alive, children_of
+
+pytestmark = pytest.mark.integration
+
+DEMO = (sys.executable, "-m", "dbml", "demo", "teleop", "--transport", "rclpy")
+DEMO_TIMEOUT_S = 240.0
+RATE_TOLERANCE = 0.05
+RATE_FLOOR_HZ = 0.3
+"""As for the other transports: 5 %, or 0.3 Hz for a few-Hz stream in a short step."""
+
+
+def test_demo_over_rclpy_matches_table2_and_leaves_nothing(tmp_path: Path) -> None:
+    home = tmp_path / "home"
+    home.mkdir()
+    env = dict(os.environ, HOME=str(home))  # where rclpy would log without ROS_LOG_DIR
+    env.pop("ROS_LOG_DIR", None)
+    demo = subprocess.Popen(
+        [*DEMO, "--step-seconds", "1.5", "--json"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+    started: set[int] = set()
+    shm: set[Path] = set()
+    deadline = time.monotonic() + DEMO_TIMEOUT_S
+    try:
+        while demo.poll() is None and time.monotonic() < deadline:
+            started |= children_of(demo.pid)  # bridges, optimizer and the ROS 2 peers
+            shm |= set(fastdds_shm_files(started))
+            time.sleep(0.1)
+        stdout, stderr = demo.communicate(timeout=max(1.0, deadline - time.monotonic()))
+    finally:
+        if demo.poll() is None:
+            demo.kill()
+            demo.communicate(timeout=10)
+    assert demo.returncode == 0, stderr[-3000:]
+    assert len(started) >= 6, "2 bridges, optimizer, operator and 2 robots"
+    assert not [pid for pid in started if alive(pid)], "every process ended by the demo"
+    assert shm, "the processes' Fast DDS shared memory was seen while they ran"
+    assert not [path for path in shm if path.exists()], "no shared memory left behind"
+    assert not (home / ".ros").exists(), "ROS logs went to the run's folder, not ~/.ros"
+    document = json.loads(stdout)
+    assert document["ok"] is True
+    steps = document["steps"]
+    assert [s["step"] for s in steps] == list(range(1, 11))
+    for step, expected in zip(steps, TABLE2_HZ, strict=True):
+        for robot, table2_hz in zip(step["robots"], expected, strict=True):
+            assert round(robot["allocated_hz"], 2) == table2_hz
+            tolerance = max(RATE_TOLERANCE * robot["allocated_hz"], RATE_FLOOR_HZ)
+            assert abs(robot["measured_hz"] - robot["allocated_hz"]) <= tolerance
+            assert robot["variant"] == "optimized"
+        assert step["total_mbit"] <= 11 * (1 + RATE_TOLERANCE)
