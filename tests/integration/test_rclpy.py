@@ -228,3 +228,24 @@ def test_hostile_nodes_leave_the_budget_on_the_wire_intact(ros2: Ros2Run) -> Non
         arrivals = next(iter(bridge.values()))
         assert worst_window_bytes(arrivals) <= BUDGET_MBIT * 1e6 / 8 + SIZE_BYTES
         assert rate_hz(arrivals, MEASURE_S) <= EXPECTED_HZ * (1 + TOLERANCE)
+
+
+def test_a_type_whose_package_is_missing_names_what_to_install(ros2: Ros2Run) -> None:
+    bridge = ros2.start(
+        "bridge",
+        "/r1/costmap",
+        "--type",
+        "nav2_msgs/msg/Costmap",
+        "--transport",
+        "rclpy",
+        "--min-hz",
+        "1",
+        "--max-hz",
+        "5",
+    )
+    assert bridge.popen.wait(timeout=START_S) == 2
+    bridge.stop()
+    assert bridge.stderr() == (
+        "dbml: error: type='nav2_msgs/msg/Costmap': Python package 'nav2_msgs' is missing: "
+        "pip install ros-nav2-msgs (or source the ROS 2 that has it)\n"
+    )

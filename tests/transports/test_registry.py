@@ -12,7 +12,7 @@ from dbml.transports import DEFAULT_TRANSPORT, TRANSPORTS, MemoryTransport, Tran
 
 
 def test_names_are_in_one_order_with_the_default_first() -> None:
-    assert list(TRANSPORTS) == ["zenoh", "ros1", "ros2", "memory"]
+    assert list(TRANSPORTS) == ["zenoh", "ros1", "rclpy", "ros2", "memory"]
     assert next(iter(TRANSPORTS)) == DEFAULT_TRANSPORT
 
 
@@ -23,8 +23,11 @@ def test_the_registry_is_read_only() -> None:
 
 def test_entries_say_what_a_caller_must_know() -> None:
     spans = {name for name, entry in TRANSPORTS.items() if entry.spans_processes}
-    assert spans == {"zenoh", "ros1", "ros2"}
+    assert spans == {"zenoh", "ros1", "rclpy", "ros2"}
     assert not TRANSPORTS["ros1"].carries_metadata
+    assert not TRANSPORTS["rclpy"].carries_metadata  # DDS carries no attachment...
+    timed = {name for name, entry in TRANSPORTS.items() if entry.send_times}
+    assert timed == {"zenoh", "rclpy", "memory"}  # ...but its sample info says when and which
     assert TRANSPORTS["zenoh"].carries_metadata
     assert TRANSPORTS["memory"].carries_metadata
     complete = {name for name, entry in TRANSPORTS.items() if entry.params_complete_at_start}
@@ -36,7 +39,7 @@ def test_entries_say_what_a_caller_must_know() -> None:
 
 def test_an_unknown_name_lists_the_known_ones() -> None:
     with pytest.raises(
-        TransportError, match=r"transport='x' is not one of: zenoh, ros1, ros2, memory"
+        TransportError, match=r"transport='x' is not one of: zenoh, ros1, rclpy, ros2, memory"
     ):
         open_transport("x")
 
@@ -66,6 +69,12 @@ def test_options_a_transport_cannot_use_are_refused() -> None:
         open_transport("ros1", listen=["tcp/127.0.0.1:7447"])
     with pytest.raises(TransportError, match=r"transport='zenoh' takes no network"):
         open_transport("zenoh", network=MemoryNetwork())
+    with pytest.raises(TransportError, match=r"transport='rclpy' takes no endpoints .* DDS"):
+        open_transport("rclpy", connect=["tcp/127.0.0.1:7447"])
+    with pytest.raises(TransportError, match=r"transport='rclpy' takes no ros_distro \('jazzy'\)"):
+        open_transport("rclpy", ros_distro="jazzy")
+    with pytest.raises(TransportError, match=r"transport='rclpy' has no priority links"):
+        open_transport("rclpy", priority_links=True)
 
 
 def test_optional_capabilities_have_defaults_on_every_transport() -> None:
