@@ -27,7 +27,7 @@ from typing import Any
 from rich.console import Console
 from rich.table import Table
 
-from dbml.harness.processes import end_process
+from dbml.harness.processes import end_process, foreign_interpreter_env
 from dbml.harness.rosmaster import RosMaster
 from dbml.protocol import names
 from dbml.scenarios.teleop import ROBOTS
@@ -45,7 +45,7 @@ class HzReader:
         self.readings: list[tuple[float, float, int]] = []  # (time, Hz, messages in window)
         self.process = subprocess.Popen(
             ["rostopic", "hz", "-w", str(window), topic],
-            env=env,
+            env=foreign_interpreter_env(env),  # Debian's /usr/bin/python3, not ours
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
             text=True,

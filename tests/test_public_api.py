@@ -1,5 +1,4 @@
 import importlib
-import importlib.util
 import pkgutil
 import re
 import subprocess
@@ -9,10 +8,11 @@ from pathlib import Path
 import pytest
 
 import dbml
+from tests.conftest import require
+from tests.ros1.rosnet import ros1_problem
 
-HAVE_ROSPY = importlib.util.find_spec("rospy") is not None
 ROS1_MODULES = ("dbml.ros1", "dbml.transports.ros1")
-"""Modules that need rospy (Debian's packages); checked where it imports (always in CI)."""
+"""Modules that need rospy (Debian's packages): checked by ros1 tests, in .venv-ros1."""
 PACKAGES = [
     "dbml",
     "dbml.cli",
@@ -28,11 +28,17 @@ PACKAGES = [
     "dbml.testbed",
     "dbml.transports",
 ]
-PACKAGES += ["dbml.ros1"] if HAVE_ROSPY else []
 
 
-@pytest.mark.parametrize("name", PACKAGES)
+def need_rospy(name: str) -> None:
+    """A module of ROS1_MODULES is checked where rospy imports: skipped elsewhere, CI fails."""
+    if name.startswith(ROS1_MODULES):
+        require(ros1_problem(), what=f"check {name}")
+
+
+@pytest.mark.parametrize("name", [*PACKAGES, pytest.param("dbml.ros1", marks=pytest.mark.ros1)])
 def test_all_is_sorted_and_resolves(name: str) -> None:
+    need_rospy(name)
     module = importlib.import_module(name)
     names = list(module.__all__)
     assert names == sorted(names, key=lambda n: (not n.isupper(), n)) or names == sorted(names)
@@ -56,14 +62,25 @@ def test_the_top_level_is_what_a_user_needs_and_loads_the_runtime_lazily() -> No
         _ = dbml.nope
 
 
-def test_every_module_declares_all() -> None:
-    for info in pkgutil.walk_packages(dbml.__path__, "dbml."):
-        if info.name.endswith("__main__"):
-            continue
-        if info.name.startswith(ROS1_MODULES) and not HAVE_ROSPY:
-            continue
-        module = importlib.import_module(info.name)
-        assert hasattr(module, "__all__"), info.name
+def modules(*, ros1: bool) -> list[str]:
+    """The modules of dbml: those that need rospy (ROS1_MODULES), or all the others."""
+    return [
+        info.name
+        for info in pkgutil.walk_packages(dbml.__path__, "dbml.")
+        if not info.name.endswith("__main__") and info.name.startswith(ROS1_MODULES) == ros1
+    ]
+
+
+@pytest.mark.parametrize(
+    "ros1", [False, pytest.param(True, marks=pytest.mark.ros1)], ids=["main", "ros1"]
+)
+def test_every_module_declares_all(ros1: bool) -> None:
+    names = modules(ros1=ros1)
+    assert names
+    for name in names:
+        need_rospy(name)
+        module = importlib.import_module(name)
+        assert hasattr(module, "__all__"), name
 
 
 def test_py_typed_marker_ships() -> None:

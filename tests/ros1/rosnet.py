@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 
-from dbml.harness.processes import end_process
+from dbml.harness.processes import end_process, foreign_interpreter_env
 from dbml.harness.rosmaster import RosMaster
 from dbml.transports.rosapi import MasterClient
 from tests.conftest import require
@@ -34,8 +34,8 @@ def ros1_problem() -> str | None:
     """Why ROS 1 tests cannot run here, or None."""
     if importlib.util.find_spec("rospy") is None:
         return (
-            f"{sys.executable} cannot import rospy: run scripts/install-ros1, and `make test` "
-            "rebuilds .venv from Debian's Python"
+            f"{sys.executable} cannot import rospy: run scripts/install-ros1; `make test` runs "
+            "the ROS 1 tests (pytest -m ros1) in .venv-ros1, made from Debian's Python"
         )
     missing = [tool for tool in TOOLS if shutil.which(tool) is None]
     if missing:
@@ -72,7 +72,12 @@ class RosNet:
     def tool(self, name: str, *args: str) -> str:
         """Run a ROS command-line tool (``rosparam``, ``rostopic``) against this master."""
         done = subprocess.run(
-            [name, *args], env=self.env, capture_output=True, text=True, timeout=20, check=False
+            [name, *args],
+            env=foreign_interpreter_env(self.env),  # Debian's /usr/bin/python3 runs the tools
+            capture_output=True,
+            text=True,
+            timeout=20,
+            check=False,
         )
         assert done.returncode == 0, f"{name} {' '.join(args)}: {done.stderr}"
         return done.stdout.strip()
@@ -101,7 +106,7 @@ class RosNet:
         """``rostopic hz -w window``'s first average over a full window of messages."""
         process = subprocess.Popen(
             ["rostopic", "hz", "-w", str(window), topic],
-            env=self.env,
+            env=foreign_interpreter_env(self.env),
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
             text=True,

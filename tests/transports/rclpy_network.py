@@ -1,14 +1,21 @@
-"""An rclpy 'network' for the contract suite: transports in one private ROS 2 domain."""
+"""An rclpy 'network' for the contract suite: transports in one private ROS 2 domain.
+
+rclpy is imported when a network opens, not with this module: the contract suite imports it in
+the ROS 1 environment too, which has no rclpy (its ros1 tests run there, marked ``ros1``).
+"""
 
 from __future__ import annotations
 
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from typing import TYPE_CHECKING
 
 from dbml.harness.ros2env import claim_domain
 from dbml.transports.base import Transport
-from dbml.transports.rclpy import RclpyTransport
+
+if TYPE_CHECKING:
+    from dbml.transports.rclpy import RclpyTransport
 
 Factory = Callable[[str], Transport]
 
@@ -18,6 +25,8 @@ STALL_LIMIT_S = 10.0
 
 def rclpy_network() -> Iterator[Factory]:
     """Each host is a transport (a DDS participant) of its own in a domain claimed for the test."""
+    from dbml.transports.rclpy import RclpyTransport
+
     made: list[RclpyTransport] = []
     with claim_domain() as domain_id:
 
@@ -36,6 +45,8 @@ def rclpy_network() -> Iterator[Factory]:
 @contextmanager
 def stalled_executor(transport: Transport) -> Iterator[None]:
     """The transport's executor thread, where every rclpy call of its store runs, is held."""
+    from dbml.transports.rclpy import RclpyTransport
+
     assert isinstance(transport, RclpyTransport)
     released = threading.Event()
     holding = threading.Event()

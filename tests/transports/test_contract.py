@@ -1,8 +1,9 @@
 """One contract, every transport: each test runs against each registered transport.
 
 Tests wait on conditions, so the same assertions hold for synchronous (memory) and
-asynchronous (zenoh, ros1) delivery. ROS 1 runs where rospy is (skipped elsewhere, a failure
-when CI=true), one peer process per host (rospy runs one node per process).
+asynchronous (zenoh, ros1) delivery. ROS 1's are marked ``ros1`` (make test runs them in the
+environment that imports rospy; skipped elsewhere, a failure when CI=true), one peer process
+per host (rospy runs one node per process).
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from dbml.transports.base import resolve_host
 from dbml.transports.paramstore import ReplicatedParams
 from dbml.transports.rosapi import CALL_TIMEOUT_S, MasterClient
 from tests.conftest import wait_for
+from tests.transports.rclpy_network import rclpy_network, stalled_executor
 from tests.transports.ros1_network import PeerTransport, ros1_network
 from tests.transports.ros2_network import ros2_network
 from tests.transports.zenoh_network import zenoh_endpoints_network, zenoh_network
@@ -113,6 +115,7 @@ class Network:
 
 NETWORKS = {
     "memory": Network("memory", memory_network),
+    "rclpy": Network("rclpy", rclpy_network, stalled_executor),
     "ros1": Network("ros1", ros1_network, stalled_master),
     "ros2": Network("ros2", ros2_network, stalled_sends),
     "zenoh": Network("zenoh", zenoh_network, stalled_sends),
@@ -120,7 +123,11 @@ NETWORKS = {
 }
 
 _ANNOUNCE = "ROS 1's graph is the master's registrations: announce() declares nothing of its own"
+_DDS_GRAPH = "ROS 2's graph is the DDS endpoints: announce() declares nothing of its own"
 DOES_NOT_APPLY = {
+    ("rclpy", "test_graph_announce_withdraw_and_watch"): _DDS_GRAPH,
+    ("rclpy", "test_two_identical_declarations_are_two_entries"): _DDS_GRAPH,
+    ("rclpy", "test_closing_a_transport_withdraws_its_graph"): _DDS_GRAPH,
     ("memory", "test_a_write_never_waits_for_a_stalled_network"): (
         "memory's store is the network itself: a write sends nothing that could stall"
     ),
@@ -135,7 +142,11 @@ def test_every_registered_transport_is_in_the_contract() -> None:
     assert {network.transport for network in NETWORKS.values()} == set(TRANSPORTS)
 
 
-@pytest.fixture(params=sorted(NETWORKS))
+NEEDS = {"ros1": pytest.mark.ros1}
+"""Networks that need an environment of their own (make test runs ros1's in .venv-ros1)."""
+
+
+@pytest.fixture(params=[pytest.param(name, marks=NEEDS.get(name, ())) for name in sorted(NETWORKS)])
 def network(request: pytest.FixtureRequest) -> Network:
     chosen = NETWORKS[request.param]
     reason = DOES_NOT_APPLY.get((chosen.transport, request.function.__name__))

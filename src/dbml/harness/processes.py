@@ -9,6 +9,9 @@ The role side is :func:`serve_role`: announce readiness, wait for the start time
 ``stop``, stdin EOF or a signal (:func:`stop_on_signals`). A process that takes commands of its
 own (a benchmark's workers) reads them with :func:`read_commands`.
 
+A child that another interpreter than ``sys.executable`` runs (Debian's ``rosmaster``, the other
+environment's Python) gets :func:`foreign_interpreter_env`: none of the ROS 2 wheels' bootstrap.
+
 Each thread here is a ``BackgroundThread``: should one die, it is said (critical) and counted,
 so the process's ``Lifetime`` (or its role's run) ends non-zero.
 """
@@ -19,6 +22,7 @@ import contextlib
 import json
 import logging
 import math
+import os
 import queue
 import signal
 import socket
@@ -28,6 +32,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
+from pathlib import Path
 from typing import IO, Any
 
 from dbml.core.errors import DbmlError
@@ -39,6 +44,7 @@ __all__ = [
     "RoleProcesses",
     "emit_json",
     "end_process",
+    "foreign_interpreter_env",
     "free_port",
     "read_commands",
     "serve_role",
@@ -56,6 +62,8 @@ _EMIT_LOCK = threading.Lock()
 """One report is one line, also when several threads of a role report at once."""
 _TAIL_CHARS = 2000
 """How much of a role's stderr ``log_tail`` keeps."""
+_ROS_WHEELS_GUARD = "_ROS_WHEELS_BOOTSTRAP_COMPLETE"
+"""Set by the ROS 2 wheels' ``.pth`` bootstrap once it has re-executed with its library path."""
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -64,6 +72,39 @@ def free_port(host: str = "127.0.0.1") -> int:
         sock.bind((host, 0))
         port: int = sock.getsockname()[1]
         return port
+
+
+def foreign_interpreter_env(base: Mapping[str, str] | None = None) -> dict[str, str]:
+    """``base`` (default ``os.environ``) for a child that another interpreter than ours runs.
+
+    The ROS 2 wheels' ``.pth`` bootstrap re-executes every interpreter of their environment with
+    ``LD_LIBRARY_PATH`` extended and a guard variable set, and children inherit both. Another
+    interpreter (Debian's ``/usr/bin/python3`` running ``rosmaster``, the ROS 1 venv's) would load
+    ROS 2's libraries, and its own environment's bootstrap, seeing the guard, would not run. So
+    the guard goes, and so do the directories the bootstrap adds (an environment's ``lib``, the
+    wheels' ``ros_*.libs``); the user's own stay (the variable goes if nothing is left), and so
+    does every other variable.
+    """
+    env = dict(os.environ if base is None else base)
+    env.pop(_ROS_WHEELS_GUARD, None)
+    kept = [
+        entry
+        for entry in env.pop("LD_LIBRARY_PATH", "").split(os.pathsep)
+        if entry and not _wheels_library_dir(Path(entry))
+    ]
+    if kept:
+        env["LD_LIBRARY_PATH"] = os.pathsep.join(kept)
+    return env
+
+
+def _wheels_library_dir(path: Path) -> bool:
+    """Whether the wheels' bootstrap adds ``path``: its ``sys.prefix/lib``, or a ``ros_*.libs``."""
+    if path.name.startswith("ros_") and path.name.endswith(".libs"):
+        return True
+    if path.name != "lib":
+        return False
+    prefix = path.parent  # ours, or another virtual environment's (a child of one of them)
+    return prefix.resolve() == Path(sys.prefix).resolve() or (prefix / "pyvenv.cfg").is_file()
 
 
 def end_process(

@@ -15,7 +15,7 @@ import time
 from typing import IO
 
 from dbml.core.errors import TransportError
-from dbml.harness.processes import end_process, free_port
+from dbml.harness.processes import end_process, foreign_interpreter_env, free_port
 from dbml.transports.rosapi import answers
 
 __all__ = ["RosMaster"]
@@ -58,6 +58,7 @@ class RosMaster:
             stdin=subprocess.DEVNULL,
             stdout=log,
             stderr=subprocess.STDOUT,
+            env=foreign_interpreter_env(),  # Debian's /usr/bin/python3, not ours
         )
         deadline = time.monotonic() + self._ready_timeout_s
         while not answers(self.uri):
