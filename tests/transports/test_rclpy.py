@@ -238,3 +238,57 @@ def test_a_sample_carries_ddss_sequence_and_send_time(ros_domain: int) -> None:
 def test_sample_info_without_a_sequence_is_no_metadata() -> None:
     assert sample_meta({"source_timestamp": 5, "publication_sequence_number": None}) is None
     assert sample_meta(None) is None
+
+
+@pytest.mark.integration
+def test_an_operators_value_can_precede_the_robot_that_hosts_it(ros_domain: int) -> None:
+    """Nobody hosts ``/r1/camera/dbm`` yet: the operator's process does, until the robot starts.
+
+    The robot then hosts its channel for good, with the operator's priority; the operator's
+    provisional node goes, and its later writes reach the robot's node.
+    """
+    operator = RclpyTransport(host="ground", domain_id=ros_domain)
+    robot: RclpyTransport | None = None
+    try:
+        operator.params.set("/r1/camera/dbm/priority", 0.7)
+        wait_for(lambda: _hosts(operator, "/r1/camera/dbm"), what="the provisional host")
+        robot = RclpyTransport(host="r1", domain_id=ros_domain)
+        robot.params.set("/r1/camera/dbm/frequency/max", 16.0)  # the robot's own: it hosts
+        # Each step waits for DDS discovery (up to ~3 s: the new node, then its services).
+        wait_for(
+            lambda: not _hosts(operator, "/r1/camera/dbm"), timeout_s=HANDOVER_S, what="hand-over"
+        )
+        wait_for(
+            lambda: robot is not None and robot.params.get("/r1/camera/dbm/priority") == 0.7,
+            timeout_s=HANDOVER_S,
+            what="0.7 on the robot",
+        )
+        operator.params.set("/r1/camera/dbm/priority", 0.2)
+        wait_for(
+            lambda: robot is not None and robot.params.get("/r1/camera/dbm/priority") == 0.2,
+            what="0.2",
+        )
+        wait_for(lambda: operator.confirm_param("/r1/camera/dbm/priority", timeout_s=0), what="ack")
+    finally:
+        if robot is not None:
+            robot.close()
+        operator.close()
+
+
+HANDOVER_S = 15.0
+
+
+def _hosts(transport: RclpyTransport, node: str) -> bool:
+    """Whether ``transport`` hosts ``node``, asked on its executor thread."""
+    import threading
+
+    answer: list[bool] = []
+    done = threading.Event()
+
+    def ask() -> None:
+        answer.append(transport.params.hosts(node))
+        done.set()
+
+    transport.call_soon(ask)
+    assert done.wait(5.0), "the executor thread answered"
+    return answer[0]

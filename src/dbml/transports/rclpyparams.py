@@ -595,9 +595,9 @@ class RclpyParams:
             response = finished.result()
             if response is None:
                 return
-            self._learn(
-                node, ((n, _value_of(v)) for n, v in zip(names, response.values, strict=False))
-            )
+            values = [(n, _value_of(v)) for n, v in zip(names, response.values, strict=False)]
+            # A node's unset parameter says nothing: another host may hold a value for it.
+            self._learn(node, [(n, v) for n, v in values if v is not None])
             with self._lock:
                 self._fetched.add(node)
 
@@ -638,12 +638,18 @@ class RclpyParams:
             self._set_remote(node, writes)
 
     def _give_up(self, node: str, hosted: _Hosted) -> None:
-        """Another process hosts ``node`` too: push what anyone may write there, then leave it."""
-        writes = {}
-        for name, value in self.snapshot(f"{node}/").items():
-            found = lookup(name)
-            if found is not None and Writer.OPERATOR in found[0].writers:
-                writes[found[0].ros2_name] = value
+        """Another process hosts ``node`` too: push what anyone may write there, then leave it.
+
+        What is pushed is what this node holds (its own parameters, not the view: the view may
+        have heard the new host's declaration before it knew these values).
+        """
+        writes: dict[str, ParamValue] = {}
+        for parameter in PARAMETERS:
+            if parameter.scope is not _scope_of(node) or Writer.OPERATOR not in parameter.writers:
+                continue
+            held = hosted.node.get_parameter(parameter.ros2_name).value
+            if held is not None:
+                writes[parameter.ros2_name] = held
         self._close_hosted(node, hosted)
         if writes:
             self._set_remote(node, writes)
