@@ -74,6 +74,7 @@ __all__ = [
     "MAX_PARAM_NODES",
     "RclpyParams",
     "node_of",
+    "yields",
 ]
 
 log = logging.getLogger("dbml.rclpy")
@@ -145,6 +146,16 @@ def is_param_node(namespace: str, name: str) -> str | None:
     except TransportError:
         return None
     return f"{namespace}{GLOBAL_PREFIX}"
+
+
+def yields(own: bytes, hosts: AbstractSet[bytes], claimed: AbstractSet[bytes]) -> bool:
+    """Whether a provisional host ``own`` of a node gives it up, seeing ``hosts`` host it.
+
+    To a host that claimed the node (its owner), always; among provisional hosts, all but the
+    smallest participant: every process decides alike from the same graph, so one is left.
+    """
+    others = set(hosts) - {own}
+    return bool(others) and (bool(set(claimed) - {own}) or min(others) < own)
 
 
 def _hosts_it(parameter: Parameter) -> bool:
@@ -628,10 +639,11 @@ class RclpyParams:
         for node in fetch:
             self._fetch(node)
         for node, hosted in list(self._hosted.items()):
-            others = hosts.get(node, frozenset()) - {own}
-            if not hosted.provisional or not others or own is None:
-                continue
-            if claimed.get(node, frozenset()) - {own} or min(others) < own:
+            if (
+                hosted.provisional
+                and own is not None
+                and yields(own, hosts.get(node, frozenset()), claimed.get(node, frozenset()))
+            ):
                 self._give_up(node, hosted)
         for node in [n for n in self._waiting if n in live]:
             writes = self._waiting.pop(node)
