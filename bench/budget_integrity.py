@@ -26,7 +26,21 @@ The optimizer runs with ``frame_headroom: true`` (one message per channel but th
 out of the budget, so whole frames cannot add up past B + one message in a window);
 ``--without-headroom`` allocates the whole budget instead, to see the quantisation it covers.
 
+``--transport rclpy`` runs the same fleet over real ROS 2 (rclpy, Fast DDS) in a ROS 2 domain
+claimed for the run, logs in a temporary directory; this process writes the priorities and the
+budget step with ``params.set`` (a ``SetParameters`` call to the node hosting each, as ``ros2
+param set`` makes). The sniffer is then a plain rclpy node of this process with a reliable raw
+subscription of each channel's ``[topic]/optimized``; it counts the bytes of dbml's publishers
+(their nodes are dbml's), keeps a foreign node's apart, and checks each publisher's DDS sequence
+numbers. During the churn pass a hostile peer process (``--hostile-peer``, a plain rclpy node
+named ``hostile_peer``, not ``/dbm``) also runs: a foreign publisher of 84,000-B frames on
+``/robot1/camera/optimized``, out-of-range and dbml-owned values through ``SetParameters``, a
+flood of ``std_msgs/msg/Float64`` on every ``[topic]/dbm/priority`` (half of them invalid) and a
+forged ``/dbm/allocation`` giving every channel 16 Hz; ``--no-hostile`` leaves it out. What it
+sent and what was refused is in the JSON, with the zenoh-only parts named as not applicable.
+
     python bench/budget_integrity.py [--json] [--runs 3] [--seconds 30] [--without-headroom]
+        [--transport zenoh|rclpy] [--no-hostile]
 """
 
 from __future__ import annotations
@@ -37,6 +51,7 @@ import contextlib
 import json
 import math
 import os
+import queue
 import random
 import signal
 import subprocess
@@ -48,7 +63,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
-from typing import Any, NamedTuple
+from typing import IO, TYPE_CHECKING, Any, NamedTuple, Protocol
 
 import zenoh
 from rich.console import Console
@@ -56,12 +71,21 @@ from rich.table import Table
 
 from dbml.core.errors import TransportError
 from dbml.harness.processes import end_process, free_port
+from dbml.harness.ros2env import (
+    claim_domain,
+    fastdds_shm_files,
+    remove_fastdds_shm,
+    ros2_child_env,
+)
 from dbml.harness.sniffer import WireSniffer, window_stats
 from dbml.protocol import names
+from dbml.protocol.metadata import MessageMeta
 from dbml.runtime.graph import is_managed, published_topics
-from dbml.runtime.metadata import MessageMeta
-from dbml.transports.base import ParamValue
+from dbml.transports.base import Handle, ParamValue, Transport
 from dbml.transports.zenoh import ZenohTransport
+
+if TYPE_CHECKING:
+    from rclpy.subscription import MessageInfo
 
 
 class Channel(NamedTuple):
@@ -98,6 +122,60 @@ LATE_S = 2.0
 STOP_S = 5.0
 REFERENCE = "steady state: the same fleet with no priority changes, no step, no join, no leave"
 TARGET = "worst window <= B + one largest message"
+TRANSPORTS = ("zenoh", "rclpy")
+HOSTILE_TICK_HZ = 200.0
+"""The hostile peer's flood of ``[topic]/dbm/priority`` messages per second (all channels)."""
+HOSTILE_FORGED_EVERY = 20
+"""Ticks between two forged ``/dbm/allocation`` messages (10 per second)."""
+HOSTILE_BAD_SET_EVERY = 40
+"""Ticks between two bad ``SetParameters`` requests (5 per second)."""
+HOSTILE_FRAME_EVERY = 100
+"""Ticks between two foreign frames on ``[topic]/optimized`` (2 per second)."""
+HOSTILE_FRAME = CHANNELS[0]
+"""Whose ``[topic]/optimized`` the foreign node publishes on, at that channel's size."""
+FORGED_HZ = MAX_HZ
+"""The rate a forged allocation gives every channel (about twice the budget in all)."""
+HOSTILE_S = 10.0
+"""Bounds the hostile peer's start and its final report."""
+PRIORITY_REFUSAL = "ignoring a priority"
+"""What a channel's host logs (once per channel) when it ignores a bad Float64 priority."""
+ACK_TIMEOUT = "no acknowledgement of a decrease"
+"""What the optimizer logs when it raises rates before a decrease was acknowledged."""
+SNIFFER_DEPTH = 100
+HOSTILE_PEERS = {
+    "foreign_optimized_publisher": (
+        "a plain rclpy node publishes 84,000-B Images on /robot1/camera/optimized at 2 Hz; its "
+        "bytes are counted apart (foreign_bytes), not against dbml's budget"
+    ),
+    "bad_set_parameters": (
+        "SetParameters at 5/s on /robotN/camera/dbm and /dbm: priority 1.5, -0.1, NaN and "
+        "'high', max_bandwidth_in_mbit -1 and 'eleven', frequency.current_value 16 (the "
+        "optimizer's) and message_size_in_bytes 1 (the publisher's): each must be refused"
+    ),
+    "priority_flood": (
+        "std_msgs/msg/Float64 on every /robotN/camera/dbm/priority, 200 messages/s in all: "
+        "half valid random priorities (taken: a legitimate if noisy path), half NaN, inf, 1.5 "
+        "or -0.5 (to be ignored)"
+    ),
+    "forged_allocation": (
+        "std_msgs/msg/String on /dbm/allocation from node /hostile_peer (not /dbm) at 10/s, "
+        "giving every channel 16 Hz (about twice the budget): to be ignored"
+    ),
+}
+NOT_APPLICABLE = {
+    "sequence numbers in dbml's message metadata": (
+        "rclpy carries no dbml attachment; the sniffer checks each DDS writer's publication "
+        "sequence numbers instead (sniffer_lost, sniffer_duplicates)"
+    ),
+    "a sniffer invisible to dbml's graph": (
+        "every DDS subscription is a graph endpoint, so the sniffer's subscriptions of "
+        "[topic]/optimized are remote consumers; every channel has one (its operator "
+        "subscriber) anyway, so nothing is managed that would not be"
+    ),
+    "one key expression for every channel (**/optimized)": (
+        "DDS topics take no wildcards: the sniffer subscribes each channel's, the joiner's too"
+    ),
+}
 
 
 def bytes_per_s(mbit: float) -> float:
@@ -111,17 +189,21 @@ class BenchError(Exception):
 class Fleet:
     """The ``python -m dbml`` processes of one run, each ended by its PID."""
 
-    def __init__(self, port: int, workdir: Path) -> None:
-        self._env = dict(os.environ, DBML_ZENOH_PORT=str(port))
+    def __init__(self, env: dict[str, str], transport_args: list[str], workdir: Path) -> None:
+        self._env = env
+        self._transport_args = transport_args
         self._workdir = workdir
         self._procs: dict[str, subprocess.Popen[bytes]] = {}
         self._ended: set[str] = set()
 
-    def start(self, name: str, *args: str) -> None:
+    def live_pids(self) -> list[int]:
+        return [popen.pid for popen in self._procs.values() if popen.poll() is None]
+
+    def start(self, name: str, command: str, *args: str) -> None:
         log = self._workdir / f"{name}.log"
         with log.open("wb") as err:
             self._procs[name] = subprocess.Popen(
-                [sys.executable, "-m", "dbml", *args],
+                [sys.executable, "-m", "dbml", command, *self._transport_args, *args],
                 stdin=subprocess.DEVNULL,
                 stdout=subprocess.DEVNULL,
                 stderr=err,
@@ -155,6 +237,19 @@ class Fleet:
             for name, popen in self._procs.items()
             if name not in self._ended and popen.poll() is not None
         ]
+
+    def logged(self, text: str) -> list[str]:
+        """The processes whose log holds ``text``."""
+        return [
+            name
+            for name in self._procs
+            if text in (self._workdir / f"{name}.log").read_text(errors="replace")
+        ]
+
+    def count(self, name: str, text: str) -> int:
+        """Lines of process ``name``'s log that hold ``text``."""
+        log = (self._workdir / f"{name}.log").read_text(errors="replace")
+        return sum(text in line for line in log.splitlines())
 
     def check(self) -> None:
         if exited := self.exited():
@@ -234,6 +329,406 @@ class SequenceGaps:
         self._subscriber.undeclare()  # type: ignore[no-untyped-call]  # unannotated in stubs
 
 
+class Sniffer(Protocol):
+    """What a pass reads from the wire: dbml's bytes per arrival, and sequence checks."""
+
+    def arrivals(self, *, since_s: float = -math.inf) -> list[tuple[float, int]]: ...
+    def clear(self) -> None: ...
+
+
+class Gaps(Protocol):
+    def seen(self) -> set[str]: ...
+    def lost(self) -> int: ...
+    def duplicates(self) -> int: ...
+
+
+class Ros2Sniffer:
+    """A plain rclpy node counting every message on each channel's ``[topic]/optimized``.
+
+    Reliable raw subscriptions (dbml's publishers are reliable), so what is missed shows as a
+    gap in a writer's DDS publication sequence numbers. Each arrival keeps its writer's GID; the
+    graph, read every 0.25 s, names the writer's node, so a foreign node's bytes are kept apart
+    (a writer never named is counted as dbml's: against the budget, and said).
+    """
+
+    def __init__(self, domain_id: int, topics: list[str]) -> None:
+        import rclpy
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.node import Node
+        from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+        from rclpy.signals import SignalHandlerOptions
+        from sensor_msgs.msg import Image
+
+        from dbml.transports.rclpy import host_of_node
+
+        self._host_of_node = host_of_node
+        self._lock = threading.Lock()
+        self._arrivals: list[tuple[float, int, bytes]] = []
+        self._seen: set[str] = set()
+        self._last: dict[bytes, int] = {}
+        self._lost = self._duplicates = 0
+        self._owners: dict[bytes, str] = {}
+        self._topics = [f"{topic}/optimized" for topic in topics]
+        self._context = Context()
+        rclpy.init(
+            context=self._context,
+            domain_id=domain_id,
+            signal_handler_options=SignalHandlerOptions.NO,
+        )
+        self._node = Node("bench_wire_sniffer", context=self._context)
+        qos = QoSProfile(
+            history=HistoryPolicy.KEEP_LAST,
+            depth=SNIFFER_DEPTH,
+            reliability=ReliabilityPolicy.RELIABLE,
+        )
+        for topic in topics:
+            self._node.create_subscription(
+                Image, f"{topic}/optimized", self._receiver(optimized_key(topic)), qos, raw=True
+            )
+        self._node.create_timer(0.25, self._read_graph)
+        self._executor = SingleThreadedExecutor(context=self._context)
+        self._executor.add_node(self._node)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._spin, name="sniffer", daemon=True)
+        self._thread.start()
+
+    def _spin(self) -> None:
+        while not self._stop.is_set() and self._context.ok():
+            self._executor.spin_once(timeout_sec=0.05)
+
+    def _receiver(self, key: str) -> Callable[[Any, MessageInfo], None]:
+        def on_message(data: Any, info: MessageInfo) -> None:
+            now = time.monotonic()
+            sender = info.get("publisher_gid") or {}
+            gid = bytes(sender.get("data", b""))[:16]
+            seq = info.get("publication_sequence_number")
+            with self._lock:
+                self._arrivals.append((now, len(data), gid))
+                self._seen.add(key)
+                if not isinstance(seq, int):
+                    return
+                last = self._last.get(gid)
+                if last is not None and seq > last + 1:
+                    self._lost += seq - last - 1
+                elif last is not None and seq <= last:
+                    self._duplicates += 1
+                self._last[gid] = seq if last is None else max(last, seq)
+
+        return on_message
+
+    def _read_graph(self) -> None:
+        owners = {}
+        for topic in self._topics:
+            for info in self._node.get_publishers_info_by_topic(topic):
+                owners[bytes(info.endpoint_gid)[:16]] = info.node_name
+        with self._lock:
+            self._owners.update(owners)  # a writer gone stays named
+
+    def _foreign(self, gid: bytes) -> bool:
+        owner = self._owners.get(gid)
+        return owner is not None and self._host_of_node(owner) is None
+
+    def arrivals(self, *, since_s: float = -math.inf) -> list[tuple[float, int]]:
+        """Dbml's arrivals ``(t_s, bytes)`` at or after ``since_s``."""
+        with self._lock:
+            return [
+                (t, n) for t, n, gid in self._arrivals if t >= since_s and not self._foreign(gid)
+            ]
+
+    def foreign(self, start_s: float, end_s: float) -> dict[str, int]:
+        """Bytes and messages of foreign writers, and of writers never named, in the span."""
+        with self._lock:
+            inside = [(n, gid) for t, n, gid in self._arrivals if start_s <= t <= end_s]
+            return {
+                "foreign_bytes": sum(n for n, gid in inside if self._foreign(gid)),
+                "foreign_messages": sum(1 for _n, gid in inside if self._foreign(gid)),
+                "unnamed_writer_bytes": sum(n for n, gid in inside if gid not in self._owners),
+            }
+
+    def clear(self) -> None:
+        with self._lock:
+            self._arrivals.clear()
+
+    def seen(self) -> set[str]:
+        with self._lock:
+            return set(self._seen)
+
+    def lost(self) -> int:
+        with self._lock:
+            return self._lost
+
+    def duplicates(self) -> int:
+        with self._lock:
+            return self._duplicates
+
+    def close(self) -> None:
+        import rclpy
+
+        self._stop.set()
+        self._thread.join(timeout=STOP_S)
+        self._executor.shutdown(timeout_sec=1.0)
+        self._node.destroy_node()
+        rclpy.try_shutdown(context=self._context)
+
+
+class ParamTimes:
+    """When this process heard each parameter change (monotonic s), from the store's watch.
+
+    The optimizer's round counter changes every round (its heartbeat), so a round after a moment
+    is a change of it heard after that moment, whatever the transport. Each number's peak since
+    ``reset_peaks`` is kept too.
+    """
+
+    def __init__(self, transport: Transport) -> None:
+        self._lock = threading.Lock()
+        self._times: dict[str, float] = {}
+        self._peaks: dict[str, float] = {}
+        self._handle: Handle = transport.params.watch(self._on_change)
+
+    def _on_change(self, name: str, value: ParamValue) -> None:
+        now = time.monotonic()
+        numeric = number(value)
+        with self._lock:
+            self._times[name] = now
+            if numeric is not None and numeric > self._peaks.get(name, -math.inf):
+                self._peaks[name] = numeric
+
+    def peak(self, name: str) -> float | None:
+        """The largest number ``name`` held since ``reset_peaks``."""
+        with self._lock:
+            return self._peaks.get(name)
+
+    def reset_peaks(self) -> None:
+        with self._lock:
+            self._peaks.clear()
+
+    def at(self, name: str) -> float | None:
+        with self._lock:
+            return self._times.get(name)
+
+    def close(self) -> None:
+        self._handle.close()
+
+
+# -- the hostile peer (rclpy) ---------------------------------------------------------------------
+
+
+def run_hostile_peer(topics: list[str]) -> None:
+    """``--hostile-peer``: a plain rclpy node that attacks dbml from ``start`` to ``stop`` (stdin).
+
+    Prints ``{"ready": true}``, then, at the end, one JSON report of what it sent and what the
+    ``SetParameters`` services answered. Its domain and logs come from the environment.
+    """
+    import rclpy
+    from rcl_interfaces.srv import SetParameters
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from rclpy.signals import SignalHandlerOptions
+    from sensor_msgs.msg import Image
+    from std_msgs.msg import Float64, String
+
+    from dbml.protocol.keys import encode_batch
+    from dbml.transports.rclpyparams import ALLOCATION_TOPIC, node_of
+    from dbml.transports.ros2msg import image_cdr
+
+    context = Context()
+    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
+    node = Node("hostile_peer", context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    lock = threading.Lock()
+    answers: dict[str, dict[str, int]] = {}
+    accepted: list[str] = []
+    refusals: dict[str, str] = {}
+    sent = dict.fromkeys(
+        ("frames", "forged_allocations", "flood_valid", "flood_invalid", "bad_sets"), 0
+    )
+    unready = 0
+
+    def answered(name: str, kind: str, value: Any, future: Any) -> None:
+        response = future.result()
+        with lock:
+            tally = answers.setdefault(kind, {"accepted": 0, "refused": 0, "unanswered": 0})
+            if response is None:
+                tally["unanswered"] += 1
+                return
+            for result in response.results:
+                if result.successful:
+                    tally["accepted"] += 1
+                    accepted.append(f"{name}={value!r}")
+                else:
+                    tally["refused"] += 1
+                    refusals.setdefault(kind, result.reason)
+
+    stop = threading.Event()
+    started = threading.Event()
+    done_spinning = threading.Event()
+
+    def control() -> None:
+        for line in sys.stdin:
+            if line.startswith("start"):
+                started.set()
+            elif line.startswith("stop"):
+                break
+        stop.set()
+
+    threading.Thread(target=control, name="control", daemon=True).start()
+
+    def spin() -> None:
+        while not done_spinning.is_set():
+            executor.spin_once(timeout_sec=0.05)
+
+    print(json.dumps({"ready": True}), flush=True)
+    rng = random.Random(SEED)
+    invalid = (math.nan, math.inf, 1.5, -0.5)
+    image = image_cdr(HOSTILE_FRAME.size_bytes)
+    forged_values: dict[str, ParamValue] = {names.current_value(t): FORGED_HZ for t in topics}
+    forged_values |= {names.managed(t): True for t in topics}
+    while not started.wait(0.05):
+        if stop.is_set():
+            break
+    # The endpoints exist from the start on only: the steady pass before it sees no stranger.
+    reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+    frame = node.create_publisher(Image, f"{HOSTILE_FRAME.topic}/optimized", reliable)
+    # Transient local and reliable: the strongest offer, compatible with any subscription.
+    forged = node.create_publisher(
+        String,
+        ALLOCATION_TOPIC,
+        QoSProfile(
+            depth=1,
+            reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL,
+        ),
+    )
+    floods = [node.create_publisher(Float64, names.priority(t), reliable) for t in topics]
+    bad_writes: list[tuple[str, str, Any]] = []
+    for topic in topics:
+        for value in (1.5, -0.1, math.nan, "high"):
+            bad_writes.append((names.priority(topic), "priority", value))
+        bad_writes.append((names.current_value(topic), "current_value", FORGED_HZ))
+        bad_writes.append((names.size(topic), "size", 1.0))
+    bad_writes += [(names.BANDWIDTH, "budget", -1.0), (names.BANDWIDTH, "budget", "eleven")]
+    clients: dict[str, Any] = {}
+    for name, _kind, _value in bad_writes:
+        _parameter, param_node, _ros2 = node_of(name)
+        if param_node not in clients:
+            clients[param_node] = node.create_client(SetParameters, f"{param_node}/set_parameters")
+    spinner = threading.Thread(target=spin, name="spin", daemon=True)
+    spinner.start()
+    tick = 0
+    start = time.monotonic()
+    while not stop.is_set():
+        if tick % HOSTILE_FRAME_EVERY == 0:
+            frame.publish(image)
+            sent["frames"] += 1
+        if tick % HOSTILE_FORGED_EVERY == 0:
+            data = encode_batch(forged_values, time.time_ns(), "hostile").decode()
+            forged.publish(String(data=data))
+            sent["forged_allocations"] += 1
+        if tick % HOSTILE_BAD_SET_EVERY == 0:
+            name, kind, value = bad_writes[(tick // HOSTILE_BAD_SET_EVERY) % len(bad_writes)]
+            _parameter, param_node, ros2_name = node_of(name)
+            client = clients[param_node]
+            if client.service_is_ready():
+                request = SetParameters.Request(
+                    parameters=[Parameter(ros2_name, value=value).to_parameter_msg()]
+                )
+                future = client.call_async(request)
+                future.add_done_callback(
+                    lambda done, n=name, k=kind, v=value: answered(n, k, v, done)
+                )
+                sent["bad_sets"] += 1
+            else:
+                unready += 1
+        flood = floods[tick % len(floods)]
+        if tick % 2:
+            flood.publish(Float64(data=invalid[(tick // 2) % len(invalid)]))
+            sent["flood_invalid"] += 1
+        else:
+            flood.publish(Float64(data=rng.random()))
+            sent["flood_valid"] += 1
+        tick += 1
+        delay = start + tick / HOSTILE_TICK_HZ - time.monotonic()
+        if delay > 0:
+            stop.wait(delay)
+    time.sleep(0.5)  # the last answers
+    done_spinning.set()
+    with lock:
+        report = {
+            "seconds": round(time.monotonic() - start, 2),
+            "sent": sent,
+            "set_parameters": answers,
+            "set_parameters_not_ready": unready,
+            "accepted_bad_values": accepted[:10],
+            "refusal_reasons": refusals,
+        }
+    print(json.dumps(report), flush=True)
+    spinner.join(timeout=STOP_S)
+    executor.shutdown(timeout_sec=1.0)
+    node.destroy_node()
+    rclpy.try_shutdown(context=context)
+
+
+class HostilePeer:
+    """The ``--hostile-peer`` process of one run, driven over stdin; ended by its PID."""
+
+    def __init__(self, env: dict[str, str], topics: list[str], workdir: Path) -> None:
+        with (workdir / "hostile.log").open("wb") as err:
+            self.popen = subprocess.Popen(
+                [sys.executable, __file__, "--hostile-peer", ",".join(topics)],
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                stderr=err,
+                text=True,
+                env=env,
+            )
+        self._lines: queue.Queue[dict[str, Any]] = queue.Queue()
+        assert self.popen.stdout is not None
+        self._reader = threading.Thread(target=self._read, args=(self.popen.stdout,), daemon=True)
+        self._reader.start()
+        self.report: dict[str, Any] | None = None
+
+    def _read(self, stream: IO[str]) -> None:
+        for line in stream:
+            with contextlib.suppress(ValueError):
+                self._lines.put(json.loads(line))
+
+    def _line(self) -> dict[str, Any]:
+        try:
+            return self._lines.get(timeout=HOSTILE_S)
+        except queue.Empty:
+            raise BenchError(f"the hostile peer did not answer within {HOSTILE_S:g} s") from None
+
+    def wait_ready(self) -> None:
+        if self._line().get("ready") is not True:
+            raise BenchError("the hostile peer did not start")
+
+    def _send(self, line: str) -> None:
+        assert self.popen.stdin is not None
+        self.popen.stdin.write(line + "\n")
+        self.popen.stdin.flush()
+
+    def start(self) -> None:
+        self._send("start")
+
+    def finish(self) -> dict[str, Any]:
+        """Stop attacking; what it sent and what it was answered."""
+        self._send("stop")
+        self.report = self._line()
+        return self.report
+
+    def stop(self) -> None:
+        if self.popen.stdin is not None:
+            with contextlib.suppress(OSError):
+                self.popen.stdin.close()
+        end_process(self.popen, timeout_s=STOP_S)
+        self._reader.join(timeout=STOP_S)
+
+
 @dataclass
 class BudgetSchedule:
     """The budget in force over time (monotonic seconds), as this process wrote it."""
@@ -250,7 +745,7 @@ class BudgetSchedule:
 class AllocationPoller:
     """Every 50 ms: the sum of ``current_value * size`` over the live managed channels."""
 
-    def __init__(self, transport: ZenohTransport, bound_s: float) -> None:
+    def __init__(self, transport: Transport, bound_s: float) -> None:
         self._transport = transport
         self._lock = threading.Lock()
         self._samples: list[tuple[float, float]] = []
@@ -302,29 +797,42 @@ class Rig:
     """One run's processes and observers."""
 
     fleet: Fleet
-    transport: ZenohTransport
-    sniffer: WireSniffer
-    gaps: SequenceGaps
+    transport: Transport
+    sniffer: Sniffer
+    gaps: Gaps
     poller: AllocationPoller
+    times: ParamTimes
     rng: random.Random
+    ros2_sniffer: Ros2Sniffer | None = None
+    hostile: HostilePeer | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+    shm: set[Path] = field(default_factory=set)
+    """rclpy: the Fast DDS shared-memory files of the processes started, removed at the end."""
+
+    def note_shm(self) -> None:
+        if self.ros2_sniffer is not None:
+            pids = self.fleet.live_pids()
+            if self.hostile is not None:
+                pids.append(self.hostile.popen.pid)
+            self.shm.update(fastdds_shm_files(pids))
 
 
-def settled(rig: Rig, channels: tuple[Channel, ...], since_ns: int) -> bool:
-    """Every channel managed, allocated by a round after ``since_ns``, acknowledged, on the wire.
+def settled(rig: Rig, channels: tuple[Channel, ...], since_s: float) -> bool:
+    """Every channel managed, allocated by a round after ``since_s``, acknowledged, on the wire.
 
-    An unchanged rate is not written again: a round's heartbeat (``/dbm/round``) written after
-    ``since_ns`` says the rates in the store are that round's.
+    An unchanged rate is not written again: a round's heartbeat (``/dbm/round``) heard after
+    ``since_s`` says the rates in the store are that round's.
     """
     params = rig.transport.params
     seen = rig.gaps.seen()
-    stamp = params.stamp(names.ROUND)
+    heard = rig.times.at(names.ROUND)
     for channel in channels:
         current = number(params.get(names.current_value(channel.topic)))
         applied = number(params.get(names.applied(channel.topic)))
         if (
             params.get(names.managed(channel.topic)) is not True
-            or stamp is None
-            or stamp[0] <= since_ns
+            or heard is None
+            or heard <= since_s
             or current is None
             or applied is None
             or not math.isclose(current, applied, rel_tol=1e-9)
@@ -400,15 +908,21 @@ def wire_stats(
 def allocated_worst(
     rig: Rig, start_s: float, end_s: float, budget: BudgetSchedule
 ) -> dict[str, Any]:
-    """The worst allocated sum / budget of the pass, and when it was polled (s into the pass)."""
-    worst, at_s = 0.0, None
+    """The worst allocated sum / budget of the pass, when, and how long it was over.
+
+    ``allocated_worst_at_s`` is seconds into the pass; ``allocated_over_s`` counts the 50-ms polls
+    whose sum exceeded the budget in force.
+    """
+    worst, at_s, over = 0.0, None, 0
     for t, total in rig.poller.samples(start_s, end_s):
         limit = max(budget.at(t), budget.at(t - ALLOCATION_GRACE_S))
+        over += total > limit
         if total / limit > worst:
             worst, at_s = total / limit, t - start_s
     return {
         "allocated_worst_ratio": round(worst, 4),
         "allocated_worst_at_s": None if at_s is None else round(at_s, 2),
+        "allocated_over_s": round(over * POLL_S, 2),
     }
 
 
@@ -444,8 +958,11 @@ def churn_pass(rig: Rig, seconds: float) -> tuple[dict[str, Any], int]:
     leaving: threading.Thread | None = None
     writes = 0
     lag_s = 0.0
-    join_ns: int | None = None
+    join_s: float | None = None
     lost, duplicates = rig.gaps.lost(), rig.gaps.duplicates()
+    if rig.hostile is not None:
+        rig.hostile.start()
+    rig.times.reset_peaks()
     start = time.monotonic()
     phases = {"before_step": start}
     rig.sniffer.clear()
@@ -466,7 +983,7 @@ def churn_pass(rig: Rig, seconds: float) -> tuple[dict[str, Any], int]:
             budget.steps.append((phases["after_step"], bytes_per_s(STEP_MBIT)))
             params.set(names.BANDWIDTH, STEP_MBIT)
         elif action == "join":
-            phases["after_join"], join_ns = time.monotonic(), time.time_ns()
+            phases["after_join"] = join_s = time.monotonic()
             rig.fleet.start_publisher(JOINER)
             live.add(JOINER.topic)
         else:
@@ -478,48 +995,121 @@ def churn_pass(rig: Rig, seconds: float) -> tuple[dict[str, Any], int]:
             leaving.start()
     hold(rig, start + seconds - time.monotonic())
     end = time.monotonic()
+    rig.note_shm()  # the joiner's too
+    if rig.hostile is not None:
+        stats_hostile: dict[str, Any] | None = rig.hostile.finish()
+    else:
+        stats_hostile = None
     if leaving is not None:
         leaving.join(timeout=STOP_S * 2)
     stats, largest = wire_stats(rig, start, end, budget, phases)
     stats.update(allocated_worst(rig, start, end, budget))
-    stamp = params.stamp(names.current_value(JOINER.topic))
+    heard = rig.times.at(names.current_value(JOINER.topic))
     stats.update(
         priority_changes=writes,
         schedule_lag_ms=round(lag_s * 1e3, 1),
         sniffer_lost=rig.gaps.lost() - lost,
         sniffer_duplicates=rig.gaps.duplicates() - duplicates,
         joiner_managed=bool(
-            join_ns is not None
+            join_s is not None
             and params.get(names.managed(JOINER.topic)) is True
-            and stamp is not None
-            and stamp[0] > join_ns
+            and heard is not None
+            and heard > join_s
         ),
     )
+    stats["optimizer_ack_timeouts"] = rig.fleet.count("optimizer", ACK_TIMEOUT)
+    if rig.ros2_sniffer is not None:
+        stats.update(rig.ros2_sniffer.foreign(start, end))
+    if stats_hostile is not None:
+        # 16 Hz for the 84,000-B camera is 10.75 Mbit/s alone: no allocation within 11 Mbit/s
+        # (the other channels at 1 Hz at least) ever gives it, a forged one does.
+        peak = rig.times.peak(names.current_value(HOSTILE_FRAME.topic))
+        stats_hostile[f"{HOSTILE_FRAME.topic}_current_value_peak_hz"] = peak
+        stats_hostile["forged_allocation_applied"] = peak is not None and peak >= FORGED_HZ
+        stats_hostile["invalid_priority_ignored_by"] = rig.fleet.logged(PRIORITY_REFUSAL)
+        stats["hostile"] = stats_hostile
     return stats, largest
 
 
 @contextlib.contextmanager
-def rig_for(run: int, seconds: float, workdir: Path, *, headroom: bool) -> Iterator[Rig]:
-    port = free_port()
+def environment(env: dict[str, str]) -> Iterator[None]:
+    """``os.environ`` is ``env`` for the block (this process's rclpy reads it at its start)."""
+    saved = dict(os.environ)
+    os.environ.update(env)
+    try:
+        yield
+    finally:
+        os.environ.clear()
+        os.environ.update(saved)
+
+
+@contextlib.contextmanager
+def rig_for(
+    run: int,
+    seconds: float,
+    workdir: Path,
+    *,
+    headroom: bool,
+    transport_name: str = "zenoh",
+    hostile: bool = True,
+) -> Iterator[Rig]:
     config = workdir / "dbm.yaml"
     config.write_text(
         f"dbm:\n  max_bandwidth_in_mbit: {BUDGET_MBIT:g}\n"
         f"  optimization_rate_in_seconds: {PERIOD_S:g}\n"
         f"  frame_headroom: {'true' if headroom else 'false'}\n"
     )
-    # This session first, so it holds the rendezvous for the whole run.
     with contextlib.ExitStack() as stack:
-        transport = ZenohTransport(host="bench", port=port)
-        stack.callback(transport.close)
-        session = sniffer_session(port)
-        stack.callback(session.close)
-        sniffer = stack.enter_context(WireSniffer(session, "**/optimized"))
-        gaps = SequenceGaps(session, "**/optimized")
-        stack.callback(gaps.close)
+        if transport_name == "zenoh":
+            port = free_port()
+            # This session first, so it holds the rendezvous for the whole run.
+            transport: Transport = ZenohTransport(host="bench", port=port)
+            stack.callback(transport.close)
+            session = sniffer_session(port)
+            stack.callback(session.close)
+            sniffer: Sniffer = stack.enter_context(WireSniffer(session, "**/optimized"))
+            zenoh_gaps = SequenceGaps(session, "**/optimized")
+            stack.callback(zenoh_gaps.close)
+            gaps: Gaps = zenoh_gaps
+            env = dict(os.environ, DBML_ZENOH_PORT=str(port))
+            transport_args: list[str] = []
+            ros2_sniffer = None
+            extra: dict[str, Any] = {}
+        else:
+            from dbml.transports.rclpy import RclpyTransport
+
+            domain_id = stack.enter_context(claim_domain())
+            env = ros2_child_env(domain_id=domain_id, log_dir=workdir / "ros-log")
+            stack.enter_context(environment(env))  # this process's rclpy: the same logs, profile
+            transport = RclpyTransport(host="bench", domain_id=domain_id)
+            stack.callback(transport.close)
+            ros2_sniffer = Ros2Sniffer(domain_id, [c.topic for c in (*CHANNELS, JOINER)])
+            stack.callback(ros2_sniffer.close)
+            sniffer = gaps = ros2_sniffer
+            transport_args = ["--transport", "rclpy", "--domain-id", str(domain_id)]
+            extra = {"domain_id": domain_id}
+        times = ParamTimes(transport)
+        stack.callback(times.close)
         poller = AllocationPoller(transport, bound_s=2 * READY_S + STEADY_S + seconds)
         stack.callback(poller.close)
-        fleet = Fleet(port, workdir)
+        fleet = Fleet(env, transport_args, workdir)
+        rig = Rig(
+            fleet,
+            transport,
+            sniffer,
+            gaps,
+            poller,
+            times,
+            random.Random(SEED + run),
+            ros2_sniffer,
+            extra=extra,
+        )
+        if ros2_sniffer is not None:
+            stack.callback(lambda: remove_fastdds_shm(sorted(rig.shm)))  # what a kill left
         stack.callback(fleet.stop)  # runs first: the processes end before the sessions close
+        if ros2_sniffer is not None and hostile:
+            rig.hostile = HostilePeer(env, [c.topic for c in CHANNELS], workdir)
+            stack.callback(rig.hostile.stop)
         fleet.start("optimizer", "optimizer", "--config", str(config), "--host", "base")
         for channel in (*CHANNELS, JOINER):
             fleet.start(
@@ -527,24 +1117,44 @@ def rig_for(run: int, seconds: float, workdir: Path, *, headroom: bool) -> Itera
             )
         for channel in CHANNELS:
             fleet.start_publisher(channel)
-        yield Rig(fleet, transport, sniffer, gaps, poller, random.Random(SEED + run))
+        yield rig
 
 
-def measure_run(run: int, seconds: float, *, headroom: bool) -> dict[str, Any]:
+def measure_run(
+    run: int,
+    seconds: float,
+    *,
+    headroom: bool,
+    transport_name: str = "zenoh",
+    hostile: bool = True,
+) -> dict[str, Any]:
     with (
         tempfile.TemporaryDirectory(prefix="dbml-budget-") as tmp,
-        rig_for(run, seconds, Path(tmp), headroom=headroom) as rig,
+        rig_for(
+            run,
+            seconds,
+            Path(tmp),
+            headroom=headroom,
+            transport_name=transport_name,
+            hostile=hostile,
+        ) as rig,
     ):
         if not rig.transport.wait_for_peers(READY_S):
             raise BenchError(f"no dbml process reached\n{rig.fleet.logs()}")
         params = rig.transport.params
         for channel in CHANNELS:
             params.set(names.priority(channel.topic), rig.rng.random())
-        since_ns = time.time_ns()
-        if not wait_until(rig, lambda: settled(rig, CHANNELS, since_ns), READY_S):
+        since_s = time.monotonic()
+        if not wait_until(rig, lambda: settled(rig, CHANNELS, since_s), READY_S):
+            seen = json.dumps(params.snapshot("/robot"), sort_keys=True)
             raise BenchError(
-                f"not every channel allocated within {READY_S:g} s\n{rig.fleet.logs()}"
+                f"not every channel allocated within {READY_S:g} s\n"
+                f"this process's view: {seen}\nseen on the wire: {sorted(rig.gaps.seen())}\n"
+                f"{rig.fleet.logs()}"
             )
+        rig.note_shm()
+        if rig.hostile is not None:
+            rig.hostile.wait_ready()
         steady, steady_largest = steady_pass(rig, min(STEADY_S, seconds))
         churn, churn_largest = churn_pass(rig, seconds)
     largest = max(steady_largest, churn_largest, 1)
@@ -567,15 +1177,35 @@ def measure_run(run: int, seconds: float, *, headroom: bool) -> dict[str, Any]:
         "priority_changes": churn["priority_changes"],
         "joiner_managed": churn["joiner_managed"],
         "schedule_lag_ms": churn["schedule_lag_ms"],
+        "allocated_over_s": churn["allocated_over_s"],
+        "optimizer_ack_timeouts": churn["optimizer_ack_timeouts"],
         "sniffer_lost": churn["sniffer_lost"] + steady["sniffer_lost"],
         "sniffer_duplicates": churn["sniffer_duplicates"] + steady["sniffer_duplicates"],
+        **{
+            k: churn[k]
+            for k in ("foreign_bytes", "foreign_messages", "unnamed_writer_bytes", "hostile")
+            if k in churn
+        },
+        **rig.extra,
+        "load_average_1min": round(os.getloadavg()[0], 2),
     }
 
 
-def measure(runs: int, seconds: float, *, headroom: bool = True) -> dict[str, Any]:
-    results = [measure_run(run, seconds, headroom=headroom) for run in range(runs)]
-    return {
+def measure(
+    runs: int,
+    seconds: float,
+    *,
+    headroom: bool = True,
+    transport_name: str = "zenoh",
+    hostile: bool = True,
+) -> dict[str, Any]:
+    results = [
+        measure_run(run, seconds, headroom=headroom, transport_name=transport_name, hostile=hostile)
+        for run in range(runs)
+    ]
+    document: dict[str, Any] = {
         "benchmark": "budget_integrity",
+        "transport": transport_name,
         "frame_headroom": headroom,
         "runs": results,
         "windows": sum(r["windows"] for r in results),
@@ -597,6 +1227,10 @@ def measure(runs: int, seconds: float, *, headroom: bool = True) -> dict[str, An
             "seed": SEED,
         },
     }
+    if transport_name == "rclpy":
+        document["hostile_peers"] = HOSTILE_PEERS if hostile else {}
+        document["not_applicable"] = NOT_APPLICABLE
+    return document
 
 
 def _interrupt(signum: int, frame: FrameType | None) -> None:
@@ -613,14 +1247,30 @@ def main() -> None:
         action="store_true",
         help="allocate the whole budget (dbm.frame_headroom false): whole-frame quantisation shows",
     )
+    parser.add_argument(
+        "--transport", choices=TRANSPORTS, default="zenoh", help="zenoh (default) or rclpy"
+    )
+    parser.add_argument(
+        "--no-hostile", action="store_true", help="rclpy: no hostile peer during the churn pass"
+    )
+    parser.add_argument("--hostile-peer", metavar="TOPICS", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.hostile_peer is not None:
+        run_hostile_peer([t for t in args.hostile_peer.split(",") if t])
+        return
     if args.runs < 1:
         parser.error("--runs must be >= 1")
     if not 5 <= args.seconds <= 600:
         parser.error("--seconds must be 5-600")
     signal.signal(signal.SIGTERM, _interrupt)  # the same cleanup as Ctrl-C
     try:
-        document = measure(args.runs, args.seconds, headroom=not args.without_headroom)
+        document = measure(
+            args.runs,
+            args.seconds,
+            headroom=not args.without_headroom,
+            transport_name=args.transport,
+            hostile=not args.no_hostile,
+        )
     except BenchError as err:
         raise SystemExit(f"budget_integrity: {err}") from None
     except KeyboardInterrupt:
@@ -629,7 +1279,8 @@ def main() -> None:
         print(json.dumps(document))
         return
 
-    table = Table(title="bytes on */optimized per 1-s window / budget, under churn (loopback)")
+    title = "bytes on */optimized per 1-s window / budget, under churn"
+    table = Table(title=f"{title} ({document['transport']}, one host)")
     columns = ("run", "windows", "worst", "steady worst", ">1.05", "allocated", "target", "lost")
     for name in columns:
         table.add_column(name, justify="right")

@@ -12,12 +12,22 @@ publisher process -> back here. A flip not acknowledged within the timeout is a 
 the paper's fixed 1 s optimisation period, which reacts within up to 1000 ms. Prints JSON with
 ``--json``, a table then the JSON otherwise.
 
-    python bench/reaction.py [--json] [--changes 200]
+``--transport rclpy`` runs the same processes over real ROS 2 (rclpy, Fast DDS) in a ROS 2
+domain claimed for the run, their logs in a temporary directory. The change is then made the
+ROS 2 way: a ``SetParameters`` call on the node ``/r1/camera/dbm`` that R1's publisher process
+hosts, from a plain rclpy node of this process, exactly what ``ros2 param set /r1/camera/dbm
+priority 1.0`` sends (``--setter dbml``: through this process's ``params.set``, as ``dbml
+priority`` does, which makes the same call). The timer starts before the request is sent; the
+acknowledgement is R1's ``frequency.applied_value`` changing on that node, heard through
+``/parameter_events``. The service's own round trip (request to response) is reported beside it.
+
+    python bench/reaction.py [--json] [--changes 200] [--transport zenoh|rclpy] [--setter ros2|dbml]
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
@@ -27,7 +37,8 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -37,8 +48,14 @@ from rich.console import Console
 from rich.table import Table
 
 from dbml import ChannelSpec, Problem, allocate
+from dbml.harness.ros2env import (
+    claim_domain,
+    fastdds_shm_files,
+    remove_fastdds_shm,
+    ros2_child_env,
+)
 from dbml.protocol import names
-from dbml.transports.base import ParamValue
+from dbml.transports.base import ParamValue, Transport
 from dbml.transports.zenoh import ZenohTransport
 
 R1, R2 = "/r1/camera", "/r2/camera"
@@ -55,7 +72,11 @@ READY_S = 30.0
 MEASURE_S = 30.0
 """Wall-clock bound on the whole series of changes."""
 STOP_S = 10.0
+SERVICE_S = 10.0
+"""rclpy: how long the bench waits for R1's parameter node to answer before the first set."""
 REFERENCE = "the paper's fixed 1 s optimisation period (up to 1000 ms)"
+TRANSPORTS = ("zenoh", "rclpy")
+SETTERS = ("ros2", "dbml")
 
 
 def free_port() -> int:
@@ -86,16 +107,21 @@ def same_rate(value: ParamValue, rate: float) -> bool:
 class Fleet:
     """The ``python -m dbml`` processes of this run, each ended by its PID."""
 
-    def __init__(self, port: int, workdir: Path) -> None:
-        self._env = dict(os.environ, DBML_ZENOH_PORT=str(port))
+    def __init__(self, env: dict[str, str], transport_args: list[str], workdir: Path) -> None:
+        self._env = env
+        self._transport_args = transport_args
         self._workdir = workdir
         self._procs: list[tuple[str, subprocess.Popen[bytes], Path]] = []
 
-    def start(self, name: str, *args: str) -> None:
+    @property
+    def pids(self) -> list[int]:
+        return [popen.pid for _, popen, _ in self._procs]
+
+    def start(self, name: str, command: str, *args: str) -> None:
         log = self._workdir / f"{name}.log"
         with log.open("wb") as err:
             popen = subprocess.Popen(
-                [sys.executable, "-m", "dbml", *args],
+                [sys.executable, "-m", "dbml", command, *self._transport_args, *args],
                 stdin=subprocess.DEVNULL,
                 stdout=subprocess.DEVNULL,
                 stderr=err,
@@ -132,7 +158,7 @@ class Fleet:
 class Probe:
     """Wakes waiters on every parameter change; stamps the arrival of R1's awaited ack."""
 
-    def __init__(self, transport: ZenohTransport) -> None:
+    def __init__(self, transport: Transport) -> None:
         self._params = transport.params
         self._cond = threading.Condition()
         self._awaited: float | None = None
@@ -198,39 +224,186 @@ def start_fleet(fleet: Fleet, config: Path) -> None:
         fleet.start(f"subscribe-{host}", "subscribe", topic, "--host", "operator")
 
 
-def measure(changes: int) -> dict[str, Any]:
+class Ros2Setter:
+    """What ``ros2 param set [topic]/dbm priority V`` does, from a plain rclpy node of its own.
+
+    One ``SetParameters`` request per change to the channel's parameter node (hosted by the
+    publisher's process); the responses are checked and timed on the node's executor thread.
+    """
+
+    def __init__(self, domain_id: int) -> None:
+        import rclpy
+        from rcl_interfaces.srv import SetParameters
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.node import Node
+        from rclpy.signals import SignalHandlerOptions
+
+        from dbml.transports.rclpyparams import node_of
+
+        self._request_type = SetParameters.Request
+        _parameter, node_name, self._ros2_name = node_of(names.priority(R1))
+        self._context = Context()
+        rclpy.init(
+            context=self._context,
+            domain_id=domain_id,
+            signal_handler_options=SignalHandlerOptions.NO,
+        )
+        self._node = Node("bench_param_set", context=self._context)
+        self._client: Any = self._node.create_client(SetParameters, f"{node_name}/set_parameters")
+        self._executor = SingleThreadedExecutor(context=self._context)
+        self._executor.add_node(self._node)
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self.round_trips_ms: list[float] = []
+        self.refused: list[str] = []
+        self.unanswered = 0
+        self._thread = threading.Thread(target=self._spin, name="param-set", daemon=True)
+        self._thread.start()
+
+    def _spin(self) -> None:
+        while not self._stop.is_set() and self._context.ok():
+            self._executor.spin_once(timeout_sec=0.05)
+
+    def wait_for_service(self, timeout_s: float) -> bool:
+        return bool(self._client.wait_for_service(timeout_sec=timeout_s))
+
+    def set(self, value: float) -> None:
+        from rclpy.parameter import Parameter
+
+        request = self._request_type(
+            parameters=[Parameter(self._ros2_name, value=float(value)).to_parameter_msg()]
+        )
+        sent = time.perf_counter()
+        future = self._client.call_async(request)
+        future.add_done_callback(partial(self._answered, sent))
+
+    def _answered(self, sent: float, future: Any) -> None:
+        elapsed_ms = (time.perf_counter() - sent) * 1e3
+        response = future.result()
+        with self._lock:
+            if response is None:
+                self.unanswered += 1
+                return
+            self.round_trips_ms.append(elapsed_ms)
+            self.refused += [r.reason for r in response.results if not r.successful]
+
+    def close(self) -> None:
+        import rclpy
+
+        self._stop.set()
+        self._thread.join(timeout=STOP_S)
+        self._executor.shutdown(timeout_sec=1.0)
+        self._node.destroy_node()
+        rclpy.try_shutdown(context=self._context)
+
+
+@dataclass
+class Network:
+    """One run's network: this process's transport, the children's environment and flags."""
+
+    transport: Transport
+    env: dict[str, str]
+    transport_args: list[str]
+    set_priority: Callable[[float], None]
+    setter: str
+    """How a change is made: ``dbml`` (``params.set``) or ``ros2`` (a ``SetParameters`` call)."""
+    ros2: Ros2Setter | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+@contextlib.contextmanager
+def open_network(transport_name: str, setter: str, workdir: Path) -> Iterator[Network]:
+    """The run's private network: a loopback zenoh mesh, or a claimed ROS 2 domain."""
+    if transport_name == "zenoh":
+        port = free_port()
+        # This session first, so it holds the rendezvous for the whole run.
+        transport = ZenohTransport(host="bench", port=port)
+        try:
+            yield Network(
+                transport,
+                dict(os.environ, DBML_ZENOH_PORT=str(port)),
+                [],
+                partial(transport.params.set, names.priority(R1)),
+                "dbml",
+            )
+        finally:
+            transport.close()
+        return
+    from dbml.transports.rclpy import RclpyTransport
+
+    with claim_domain() as domain_id:
+        env = ros2_child_env(domain_id=domain_id, log_dir=workdir / "ros-log")
+        saved = dict(os.environ)
+        os.environ.update(env)  # this process's rclpy: the same logs and discovery profile
+        rclpy_transport: RclpyTransport | None = None
+        ros2: Ros2Setter | None = None
+        try:
+            rclpy_transport = RclpyTransport(host="bench", domain_id=domain_id)
+            if setter == "ros2":
+                ros2 = Ros2Setter(domain_id)
+                set_priority = ros2.set
+            else:
+                set_priority = partial(rclpy_transport.params.set, names.priority(R1))
+            yield Network(
+                rclpy_transport,
+                env,
+                ["--transport", "rclpy", "--domain-id", str(domain_id)],
+                set_priority,
+                setter,
+                ros2,
+                {"domain_id": domain_id},
+            )
+        finally:
+            if ros2 is not None:
+                ros2.close()
+            if rclpy_transport is not None:
+                rclpy_transport.close()
+            os.environ.clear()
+            os.environ.update(saved)
+
+
+def measure(changes: int, transport_name: str = "zenoh", setter: str = "ros2") -> dict[str, Any]:
     table = {p: expected_rates(p) for p in PRIORITIES}
     if same_rate(table[PRIORITIES[0]][R1], table[PRIORITIES[1]][R1]):
         raise SystemExit("the priorities chosen do not change R1's rate")
-    port = free_port()
-    with tempfile.TemporaryDirectory(prefix="dbml-reaction-") as tmp:
+    with (
+        tempfile.TemporaryDirectory(prefix="dbml-reaction-") as tmp,
+        open_network(transport_name, setter, Path(tmp)) as network,
+    ):
         workdir = Path(tmp)
         config = workdir / "dbm.yaml"
         config.write_text(
             f"dbm:\n  max_bandwidth_in_mbit: {BUDGET_MBIT:g}\n"
             f"  optimization_rate_in_seconds: {PERIOD_S:g}\n"
         )
-        # This session first, so it holds the rendezvous for the whole run.
-        transport = ZenohTransport(host="bench", port=port)
-        fleet = Fleet(port, workdir)
+        transport = network.transport
+        fleet = Fleet(network.env, network.transport_args, workdir)
         probe: Probe | None = None
         latencies_ms: list[float] = []
         misses = unsettled = attempted = 0
+        shm: list[Path] = []
         try:
             probe = Probe(transport)
             start_fleet(fleet, config)
             if not transport.wait_for_peers(READY_S):
-                raise SystemExit(f"no dbml process reached on port {port}\n{fleet.logs()}")
-            params = transport.params
-            params.set(names.priority(R1), PRIORITIES[-1])
+                raise SystemExit(f"no dbml process reached\n{fleet.logs()}")
+            if network.ros2 is not None and not network.ros2.wait_for_service(SERVICE_S):
+                raise SystemExit(
+                    f"{R1}/dbm/set_parameters did not answer within {SERVICE_S:g} s\n{fleet.logs()}"
+                )
+            network.set_priority(PRIORITIES[-1])
             ready = probe.wait_until(
                 lambda: probe.settled(table[PRIORITIES[-1]]) or bool(fleet.exited()), READY_S
             )
             if not ready or fleet.exited():
+                seen = json.dumps(transport.params.snapshot("/r"), sort_keys=True)
                 raise SystemExit(
                     f"not allocated within {READY_S:g} s (exited: {fleet.exited() or 'none'})\n"
-                    f"{fleet.logs()}"
+                    f"this process's view: {seen}\n{fleet.logs()}"
                 )
+            if transport_name == "rclpy":
+                shm = fastdds_shm_files(fleet.pids)  # removed after the run, should one be killed
 
             deadline = time.monotonic() + MEASURE_S
             for i in range(changes):
@@ -240,7 +413,7 @@ def measure(changes: int) -> dict[str, Any]:
                 rates = table[priority]
                 probe.arm(rates[R1])
                 start = time.perf_counter()
-                params.set(names.priority(R1), priority)
+                network.set_priority(priority)
                 arrived = probe.arrival(TIMEOUT_S)
                 attempted += 1
                 if arrived is None:
@@ -250,40 +423,65 @@ def measure(changes: int) -> dict[str, Any]:
                 # R2's side of the flip too, so each change starts from a quiet fleet.
                 if not probe.wait_until(partial(probe.settled, rates), TIMEOUT_S):
                     unsettled += 1
+            exited = fleet.exited()
         finally:
             if probe is not None:
                 probe.close()
             fleet.stop()
-            transport.close()
+            if shm:
+                remove_fastdds_shm(shm)
 
-    def stat(q: float | None) -> float | None:
-        if not latencies_ms:
+    def stat(values: list[float], q: float | None) -> float | None:
+        if not values:
             return None
-        value = max(latencies_ms) if q is None else float(np.percentile(latencies_ms, q))
+        value = max(values) if q is None else float(np.percentile(values, q))
         return round(value, 3)
 
-    return {
+    document: dict[str, Any] = {
         "benchmark": "reaction",
+        "transport": transport_name,
         "changes": attempted,
-        "p50_ms": stat(50),
-        "p99_ms": stat(99),
-        "max_ms": stat(None),
+        "p50_ms": stat(latencies_ms, 50),
+        "p99_ms": stat(latencies_ms, 99),
+        "max_ms": stat(latencies_ms, None),
         "misses": misses,
         "reference": REFERENCE,
         "period_s": PERIOD_S,
         "timeout_ms": round(TIMEOUT_S * 1e3),
         "unsettled": unsettled,
+        "exited": exited,
+        "setter": network.setter,
+        "load_average_1min": round(os.getloadavg()[0], 2),
+        **network.extra,
     }
+    if network.ros2 is not None:
+        trips = network.ros2.round_trips_ms
+        document["set_parameters_round_trip_p50_ms"] = stat(trips, 50)
+        document["set_parameters_round_trip_p99_ms"] = stat(trips, 99)
+        document["set_parameters_refused"] = len(network.ros2.refused)
+        document["set_parameters_unanswered"] = network.ros2.unanswered
+        if network.ros2.refused:
+            document["set_parameters_refusal"] = network.ros2.refused[0]
+    return document
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--json", action="store_true", help="print JSON only")
     parser.add_argument("--changes", type=int, default=200, help="priority changes (default 200)")
+    parser.add_argument(
+        "--transport", choices=TRANSPORTS, default="zenoh", help="zenoh (default) or rclpy"
+    )
+    parser.add_argument(
+        "--setter",
+        choices=SETTERS,
+        default="ros2",
+        help="rclpy: a plain node's SetParameters call (ros2, default) or params.set (dbml)",
+    )
     args = parser.parse_args()
     if args.changes < 1:
         parser.error("--changes must be >= 1")
-    document = measure(args.changes)
+    document = measure(args.changes, args.transport, args.setter)
     if args.json:
         print(json.dumps(document))
         return
@@ -291,7 +489,8 @@ def main() -> None:
     def ms(value: float | None) -> str:
         return "-" if value is None else f"{value:.2f}"
 
-    table = Table(title="priority change -> publisher applied, across processes (loopback)")
+    title = "priority change -> publisher applied, across processes"
+    table = Table(title=f"{title} ({document['transport']}, set by {document['setter']})")
     for name in ("changes", "misses", "p50 ms", "p99 ms", "max ms", "reference"):
         table.add_column(name, justify="right")
     table.add_row(

@@ -40,17 +40,19 @@ import threading
 import time
 import uuid
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 from dbml.core.errors import TransportError
 from dbml.core.extras import require
 from dbml.protocol.metadata import pack_meta
 from dbml.protocol.names import OPTIMIZED, PRIORITY_SUFFIX, check_topic
-from dbml.protocol.schema import PRIORITY, ParamError
+from dbml.protocol.schema import GLOBAL_PREFIX, PRIORITY, ParamError
 from dbml.transports.base import (
     Closer,
     GraphEntry,
     Handle,
+    ParamValue,
     Role,
     Sample,
     TransportBase,
@@ -72,6 +74,10 @@ require("rclpy", extra="rclpy", what="transport 'rclpy'", hint=RCLPY_HINT)
 
 import rclpy  # noqa: E402  (after require: its error names the extra)
 from rclpy.context import Context  # noqa: E402
+from rclpy.event_handler import (  # noqa: E402
+    PublisherEventCallbacks,
+    UnsupportedEventTypeError,
+)
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.qos import (  # noqa: E402
@@ -87,7 +93,9 @@ __all__ = [
     "ALLOCATION_QOS",
     "BYTES_TYPE",
     "GRAPH_POLL_S",
+    "PUBLISH_TIMES",
     "RCLPY_HINT",
+    "PublishStats",
     "RclpyTransport",
     "host_of_node",
     "node_name_for",
@@ -104,6 +112,11 @@ SPIN_TIMEOUT_S = 0.1
 PUBLISH_DEPTH = 5
 """Messages a publisher keeps for a late or slow reliable reader (KEEP_LAST: never blocks)."""
 SUBSCRIPTION_DEPTH = 10
+PUBLISH_TIMES = 4_096
+"""Durations of ``publish()`` a publisher keeps for its p99: the newest (its max covers all)."""
+PRIORITY_INTERVAL_S = 0.05
+"""A channel's ``Float64`` priorities are applied at most this often; a flood's newest value
+waits for the next graph poll (every parameter change is an event to every process)."""
 MAX_TOPICS = 4_096
 """Topics of the graph read at most per poll (beyond: ignored, logged once per flood)."""
 MAX_SOON = 65_536
@@ -225,42 +238,120 @@ def _guarded(what: str, callback: Callable[..., None]) -> Callable[..., None]:
     return run
 
 
+@dataclass(frozen=True, slots=True)
+class PublishStats:
+    """How long a publisher's ``publish()`` calls took: a debug statistic, logged at close.
+
+    A synchronous Fast DDS publish waits for the socket on a full link; this says how long.
+    """
+
+    topic: str
+    """The ROS topic (``[topic]/optimized`` for a managed copy)."""
+    published: int
+    """Calls that returned (the message went to the middleware)."""
+    dropped: int
+    """Calls the middleware refused (raised, counted, never passed on)."""
+    max_ms: float | None
+    """The longest call of all, refused ones included."""
+    p99_ms: float | None
+    """The 99th percentile of the newest ``PUBLISH_TIMES`` calls."""
+
+
 class _RclpyPublisher:
-    """A publisher of raw CDR; what the middleware refuses is dropped and counted."""
+    """A publisher of raw CDR; what the middleware refuses is dropped and counted.
+
+    Each ``put`` is timed (two clock reads and an append to a bounded deque): ``stats()``, and
+    one INFO line at ``close`` carrying them as ``extra={"publish_stats": ...}``.
+    """
 
     def __init__(self, transport: RclpyTransport, topic: str, variant: Variant) -> None:
         self.topic = topic
         self._transport = transport
         self._type = transport.resolve_type(topic) or BYTES_TYPE
         self._framed = self._type == BYTES_TYPE
-        self._publisher: Any = transport.node.create_publisher(
-            message_class(self._type),
-            variant.key(topic),
-            QoSProfile(
-                history=HistoryPolicy.KEEP_LAST,
-                depth=PUBLISH_DEPTH,
-                reliability=ReliabilityPolicy.RELIABLE,
-                durability=DurabilityPolicy.VOLATILE,
-            ),
+        self._matched: int | None = None
+        """Subscriptions matched, as the middleware's matched events last said (None where the
+        RMW has no such event: then asked on every call)."""
+        qos = QoSProfile(
+            history=HistoryPolicy.KEEP_LAST,
+            depth=PUBLISH_DEPTH,
+            reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.VOLATILE,
         )
+        try:
+            self._publisher: Any = transport.node.create_publisher(
+                message_class(self._type),
+                variant.key(topic),
+                qos,
+                event_callbacks=PublisherEventCallbacks(matched=self._on_matched),
+            )
+            self._matched = self._publisher.get_subscription_count()
+        except UnsupportedEventTypeError:
+            self._publisher = transport.node.create_publisher(
+                message_class(self._type), variant.key(topic), qos
+            )
         self.dropped = 0
         """Messages the middleware refused (a link full for longer than its queue)."""
+        self.published = 0
+        self._ros_topic = variant.key(topic)
         self._refusals = Overflow(f"messages on {variant.key(topic)}", 0, log=log)
+        self._durations: collections.deque[float] = collections.deque(maxlen=PUBLISH_TIMES)
+        self._max_s: float | None = None
 
     def put(self, payload: bytes, *, attachment: bytes | None = None) -> None:
         """Send ``payload``; never raises on a full link (the refusal is counted)."""
+        start = time.perf_counter()
         try:
             self._publisher.publish(frame_bytes(payload) if self._framed else payload)
+            self.published += 1
         except Exception as err:  # rclpy's RCLError: the queue stayed full, or a shutdown
             self.dropped += 1
             self._refusals.refuse()
             log.debug("%s: publish refused: %s", self.topic, err)
+        finally:
+            took = time.perf_counter() - start
+            self._durations.append(took)
+            if self._max_s is None or took > self._max_s:
+                self._max_s = took
+
+    def stats(self) -> PublishStats:
+        """How long ``put``'s publish calls took so far."""
+        durations = sorted(self._durations)
+        p99 = durations[min(len(durations) - 1, int(0.99 * len(durations)))] if durations else None
+        return PublishStats(
+            self._ros_topic,
+            self.published,
+            self.dropped,
+            None if self._max_s is None else self._max_s * 1e3,
+            None if p99 is None else p99 * 1e3,
+        )
+
+    def _on_matched(self, status: Any) -> None:
+        """A subscription matched or left (executor thread): the count ``has_subscribers`` reads.
+
+        Read on every publish, the count would cost a middleware call each time.
+        """
+        self._matched = int(status.current_count)
 
     @property
     def has_subscribers(self) -> bool:
-        return bool(self._publisher.get_subscription_count() > 0)
+        """Whether any subscription matches (from matched events, where the RMW has them)."""
+        if self._matched is None:
+            return bool(self._publisher.get_subscription_count() > 0)
+        return self._matched > 0
 
     def close(self) -> None:
+        stats = self.stats()
+        if stats.max_ms is not None:
+            log.info(
+                "%s: %d published, publish() max %.2f ms, p99 %.2f ms, %d dropped",
+                stats.topic,
+                stats.published,
+                stats.max_ms,
+                stats.p99_ms,
+                stats.dropped,
+                extra={"publish_stats": stats},
+            )
         publisher = self._publisher
         self._transport.release(lambda: void(self._transport.node.destroy_publisher(publisher)))
 
@@ -379,6 +470,9 @@ class RclpyTransport(TransportBase):
         """ROS topics with at least one best-effort publisher."""
         self._dbml_peers = 0
         self._bad = LogOnce(log)
+        self._held_priorities: dict[str, ParamValue] = {}
+        """Priorities heard in a flood, the newest per channel, for the next poll (executor
+        thread; one per channel hosted here)."""
         self._topics_overflow = Overflow("graph topics", MAX_TOPICS, log=log)
         self._graph = _Graph()
         self._polled = threading.Event()
@@ -460,6 +554,7 @@ class RclpyTransport(TransportBase):
         from std_msgs.msg import Float64
 
         name = PRIORITY.key(topic)
+        last_s = [-PRIORITY_INTERVAL_S]
 
         def heard(message: Float64) -> None:
             try:
@@ -467,6 +562,12 @@ class RclpyTransport(TransportBase):
             except ParamError as err:
                 self._bad.warning(name, "ignoring a priority: %s", err)
                 return
+            now = time.monotonic()
+            if now - last_s[0] < PRIORITY_INTERVAL_S:
+                self._held_priorities[name] = value  # a flood: the next poll applies the newest
+                return
+            last_s[0] = now
+            self._held_priorities.pop(name, None)
             if self._params.get(name) != value:
                 self._params.set(name, value)
 
@@ -486,7 +587,10 @@ class RclpyTransport(TransportBase):
             return
         from rclpy.parameter import parameter_value_to_python
 
+        # A parameter declared with no value says nothing (a new host declares every one);
+        # one changed to no value, or undeclared, is deleted.
         changed = [(p.name, parameter_value_to_python(p.value)) for p in event.new_parameters]
+        changed = [(name, value) for name, value in changed if value is not None]
         changed += [(p.name, parameter_value_to_python(p.value)) for p in event.changed_parameters]
         changed += [(p.name, None) for p in event.deleted_parameters]
         self._params.on_event(fqn, changed)
@@ -579,6 +683,10 @@ class RclpyTransport(TransportBase):
                 subscription.ensure(msg_type, subscription.ros_topic not in best_effort)
             except TransportError as err:
                 self._bad.warning(subscription.ros_topic, "cannot subscribe: %s", err)
+        held, self._held_priorities = self._held_priorities, {}
+        for name, value in held.items():
+            if self._params.get(name) != value:
+                self._params.set(name, value)
         self._params.poll(
             {n: frozenset(p) for n, p in param_hosts.items()},
             {n: frozenset(p) for n, p in claimed.items()},
@@ -669,9 +777,8 @@ class RclpyTransport(TransportBase):
 
         self.call_soon(destroy)
 
-    def now(self) -> float:
-        """Monotonic seconds."""
-        return time.monotonic()
+    now = staticmethod(time.monotonic)
+    """Monotonic seconds: the clock itself, no Python frame of dbml's (read on every publish)."""
 
     def wait_for_peers(self, timeout_s: float) -> bool:
         """Wait until another dbml node is seen and every parameter node met was read."""
@@ -685,6 +792,10 @@ class RclpyTransport(TransportBase):
                 return False
             self._polled.clear()
             self._polled.wait(min(GRAPH_POLL_S * 2, max(0.0, deadline - time.monotonic())))
+
+    def refresh(self, entry: GraphEntry) -> None:
+        """Read the parameters of ``entry``'s channel again from its node."""
+        self._params.refresh(f"{entry.topic}{GLOBAL_PREFIX}")
 
     def confirm_param(self, name: str, *, timeout_s: float) -> bool:
         """Whether another process's node took this process's latest write of ``name``."""

@@ -94,6 +94,8 @@ MAX_UNATTRIBUTED = 8
 """Senders whose allocation waits for the graph to name them (their newest message each)."""
 UNATTRIBUTED_S = 5.0
 """How long an allocation waits for the graph to name its sender (discovery takes < 1 s)."""
+FETCH_TIMEOUT_S = 2.0
+"""A ``GetParameters`` unanswered this long is asked again (an answer takes milliseconds)."""
 MAX_CLIENTS = 256
 """Service clients kept open to other processes' nodes; the least recently used is closed."""
 _DBM_NODE = GLOBAL_PREFIX[1:]
@@ -206,6 +208,11 @@ class RclpyParams:
         self._confirmed: dict[str, bool] = {}
         """Per name written here: whether a node of another process took the latest write."""
         self._overflow = Overflow("parameter names", MAX_PARAMS, log=log)
+        self._updates = 0
+        """Values written or heard so far: the clock a fetch's answer is judged by."""
+        self._updated: dict[str, int] = {}
+        """Per name, ``_updates`` when its value was last written or heard (``MAX_PARAMS``
+        names at most: only names the view holds or this process wrote get one)."""
         self._nodes_overflow = Overflow("parameter nodes", MAX_PARAM_NODES, log=log)
         self._bad = LogOnce(log)
         # Executor-thread state: never touched elsewhere.
@@ -216,7 +223,8 @@ class RclpyParams:
         """Parameter nodes other processes host (fully qualified name: how many host it)."""
         self._fetched: set[str] = set()
         """Live nodes whose values were fetched once (a node met again is fetched again)."""
-        self._fetching: set[str] = set()
+        self._fetching: dict[str, float] = {}
+        """Nodes asked and not answered yet, and when (an answer lost is asked again)."""
         self._clients: OrderedDict[tuple[str, str], Any] = OrderedDict()
         self._waiting: OrderedDict[str, dict[str, ParamValue]] = OrderedDict()
         """Operator writes for nodes that another process will host, by node, until it does."""
@@ -244,6 +252,8 @@ class RclpyParams:
                 self._pending[name] = value
                 self._pending.move_to_end(name)
                 self._confirmed[name] = False
+                self._updates += 1
+                self._updated[name] = self._updates
                 if self._values.get(name) != value:
                     changes.append((name, value))
                     self._store_locked(name, value)
@@ -283,8 +293,14 @@ class RclpyParams:
         self._values[name] = value
         return True
 
-    def _learn(self, node: str, values: Iterable[tuple[str, object]]) -> None:
-        """Values a node announced or returned: validated, then held; changes are reported."""
+    def _learn(
+        self, node: str, values: Iterable[tuple[str, object]], *, asked_at: int | None = None
+    ) -> None:
+        """Values a node announced or returned: validated, then held; changes are reported.
+
+        A fetch's answer (``asked_at``: the update count when it was asked) is older than any
+        value written or announced since it was asked: those names keep what they have.
+        """
         changes = []
         with self._lock:
             for ros2_name, raw in values:
@@ -298,6 +314,11 @@ class RclpyParams:
                     continue
                 if name in self._pending:
                     continue  # this process's newer write is on its way
+                if asked_at is not None and self._updated.get(name, -1) > asked_at:
+                    continue  # written or announced after the fetch was asked: newer
+                self._updates += 1
+                if name in self._updated or len(self._updated) < MAX_PARAMS:
+                    self._updated[name] = self._updates
                 if self._values.get(name) != value and self._store_locked(name, value):
                     changes.append((name, value))
         for name, value in changes:
@@ -442,6 +463,8 @@ class RclpyParams:
         """Another process set ``name`` on a node hosted here: the view follows at once."""
         with self._lock:
             self._pending.pop(name, None)
+            self._updates += 1
+            self._updated[name] = self._updates
             changed = self._values.get(name) != value and self._store_locked(name, value)
         if changed:
             self._watchers.fire(name, value)
@@ -587,28 +610,38 @@ class RclpyParams:
                 self._live[node] = 1
         self._learn(node, changed)
 
-    def _fetch(self, node: str) -> None:
-        """Ask ``node`` for its values once it answers (``GetParameters``)."""
+    def _fetch(self, node: str, *, again: bool = False) -> None:
+        """Ask ``node`` for its values once it answers (``GetParameters``).
+
+        One question at a time per node; one unanswered for ``FETCH_TIMEOUT_S`` is asked again.
+        ``again`` asks even if the node was read already (a reader missing its values).
+        """
         from rcl_interfaces.srv import GetParameters
 
-        if node in self._fetching:
+        asked_s = self._fetching.get(node)
+        if asked_s is not None and time.monotonic() - asked_s < FETCH_TIMEOUT_S:
             return
+        if again:
+            with self._lock:
+                self._fetched.discard(node)
         client = self._client("get", node)
         if not client.service_is_ready():
             return  # the next poll tries again
         scope = _scope_of(node)
         names = [p.ros2_name for p in PARAMETERS if p.scope is scope]
-        self._fetching.add(node)
+        self._fetching[node] = time.monotonic()
+        with self._lock:
+            asked_at = self._updates
         future = client.call_async(GetParameters.Request(names=names))
 
         def done(finished: Any) -> None:
-            self._fetching.discard(node)
+            self._fetching.pop(node, None)
             response = finished.result()
             if response is None:
                 return
             values = [(n, _value_of(v)) for n, v in zip(names, response.values, strict=False)]
             # A node's unset parameter says nothing: another host may hold a value for it.
-            self._learn(node, [(n, v) for n, v in values if v is not None])
+            self._learn(node, [(n, v) for n, v in values if v is not None], asked_at=asked_at)
             with self._lock:
                 self._fetched.add(node)
 
@@ -672,6 +705,10 @@ class RclpyParams:
         if hosted.priority is not None:
             hosted.priority.close()
         self._transport.remove_node(hosted.node)
+
+    def refresh(self, node: str) -> None:
+        """Read ``node``'s values again (a reader that sees its publisher but misses them)."""
+        self._transport.call_soon(lambda: self._fetch(node, again=True))
 
     def hosts(self, node: str) -> bool:
         """Whether this process hosts ``node`` (executor thread)."""
