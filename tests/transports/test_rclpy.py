@@ -7,7 +7,9 @@ node) is a plain rclpy node in a context of its own, as another process's would 
 from __future__ import annotations
 
 import math
+import threading
 import time
+from typing import Any
 
 import pytest
 from hypothesis import given
@@ -292,3 +294,99 @@ def _hosts(transport: RclpyTransport, node: str) -> bool:
     transport.call_soon(ask)
     assert done.wait(5.0), "the executor thread answered"
     return answer[0]
+
+
+@pytest.mark.integration
+def test_hostile_requests_and_events_change_nothing(ros_domain: int) -> None:
+    """A request rclpy cannot parse, a deletion, a forged event: no thread dies, no value moves.
+
+    A ``SetParameters`` with an unknown value type raised out of rclpy's own service callback
+    and killed the executor; a ``/parameter_events`` message naming a node it does not host
+    was believed.
+    """
+    from rcl_interfaces.msg import Parameter as ParameterMsg
+    from rcl_interfaces.msg import ParameterEvent, ParameterType
+
+    robot = RclpyTransport(host="r1", domain_id=ros_domain)
+    ground = RclpyTransport(host="ground", domain_id=ros_domain)
+    try:
+        robot.params.set("/r1/camera/dbm/frequency/max", 16.0)
+        robot.params.set("/r1/camera/dbm/priority", 0.5)
+        wait_for(lambda: ground.params.get("/r1/camera/dbm/priority") == 0.5, what="0.5")
+        with plain_node(ros_domain, "hostile") as hostile:
+            weird = ParameterMsg(name="priority")
+            weird.value.type = 99
+            param_set_raw(hostile, "/r1/camera/dbm", weird)  # unanswered or refused
+            deleted = ParameterMsg(name="priority")
+            deleted.value.type = ParameterType.PARAMETER_NOT_SET
+            result = param_set_raw(hostile, "/r1/camera/dbm", deleted)
+            assert result is not None
+            assert not result.successful
+            assert "cannot be deleted" in result.reason
+            forged = ParameterEvent(node="/r1/camera/dbm")
+            fake = ParameterMsg(name="frequency.max")
+            fake.value.type = ParameterType.PARAMETER_DOUBLE
+            fake.value.double_value = 1000.0
+            forged.changed_parameters = [fake]
+            events = hostile.create_publisher(ParameterEvent, "/parameter_events", 10)
+            wait_for(lambda: events.get_subscription_count() >= 2, what="the forger's matches")
+            for _ in range(3):
+                events.publish(forged)
+            ground.params.set("/r1/camera/dbm/priority", 0.25)  # after the attacks, in order
+            wait_for(lambda: robot.params.get("/r1/camera/dbm/priority") == 0.25, what="0.25")
+            wait_for(lambda: ground.params.get("/r1/camera/dbm/priority") == 0.25, what="echo")
+        assert robot.alive
+        assert ground.alive
+        assert ground.params.get("/r1/camera/dbm/frequency/max") == 16.0
+    finally:
+        ground.close()
+        robot.close()
+
+
+ANSWER_S = 2.0
+"""How long a hostile request's answer is waited for (it may never come)."""
+
+
+def param_set_raw(node: Any, target: str, parameter: Any) -> Any:
+    """One ``SetParameters`` call carrying ``parameter`` as given; its result, or None."""
+    from rcl_interfaces.srv import SetParameters
+
+    client: Any = node.create_client(SetParameters, f"{target}/set_parameters")
+    try:
+        assert client.wait_for_service(timeout_sec=5.0), f"{target} never answered"
+        future = client.call_async(SetParameters.Request(parameters=[parameter]))
+        answered = threading.Event()
+        future.add_done_callback(lambda _f: answered.set())
+        response: Any = future.result() if answered.wait(ANSWER_S) else None
+        return None if response is None else response.results[0]
+    finally:
+        node.destroy_client(client)
+
+
+@pytest.mark.integration
+def test_a_name_ros_2_refuses_is_refused_by_name(ros_domain: int) -> None:
+    transport = RclpyTransport(host="r1", domain_id=ros_domain)
+    try:
+        with pytest.raises(TransportError, match=r"topic='/r1/cam-front' is not a ROS 2 name"):
+            transport.subscribe("/r1/cam-front", lambda _s: None)
+        with pytest.raises(TransportError, match=r"topic='/r1/cam.front' is not a ROS 2 name"):
+            transport.params.set("/r1/cam.front/dbm/priority", 0.5)
+        assert transport.params.get("/r1/cam.front/dbm/priority") is None
+    finally:
+        transport.close()
+
+
+@pytest.mark.integration
+def test_closing_sends_what_is_queued(ros_domain: int) -> None:
+    robot = RclpyTransport(host="r1", domain_id=ros_domain)
+    operator = RclpyTransport(host="ground", domain_id=ros_domain)
+    try:
+        robot.params.set("/r1/camera/dbm/frequency/max", 16.0)
+        wait_for(lambda: operator.params.get("/r1/camera/dbm/frequency/max") == 16.0, what="max")
+        wait_for(lambda: operator.wait_for_peers(0), what="the operator settled")
+        operator.params.set("/r1/camera/dbm/priority", 0.42)
+        operator.close()
+        wait_for(lambda: robot.params.get("/r1/camera/dbm/priority") == 0.42, what="0.42")
+    finally:
+        operator.close()
+        robot.close()

@@ -140,9 +140,22 @@ def testbed_document(result: TestbedResult) -> dict[str, Any]:
             }
             for o in result.outages
         ]
+    if result.bridges:
+        summary_document["bridges"] = [
+            {
+                "robot": b.robot,
+                "published": b.published,
+                "dropped": b.dropped,
+                "publish_max_ms": b.max_ms,
+                "publish_p99_ms": b.p99_ms,
+                "frame_ms": b.frame_ms,
+            }
+            for b in result.bridges
+        ]
     summary_document["targets"] = dict(summary.targets)
     return {
         "policy": options.policy,
+        "transport": options.transport,
         "strategy": options.strategy,
         "link_mbit": options.link_mbit,
         "link_schedule": [list(entry) for entry in options.link_schedule],

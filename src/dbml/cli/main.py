@@ -397,11 +397,12 @@ def _cmd_testbed(args: argparse.Namespace) -> int:
         urgent_stream=args.urgent_stream,
         robots=args.robots,
         topology=args.topology,
+        transport=args.transport,
     )
     console = Console(stderr=args.json)
     with render.ExperimentView(
         Console(stderr=True),
-        title=f"dbml testbed teleop — {options.policy}, live",
+        title=f"dbml testbed teleop — {options.policy} over {options.transport}, live",
         step_s=options.step_seconds,
         robots=[camera.robot for camera in fleet_cameras(options.robots)],
         link_mbit=options.link_mbit,
@@ -417,7 +418,8 @@ def _cmd_testbed(args: argparse.Namespace) -> int:
         ExperimentPlot(
             result.series,
             options.step_seconds,
-            f"dbml testbed teleop: policy {options.policy} on a tc-shaped link",
+            f"dbml testbed teleop: policy {options.policy} over {options.transport} "
+            "on a tc-shaped link",
             budget_label="budget (estimate)" if options.estimate else "budget",
         ),
     )

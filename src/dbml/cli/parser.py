@@ -12,6 +12,7 @@ from dbml.core.spec import check_number
 from dbml.runtime.qos import parse_transport_priority
 from dbml.secure import DEFAULT_BASE_PORT, DEFAULT_DAYS
 from dbml.testbed.netns import TOPOLOGIES
+from dbml.testbed.netns import TRANSPORTS as TESTBED_TRANSPORTS
 from dbml.transports.base import DEFAULT_ROUTER_ENDPOINT, TransportPriority
 from dbml.transports.registry import DEFAULT_TRANSPORT, TRANSPORTS
 
@@ -265,6 +266,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=TOPOLOGIES[0],
         help="peer (default): zenoh peers on explicit endpoints; router: a zenoh router per "
         "host, every role its client, the robots' routers meshed with the operator's",
+    )
+    testbed_cmd.add_argument(
+        "--transport",
+        choices=TESTBED_TRANSPORTS,
+        default=TESTBED_TRANSPORTS[0],
+        help="zenoh (default): dbml's roles over zenoh; rclpy: real ROS 2 (Fast DDS), plain "
+        "rclpy cameras and operator, a dbml bridge per camera, dbml's optimizer",
     )
     testbed_cmd.add_argument("--json", action="store_true", help="one JSON object on stdout")
     testbed_cmd.add_argument("--plot", metavar="FILE.png", help="rates, latency and budget")

@@ -14,14 +14,26 @@ twins of ``ros2peers`` (which does the same job over rmw_zenoh's wire format):
   matches a reliable publisher as well as a best-effort one), recording each frame's arrival
   and send time (``header.stamp``, read from the CDR), size and a per-topic count; and, through
   dbml's ``rclpy`` transport, the parameters in force, reported each tick in ``roles``' format,
-  so the same runner and analysis judge the run.
+  so the same runner and analysis judge the run. Unmanaged (``spec.managed`` False: the
+  testbed's baseline, no bridge) it subscribes the full ``/rN/camera`` instead, and each frame
+  says the camera's own rate. With ``--sample-info`` (the testbed) a frame's sequence number
+  and send time are DDS's own, from the sample info rclpy hands a two-argument callback: the
+  writer's sequence number (so gaps are losses on the link) and its source timestamp (the
+  bridge's send, as zenoh's metadata says the managed publisher's). With ``spec.estimate`` its
+  dbml transport also reports what arrived to the estimator (``ReceptionReporter``), each
+  frame with dbml's metadata made of that sample info (``dbml.transports.rclpy.sample_meta``):
+  rclpy alone gives the plain node everything the estimator needs; dbml only carries it.
 
-As a process (``python -m dbml.experiment.rclpypeers ROLE SPEC_JSON``) a peer speaks the roles'
-protocol (``harness.processes.serve_role``) in ROS 2 domain ``spec.domain_id`` (else
-``ROS_DOMAIN_ID``). Each peer has a private context (signals stay the program's), an executor
-spinning on a thread that reports its death, and shuts both down at its end (no
-``/dev/shm/fastdds_*`` left). A peer that loses a thread ends early, without ``done``, and exits
-1. rclpy is imported when a peer runs, so the demo can name this module without it.
+Robots ``r3``..``rN`` of a fleet (``spec.robots``, ``dbml.scenarios.fleet``) are cameras too,
+with the fleet's sizes and rotating events.
+
+As a process (``python -m dbml.experiment.rclpypeers ROLE SPEC_JSON [--sample-info]``) a peer
+speaks the roles' protocol (``harness.processes.serve_role``) in ROS 2 domain
+``spec.domain_id`` (else ``ROS_DOMAIN_ID``). Each peer has a private context (signals stay
+the program's), an executor spinning on a thread that reports its death, and shuts both down
+at its end (no ``/dev/shm/fastdds_*`` left). A peer that loses a thread ends early, without
+``done``, and exits 1. rclpy is imported when a peer runs, so the demo can name this module
+without it.
 """
 
 from __future__ import annotations
@@ -35,25 +47,35 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from dbml.core.errors import DbmlError
-from dbml.experiment.roles import RoleSpec, robot_index
+from dbml.core.errors import DbmlError, TransportError
+from dbml.experiment.analysis import Arrival
+from dbml.experiment.roles import (
+    TAIL_S,
+    TICK_S,
+    RoleSpec,
+    operator_tick,
+    robot_index,
+    wait_until,
+)
 from dbml.experiment.ros2peers import (
+    FIRST_FRAMES_TIMEOUT_S,
     FLOAT64_TYPE,
     IMAGE_TYPE,
     OPTIMIZED_SUFFIX,
     PRIORITY_REPEAT_S,
     PRIORITY_SUFFIX,
     ROLES,
-    FrameRecorder,
-    replay_priorities,
-    report_ticks,
     run_paced,
-    wait_first_frames,
+    step_priority,
 )
-from dbml.harness.processes import serve_role, stop_on_signals
+from dbml.harness.processes import emit_json, serve_role, stop_on_signals
+from dbml.protocol.metadata import MessageMeta
 from dbml.runtime.params import ParamView
+from dbml.runtime.reception import ReceptionReporter
 from dbml.runtime.serve import Lifetime
-from dbml.scenarios.teleop import MAX_RATE_HZ, ROBOTS
+from dbml.scenarios.fleet import fleet_cameras, fleet_steps
+from dbml.scenarios.teleop import MAX_RATE_HZ, RobotCamera
+from dbml.transports.base import Sample, Variant
 from dbml.transports.registry import open_transport
 from dbml.transports.worker import BackgroundThread
 
@@ -100,6 +122,7 @@ _PLAIN_CDR = frozenset({0x0000, 0x0001, 0x0006, 0x0007})
 endian). An ``Image`` is final, so its stamp is the body's first 8 bytes in either."""
 _STAMP = {True: struct.Struct("<iI"), False: struct.Struct(">iI")}
 _ENCAPSULATION_BYTES = 4
+_FIRST_FRAMES_POLL_S = 0.05
 
 
 def _rclpy() -> Any:
@@ -249,7 +272,7 @@ def _serve_camera(role: str, spec: RoleSpec, stop: threading.Event) -> int:
     from std_msgs.msg import Float64
 
     index = robot_index(role)
-    camera = ROBOTS[index]
+    camera = fleet_cameras(spec.robots)[index]
     life = Lifetime(stop, None)
     ros = PrivateRos(domain_id=spec.domain_id, name=role)
     driver: BackgroundThread | None = None
@@ -274,7 +297,7 @@ def _serve_camera(role: str, spec: RoleSpec, stop: threading.Event) -> int:
         serve_role(
             role,
             stop,
-            lambda t0: replay_priorities(
+            lambda t0: _replay_priorities(
                 lambda value: priority.publish(Float64(data=value)),
                 index,
                 t0,
@@ -291,69 +314,243 @@ def _serve_camera(role: str, spec: RoleSpec, stop: threading.Event) -> int:
     return life.exit_code()
 
 
-def _frame_callback(recorder: FrameRecorder, index: int) -> Callable[[bytes], None]:
-    """The raw subscription callback of robot ``index``'s optimized topic."""
+def _replay_priorities(
+    send: Callable[[float], None],
+    index: int,
+    t0: float,
+    spec: RoleSpec,
+    stop: threading.Event,
+    *,
+    life: Lifetime,
+) -> None:
+    """``send`` robot ``index``'s priority of each step, again every ``PRIORITY_REPEAT_S``.
 
-    def record(payload: bytes) -> None:
+    The fleet's steps (Table 2's for two robots), until the last step, ``stop``, or a dbml
+    thread's death (``life``).
+    """
+    steps = fleet_steps(spec.robots)
+    if not wait_until(t0, stop):
+        return
+    while not life.over():
+        now = time.time()
+        k = int((now - t0) // spec.step_s)
+        if k >= len(steps):
+            return
+        send(step_priority(steps[k], index))
+        if not wait_until(min(t0 + (k + 1) * spec.step_s, now + PRIORITY_REPEAT_S), stop):
+            return
+
+
+class _Recorder:
+    """The operator's record of each frame, fed by subscription callbacks, read by its ticks.
+
+    A frame's sequence number is the one given (DDS's) or else a per-topic count from 0.
+    """
+
+    def __init__(self, robots: int) -> None:
+        self._lock = threading.Lock()
+        self._rows: list[Arrival] = []
+        self._counts = [0 for _ in range(robots)]
+
+    def record(
+        self,
+        index: int,
+        *,
+        arrival_s: float,
+        seq: int | None,
+        sent_s: float | None,
+        size_bytes: int,
+        rate_hz: float | None,
+    ) -> None:
+        """One frame of robot ``index``."""
+        with self._lock:
+            count = self._counts[index]
+            self._counts[index] += 1
+            self._rows.append(
+                Arrival(
+                    robot=index,
+                    seq=count if seq is None else seq,
+                    sent_s=sent_s,
+                    arrival_s=arrival_s,
+                    size_bytes=size_bytes,
+                    rate_hz=rate_hz,
+                )
+            )
+
+    def counts(self) -> list[int]:
+        """Frames received so far, per robot."""
+        with self._lock:
+            return list(self._counts)
+
+    def take(self) -> list[Arrival]:
+        """The frames since the last call."""
+        with self._lock:
+            rows, self._rows = self._rows, []
+        return rows
+
+
+def _dds_meta(info: Any) -> tuple[bytes, MessageMeta] | None:
+    """DDS's sequence number and send time of a sample as dbml's metadata, packed and read.
+
+    None when the RMW did not fill them.
+    """
+    from dbml.transports.rclpy import sample_meta
+
+    packed = sample_meta(info)
+    if packed is None:
+        return None
+    try:
+        return packed, MessageMeta.decode(packed)
+    except TransportError:
+        return None
+
+
+def _frame_callback(
+    recorder: _Recorder,
+    index: int,
+    camera: RobotCamera,
+    *,
+    sample_info: bool,
+    reporter: ReceptionReporter | None,
+    rate_hz: float | None,
+) -> Callable[[bytes, Any], None]:
+    """The raw subscription callback of robot ``index``'s topic (message and sample info).
+
+    ``sample_info``: the frame's sequence number and send time are DDS's, else a count and
+    ``header.stamp``. ``reporter``: the frame goes to the estimator's reception reports too,
+    under the channel's name. ``rate_hz``: the rate the frame says it was sent at (an unmanaged
+    camera's own), None for a managed copy (a plain message carries none).
+    """
+
+    def record(payload: bytes, info: Any) -> None:
         arrival_s = time.time()
-        stamp_ns = image_stamp_ns(payload)
+        dds = _dds_meta(info) if sample_info or reporter is not None else None
+        if reporter is not None and dds is not None:
+            reporter.record(Sample(camera.topic, payload, dds[0]))
+        if sample_info and dds is not None:
+            seq: int | None = dds[1].seq
+            sent_s: float | None = dds[1].sent_ns / _NS_PER_S
+        else:
+            stamp_ns = image_stamp_ns(payload)
+            seq, sent_s = None, None if stamp_ns is None else stamp_ns / _NS_PER_S
         recorder.record(
             index,
             arrival_s=arrival_s,
-            sent_s=None if stamp_ns is None else stamp_ns / _NS_PER_S,
+            seq=seq,
+            sent_s=sent_s,
             size_bytes=len(payload),
+            rate_hz=rate_hz,
         )
 
     return record
 
 
-def _serve_operator(spec: RoleSpec, stop: threading.Event) -> int:
+def _wait_first_frames(recorder: _Recorder, topics: list[str], stop: threading.Event) -> None:
+    """Return once every topic delivered a frame; raise naming those that did not."""
+    deadline = time.monotonic() + FIRST_FRAMES_TIMEOUT_S
+    while not all(recorder.counts()) and time.monotonic() < deadline and not stop.is_set():
+        stop.wait(_FIRST_FRAMES_POLL_S)
+    missing = [t for t, n in zip(topics, recorder.counts(), strict=True) if n == 0]
+    if missing and not stop.is_set():
+        raise DbmlError(
+            f"operator: no frame on {', '.join(missing)} within {FIRST_FRAMES_TIMEOUT_S:g} s "
+            "(are the bridges and the robots running?)"
+        )
+
+
+def _report_ticks(
+    view: ParamView,
+    recorder: _Recorder,
+    t0: float,
+    spec: RoleSpec,
+    stop: threading.Event,
+    *,
+    life: Lifetime,
+) -> None:
+    """The operator's run: a report every ``TICK_S`` in ``roles``' format, then ``done``.
+
+    A run that lost a thread is not done (the runner fails it).
+    """
+    cameras = fleet_cameras(spec.robots)
+    variant = Variant.OPTIMIZED if spec.managed else Variant.FULL
+    variants = [variant.value for _ in cameras]
+    while not life.over() and time.time() < t0 + spec.duration_s + TAIL_S:
+        stop.wait(TICK_S)
+        emit_json(operator_tick(view, recorder.take(), variants, cameras=cameras).encode())
+    if not life.failed:
+        emit_json({"type": "done"})
+
+
+def _serve_operator(spec: RoleSpec, stop: threading.Event, *, sample_info: bool) -> int:
     """The operator peer's run; 1 when a thread (its executor's, its transport's) died."""
     life = Lifetime(stop, None)
-    recorder = FrameRecorder()
-    topics = [camera.topic + OPTIMIZED_SUFFIX for camera in ROBOTS]
-    ros = PrivateRos(domain_id=spec.domain_id, name="operator")
+    cameras = fleet_cameras(spec.robots)
+    recorder = _Recorder(len(cameras))
+    suffix = OPTIMIZED_SUFFIX if spec.managed else ""
+    topics = [camera.topic + suffix for camera in cameras]
+    transport = open_transport(spec.transport, host=spec.host, domain_id=spec.domain_id)
+    reporter: ReceptionReporter | None = None
+    ros: PrivateRos | None = None
     try:
+        reporter = ReceptionReporter(transport).start() if spec.estimate else None
+        ros = PrivateRos(domain_id=spec.domain_id, name="operator")
         node = ros.node("operator")
-        for i, topic in enumerate(topics):
+        for i, (camera, topic) in enumerate(zip(cameras, topics, strict=True)):
             node.create_subscription(
                 _image_class(),
                 topic,
-                _frame_callback(recorder, i),
+                _frame_callback(
+                    recorder,
+                    i,
+                    camera,
+                    sample_info=sample_info,
+                    reporter=reporter,
+                    rate_hz=None if spec.managed else MAX_RATE_HZ,
+                ),
                 _qos(reliable=False, depth=SUBSCRIPTION_DEPTH),
                 raw=True,
             )
         ros.start()
-        transport = open_transport(spec.transport, host=spec.host, domain_id=spec.domain_id)
-    except BaseException:
-        ros.close()
-        raise
-    view = ParamView.of(transport.params)
-    try:
-        transport.wait_for_peers(spec.peer_wait_s)
-        wait_first_frames(recorder, topics, stop)
+        view = ParamView.of(transport.params)
+        if spec.managed:  # unmanaged, no other dbml node runs: nothing to wait for
+            transport.wait_for_peers(spec.peer_wait_s)
+        _wait_first_frames(recorder, topics, stop)
         serve_role(
-            "operator", stop, lambda t0: report_ticks(view, recorder, t0, spec, stop, life=life)
+            "operator", stop, lambda t0: _report_ticks(view, recorder, t0, spec, stop, life=life)
         )
     finally:
-        transport.close()
-        ros.close()
+        try:
+            if ros is not None:
+                ros.close()  # first: no callback records into a closed reporter
+            if reporter is not None:
+                reporter.close()
+        finally:
+            transport.close()
     return life.exit_code()
 
 
 def main(argv: list[str] | None = None) -> int:
     """One plain rclpy peer as an OS process, driven over stdin and stdout by the runner."""
     parser = argparse.ArgumentParser(prog="python -m dbml.experiment.rclpypeers")
-    parser.add_argument("role", choices=ROLES)
+    parser.add_argument("role", help=f"one of {', '.join(ROLES)} or a fleet's r3..rN")
     parser.add_argument("spec", help="the RoleSpec as JSON (domain_id: the ROS 2 domain)")
+    parser.add_argument(
+        "--sample-info",
+        action="store_true",
+        help="the operator takes each frame's sequence number and send time from DDS's sample "
+        "info (writer sequence number, source timestamp), not a count and header.stamp",
+    )
     args = parser.parse_args(argv)
     role, spec = args.role, RoleSpec.from_json(args.spec)
+    peers = {"operator", *(camera.robot.lower() for camera in fleet_cameras(spec.robots))}
+    if role not in peers:
+        parser.error(f"role={role!r} is not one of {', '.join(sorted(peers))}")
     logging.basicConfig(level=logging.WARNING, format=f"{role}: %(name)s: %(message)s")
     try:
         _rclpy()
         with stop_on_signals() as stop:
             if role == "operator":
-                return _serve_operator(spec, stop)
+                return _serve_operator(spec, stop, sample_info=args.sample_info)
             return _serve_camera(role, spec, stop)
     except DbmlError as err:
         sys.stderr.write(f"{role}: {err}\n")

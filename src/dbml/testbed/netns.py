@@ -32,6 +32,7 @@ from dbml.core.errors import DbmlError
 
 __all__ = [
     "TOPOLOGIES",
+    "TRANSPORTS",
     "Host",
     "Network",
     "TestbedError",
@@ -57,6 +58,9 @@ _CAP_SYS_ADMIN = 21
 TOPOLOGIES = ("peer", "router")
 """How a testbed's zenoh sessions meet: as peers on explicit endpoints (the default), or through
 a zenoh router per host meshed across the shaped link, as ROS 2 fleets run rmw_zenoh's."""
+TRANSPORTS = ("zenoh", "rclpy")
+"""What a testbed's processes speak: zenoh (dbml's own roles, the default) or real ROS 2 through
+rclpy (plain rclpy cameras and operator, dbml's bridges and optimizer, over Fast DDS)."""
 
 
 class TestbedError(DbmlError):

@@ -7,19 +7,32 @@ operator's side (policies ``dbml`` and ``static``; none under ``unmanaged``). Th
 changes on schedule; the result holds, per step and robot, allocated and delivered rates,
 latency, losses and goodput, the recovery after each link change, and the targets that apply.
 
-Every namespace and process is removed at the end, also on error, Ctrl-C or SIGTERM.
+With ``transport="rclpy"`` the same experiment runs on real ROS 2 (rclpy on Fast DDS), laid out
+as ``dbml demo teleop --transport rclpy``: in each robot's namespace a plain rclpy camera
+(``dbml.experiment.rclpypeers``) and, managed, a ``dbml bridge --transport rclpy`` of its topic
+(``dbml.testbed.bridge``); in the operator's the optimizer (``roles``) and a plain rclpy operator
+subscribing each ``/rN/camera/optimized`` (``/rN/camera`` unmanaged). DDS discovery crosses the
+router by unicast: each robot's processes announce themselves to the operator's address
+(``ROS_STATIC_PEERS``), see :func:`ros_env`.
+
+Every namespace and process is removed at the end, also on error, Ctrl-C or SIGTERM; so are the
+Fast DDS shared-memory files of a ROS 2 process that had to be killed.
 """
 
 from __future__ import annotations
 
 import contextlib
+import importlib.util
+import logging
 import math
+import subprocess
 import sys
 import tempfile
 import threading
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 from dbml.core.allocation import Strategy
 from dbml.experiment.analysis import (
@@ -41,14 +54,17 @@ from dbml.experiment.analysis import (
     outages,
     stream_latency,
 )
+from dbml.experiment.rclpypeers import IMAGE_TYPE, RCLPY_MISSING
 from dbml.experiment.roles import HOSTS, URGENT_STREAMS, RoleSpec
 from dbml.experiment.runner import (
+    Command,
     Helper,
     Observer,
     Recording,
     run_experiment,
     sigterm_as_interrupt,
 )
+from dbml.harness.ros2env import claim_domain, fastdds_shm_files, remove_fastdds_shm, ros2_child_env
 from dbml.scenarios.fleet import (
     MAX_ROBOTS,
     MIN_ROBOTS,
@@ -57,21 +73,33 @@ from dbml.scenarios.fleet import (
     fleet_steps,
     urgent_robot,
 )
-from dbml.scenarios.teleop import ROBOTS
-from dbml.testbed.netns import TOPOLOGIES, Network, TestbedError, privilege_problem
+from dbml.scenarios.teleop import MAX_RATE_HZ, MIN_RATE_HZ, ROBOTS
+from dbml.testbed.bridge import read_stats
+from dbml.testbed.netns import (
+    TOPOLOGIES,
+    TRANSPORTS,
+    Network,
+    TestbedError,
+    privilege_problem,
+)
 
 __all__ = [
     "ALLOCATION_TOLERANCE_HZ",
     "POLICIES",
     "TOPOLOGIES",
+    "TRANSPORTS",
     "URGENT_P95_MS",
+    "BridgePublish",
     "Summary",
     "TestbedOptions",
     "TestbedResult",
     "parse_schedule",
     "parse_uplinks",
+    "ros_env",
     "run_teleop_testbed",
 ]
+
+log = logging.getLogger("dbml.testbed")
 
 POLICIES = ("dbml", "static", "unmanaged")
 ALLOCATION_TOLERANCE_HZ = 0.01
@@ -93,6 +121,17 @@ URGENT_P95_MS = 120.0
 """The mapped urgent stream's p95 bound: two camera frame times (84 KB at 11 Mbit/s: 61 ms)."""
 NETNS_OF_ROLE = {"operator": "op", "optimizer": "op", "r1": "r1", "r2": "r2"}
 """The namespace of each role; a fleet's robot ``rK`` runs in its own namespace ``rK``."""
+ROLES_MODULE = "dbml.experiment.roles"
+RCLPY_PEERS_MODULE = "dbml.experiment.rclpypeers"
+BRIDGE_MODULE = "dbml.testbed.bridge"
+BRIDGE_WAIT_S = 50.0
+"""How long a bridge waits for its camera's first frame (the robots start after it)."""
+ROS_LOG_DIR = "ros"
+"""Where in the run's folder the ROS 2 processes log (``ROS_LOG_DIR``)."""
+BUILTIN_TRANSPORTS = "FASTDDS_BUILTIN_TRANSPORTS"
+"""Fast DDS's choice of its built-in transports (``UDPv4``: no shared memory)."""
+SHM_WATCH_S = 5.0
+"""How often the Fast DDS shared memory of the run's processes is listed while they run."""
 
 
 def parse_schedule(text: str) -> tuple[tuple[float, float], ...]:
@@ -166,6 +205,8 @@ class TestbedOptions:
     strategy: str | None = Strategy.PAPER.value
     """None under ``unmanaged``: no optimizer runs."""
     utilization: float | None = DEFAULT_UTILIZATION
+    transport: str = TRANSPORTS[0]
+    """``zenoh``, or ``rclpy``: real ROS 2 (see the module's docstring)."""
 
     @classmethod
     def from_flags(
@@ -182,10 +223,23 @@ class TestbedOptions:
         urgent_stream: bool = False,
         robots: int = len(ROBOTS),
         topology: str = TOPOLOGIES[0],
+        transport: str = TRANSPORTS[0],
     ) -> TestbedOptions:
         """The options of the command line's flags; a bad one raises naming the flag."""
         if policy not in POLICIES:
             raise TestbedError(f"--policy={policy!r} is not one of: {', '.join(POLICIES)}")
+        if transport not in TRANSPORTS:
+            raise TestbedError(f"--transport={transport!r} is not one of: {', '.join(TRANSPORTS)}")
+        if transport == "rclpy" and topology != TOPOLOGIES[0]:
+            raise TestbedError(
+                f"--topology={topology} is zenoh-only (a zenoh router per host): "
+                "--transport rclpy meets over DDS discovery"
+            )
+        if transport == "rclpy" and urgent_stream:
+            raise TestbedError(
+                "--urgent-stream is zenoh-only (it measures zenoh's priority links): "
+                "not with --transport rclpy"
+            )
         if isinstance(robots, bool) or not isinstance(robots, int):
             raise TestbedError(f"--robots={robots!r} must be an integer")
         if not MIN_ROBOTS <= robots <= MAX_ROBOTS:
@@ -209,6 +263,7 @@ class TestbedOptions:
             urgent_stream=urgent_stream,
             robots=robots,
             topology=topology,
+            transport=transport,
         )
         if policy == "unmanaged":
             for flag, given in (
@@ -261,6 +316,27 @@ class UplinkUse:
 
 
 @dataclass(frozen=True, slots=True)
+class BridgePublish:
+    """A bridge's publishes on ``[topic]/optimized`` over rclpy (``PublishStats``)."""
+
+    robot: str
+    published: int
+    dropped: int
+    """Publishes the middleware refused (raised inside rclpy; counted, never passed on)."""
+    max_ms: float | None
+    p99_ms: float | None
+    frame_ms: float
+    """One frame time: the largest camera frame (84,000 bytes) on the shaped link at the run's
+    slowest rate (61 ms at 11 Mbit/s), what a synchronous publish waits for at most when the
+    socket in front of it is full."""
+
+    @property
+    def within_one_frame(self) -> bool:
+        """No publish took longer than one frame time."""
+        return self.max_ms is not None and self.max_ms <= self.frame_ms
+
+
+@dataclass(frozen=True, slots=True)
 class Summary:
     """A run in a few numbers, and the targets that apply to it."""
 
@@ -301,6 +377,14 @@ class TestbedResult:
     """A fleet under dbml on a known budget: per step, each robot's rate by ``allocate`` on
     the channels its events imply (empty otherwise: estimated budget, uplinks, two robots)."""
     """Between link changes: utilisation, p95 and losses (RFC 8867's per-phase figures)."""
+    bridges: tuple[BridgePublish, ...] = ()
+    """Over rclpy with bridges: how their publishes went (empty otherwise)."""
+    run_dir: Path | None = None
+    """The run's folder when the caller gave one (ROS logs under ``ros/``); None: removed."""
+    shm_files: tuple[Path, ...] = ()
+    """Over rclpy: the Fast DDS shared-memory files the run's processes owned while running."""
+    shm_removed: tuple[Path, ...] = ()
+    """Of those, what a killed process left and the testbed removed (a graceful end: none)."""
 
     def summary(self) -> Summary:
         """The run in a few numbers."""
@@ -370,6 +454,11 @@ class TestbedResult:
         # a token bucket's bound: one message per channel over the budget in any window, and
         # the target's name says so (it is not the budget itself)
         slack_mbit = sum(c.size_bytes for c in fleet_cameras(self.options.robots)) * 8e-6
+        if self.bridges:  # over rclpy: a full link never stalls nor fails the bridges
+            targets["bridge_publish_within_one_frame_time"] = all(
+                b.within_one_frame for b in self.bridges
+            )
+            targets["bridge_publish_never_refused"] = all(b.dropped == 0 for b in self.bridges)
         for outage in self.outages:  # the release after an outage, each window on its budget
             over = outage.release_over_budget_mbit
             key = f"budget_kept_within_one_message_per_channel_after_outage_at_{outage.end_s:g}s"
@@ -538,13 +627,211 @@ def _urgent_index(options: TestbedOptions, t_s: float) -> int:
     return urgent_robot(step) or 0
 
 
+def ros_env(network: Network, host: str, *, domain_id: int, log_dir: Path) -> dict[str, str]:
+    """The environment of a ROS 2 process in ``host``'s namespace (``"op"`` or a robot's).
+
+    ``ros2_child_env``'s (the run's domain, ROS logs in ``log_dir``, the fast-discovery Fast
+    DDS profile) and what discovery needs across the router. Fast DDS finds its peers by
+    multicast, which stays in its own segment (every namespace is one, and the router forwards
+    no multicast): the processes of one namespace meet that way, those of two never do. So a
+    robot's processes also announce themselves by unicast to the operator's address
+    (``ROS_STATIC_PEERS``); the operator's, having heard them, answer and keep announcing to
+    them, so one address on the robots' side is all it takes (measured: a robot's two
+    publishers matched in 0.1-0.4 s, held through 40 s with the 3-s lease, and after an outage
+    the robots' periodic announcements find the operator again). Robots are not told of each
+    other: nothing of one robot is for another. The discovery range is the default
+    (``SUBNET``), whatever this environment says, and a discovery server is not used.
+
+    Fast DDS's shared-memory transport is off (``FASTDDS_BUILTIN_TRANSPORTS=UDPv4``), as zenoh's
+    is in the testbed: ``/dev/shm`` is one for every namespace, so it is a path around the
+    shaped link, and with it on, runs whose processes all ended cleanly (exit 0) still left
+    port segments there (``fastdds_port7000``, ``fastdds_port7661``, ... of the operator's
+    side). With UDP only, a run's processes make no ``/dev/shm/fastdds_*`` at all, and a
+    robot's camera reaches its bridge over the namespace's own interfaces.
+    """
+    env = ros2_child_env(domain_id=domain_id, log_dir=log_dir)
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "SUBNET"
+    env[BUILTIN_TRANSPORTS] = "UDPv4"
+    for name in ("ROS_STATIC_PEERS", "ROS_DISCOVERY_SERVER", "ROS_LOCALHOST_ONLY"):
+        env.pop(name, None)
+    if host != "op":
+        env["ROS_STATIC_PEERS"] = network.hosts["op"].address
+    return env
+
+
+def _zenoh_command(network: Network) -> Command:
+    """A zenoh role's argv, run in its namespace (its environment: this process's)."""
+
+    def command(role: str, argv: list[str]) -> tuple[list[str], Mapping[str, str] | None]:
+        return network.exec_argv(_netns_of(role), argv), None
+
+    return command
+
+
+def _frame_ms(size_bytes: int, mbit: float) -> float:
+    """One frame of ``size_bytes`` on a link of ``mbit``, in ms."""
+    return size_bytes * 8 / (mbit * 1e6) * 1e3
+
+
+@dataclass(frozen=True, slots=True)
+class _RclpyRun:
+    """The rclpy run's processes: the roles' specs and command, the bridges, their files."""
+
+    specs: dict[str, RoleSpec]
+    command: Command
+    helpers: tuple[Helper, ...]
+    stats: dict[str, Path]
+    """Each bridge's statistics file, by robot (``R1``)."""
+
+
+def _rclpy_run(
+    network: Network, options: TestbedOptions, *, domain_id: int, run_dir: Path
+) -> _RclpyRun:
+    """Plain rclpy cameras and operator, dbml's bridges and optimizer, in the namespaces.
+
+    As ``dbml demo teleop --transport rclpy``, each role in its host's namespace with
+    :func:`ros_env`'s environment; the bridges (managed policies) start before the robots.
+    """
+    log_dir = run_dir / ROS_LOG_DIR
+    envs = {
+        host: ros_env(network, host, domain_id=domain_id, log_dir=log_dir) for host in network.hosts
+    }
+    cameras = fleet_cameras(options.robots)
+    robots = [camera.robot.lower() for camera in cameras]
+    managed = options.policy != "unmanaged"
+    base = RoleSpec(
+        step_s=options.step_seconds,
+        transport="rclpy",
+        managed=managed,
+        link_mbit=options.link_mbit,
+        utilization=options.utilization or 1.0,
+        strategy=options.strategy or Strategy.PAPER.value,
+        estimate=options.estimate,
+        uplinks_mbit=dict(options.uplinks_mbit),
+        peer_wait_s=PEER_WAIT_S,
+        robots=options.robots,
+        domain_id=domain_id,
+    )
+    specs = {"operator": replace(base, host=HOSTS["operator"])}
+    if managed:
+        specs["optimizer"] = replace(base, host=HOSTS["optimizer"])
+    for role in robots:
+        specs[role] = replace(base, host=HOSTS.get(role, f"robot-{role}"))
+    peers = {"operator", *robots}
+
+    def command(role: str, argv: list[str]) -> tuple[list[str], Mapping[str, str] | None]:
+        if role in peers:  # the same protocol, played by plain rclpy nodes
+            argv = [RCLPY_PEERS_MODULE if a == ROLES_MODULE else a for a in argv]
+            if role == "operator":
+                argv.append("--sample-info")  # DDS's sequence numbers and send times
+        host = _netns_of(role)
+        return network.exec_argv(host, argv), envs[host]
+
+    stats = {camera.robot: run_dir / f"bridge-{camera.robot.lower()}.json" for camera in cameras}
+    helpers = tuple(
+        Helper(
+            name=f"bridge-{role}",
+            argv=tuple(
+                network.exec_argv(
+                    role,
+                    [
+                        sys.executable,
+                        "-m",
+                        BRIDGE_MODULE,
+                        str(stats[camera.robot]),
+                        camera.topic,
+                        "--min-hz",
+                        f"{MIN_RATE_HZ:g}",
+                        "--max-hz",
+                        f"{MAX_RATE_HZ:g}",
+                        "--type",
+                        IMAGE_TYPE,
+                        "--wait",
+                        f"{BRIDGE_WAIT_S:g}",
+                        "--host",
+                        HOSTS.get(role, f"robot-{role}"),
+                        "--transport",
+                        "rclpy",
+                        "--domain-id",
+                        str(domain_id),
+                    ],
+                )
+            ),
+            env=envs[role],
+            before=robots[0],
+        )
+        for role, camera in zip(robots, cameras, strict=True)
+        if managed
+    )
+    return _RclpyRun(specs, command, helpers, stats if managed else {})
+
+
+def _bridges(options: TestbedOptions, stats: Mapping[str, Path]) -> tuple[BridgePublish, ...]:
+    """What each bridge wrote of its publishes on ``[topic]/optimized`` (none: not known)."""
+    first = link_at(options.link_schedule, 0.0, options.link_mbit)
+    slowest = min([first, *(mbit for _, mbit in options.link_schedule if mbit > 0)])
+    frame_ms = _frame_ms(max(c.size_bytes for c in fleet_cameras(options.robots)), slowest)
+    found = []
+    for robot, path in stats.items():
+        rows = [r for r in read_stats(path) if str(r.get("topic", "")).endswith("/optimized")]
+        if not rows:
+            continue
+        maxima = [float(r["max_ms"]) for r in rows if r.get("max_ms") is not None]
+        p99s = [float(r["p99_ms"]) for r in rows if r.get("p99_ms") is not None]
+        found.append(
+            BridgePublish(
+                robot=robot,
+                published=sum(int(r.get("published", 0)) for r in rows),
+                dropped=sum(int(r.get("dropped", 0)) for r in rows),
+                max_ms=max(maxima, default=None),
+                p99_ms=max(p99s, default=None),
+                frame_ms=frame_ms,
+            )
+        )
+    return tuple(found)
+
+
+def _namespace_pids(network: Network) -> set[int]:
+    """Every process in the run's namespaces now (``ip netns pids``)."""
+    pids: set[int] = set()
+    for host in network.hosts.values():
+        with contextlib.suppress(OSError, subprocess.SubprocessError):
+            listed = subprocess.run(
+                ["ip", "netns", "pids", host.netns],
+                capture_output=True,
+                text=True,
+                check=False,
+                timeout=5,
+            )
+            pids.update(int(pid) for pid in listed.stdout.split() if pid.isdigit())
+    return pids
+
+
+def _watch_shm(network: Network, stop: threading.Event, into: set[Path]) -> None:
+    """List the Fast DDS shared memory of the run's processes now and then, until ``stop``."""
+    while True:
+        into.update(fastdds_shm_files(_namespace_pids(network)))
+        if stop.wait(SHM_WATCH_S):
+            return
+
+
 def run_teleop_testbed(
-    options: TestbedOptions, *, observe: Observer | None = None
+    options: TestbedOptions,
+    *,
+    observe: Observer | None = None,
+    run_dir: Path | None = None,
 ) -> TestbedResult:
-    """Build the network, run the roles inside, remove it all; ``observe`` sees every report."""
+    """Build the network, run the roles inside, remove it all; ``observe`` sees every report.
+
+    ``run_dir``: the run's folder, kept (over rclpy its ROS logs under ``ros/`` and each
+    bridge's publish statistics); None: a temporary one, removed at the end.
+    """
     problem = privilege_problem()
     if problem is not None:
         raise TestbedError(f"dbml testbed needs root to build network namespaces: {problem}")
+    rclpy = options.transport == "rclpy"
+    if rclpy and importlib.util.find_spec("rclpy") is None:
+        raise TestbedError(RCLPY_MISSING)
     cameras = fleet_cameras(options.robots)
     network = Network(
         robots=tuple(camera.robot.lower() for camera in cameras),
@@ -553,27 +840,68 @@ def run_teleop_testbed(
     )
     recording = Recording(None, (), (), interrupted=True)
     router = options.topology == "router"
+    stats: dict[str, Path] = {}
+    shm: set[Path] = set()
+    removed: list[Path] = []
+    bridges: tuple[BridgePublish, ...] = ()
     with (
         sigterm_as_interrupt(),
         contextlib.suppress(KeyboardInterrupt),
         tempfile.TemporaryDirectory(prefix="dbml-testbed-") as scratch,
+        contextlib.ExitStack() as run,
     ):
+        folder = Path(scratch) if run_dir is None else run_dir
+        folder.mkdir(parents=True, exist_ok=True)
         client_config = f"{scratch}/client.json5"
         with open(client_config, "w", encoding="utf-8") as config:
             config.write(CLIENT_CONFIG)
         try:
             network.build()
+            specs = _specs(network, options, config_file=client_config if router else None)
+            helpers = _routers(network) if router else ()
+            command = _zenoh_command(network)
+            if rclpy:
+                ros = _rclpy_run(
+                    network, options, domain_id=run.enter_context(claim_domain()), run_dir=folder
+                )
+                specs, command, helpers, stats = ros.specs, ros.command, ros.helpers, ros.stats
+
+            def on_start(t0: float, stop: threading.Event) -> None:
+                watch = None
+                if rclpy:  # the processes' shared memory, for what a killed one leaves
+                    watch = threading.Thread(
+                        target=_watch_shm, args=(network, stop, shm), name="shm", daemon=True
+                    )
+                    watch.start()
+                _change_link(network, options.link_schedule, t0, stop)
+                if watch is not None:
+                    watch.join()
+
             recording = run_experiment(
-                _specs(network, options, config_file=client_config if router else None),
+                specs,
                 what="testbed",
-                command=lambda role, argv: (network.exec_argv(_netns_of(role), argv), None),
+                command=command,
                 observe=observe,
-                on_start=lambda t0, stop: _change_link(network, options.link_schedule, t0, stop),
-                helpers=_routers(network) if router else (),
+                on_start=on_start,
+                helpers=helpers,
             )
         finally:
-            network.close()
-    result = TestbedResult(options, network.run_id, interrupted=recording.interrupted)
+            try:
+                network.close()
+            finally:  # what a killed ROS 2 process left (one that ended gracefully, nothing)
+                removed = remove_fastdds_shm(sorted(shm))
+                bridges = _bridges(options, stats)
+    if removed:
+        log.warning("removed %d Fast DDS shared-memory files of killed processes", len(removed))
+    result = TestbedResult(
+        options,
+        network.run_id,
+        interrupted=recording.interrupted,
+        bridges=bridges,
+        run_dir=run_dir,
+        shm_files=tuple(sorted(shm)),
+        shm_removed=tuple(removed),
+    )
     if recording.t0 is None:
         return result
     analysis = recording.analyse(

@@ -63,9 +63,16 @@ from dbml.transports.base import (
 from dbml.transports.callbacks import CallbackList
 from dbml.transports.fastdds import gid_host_id
 from dbml.transports.overflow import LogOnce, Overflow
-from dbml.transports.rclpyparams import ALLOCATION_TOPIC, RclpyParams, is_param_node
+from dbml.transports.rclpyparams import (
+    ALLOCATION_TOPIC,
+    PARTICIPANT_BYTES,
+    RclpyParams,
+    check_ros_topic,
+    is_param_node,
+    python_value,
+)
 from dbml.transports.ros2msg import IMAGE_TYPE, image_cdr
-from dbml.transports.worker import BackgroundThread
+from dbml.transports.worker import FLUSH_TIMEOUT_S, BackgroundThread
 
 RCLPY_HINT = "or source your ROS 2: . /opt/ros/<distro>/setup.bash"
 """The other way to rclpy: a ROS 2 install (robots are often aarch64, where no wheels exist)."""
@@ -138,6 +145,8 @@ _BYTES_HEADER = struct.Struct("<4sIII")
 """CDR of an ``UInt8MultiArray`` with no dimensions: encapsulation, dims, offset, data length."""
 _CDR_LE = b"\x00\x01\x00\x00"
 _FOREIGN_HOST = "ros2:"
+GID_BYTES = 16
+_ROS_PACKAGE = re.compile(r"^[a-z][a-z0-9_]*$")
 
 
 def node_name_for(host: str) -> str:
@@ -187,10 +196,17 @@ def sample_meta(info: Any) -> bytes | None:
     return pack_meta(seq, sent_ns, math.nan)
 
 
+def _sender(info: Any) -> bytes | None:
+    """The publisher GID in a message's info (16 bytes), if the RMW gives it."""
+    gid = info.get("publisher_gid") if isinstance(info, dict) else None
+    data = gid.get("data") if isinstance(gid, dict) else None
+    return bytes(data)[:GID_BYTES] if isinstance(data, bytes | bytearray | list) else None
+
+
 def message_class(msg_type: str) -> type:
     """The Python class of ``pkg/msg/Name``; ``TransportError`` saying what to install."""
     package, kind, name = [*msg_type.split("/"), "", "", ""][:3]
-    if kind != "msg" or not package or not name:
+    if kind != "msg" or not _ROS_PACKAGE.match(package) or not name.isidentifier():
         raise TransportError(f"type={msg_type!r} must look like 'pkg/msg/Name'")
     try:
         module = importlib.import_module(f"{package}.msg")
@@ -200,7 +216,7 @@ def message_class(msg_type: str) -> type:
             f"pip install ros-{package.replace('_', '-')} (or source the ROS 2 that has it)"
         ) from None
     cls = getattr(module, name, None)
-    if not isinstance(cls, type):
+    if not isinstance(cls, type) or not hasattr(cls, "get_fields_and_field_types"):
         raise TransportError(f"type={msg_type!r}: {package}.msg has no message {name!r}")
     return cls
 
@@ -285,7 +301,9 @@ class _RclpyPublisher:
                 qos,
                 event_callbacks=PublisherEventCallbacks(matched=self._on_matched),
             )
-            self._matched = self._publisher.get_subscription_count()
+            count = self._publisher.get_subscription_count()
+            if self._matched is None:  # a matched event since is newer than this count
+                self._matched = count
         except UnsupportedEventTypeError:
             self._publisher = transport.node.create_publisher(
                 message_class(self._type), variant.key(topic), qos
@@ -294,25 +312,35 @@ class _RclpyPublisher:
         """Messages the middleware refused (a link full for longer than its queue)."""
         self.published = 0
         self._ros_topic = variant.key(topic)
-        self._refusals = Overflow(f"messages on {variant.key(topic)}", 0, log=log)
+        self._refusing = 0
+        """While the middleware refuses: ``dropped`` at the first refusal (told once per run)."""
         self._durations: collections.deque[float] = collections.deque(maxlen=PUBLISH_TIMES)
-        self._max_s: float | None = None
+        self._max_s = 0.0
 
     def put(self, payload: bytes, *, attachment: bytes | None = None) -> None:
         """Send ``payload``; never raises on a full link (the refusal is counted)."""
         start = time.perf_counter()
         try:
             self._publisher.publish(frame_bytes(payload) if self._framed else payload)
-            self.published += 1
         except Exception as err:  # rclpy's RCLError: the queue stayed full, or a shutdown
             self.dropped += 1
-            self._refusals.refuse()
-            log.debug("%s: publish refused: %s", self.topic, err)
-        finally:
-            took = time.perf_counter() - start
-            self._durations.append(took)
-            if self._max_s is None or took > self._max_s:
-                self._max_s = took
+            if not self._refusing:
+                self._refusing = self.dropped
+                log.warning(
+                    "%s: the middleware refuses messages (%s): dropping them", self._ros_topic, err
+                )
+        else:
+            self.published += 1
+            if self._refusing:
+                log.warning(
+                    "%s: publishing again; %d dropped meanwhile",
+                    self._ros_topic,
+                    self.dropped - self._refusing + 1,
+                )
+                self._refusing = 0
+        took = time.perf_counter() - start
+        self._durations.append(took)
+        self._max_s = max(self._max_s, took)
 
     def stats(self) -> PublishStats:
         """How long ``put``'s publish calls took so far."""
@@ -322,7 +350,7 @@ class _RclpyPublisher:
             self._ros_topic,
             self.published,
             self.dropped,
-            None if self._max_s is None else self._max_s * 1e3,
+            self._max_s * 1e3 if durations else None,
             None if p99 is None else p99 * 1e3,
         )
 
@@ -373,6 +401,7 @@ class _Subscription:
         self.closed = False
         self.subscription: Any = None
         self.reliable: bool | None = None
+        self.msg_type: str | None = None
 
     def deliver(self, data: bytes, info: Any) -> None:
         """One message, with what DDS says of it as dbml's metadata (``sample_meta``)."""
@@ -389,14 +418,19 @@ class _Subscription:
             log.exception("a subscription callback of %s failed", self.ros_topic)
 
     def ensure(self, msg_type: str, reliable: bool) -> None:
-        """Create (or re-create, to match its publishers' reliability) the subscription."""
-        if self.closed or (self.subscription is not None and self.reliable == reliable):
+        """Create the subscription, or re-create it for its publishers' type and reliability."""
+        if self.closed or (
+            self.subscription is not None
+            and self.reliable == reliable
+            and self.msg_type == msg_type
+        ):
             return
         node = self._transport.node
         if self.subscription is not None:
             node.destroy_subscription(self.subscription)
         self._framed = msg_type == BYTES_TYPE
         self.reliable = reliable
+        self.msg_type = msg_type
         self.subscription = node.create_subscription(
             message_class(msg_type),
             self.ros_topic,
@@ -470,6 +504,7 @@ class RclpyTransport(TransportBase):
         """ROS topics with at least one best-effort publisher."""
         self._dbml_peers = 0
         self._bad = LogOnce(log)
+        self._poll_queued = False
         self._held_priorities: dict[str, ParamValue] = {}
         """Priorities heard in a flood, the newest per channel, for the next poll (executor
         thread; one per channel hosted here)."""
@@ -485,7 +520,7 @@ class RclpyTransport(TransportBase):
             self.node.create_subscription(
                 _parameter_event(),
                 "/parameter_events",
-                _guarded("a parameter event", self._on_parameter_event),
+                self._on_parameter_event,
                 qos_profile_parameter_events,
             )
             self.node.create_subscription(
@@ -503,8 +538,20 @@ class RclpyTransport(TransportBase):
     # -- the executor thread -------------------------------------------------------------------
 
     def _spin(self) -> None:
+        """Spin until closed; a callback's exception is logged, never the thread's death.
+
+        rclpy re-raises it out of ``spin_once``, its own parameter services' too, which any
+        node's request feeds.
+        """
         while not self._closed and self.context.ok():
-            self._executor.spin_once(timeout_sec=SPIN_TIMEOUT_S)
+            try:
+                self._executor.spin_once(timeout_sec=SPIN_TIMEOUT_S)
+            except Exception as err:  # input from the network must not end the executor
+                if self._closed or not self.context.ok():
+                    return
+                self._bad.warning(
+                    f"spin:{type(err).__name__}", "a callback failed (ignored): %r", err
+                )
 
     def call_soon(self, task: Callable[[], None]) -> None:
         """Run ``task`` on the executor thread (where every rclpy call of dbml's runs)."""
@@ -527,6 +574,12 @@ class RclpyTransport(TransportBase):
                 task()
             except Exception:
                 log.exception("an executor task failed")
+
+    def poll_soon(self) -> None:
+        """Read the graph at once rather than at the next tick (once, however often asked)."""
+        if not self._poll_queued:
+            self._poll_queued = True
+            self.call_soon(self._poll)
 
     def release(self, action: Callable[[], None]) -> None:
         """Destroy an entity on the executor thread (never under a wait)."""
@@ -579,33 +632,39 @@ class RclpyTransport(TransportBase):
         )
         return Closer(lambda: void(node.destroy_subscription(subscription)))
 
-    def _on_parameter_event(self, event: Any) -> None:
-        node = event.node
-        namespace, _, name = node.rpartition("/")
-        fqn = is_param_node(namespace or "/", name)
-        if fqn is None:
-            return
-        from rclpy.parameter import parameter_value_to_python
+    def _on_parameter_event(self, event: Any, info: Any) -> None:
+        """A parameter node's changes, with their sender (two arguments: the message info).
 
-        # A parameter declared with no value says nothing (a new host declares every one);
-        # one changed to no value, or undeclared, is deleted.
-        changed = [(p.name, parameter_value_to_python(p.value)) for p in event.new_parameters]
-        changed = [(name, value) for name, value in changed if value is not None]
-        changed += [(p.name, parameter_value_to_python(p.value)) for p in event.changed_parameters]
-        changed += [(p.name, None) for p in event.deleted_parameters]
-        self._params.on_event(fqn, changed)
+        Anyone may publish on ``/parameter_events`` naming any node: ``RclpyParams.on_event``
+        believes an event only from a participant that hosts the node it names.
+        """
+        try:
+            node = event.node
+            namespace, _, name = node.rpartition("/")
+            fqn = is_param_node(namespace or "/", name)
+            if fqn is None:
+                return
+            # A parameter declared with no value says nothing (a new host declares every one);
+            # one changed to no value, or undeclared, is deleted. A value of a type dbml cannot
+            # hold is refused by the store, named.
+            changed = [(p.name, python_value(p.value)) for p in event.new_parameters]
+            changed = [(name, value) for name, value in changed if value is not None]
+            changed += [(p.name, python_value(p.value)) for p in event.changed_parameters]
+            changed += [(p.name, None) for p in event.deleted_parameters]
+            self._params.on_event(fqn, changed, sender=_sender(info))
+        except Exception:
+            log.exception("a parameter event could not be handled")
 
     def _on_allocation(self, message: Any, info: Any) -> None:
         """``/dbm/allocation`` with its sender (two arguments: rclpy passes the message info)."""
         try:
-            gid = info.get("publisher_gid") if isinstance(info, dict) else None
-            raw = None if gid is None else bytes(gid.get("data", b""))[:16]
-            self._params.on_allocation(message.data, raw)
+            self._params.on_allocation(message.data, _sender(info))
         except Exception:
             log.exception("an allocation could not be handled")
 
     def _poll(self) -> None:
         """Read the graph: entries by host, topic types, parameter nodes, waiting subscriptions."""
+        self._poll_queued = False
         node = self.node
         listed: set[tuple[str, str]] = set()
         dbml_hosts: dict[tuple[str, str], str] = {}
@@ -625,8 +684,9 @@ class RclpyTransport(TransportBase):
         host_ids: dict[int, set[str]] = {}
         param_hosts: dict[str, set[bytes]] = {}
         claimed: dict[str, set[bytes]] = {}
+        published: dict[str, list[tuple[bytes, str]]] = {}
         own: bytes | None = None
-        for topic, topic_types in topics:
+        for topic, _types in topics:
             publishers = node.get_publishers_info_by_topic(topic)
             subscribers = node.get_subscriptions_info_by_topic(topic)
             for role, listing in ((Role.PUBLISHER, publishers), (Role.SUBSCRIBER, subscribers)):
@@ -634,30 +694,46 @@ class RclpyTransport(TransportBase):
                     where = (info.node_namespace, info.node_name)
                     if where not in listed:
                         continue  # not named yet (``_NODE_NAME_UNKNOWN_``): next poll
-                    gid = bytes(info.endpoint_gid)[:16]
-                    if role is Role.PUBLISHER and (
-                        info.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
-                    ):
-                        best_effort.add(topic)
+                    gid = bytes(info.endpoint_gid)[:GID_BYTES]
+                    if role is Role.PUBLISHER:
+                        if info.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT:
+                            best_effort.add(topic)
+                        published.setdefault(topic, []).append(
+                            (gid[:PARTICIPANT_BYTES], info.topic_type)
+                        )
                     host = dbml_hosts.get(where)
                     host_id = gid_host_id(gid)
                     if host is not None and host_id is not None:
                         host_ids.setdefault(host_id, set()).add(host)
                     if info.node_name == node.get_name() and info.node_namespace == "/":
-                        own = gid[:12]
+                        own = gid[:PARTICIPANT_BYTES]
                     fqn = is_param_node(info.node_namespace, info.node_name)
                     if fqn is not None:
-                        param_hosts.setdefault(fqn, set()).add(gid[:12])
-                        if (
-                            fqn == ALLOCATION_TOPIC[: -len("/allocation")]
-                            and topic == ALLOCATION_TOPIC
-                        ) or (topic == f"{fqn[: -len('/dbm')]}{PRIORITY_SUFFIX}"):
-                            claimed.setdefault(fqn, set()).add(gid[:12])
+                        param_hosts.setdefault(fqn, set()).add(gid[:PARTICIPANT_BYTES])
+                        # A host's claim: /dbm's allocation publisher, a channel's priority.
+                        if (fqn == GLOBAL_PREFIX and topic == ALLOCATION_TOPIC) or (
+                            topic == f"{fqn[: -len(GLOBAL_PREFIX)]}{PRIORITY_SUFFIX}"
+                        ):
+                            claimed.setdefault(fqn, set()).add(gid[:PARTICIPANT_BYTES])
                             if topic == ALLOCATION_TOPIC:
                                 senders.add(gid)
                     infos.append((role, topic, info))
-            if topic_types:
-                types[topic] = topic_types[0]
+        for topic, by in published.items():
+            # Other processes' publishers say a topic's type (this one's own follow it, and
+            # are asked only when nobody else publishes it).
+            found = {msg_type for prefix, msg_type in by if prefix != own} or {
+                msg_type for _prefix, msg_type in by
+            }
+            if len(found) > 1:
+                self._bad.warning(
+                    f"types:{topic}",
+                    "%s has publishers of types %s: using %s",
+                    topic,
+                    sorted(found),
+                    min(found),
+                )
+            if found:
+                types[topic] = min(found)
         entries = set()
         for role, topic, info in infos:
             channel, variant = _split(topic)
@@ -681,7 +757,7 @@ class RclpyTransport(TransportBase):
                 continue
             try:
                 subscription.ensure(msg_type, subscription.ros_topic not in best_effort)
-            except TransportError as err:
+            except Exception as err:  # a type or name from the network: that one only
                 self._bad.warning(subscription.ros_topic, "cannot subscribe: %s", err)
         held, self._held_priorities = self._held_priorities, {}
         for name, value in held.items():
@@ -748,7 +824,7 @@ class RclpyTransport(TransportBase):
         express: bool = False,
     ) -> _RclpyPublisher:
         """A publisher of raw CDR of the topic's type (dbml's bytes type if it has none)."""
-        check_topic(topic)
+        check_ros_topic(topic)
         self._check_open()
         return _RclpyPublisher(self, topic, variant)
 
@@ -756,7 +832,7 @@ class RclpyTransport(TransportBase):
         self, topic: str, callback: Callable[[Sample], None], variant: Variant = Variant.FULL
     ) -> Handle:
         """Hear ``topic`` raw, once its type is known (declared, or from its publishers)."""
-        check_topic(topic)
+        check_ros_topic(topic)
         self._check_open()
         subscription = _Subscription(self, topic, variant, callback)
         with self._lock:
@@ -827,7 +903,7 @@ class RclpyTransport(TransportBase):
 
     def set_topic_type(self, topic: str, msg_type: str) -> None:
         """Declare ``topic``'s type (its Python class must be importable: else what to install)."""
-        check_topic(topic)
+        check_ros_topic(topic)
         message_class(msg_type)
         with self._lock:
             self._declared_types[topic] = msg_type
@@ -843,13 +919,30 @@ class RclpyTransport(TransportBase):
         return self._thread.alive
 
     def close(self) -> None:
-        """Stop the executor thread, destroy every node and shut the private context down."""
+        """Send what is queued, stop the executor thread, destroy every node, shut down.
+
+        Writes still queued for the executor go first (bounded by ``FLUSH_TIMEOUT_S``), as the
+        zenoh store flushes its own: a process that writes and exits loses nothing it could
+        send.
+        """
         with self._lock:
             if self._closed:
                 return
+        flushed = threading.Event()
+        self.call_soon(flushed.set)
+        if (
+            self._thread.alive
+            and not self._thread.is_current()
+            and not flushed.wait(FLUSH_TIMEOUT_S)
+        ):
+            log.warning("closing with writes still queued (the executor was busy)")
+        with self._lock:
             self._closed = True
         self._wake.trigger()
         self._thread.join()
+        if self._thread.running:
+            log.warning("the executor thread did not stop: its nodes are left to the exit")
+            return
         try:
             self._params.close()
             self._executor.shutdown(timeout_sec=1.0)

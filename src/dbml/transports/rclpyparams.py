@@ -35,9 +35,10 @@ first.
 from __future__ import annotations
 
 import logging
+import re
 import threading
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from collections.abc import Callable, Iterable, Mapping
 from collections.abc import Set as AbstractSet
 from dataclasses import dataclass
@@ -73,7 +74,9 @@ __all__ = [
     "HOSTING_WRITERS",
     "MAX_PARAM_NODES",
     "RclpyParams",
+    "check_ros_topic",
     "node_of",
+    "python_value",
     "yields",
 ]
 
@@ -90,6 +93,12 @@ HOSTING_WRITERS: Mapping[Scope, frozenset[Writer]] = {
 process the paper puts it on (the optimizer's ``/dbm``, the publisher's ``[topic]/dbm``)."""
 MAX_PARAM_NODES = 8_192
 """The most parameter nodes remembered (met, fetched); beyond, new ones are ignored (logged)."""
+PARTICIPANT_BYTES = 12
+"""A GID's first bytes name its participant (Fast DDS: vendor, host, process, participant)."""
+MAX_UNVERIFIED = 1_024
+"""Events of one sender waiting for the graph to name it a host (the oldest go first)."""
+MAX_UNVERIFIED_SENDERS = 64
+"""Senders whose events wait so at once (a fleet starting; beyond, the oldest go)."""
 MAX_UNATTRIBUTED = 8
 """Senders whose allocation waits for the graph to name them (their newest message each)."""
 UNATTRIBUTED_S = 5.0
@@ -100,6 +109,8 @@ MAX_CLIENTS = 256
 """Service clients kept open to other processes' nodes; the least recently used is closed."""
 _DBM_NODE = GLOBAL_PREFIX[1:]
 """Every parameter node's own name: ``dbm``, in the namespace ``/`` or ``[topic]``."""
+_ROS_NAME = re.compile(r"^(/[A-Za-z_][A-Za-z0-9_]*)+$")
+"""A ROS 2 topic name as dbml uses one: ``check_topic``'s, without ``-``, ``.`` and ``~``."""
 _ROS_OWN = frozenset({"use_sim_time", "start_type_description_service"})
 """Parameters every rclpy node declares: not dbml's, never reported."""
 
@@ -119,6 +130,20 @@ def node_of(name: str) -> tuple[Parameter, str, str]:
     parameter, topic = found
     node = GLOBAL_PREFIX if topic is None else f"{topic}{GLOBAL_PREFIX}"
     return parameter, node, parameter.ros2_name
+
+
+def check_ros_topic(topic: str) -> str:
+    """``topic`` if ROS 2 accepts it as a name too (no ``-``, ``.``, ``~``); else the error.
+
+    dbml's topic rule (``check_topic``) allows those for zenoh; a ROS 2 name, a node's
+    namespace included, does not.
+    """
+    check_topic(topic)
+    if not _ROS_NAME.match(topic):
+        raise TransportError(
+            f"topic={topic!r} is not a ROS 2 name: letters, digits and _ only between the /"
+        )
+    return topic
 
 
 def _full_name(node: str, ros2_name: str) -> str | None:
@@ -170,12 +195,27 @@ def _allocated(parameter: Parameter) -> bool:
     return parameter.scope is Scope.CHANNEL and parameter.writers == {Writer.OPTIMIZER}
 
 
-def _value_of(message: Any) -> object:
-    """A ``ParameterValue`` as Python (``None`` for NOT_SET; arrays are returned as lists)."""
+def python_value(message: Any) -> object:
+    """A ``ParameterValue`` as Python (``None`` for NOT_SET, arrays as lists).
+
+    One of a type rclpy does not know (any node may send one) is an object the store refuses,
+    naming it, never an exception on the executor thread.
+    """
     from rclpy.parameter import parameter_value_to_python
 
-    value: object = parameter_value_to_python(message)
+    try:
+        value: object = parameter_value_to_python(message)
+    except Exception:  # rclpy raises its own errors for an unknown type number
+        return _UNKNOWN_VALUE
     return value
+
+
+class _Unknown:
+    def __repr__(self) -> str:
+        return "<a parameter value of an unknown type>"
+
+
+_UNKNOWN_VALUE = _Unknown()
 
 
 @dataclass
@@ -207,6 +247,8 @@ class RclpyParams:
         """Writes not yet handed to rclpy, oldest first; a name's newer write replaces its own."""
         self._confirmed: dict[str, bool] = {}
         """Per name written here: whether a node of another process took the latest write."""
+        self._written: set[str] = set()
+        """Names this process wrote (its code bounds them): what it hands over as a host."""
         self._overflow = Overflow("parameter names", MAX_PARAMS, log=log)
         self._updates = 0
         """Values written or heard so far: the clock a fetch's answer is judged by."""
@@ -221,6 +263,15 @@ class RclpyParams:
         """True while this process sets its own node's parameters (not a service request)."""
         self._live: dict[str, int] = {}
         """Parameter nodes other processes host (fully qualified name: how many host it)."""
+        self._hosts: Mapping[str, frozenset[bytes]] = {}
+        """Each parameter node's hosting participants, as the graph last showed them."""
+        self._unverified: OrderedDict[bytes, deque[tuple[str, list[tuple[str, object]]]]] = (
+            OrderedDict()
+        )
+        """Events waiting for the graph to show their sender hosting their node: by sender
+        participant, in arrival order (executor thread)."""
+        self._unverified_since: dict[bytes, float] = {}
+        """Since when each sender's first waiting event waits."""
         self._fetched: set[str] = set()
         """Live nodes whose values were fetched once (a node met again is fetched again)."""
         self._fetching: dict[str, float] = {}
@@ -244,19 +295,23 @@ class RclpyParams:
     def set_many(self, values: Mapping[str, ParamValue]) -> None:
         """Hold every value here at once; the executor thread sends them, one message per node."""
         checked = {name: check_param_value(value) for name, value in values.items()}
-        for name in checked:
-            node_of(name)
+        for name, value in checked.items():
+            _parameter, node, _ros2_name = node_of(name)
+            if node != GLOBAL_PREFIX:
+                check_ros_topic(node[: -len(GLOBAL_PREFIX)])
+            check_param(name, value)  # its node would refuse it: say so here, change nothing
         changes = []
         with self._lock:
             for name, value in checked.items():
                 self._pending[name] = value
                 self._pending.move_to_end(name)
                 self._confirmed[name] = False
+                self._written.add(name)
                 self._updates += 1
                 self._updated[name] = self._updates
                 if self._values.get(name) != value:
                     changes.append((name, value))
-                    self._store_locked(name, value)
+                    self._values[name] = value  # this process's own: always held
         self._transport.call_soon(self._drain)
         for name, value in changes:
             self._watchers.fire(name, value)
@@ -417,6 +472,8 @@ class RclpyParams:
         self._internal = True
         try:
             for ros2_name, value in writes.items():
+                if not hosted.node.has_parameter(ros2_name):
+                    hosted.node.declare_parameter(ros2_name, None, _dynamic())
                 if value is None:
                     # Unset, and declared again with no value: ``ros2 param list`` still shows it.
                     hosted.node.set_parameters([RosParameter(ros2_name, RosParameter.Type.NOT_SET)])
@@ -425,6 +482,8 @@ class RclpyParams:
                 results = hosted.node.set_parameters([RosParameter(ros2_name, value=value)])
                 if not results[0].successful:
                     log.warning("%s/%s=%r not set: %s", node, ros2_name, value, results[0].reason)
+        except Exception:  # one node's failure must not lose the other nodes' writes
+            log.exception("%s: parameters not set", node)
         finally:
             self._internal = False
 
@@ -440,6 +499,10 @@ class RclpyParams:
                     continue
                 return SetParametersResult(
                     successful=False, reason=f"{parameter.name!r} is not a dbml parameter"
+                )
+            if not self._internal and parameter.value is None:
+                return SetParametersResult(
+                    successful=False, reason=f"{name} cannot be deleted: set a value instead"
                 )
             try:
                 checked = check_param(name, check_param_value(parameter.value))
@@ -538,6 +601,9 @@ class RclpyParams:
         if hosted is None or hosted.allocation is None:
             return
         self._allocation.update(values)
+        for name in list(self._allocation):  # channels whose node left are allocated no more
+            if node_of(name)[1] not in self._hosts and node_of(name)[1] not in self._hosted:
+                del self._allocation[name]
         from std_msgs.msg import String
 
         data = keys.encode_batch(self._allocation, time.time_ns(), self._transport.host)
@@ -552,6 +618,8 @@ class RclpyParams:
         if sender_gid is None:
             return
         if sender_gid not in self._allocation_senders:
+            if len(data) > keys.MAX_WRITE_BYTES:
+                return
             self._unattributed[sender_gid] = (data, time.monotonic())
             self._unattributed.move_to_end(sender_gid)
             while len(self._unattributed) > MAX_UNATTRIBUTED:
@@ -599,16 +667,60 @@ class RclpyParams:
                     gid.hex(),
                 )
 
-    def on_event(self, node: str, changed: Iterable[tuple[str, object]]) -> None:
+    def on_event(
+        self, node: str, changed: Iterable[tuple[str, object]], *, sender: bytes | None
+    ) -> None:
         """``/parameter_events`` of a parameter node: its new, changed and deleted values.
 
-        A node that announces is hosted somewhere, even before the graph poll shows it: a write
-        for it then goes there instead of making this process a second host.
+        Believed only from a participant the graph shows hosting ``node`` (anyone may publish
+        an event naming any node), and never about a node hosted here (this process knows its
+        own values). A node hosted elsewhere and not read yet is read at the next poll.
         """
-        if node not in self._hosted and node not in self._live:
-            with self._lock:
-                self._live[node] = 1
-        self._learn(node, changed)
+        if node in self._hosted or sender is None:
+            return
+        participant = sender[:PARTICIPANT_BYTES]
+        queue = self._unverified.get(participant)
+        if queue is None and participant in self._hosts.get(node, frozenset()):
+            self._learn(node, changed)
+            return
+        # A node that just started may announce before the graph names it: its events wait
+        # (dbml's names only) for the graph to say whose they are, and so do the sender's
+        # later ones, in order: one writer's writes are seen in the order written.
+        if queue is None:
+            queue = self._unverified[participant] = deque()
+        if len(queue) >= MAX_UNVERIFIED:
+            queue.popleft()
+        queue.append((node, [(n, v) for n, v in changed if _full_name(node, n) is not None]))
+        self._unverified_since.setdefault(participant, time.monotonic())
+        while len(self._unverified) > MAX_UNVERIFIED_SENDERS:
+            dropped, _queue = self._unverified.popitem(last=False)
+            self._unverified_since.pop(dropped, None)
+        self._transport.poll_soon()
+
+    def _verify(self) -> None:
+        """Learn waiting events, in order, as the graph shows their sender hosting their node.
+
+        A sender whose first waiting event stays unverified for ``UNATTRIBUTED_S`` is not a
+        host of that node: its waiting events are dropped (logged once per node).
+        """
+        now = time.monotonic()
+        for participant, queue in list(self._unverified.items()):
+            while queue and participant in self._hosts.get(queue[0][0], frozenset()):
+                node, values = queue.popleft()
+                if node not in self._hosted:
+                    self._learn(node, values)
+                self._unverified_since[participant] = now
+            if not queue:
+                del self._unverified[participant]
+                self._unverified_since.pop(participant, None)
+            elif now - self._unverified_since.get(participant, now) > UNATTRIBUTED_S:
+                del self._unverified[participant]
+                self._unverified_since.pop(participant, None)
+                self._bad.warning(
+                    f"events:{queue[0][0]}",
+                    "ignoring events about %s from a process not hosting it",
+                    queue[0][0],
+                )
 
     def _fetch(self, node: str, *, again: bool = False) -> None:
         """Ask ``node`` for its values once it answers (``GetParameters``).
@@ -618,6 +730,8 @@ class RclpyParams:
         """
         from rcl_interfaces.srv import GetParameters
 
+        if node not in self._live:
+            return  # nobody hosts it (a publisher whose process has no parameter node)
         asked_s = self._fetching.get(node)
         if asked_s is not None and time.monotonic() - asked_s < FETCH_TIMEOUT_S:
             return
@@ -639,7 +753,7 @@ class RclpyParams:
             response = finished.result()
             if response is None:
                 return
-            values = [(n, _value_of(v)) for n, v in zip(names, response.values, strict=False)]
+            values = [(n, python_value(v)) for n, v in zip(names, response.values, strict=False)]
             # A node's unset parameter says nothing: another host may hold a value for it.
             self._learn(node, [(n, v) for n, v in values if v is not None], asked_at=asked_at)
             with self._lock:
@@ -660,17 +774,39 @@ class RclpyParams:
         host it for good (``_claim``), ``own`` this process's participant.
         """
         self._allocation_senders = allocation_senders
-        self._attribute()
         if len(hosts) > MAX_PARAM_NODES:
             self._nodes_overflow.refuse(len(hosts) - MAX_PARAM_NODES)
             hosts = dict(list(hosts.items())[:MAX_PARAM_NODES])
+        self._hosts = hosts
         live = {node: len(by - {own}) for node, by in hosts.items() if by - {own}}
         with self._lock:
+            gone = [n for n in self._live if n not in live and n not in self._hosted]
             self._live = live
             self._fetched &= set(live)
             fetch = [n for n in live if n not in self._fetched]
-        for node in fetch:
+        for step, action in (
+            ("allocations", self._attribute),
+            ("events", self._verify),
+            ("departures", lambda: self._forget(gone)),
+            ("fetches", lambda: self._fetch_all(fetch)),
+            ("hand-overs", lambda: self._hand_over(hosts, claimed, own)),
+            ("waiting writes", lambda: self._resend(live)),
+        ):
+            try:
+                action()
+            except Exception:  # one step's failure must not stop the others, nor the next poll
+                log.exception("parameters: %s failed", step)
+
+    def _fetch_all(self, nodes: Iterable[str]) -> None:
+        for node in nodes:
             self._fetch(node)
+
+    def _hand_over(
+        self,
+        hosts: Mapping[str, frozenset[bytes]],
+        claimed: Mapping[str, frozenset[bytes]],
+        own: bytes | None,
+    ) -> None:
         for node, hosted in list(self._hosted.items()):
             if (
                 hosted.provisional
@@ -678,20 +814,47 @@ class RclpyParams:
                 and yields(own, hosts.get(node, frozenset()), claimed.get(node, frozenset()))
             ):
                 self._give_up(node, hosted)
+
+    def _resend(self, live: Mapping[str, int]) -> None:
         for node in [n for n in self._waiting if n in live]:
             writes = self._waiting.pop(node)
             self._set_remote(node, writes)
+        for node in [n for n in self._fetching if n not in live]:
+            del self._fetching[node]
+
+    def _forget(self, gone: Iterable[str]) -> None:
+        """Nodes that left the graph: their values go with them, as a ROS 2 node's do.
+
+        Names this process wrote stay (it may host them again, or hand them over), so what the
+        network filled is what the network's departures empty.
+        """
+        removed = []
+        with self._lock:
+            for node in gone:
+                prefix = f"{node}/"
+                for name in [n for n in self._values if n.startswith(prefix)]:
+                    if name not in self._written and name not in self._pending:
+                        del self._values[name]
+                        self._updated.pop(name, None)
+                        removed.append(name)
+            size = len(self._values)
+        self._overflow.room(size)
+        for name in removed:
+            self._watchers.fire(name, None)
 
     def _give_up(self, node: str, hosted: _Hosted) -> None:
         """Another process hosts ``node`` too: push what anyone may write there, then leave it.
 
-        What is pushed is what this node holds (its own parameters, not the view: the view may
-        have heard the new host's declaration before it knew these values).
+        What is pushed is what this process wrote, as its node holds it (not the view: the view
+        may have heard the new host's declaration before these values).
         """
         writes: dict[str, ParamValue] = {}
         for parameter in PARAMETERS:
             if parameter.scope is not _scope_of(node) or Writer.OPERATOR not in parameter.writers:
                 continue
+            name = parameter.name if node == GLOBAL_PREFIX else f"{node}/{parameter.field}"
+            if name not in self._written or not hosted.node.has_parameter(parameter.ros2_name):
+                continue  # only what this process wrote: the rest it only heard
             held = hosted.node.get_parameter(parameter.ros2_name).value
             if held is not None:
                 writes[parameter.ros2_name] = held

@@ -103,6 +103,11 @@ class BackgroundThread:
         if self._thread.ident is not None and self._thread is not threading.current_thread():
             self._thread.join(timeout=timeout_s)
 
+    @property
+    def running(self) -> bool:
+        """Whether the thread runs now (started, not ended): a bounded ``join`` may leave it."""
+        return self._thread.is_alive()
+
     def is_current(self) -> bool:
         """Whether the caller is this thread (``target`` calling back into its owner).
 
