@@ -10,8 +10,10 @@ What carries what, and why:
 
 - **Every process's view** is fed by ``/parameter_events`` (the node that hosts a value announces
   each change) and, for a node met for the first time, one ``GetParameters`` call: the node is
-  the value's single source, as ROS 2 intends.
-- **An operator's write** (``ros2 param set``, ``dbml param set``, ``dbml priority``) goes through
+  the value's single source, as ROS 2 intends. Anyone may publish an event naming any node, so
+  one is believed only from a participant the graph shows hosting that node (a new host's
+  events wait, in order, until the graph names it), and a node's values leave the view with it.
+- **An operator's write** (``ros2 param set``, ``dbml budget``, ``dbml priority``) goes through
   the hosting node's ``SetParameters`` service. The node validates it with the schema and refuses,
   with the reason, a value out of range or one that dbml owns: a service call names no caller,
   so only the values anyone may write are taken from it.
@@ -211,6 +213,8 @@ def python_value(message: Any) -> object:
 
 
 class _Unknown:
+    """A parameter value of a type rclpy does not know: the store refuses it, naming it."""
+
     def __repr__(self) -> str:
         return "<a parameter value of an unknown type>"
 
