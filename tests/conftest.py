@@ -59,6 +59,22 @@ def ros(tmp_path: Path) -> Iterator[RosNet]:
         yield net
 
 
+_LTTNG = "lttng-ust-wait-*"
+"""What ``import rclpy`` (LTTng's tracing) leaves in /dev/shm for the user, not per process."""
+_lttng_before: set[Path] = set()
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Before any test module imports rclpy: what /dev/shm held of LTTng's already."""
+    _lttng_before.update(Path("/dev/shm").glob(_LTTNG))
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    """Remove the LTTng files this session created (those from before are someone else's)."""
+    for path in set(Path("/dev/shm").glob(_LTTNG)) - _lttng_before:
+        path.unlink(missing_ok=True)
+
+
 @pytest.hookimpl(tryfirst=True)  # before -m selects by marker
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """Mark ``ros1`` every test using ``ros``: it needs rospy, so it runs in .venv-ros1.
