@@ -51,11 +51,13 @@ def plain_node(domain_id: int, name: str, namespace: str = "/") -> Iterator[Node
         rclpy.try_shutdown(context=context)
 
 
-def param_set(node: Node, target: str, name: str, value: Any) -> Any:
+def param_set(
+    node: Node, target: str, name: str, value: Any, *, wait_s: float = CALL_TIMEOUT_S
+) -> Any:
     """What ``ros2 param set TARGET NAME VALUE`` does: one SetParameters call; its result."""
     client: Any = node.create_client(SetParameters, f"{target}/set_parameters")
     try:
-        assert client.wait_for_service(timeout_sec=CALL_TIMEOUT_S), f"{target} never answered"
+        assert client.wait_for_service(timeout_sec=wait_s), f"{target} never answered"
         request = SetParameters.Request(
             parameters=[Parameter(name, value=value).to_parameter_msg()]
         )

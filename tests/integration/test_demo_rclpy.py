@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -35,13 +36,15 @@ def test_demo_over_rclpy_matches_table2_and_leaves_nothing(tmp_path: Path) -> No
     home.mkdir()
     env = dict(os.environ, HOME=str(home))  # where rclpy would log without ROS_LOG_DIR
     env.pop("ROS_LOG_DIR", None)
-    demo = subprocess.Popen(
-        [*DEMO, "--step-seconds", "1.5", "--json"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env=env,
-    )
+    out, err = tmp_path / "demo.out", tmp_path / "demo.err"
+    with out.open("w") as stdout_file, err.open("w") as stderr_file:  # never a full pipe
+        demo = subprocess.Popen(
+            [*DEMO, "--step-seconds", "1.5", "--json"],
+            stdout=stdout_file,
+            stderr=stderr_file,
+            text=True,
+            env=env,
+        )
     started: set[int] = set()
     shm: set[Path] = set()
     deadline = time.monotonic() + DEMO_TIMEOUT_S
@@ -50,11 +53,19 @@ def test_demo_over_rclpy_matches_table2_and_leaves_nothing(tmp_path: Path) -> No
             started |= children_of(demo.pid)  # bridges, optimizer and the ROS 2 peers
             shm |= set(fastdds_shm_files(started))
             time.sleep(0.1)
-        stdout, stderr = demo.communicate(timeout=max(1.0, deadline - time.monotonic()))
+        demo.wait(timeout=max(1.0, deadline - time.monotonic()))
     finally:
-        if demo.poll() is None:
-            demo.kill()
-            demo.communicate(timeout=10)
+        if demo.poll() is None:  # as Ctrl-C would: the demo ends its children, then itself
+            demo.send_signal(signal.SIGINT)
+            try:
+                demo.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                demo.kill()
+                demo.wait(timeout=10)
+            for pid in started:
+                if alive(pid):
+                    os.kill(pid, signal.SIGKILL)
+    stdout, stderr = out.read_text(), err.read_text()
     assert demo.returncode == 0, stderr[-3000:]
     assert len(started) >= 6, "2 bridges, optimizer, operator and 2 robots"
     assert not [pid for pid in started if alive(pid)], "every process ended by the demo"

@@ -124,12 +124,9 @@ def _viewer(node: Node, reliability: ReliabilityPolicy) -> Viewer:
 
 
 def _set_budget(node: Node) -> None:
-    deadline = time.monotonic() + START_S
-    while True:  # the optimizer's /dbm node appears once it runs
-        result = param_set(node, "/dbm", "max_bandwidth_in_mbit", BUDGET_MBIT)
-        if result.successful:
-            return
-        assert time.monotonic() < deadline, f"the budget was refused: {result.reason}"
+    """``ros2 param set /dbm max_bandwidth_in_mbit 5`` once the optimizer's node answers."""
+    result = param_set(node, "/dbm", "max_bandwidth_in_mbit", BUDGET_MBIT, wait_s=START_S)
+    assert result.successful, result.reason
 
 
 def _measure(viewer: Viewer) -> dict[bytes, list[tuple[float, int]]]:

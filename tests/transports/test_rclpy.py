@@ -19,6 +19,7 @@ from dbml.core.errors import TransportError
 from dbml.protocol.keys import encode_batch
 from dbml.protocol.metadata import MessageMeta
 from dbml.transports.base import Role, Sample, Variant
+from dbml.transports.rclpyparams import UNATTRIBUTED_S
 from tests.conftest import wait_for
 
 rclpy = pytest.importorskip("rclpy")  # before dbml's rclpy module: the ROS 1 environment lacks it
@@ -122,14 +123,19 @@ def test_a_channels_parameters_live_on_its_publishers_node(ros_domain: int) -> N
 
 
 @pytest.mark.integration
-def test_a_float64_priority_sets_the_channels_priority(ros_domain: int) -> None:
+def test_a_float64_priority_sets_the_channels_priority(
+    ros_domain: int, caplog: pytest.LogCaptureFixture
+) -> None:
     robot = RclpyTransport(host="r1", domain_id=ros_domain)
     try:
         robot.params.set("/r1/camera/dbm/frequency/min", 1.0)
         with plain_node(ros_domain, "mission") as mission:
             publisher = mission.create_publisher(Float64, "/r1/camera/dbm/priority", 10)
             wait_for(lambda: publisher.get_subscription_count() > 0, what="the host's subscription")
-            publisher.publish(Float64(data=7.0))  # out of range: ignored
+            publisher.publish(Float64(data=7.0))  # out of range: refused, named
+            wait_for(lambda: "ignoring a priority" in caplog.text, what="the refusal")
+            assert "/r1/camera/dbm/priority=7.0" in caplog.text
+            assert robot.params.get("/r1/camera/dbm/priority") is None
             publisher.publish(Float64(data=0.3))
             wait_for(lambda: robot.params.get("/r1/camera/dbm/priority") == 0.3, what="0.3")
     finally:
@@ -137,7 +143,7 @@ def test_a_float64_priority_sets_the_channels_priority(ros_domain: int) -> None:
 
 
 @pytest.mark.integration
-def test_only_the_dbm_node_allocates(ros_domain: int) -> None:
+def test_only_the_dbm_node_allocates(ros_domain: int, caplog: pytest.LogCaptureFixture) -> None:
     robot = RclpyTransport(host="r1", domain_id=ros_domain)
     optimizer = RclpyTransport(host="ground", domain_id=ros_domain)
     try:
@@ -154,10 +160,19 @@ def test_only_the_dbm_node_allocates(ros_domain: int) -> None:
                 lambda: robot.params.get("/r1/camera/dbm/frequency/current_value") == 4.0,
                 what="the optimizer's allocation",
             )
-            fake.publish(String(data=batch.decode()))
-            optimizer.params.set("/r1/camera/dbm/managed", True)  # sent after the forgery
-            wait_for(lambda: robot.params.get("/r1/camera/dbm/managed") is True, what="managed")
+            # Alone, with nothing of the optimizer's after it: held, then dropped, named.
+            forged = {
+                "/r1/camera/dbm/frequency/current_value": 16.0,
+                "/r1/camera/dbm/managed": True,
+            }
+            fake.publish(String(data=encode_batch(forged, 2, "x").decode()))
+            wait_for(
+                lambda: "not the /dbm node" in caplog.text,
+                timeout_s=UNATTRIBUTED_S + 5,
+                what="the forgery's refusal",
+            )
             assert robot.params.get("/r1/camera/dbm/frequency/current_value") == 4.0
+            assert robot.params.get("/r1/camera/dbm/managed") is not True
     finally:
         optimizer.close()
         robot.close()

@@ -38,6 +38,7 @@ __all__ = [
     "CWD_PROFILES_FILE",
     "DEFAULT_PROFILES_FILE",
     "FASTDDS_RMWS",
+    "GID_BYTES",
     "LEGACY_PROFILES_FILE",
     "PROFILE_FILE_NAME",
     "PROFILE_NAME",
@@ -60,8 +61,10 @@ PROFILE_NAME = "dbml_discovery"
 PROFILE_FILE_NAME = "dbml-fastdds-discovery.xml"
 """What :func:`apply_discovery_profile` writes into its directory."""
 
+GID_BYTES = 16
+"""An endpoint GID's size in rclpy's graph and message info (rmw's ``RMW_GID_STORAGE_SIZE``)."""
+
 _EPROSIMA_VENDOR = b"\x01\x0f"
-_GID_BYTES = 16
 _NS_PER_S = 1_000_000_000
 
 
@@ -175,6 +178,6 @@ def gid_host_id(gid: bytes | Sequence[int]) -> int | None:
         raw = bytes(gid)
     except (TypeError, ValueError):
         return None
-    if len(raw) != _GID_BYTES or raw[:2] != _EPROSIMA_VENDOR:
+    if len(raw) != GID_BYTES or raw[:2] != _EPROSIMA_VENDOR:
         return None
     return int.from_bytes(raw[2:4], "little")

@@ -61,7 +61,7 @@ from dbml.transports.base import (
     resolve_host,
 )
 from dbml.transports.callbacks import CallbackList
-from dbml.transports.fastdds import gid_host_id
+from dbml.transports.fastdds import GID_BYTES, gid_host_id
 from dbml.transports.overflow import LogOnce, Overflow
 from dbml.transports.rclpyparams import (
     ALLOCATION_TOPIC,
@@ -104,8 +104,12 @@ __all__ = [
     "RCLPY_HINT",
     "PublishStats",
     "RclpyTransport",
+    "frame_bytes",
     "host_of_node",
+    "message_class",
     "node_name_for",
+    "sample_meta",
+    "unframe_bytes",
 ]
 
 log = logging.getLogger("dbml.rclpy")
@@ -119,6 +123,7 @@ SPIN_TIMEOUT_S = 0.1
 PUBLISH_DEPTH = 5
 """Messages a publisher keeps for a late or slow reliable reader (KEEP_LAST: never blocks)."""
 SUBSCRIPTION_DEPTH = 10
+"""Messages a subscription queues for its callback (KEEP_LAST: the oldest go first)."""
 PUBLISH_TIMES = 4_096
 """Durations of ``publish()`` a publisher keeps for its p99: the newest (its max covers all)."""
 PRIORITY_INTERVAL_S = 0.05
@@ -145,7 +150,6 @@ _BYTES_HEADER = struct.Struct("<4sIII")
 """CDR of an ``UInt8MultiArray`` with no dimensions: encapsulation, dims, offset, data length."""
 _CDR_LE = b"\x00\x01\x00\x00"
 _FOREIGN_HOST = "ros2:"
-GID_BYTES = 16
 _ROS_PACKAGE = re.compile(r"^[a-z][a-z0-9_]*$")
 
 
@@ -233,7 +237,7 @@ def _split(ros_topic: str) -> tuple[str, Variant]:
 
 def _is_channel_topic(topic: str) -> bool:
     """A topic the graph reports: not ROS's own, not dbml's parameters or priorities."""
-    if topic in _INFRASTRUCTURE or f"{PRIORITY_SUFFIX}" in topic or topic == ALLOCATION_TOPIC:
+    if topic in _INFRASTRUCTURE:
         return False
     try:
         check_topic(topic)
@@ -256,7 +260,7 @@ def _guarded(what: str, callback: Callable[..., None]) -> Callable[..., None]:
 
 @dataclass(frozen=True, slots=True)
 class PublishStats:
-    """How long a publisher's ``publish()`` calls took: a debug statistic, logged at close.
+    """How long a publisher's ``publish()`` calls took, logged when it closes.
 
     A synchronous Fast DDS publish waits for the socket on a full link; this says how long.
     """
@@ -417,7 +421,7 @@ class _Subscription:
         except Exception:  # the executor thread must outlive any callback
             log.exception("a subscription callback of %s failed", self.ros_topic)
 
-    def ensure(self, msg_type: str, reliable: bool) -> None:
+    def ensure(self, msg_type: str, *, reliable: bool) -> None:
         """Create the subscription, or re-create it for its publishers' type and reliability."""
         if self.closed or (
             self.subscription is not None
@@ -515,7 +519,7 @@ class RclpyTransport(TransportBase):
             self.node = Node(node_name_for(self._host), context=self.context)
             self._executor = SingleThreadedExecutor(context=self.context)
             self._executor.add_node(self.node)
-            self._wake = self.node.create_guard_condition(_guarded("executor task", self._run_soon))
+            self._wake = self.node.create_guard_condition(self._run_soon)
             self._params = RclpyParams(self)
             self.node.create_subscription(
                 _parameter_event(),
@@ -658,7 +662,7 @@ class RclpyTransport(TransportBase):
     def _on_allocation(self, message: Any, info: Any) -> None:
         """``/dbm/allocation`` with its sender (two arguments: rclpy passes the message info)."""
         try:
-            self._params.on_allocation(message.data, _sender(info))
+            self._params.on_allocation(message.data, sender=_sender(info))
         except Exception:
             log.exception("an allocation could not be handled")
 
@@ -739,7 +743,7 @@ class RclpyTransport(TransportBase):
             channel, variant = _split(topic)
             if not _is_channel_topic(channel):
                 continue
-            gid = bytes(info.endpoint_gid)[:16]
+            gid = bytes(info.endpoint_gid)[:GID_BYTES]
             host = dbml_hosts.get((info.node_namespace, info.node_name))
             if host is None:
                 host = self._foreign_host(role, variant, gid, host_ids)
@@ -756,7 +760,7 @@ class RclpyTransport(TransportBase):
             if msg_type is None:
                 continue
             try:
-                subscription.ensure(msg_type, subscription.ros_topic not in best_effort)
+                subscription.ensure(msg_type, reliable=subscription.ros_topic not in best_effort)
             except Exception as err:  # a type or name from the network: that one only
                 self._bad.warning(subscription.ros_topic, "cannot subscribe: %s", err)
         held, self._held_priorities = self._held_priorities, {}

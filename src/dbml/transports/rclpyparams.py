@@ -75,8 +75,10 @@ __all__ = [
     "ALLOCATION_TOPIC",
     "HOSTING_WRITERS",
     "MAX_PARAM_NODES",
+    "PARTICIPANT_BYTES",
     "RclpyParams",
     "check_ros_topic",
+    "is_param_node",
     "node_of",
     "python_value",
     "yields",
@@ -613,19 +615,19 @@ class RclpyParams:
         data = keys.encode_batch(self._allocation, time.time_ns(), self._transport.host)
         hosted.allocation.publish(String(data=data.decode()))
 
-    def on_allocation(self, data: str, sender_gid: bytes | None) -> None:
+    def on_allocation(self, data: str, *, sender: bytes | None) -> None:
         """``/dbm/allocation``: values for the channels hosted here, from ``/dbm``'s node only.
 
         DDS may deliver a new publisher's message before the graph names its node: such a
         message waits (the newest per sender, a few senders) for the next poll to say whose.
         """
-        if sender_gid is None:
+        if sender is None:
             return
-        if sender_gid not in self._allocation_senders:
+        if sender not in self._allocation_senders:
             if len(data) > keys.MAX_WRITE_BYTES:
                 return
-            self._unattributed[sender_gid] = (data, time.monotonic())
-            self._unattributed.move_to_end(sender_gid)
+            self._unattributed[sender] = (data, time.monotonic())
+            self._unattributed.move_to_end(sender)
             while len(self._unattributed) > MAX_UNATTRIBUTED:
                 self._unattributed.popitem(last=False)
             return

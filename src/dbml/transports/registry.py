@@ -123,6 +123,8 @@ def _open_ros2(options: TransportOptions) -> Transport:
 
 
 def _open_rclpy(options: TransportOptions) -> Transport:
+    from dbml.transports.ros2msg import check_domain_id  # pure: no middleware imported
+
     _no_endpoints(
         "rclpy",
         options,
@@ -140,7 +142,8 @@ def _open_rclpy(options: TransportOptions) -> Transport:
         module = importlib.import_module("dbml.transports.rclpy")
     except ImportError as err:
         raise TransportError(str(err)) from err
-    transport: Transport = module.RclpyTransport(host=options.host, domain_id=options.domain_id)
+    domain_id = None if options.domain_id is None else check_domain_id(options.domain_id)
+    transport: Transport = module.RclpyTransport(host=options.host, domain_id=domain_id)
     return transport
 
 
