@@ -352,14 +352,10 @@ class Ros2Sniffer:
     """
 
     def __init__(self, domain_id: int, topics: list[str]) -> None:
-        import rclpy
-        from rclpy.context import Context
-        from rclpy.executors import SingleThreadedExecutor
-        from rclpy.node import Node
         from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-        from rclpy.signals import SignalHandlerOptions
         from sensor_msgs.msg import Image
 
+        from dbml.harness.ros2node import PrivateRos
         from dbml.transports.rclpy import host_of_node
 
         self._host_of_node = host_of_node
@@ -370,32 +366,23 @@ class Ros2Sniffer:
         self._lost = self._duplicates = 0
         self._owners: dict[bytes, str] = {}
         self._topics = [f"{topic}/optimized" for topic in topics]
-        self._context = Context()
-        rclpy.init(
-            context=self._context,
-            domain_id=domain_id,
-            signal_handler_options=SignalHandlerOptions.NO,
-        )
-        self._node = Node("bench_wire_sniffer", context=self._context)
-        qos = QoSProfile(
-            history=HistoryPolicy.KEEP_LAST,
-            depth=SNIFFER_DEPTH,
-            reliability=ReliabilityPolicy.RELIABLE,
-        )
-        for topic in topics:
-            self._node.create_subscription(
-                Image, f"{topic}/optimized", self._receiver(optimized_key(topic)), qos, raw=True
+        self._ros = PrivateRos(domain_id=domain_id, name="sniffer")
+        try:
+            self._node = self._ros.node("bench_wire_sniffer")
+            qos = QoSProfile(
+                history=HistoryPolicy.KEEP_LAST,
+                depth=SNIFFER_DEPTH,
+                reliability=ReliabilityPolicy.RELIABLE,
             )
-        self._node.create_timer(0.25, self._read_graph)
-        self._executor = SingleThreadedExecutor(context=self._context)
-        self._executor.add_node(self._node)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._spin, name="sniffer", daemon=True)
-        self._thread.start()
-
-    def _spin(self) -> None:
-        while not self._stop.is_set() and self._context.ok():
-            self._executor.spin_once(timeout_sec=0.05)
+            for topic in topics:
+                self._node.create_subscription(
+                    Image, f"{topic}/optimized", self._receiver(optimized_key(topic)), qos, raw=True
+                )
+            self._node.create_timer(0.25, self._read_graph)
+        except BaseException:
+            self._ros.close()
+            raise
+        self._ros.start()
 
     def _receiver(self, key: str) -> Callable[[Any, MessageInfo], None]:
         def on_message(data: Any, info: MessageInfo) -> None:
@@ -463,13 +450,7 @@ class Ros2Sniffer:
             return self._duplicates
 
     def close(self) -> None:
-        import rclpy
-
-        self._stop.set()
-        self._thread.join(timeout=STOP_S)
-        self._executor.shutdown(timeout_sec=1.0)
-        self._node.destroy_node()
-        rclpy.try_shutdown(context=self._context)
+        self._ros.close()
 
 
 class ParamTimes:
@@ -520,26 +501,19 @@ def run_hostile_peer(topics: list[str]) -> None:
     Prints ``{"ready": true}``, then, at the end, one JSON report of what it sent and what the
     ``SetParameters`` services answered. Its domain and logs come from the environment.
     """
-    import rclpy
     from rcl_interfaces.srv import SetParameters
-    from rclpy.context import Context
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.node import Node
     from rclpy.parameter import Parameter
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-    from rclpy.signals import SignalHandlerOptions
     from sensor_msgs.msg import Image
     from std_msgs.msg import Float64, String
 
+    from dbml.harness.ros2node import PrivateRos
     from dbml.protocol.keys import encode_batch
     from dbml.transports.rclpyparams import ALLOCATION_TOPIC, node_of
     from dbml.transports.ros2msg import image_cdr
 
-    context = Context()
-    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
-    node = Node("hostile_peer", context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
+    ros = PrivateRos(domain_id=None, name="hostile")  # ROS_DOMAIN_ID
+    node = ros.node("hostile_peer")
     lock = threading.Lock()
     answers: dict[str, dict[str, int]] = {}
     accepted: list[str] = []
@@ -566,7 +540,6 @@ def run_hostile_peer(topics: list[str]) -> None:
 
     stop = threading.Event()
     started = threading.Event()
-    done_spinning = threading.Event()
 
     def control() -> None:
         for line in sys.stdin:
@@ -577,10 +550,6 @@ def run_hostile_peer(topics: list[str]) -> None:
         stop.set()
 
     threading.Thread(target=control, name="control", daemon=True).start()
-
-    def spin() -> None:
-        while not done_spinning.is_set():
-            executor.spin_once(timeout_sec=0.05)
 
     print(json.dumps({"ready": True}), flush=True)
     rng = random.Random(SEED)
@@ -617,8 +586,7 @@ def run_hostile_peer(topics: list[str]) -> None:
         _parameter, param_node, _ros2 = node_of(name)
         if param_node not in clients:
             clients[param_node] = node.create_client(SetParameters, f"{param_node}/set_parameters")
-    spinner = threading.Thread(target=spin, name="spin", daemon=True)
-    spinner.start()
+    ros.start()
     tick = 0
     start = time.monotonic()
     while not stop.is_set():
@@ -656,7 +624,6 @@ def run_hostile_peer(topics: list[str]) -> None:
         if delay > 0:
             stop.wait(delay)
     time.sleep(0.5)  # the last answers
-    done_spinning.set()
     with lock:
         report = {
             "seconds": round(time.monotonic() - start, 2),
@@ -667,10 +634,7 @@ def run_hostile_peer(topics: list[str]) -> None:
             "refusal_reasons": refusals,
         }
     print(json.dumps(report), flush=True)
-    spinner.join(timeout=STOP_S)
-    executor.shutdown(timeout_sec=1.0)
-    node.destroy_node()
-    rclpy.try_shutdown(context=context)
+    ros.close()
 
 
 class HostilePeer:

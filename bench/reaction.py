@@ -232,38 +232,25 @@ class Ros2Setter:
     """
 
     def __init__(self, domain_id: int) -> None:
-        import rclpy
         from rcl_interfaces.srv import SetParameters
-        from rclpy.context import Context
-        from rclpy.executors import SingleThreadedExecutor
-        from rclpy.node import Node
-        from rclpy.signals import SignalHandlerOptions
 
+        from dbml.harness.ros2node import PrivateRos
         from dbml.transports.rclpyparams import node_of
 
         self._request_type = SetParameters.Request
         _parameter, node_name, self._ros2_name = node_of(names.priority(R1))
-        self._context = Context()
-        rclpy.init(
-            context=self._context,
-            domain_id=domain_id,
-            signal_handler_options=SignalHandlerOptions.NO,
-        )
-        self._node = Node("bench_param_set", context=self._context)
-        self._client: Any = self._node.create_client(SetParameters, f"{node_name}/set_parameters")
-        self._executor = SingleThreadedExecutor(context=self._context)
-        self._executor.add_node(self._node)
-        self._stop = threading.Event()
+        self._ros = PrivateRos(domain_id=domain_id, name="param-set")
+        try:
+            node = self._ros.node("bench_param_set")
+            self._client: Any = node.create_client(SetParameters, f"{node_name}/set_parameters")
+        except BaseException:
+            self._ros.close()
+            raise
         self._lock = threading.Lock()
         self.round_trips_ms: list[float] = []
         self.refused: list[str] = []
         self.unanswered = 0
-        self._thread = threading.Thread(target=self._spin, name="param-set", daemon=True)
-        self._thread.start()
-
-    def _spin(self) -> None:
-        while not self._stop.is_set() and self._context.ok():
-            self._executor.spin_once(timeout_sec=0.05)
+        self._ros.start()
 
     def wait_for_service(self, timeout_s: float) -> bool:
         return bool(self._client.wait_for_service(timeout_sec=timeout_s))
@@ -289,13 +276,7 @@ class Ros2Setter:
             self.refused += [r.reason for r in response.results if not r.successful]
 
     def close(self) -> None:
-        import rclpy
-
-        self._stop.set()
-        self._thread.join(timeout=STOP_S)
-        self._executor.shutdown(timeout_sec=1.0)
-        self._node.destroy_node()
-        rclpy.try_shutdown(context=self._context)
+        self._ros.close()
 
 
 @dataclass

@@ -107,25 +107,13 @@ def percentile_us(samples_ns: list[int], q: float) -> float | None:
 
 def run_sink(topics: list[str]) -> None:
     """Count raw messages per topic; on ``flush <id>`` (stdin), once quiet, print the counts."""
-    import rclpy
-    from rclpy.context import Context
-    from rclpy.node import Node
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-    from rclpy.signals import SignalHandlerOptions
     from sensor_msgs.msg import Image
 
-    context = Context()
-    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
-    node = Node("bench_sink", context=context)
-    try:
-        from rclpy.experimental.events_executor import EventsExecutor
+    from dbml.harness.ros2node import PrivateRos
 
-        executor: Any = EventsExecutor(context=context)
-    except ImportError:
-        from rclpy.executors import SingleThreadedExecutor
-
-        executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
+    ros = PrivateRos(domain_id=None, name="sink", events=True)  # ROS_DOMAIN_ID
+    node = ros.node("bench_sink")
     lock = threading.Lock()
     counts = dict.fromkeys(topics, 0)
     last = [time.monotonic()]
@@ -140,14 +128,7 @@ def run_sink(topics: list[str]) -> None:
                 last[0] = time.monotonic()
 
         node.create_subscription(Image, topic, on_message, qos, raw=True)
-    stop = threading.Event()
-
-    def spin() -> None:
-        while not stop.is_set() and context.ok():
-            executor.spin_once(timeout_sec=0.1)
-
-    spinner = threading.Thread(target=spin, name="sink-spin", daemon=True)
-    spinner.start()
+    ros.start()
     try:
         print(json.dumps({"ready": True}), flush=True)
         for line in sys.stdin:
@@ -166,11 +147,7 @@ def run_sink(topics: list[str]) -> None:
                     counts[topic] = 0
             print(json.dumps(report), flush=True)
     finally:
-        stop.set()
-        spinner.join(timeout=STOP_S)
-        executor.shutdown(timeout_sec=1.0)
-        node.destroy_node()
-        rclpy.try_shutdown(context=context)
+        ros.close()
 
 
 class Sink:

@@ -42,19 +42,16 @@ from dbml.protocol import names
 from dbml.scenarios.teleop import MAX_RATE_HZ, ROBOTS, STEPS
 from dbml.transports.registry import open_transport
 from dbml.transports.ros2msg import image_cdr
-from dbml.transports.worker import BackgroundThread
 from tests.conftest import wait_for
 
 rclpy = pytest.importorskip("rclpy")
 
-from rclpy.context import Context  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
-from rclpy.node import Node  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
-from rclpy.signals import SignalHandlerOptions  # noqa: E402
 from sensor_msgs.msg import Image  # noqa: E402
 from std_msgs.msg import Float64  # noqa: E402
+
+from dbml.harness.ros2node import PrivateRos  # noqa: E402
 
 READY_TIMEOUT_S = 30.0
 """A peer imports rclpy, starts its context and declares its endpoints within this."""
@@ -185,21 +182,13 @@ class Probe:
     """A plain rclpy node of the test's own, in a private context, spun on a thread."""
 
     def __init__(self, domain_id: int) -> None:
-        self.context = Context()
-        rclpy.init(
-            context=self.context,
-            domain_id=domain_id,
-            signal_handler_options=SignalHandlerOptions.NO,
-        )
-        self.node = Node("probe", context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        self._closing = threading.Event()
-        self._spinner = BackgroundThread(self._spin, name="probe", log=rclpypeers.log).start()
-
-    def _spin(self) -> None:
-        while not self._closing.is_set() and self.context.ok():
-            self.executor.spin_once(timeout_sec=0.1)
+        self._ros = PrivateRos(domain_id=domain_id, name="probe")
+        try:
+            self.node = self._ros.node("probe")
+        except BaseException:
+            self._ros.close()
+            raise
+        self._ros.start()
 
     def subscribe(
         self, topic: str, msg_type: Any, callback: Callable[[Any], None], *, reliable: bool
@@ -214,11 +203,7 @@ class Probe:
         )
 
     def close(self) -> None:
-        self._closing.set()
-        self._spinner.join()
-        self.executor.shutdown(timeout_sec=1.0)
-        self.node.destroy_node()
-        rclpy.try_shutdown(context=self.context)
+        self._ros.close()
 
 
 @pytest.fixture

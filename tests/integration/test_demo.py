@@ -8,6 +8,7 @@ import signal
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -29,6 +30,29 @@ TABLE2_HZ = [
     (12.37, 16),
     (12.37, 16),
 ]
+RATE_TOLERANCE = 0.05
+"""How far a measured rate may be from the allocated one (relative), the total from 11 Mbit/s."""
+RATE_FLOOR_HZ = 0.3
+"""The least tolerance of a measured rate, for the slow ones."""
+
+
+def assert_matches_table2(document: dict[str, Any]) -> list[dict[str, Any]]:
+    """A ``dbml demo teleop --json`` document that holds Table 2; its steps.
+
+    Ten steps, each robot allocated Table 2's rate and measured near it, through the optimized
+    copy (the operator is another host), the total within the budget.
+    """
+    assert document["ok"] is True
+    steps: list[dict[str, Any]] = document["steps"]
+    assert [s["step"] for s in steps] == list(range(1, 11))
+    for step, expected in zip(steps, TABLE2_HZ, strict=True):
+        for robot, table2_hz in zip(step["robots"], expected, strict=True):
+            assert round(robot["allocated_hz"], 2) == table2_hz
+            tolerance = max(RATE_TOLERANCE * robot["allocated_hz"], RATE_FLOOR_HZ)
+            assert abs(robot["measured_hz"] - robot["allocated_hz"]) <= tolerance
+            assert robot["variant"] == "optimized"
+        assert step["total_mbit"] <= 11 * (1 + RATE_TOLERANCE)
+    return steps
 
 
 def children_of(pid: int) -> set[int]:
@@ -69,11 +93,9 @@ def test_demo_over_zenoh_matches_table2_and_measures_what_arrives(tmp_path: Path
     )
     assert result.returncode == 0, result.stderr[-3000:]
     document = json.loads(result.stdout)
-    assert document["ok"] is True
-    steps = document["steps"]
-    assert [s["step"] for s in steps] == list(range(1, 11))
-    for step, expected in zip(steps, TABLE2_HZ, strict=True):
-        for robot, table2_hz in zip(step["robots"], expected, strict=True):
+    steps = assert_matches_table2(document)  # the operator is another host: optimized
+    for step in steps:
+        for robot in step["robots"]:
             assert set(robot) >= {
                 "robot",
                 "topic",
@@ -82,11 +104,6 @@ def test_demo_over_zenoh_matches_table2_and_measures_what_arrives(tmp_path: Path
                 "allocated_hz",
                 "measured_hz",
             }
-            assert round(robot["allocated_hz"], 2) == table2_hz
-            tolerance = max(0.05 * robot["allocated_hz"], 0.3)
-            assert abs(robot["measured_hz"] - robot["allocated_hz"]) <= tolerance
-            assert robot["variant"] == "optimized"  # the operator is another host
-        assert step["total_mbit"] <= 11 * 1.05
     assert steps[3]["robots"][1]["tc_s"] is None  # R2 stopped: tc = infinity
     assert plot.stat().st_size > 10_000
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -19,15 +19,13 @@ from pathlib import Path
 import pytest
 
 from dbml.harness.ros2env import fastdds_shm_files
-from tests.integration.test_demo import TABLE2_HZ, alive, children_of
+from tests.integration.test_demo import alive, assert_matches_table2, children_of
 
 pytestmark = pytest.mark.integration
 
 DEMO = (sys.executable, "-m", "dbml", "demo", "teleop", "--transport", "rclpy")
 DEMO_TIMEOUT_S = 240.0
 PORT_FILES = ("fastdds_port", "sem.fastdds_port")
-RATE_TOLERANCE = 0.05
-RATE_FLOOR_HZ = 0.3
 """As for the other transports: 5 %, or 0.3 Hz for a few-Hz stream in a short step."""
 
 
@@ -77,14 +75,4 @@ def test_demo_over_rclpy_matches_table2_and_leaves_nothing(tmp_path: Path) -> No
     assert own, "the processes' own segments were seen"
     assert not [path for path in own if path.exists()], "no shared memory of theirs left behind"
     assert not (home / ".ros").exists(), "ROS logs went to the run's folder, not ~/.ros"
-    document = json.loads(stdout)
-    assert document["ok"] is True
-    steps = document["steps"]
-    assert [s["step"] for s in steps] == list(range(1, 11))
-    for step, expected in zip(steps, TABLE2_HZ, strict=True):
-        for robot, table2_hz in zip(step["robots"], expected, strict=True):
-            assert round(robot["allocated_hz"], 2) == table2_hz
-            tolerance = max(RATE_TOLERANCE * robot["allocated_hz"], RATE_FLOOR_HZ)
-            assert abs(robot["measured_hz"] - robot["allocated_hz"]) <= tolerance
-            assert robot["variant"] == "optimized"
-        assert step["total_mbit"] <= 11 * (1 + RATE_TOLERANCE)
+    assert_matches_table2(json.loads(stdout))

@@ -14,13 +14,11 @@ import time
 import pytest
 
 from dbml.cli.main import main
-from tests.integration.test_demo import TABLE2_HZ, alive, children_of
+from tests.integration.test_demo import alive, assert_matches_table2, children_of
 
 pytestmark = pytest.mark.integration
 
 DEMO_TIMEOUT_S = 240.0
-RATE_TOLERANCE = 0.05
-RATE_FLOOR_HZ = 0.3
 """As for the other transports: 5 %, or 0.3 Hz for a few-Hz stream in a short step."""
 
 
@@ -56,17 +54,7 @@ def test_demo_over_ros2_matches_table2_and_ends_every_process() -> None:
     assert demo.returncode == 0, stderr[-3000:]
     assert len(started) >= 7, "router, 2 bridges, optimizer, operator and 2 robots"
     assert not [pid for pid in started if alive(pid)], "every process ended by the demo"
-    document = json.loads(stdout)
-    assert document["ok"] is True
-    steps = document["steps"]
-    assert [s["step"] for s in steps] == list(range(1, 11))
-    for step, expected in zip(steps, TABLE2_HZ, strict=True):
-        for robot, table2_hz in zip(step["robots"], expected, strict=True):
-            assert round(robot["allocated_hz"], 2) == table2_hz
-            tolerance = max(RATE_TOLERANCE * robot["allocated_hz"], RATE_FLOOR_HZ)
-            assert abs(robot["measured_hz"] - robot["allocated_hz"]) <= tolerance
-            assert robot["variant"] == "optimized"
-        assert step["total_mbit"] <= 11 * (1 + RATE_TOLERANCE)
+    assert_matches_table2(json.loads(stdout))
 
 
 def test_demo_over_ros2_without_the_sdk_says_what_to_install(

@@ -28,8 +28,9 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image
 from std_msgs.msg import Float64
 
+from dbml.harness.ros2node import private_node
 from dbml.transports.rclpy import RclpyTransport
-from tests.rclpy_tools import param_set, plain_node
+from tests.rclpy_tools import param_set
 
 pytestmark = pytest.mark.integration
 
@@ -148,7 +149,7 @@ def _measure(viewer: Viewer) -> dict[bytes, list[tuple[float, int]]]:
 def test_a_driver_is_managed_at_the_allocated_rate(ros2: Ros2Run, qos: str) -> None:
     """A reliable and a best-effort driver both: the bridge matches its QoS."""
     _start_managed(ros2, qos)
-    with plain_node(ros2.domain_id, "operator") as operator:
+    with private_node("operator", domain_id=ros2.domain_id) as operator:
         viewer = _viewer(operator, ReliabilityPolicy.RELIABLE)
         _set_budget(operator)
         got = _measure(viewer)
@@ -174,8 +175,8 @@ def test_hostile_nodes_leave_the_budget_on_the_wire_intact(ros2: Ros2Run) -> Non
     """
     _start_managed(ros2, "reliable")
     with (
-        plain_node(ros2.domain_id, "operator") as operator,
-        plain_node(ros2.domain_id, "hostile") as hostile,
+        private_node("operator", domain_id=ros2.domain_id) as operator,
+        private_node("hostile", domain_id=ros2.domain_id) as hostile,
     ):
         viewer = _viewer(operator, ReliabilityPolicy.BEST_EFFORT)
         _set_budget(operator)

@@ -26,6 +26,7 @@ rclpy = pytest.importorskip("rclpy")  # before dbml's rclpy module: the ROS 1 en
 
 from std_msgs.msg import Float64, String  # noqa: E402
 
+from dbml.harness.ros2node import private_node  # noqa: E402
 from dbml.transports.rclpy import (  # noqa: E402
     ALLOCATION_QOS,
     BYTES_TYPE,
@@ -37,7 +38,7 @@ from dbml.transports.rclpy import (  # noqa: E402
     sample_meta,
     unframe_bytes,
 )
-from tests.rclpy_tools import param_set, plain_node  # noqa: E402
+from tests.rclpy_tools import param_set  # noqa: E402
 
 
 @given(st.from_regex(r"[A-Za-z0-9_\-.~]{1,40}", fullmatch=True))
@@ -81,7 +82,7 @@ def test_ros2_param_set_on_the_optimizers_node(ros_domain: int) -> None:
     try:
         optimizer.params.set("/dbm/status", "optimal")  # the optimizer's write: it hosts /dbm
         optimizer.params.set("/dbm/max_bandwidth_in_mbit", 11.0)
-        with plain_node(ros_domain, "operator") as operator:
+        with private_node("operator", domain_id=ros_domain) as operator:
             result = param_set(operator, "/dbm", "max_bandwidth_in_mbit", 5)  # an integer
             assert result.successful, result.reason
             wait_for(lambda: observer.params.get("/dbm/max_bandwidth_in_mbit") == 5.0, what="5")
@@ -112,7 +113,7 @@ def test_a_channels_parameters_live_on_its_publishers_node(ros_domain: int) -> N
         ground.params.set("/r1/camera/dbm/priority", 0.8)  # an operator's, through the service
         wait_for(lambda: robot.params.get("/r1/camera/dbm/priority") == 0.8, what="priority")
         wait_for(lambda: ground.confirm_param("/r1/camera/dbm/priority", timeout_s=0), what="ack")
-        with plain_node(ros_domain, "operator") as operator:
+        with private_node("operator", domain_id=ros_domain) as operator:
             refused = param_set(operator, "/r1/camera/dbm", "frequency.max", 100.0)
             assert not refused.successful
             assert "publisher" in refused.reason
@@ -129,7 +130,7 @@ def test_a_float64_priority_sets_the_channels_priority(
     robot = RclpyTransport(host="r1", domain_id=ros_domain)
     try:
         robot.params.set("/r1/camera/dbm/frequency/min", 1.0)
-        with plain_node(ros_domain, "mission") as mission:
+        with private_node("mission", domain_id=ros_domain) as mission:
             publisher = mission.create_publisher(Float64, "/r1/camera/dbm/priority", 10)
             wait_for(lambda: publisher.get_subscription_count() > 0, what="the host's subscription")
             publisher.publish(Float64(data=7.0))  # out of range: refused, named
@@ -150,7 +151,7 @@ def test_only_the_dbm_node_allocates(ros_domain: int, caplog: pytest.LogCaptureF
         robot.params.set("/r1/camera/dbm/frequency/max", 16.0)
         optimizer.params.set("/dbm/status", "optimal")
         wait_for(lambda: optimizer.params.get("/r1/camera/dbm/frequency/max") == 16.0, what="max")
-        with plain_node(ros_domain, "forger") as forger:
+        with private_node("forger", domain_id=ros_domain) as forger:
             fake = forger.create_publisher(String, "/dbm/allocation", ALLOCATION_QOS)
             wait_for(lambda: fake.get_subscription_count() >= 2, what="the forger's matches")
             batch = encode_batch({"/r1/camera/dbm/frequency/current_value": 16.0}, 1, "x")
@@ -213,7 +214,7 @@ def test_a_foreign_subscription_of_the_optimized_copy_is_remote(ros_domain: int)
         robot.declare_publisher("/r1/camera", Variant.OPTIMIZED)
         from sensor_msgs.msg import Image
 
-        with plain_node(ros_domain, "rviz") as rviz:
+        with private_node("rviz", domain_id=ros_domain) as rviz:
             rviz.create_subscription(Image, "/r1/camera/optimized", lambda _m: None, 10)
 
             def foreign() -> set[str]:
@@ -328,7 +329,7 @@ def test_hostile_requests_and_events_change_nothing(ros_domain: int) -> None:
         robot.params.set("/r1/camera/dbm/frequency/max", 16.0)
         robot.params.set("/r1/camera/dbm/priority", 0.5)
         wait_for(lambda: ground.params.get("/r1/camera/dbm/priority") == 0.5, what="0.5")
-        with plain_node(ros_domain, "hostile") as hostile:
+        with private_node("hostile", domain_id=ros_domain) as hostile:
             weird = ParameterMsg(name="priority")
             weird.value.type = 99
             param_set_raw(hostile, "/r1/camera/dbm", weird)  # unanswered or refused

@@ -21,7 +21,7 @@ from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import Image
 from std_msgs.msg import Float64
 
-from tests.rclpy_tools import plain_node
+from dbml.harness.ros2node import private_node
 
 KILTED = MessageTypes(distro="kilted")
 """The wheels here are Kilted's: the hashes compared are that distro's."""
@@ -76,7 +76,7 @@ def test_dbmls_hand_written_cdr_is_what_rclpy_writes() -> None:
 
 @pytest.fixture
 def node(ros_domain: int) -> Iterator[Any]:
-    with plain_node(ros_domain, "hashes") as made:
+    with private_node("hashes", domain_id=ros_domain) as made:
         yield made
 
 

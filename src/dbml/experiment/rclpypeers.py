@@ -30,10 +30,10 @@ with the fleet's sizes and rotating events.
 As a process (``python -m dbml.experiment.rclpypeers ROLE SPEC_JSON [--sample-info]``) a peer
 speaks the roles' protocol (``harness.processes.serve_role``) in ROS 2 domain
 ``spec.domain_id`` (else ``ROS_DOMAIN_ID``). Each peer has a private context (signals stay
-the program's), an executor spinning on a thread that reports its death, and shuts both down
-at its end (no ``/dev/shm/fastdds_*`` left). A peer that loses a thread ends early, without
-``done``, and exits 1. rclpy is imported when a peer runs, so the demo can name this module
-without it.
+the program's: ``harness.ros2node.PrivateRos``), an executor spinning on a thread that reports
+its death, and shuts both down at its end (no ``/dev/shm/fastdds_*`` left). A peer that loses a
+thread ends early, without ``done``, and exits 1. rclpy is imported when a peer runs, so the
+demo can name this module without it.
 """
 
 from __future__ import annotations
@@ -48,27 +48,24 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from dbml.core.errors import DbmlError, TransportError
-from dbml.experiment.analysis import Arrival
 from dbml.experiment.roles import (
-    TAIL_S,
-    TICK_S,
     RoleSpec,
-    operator_tick,
     robot_index,
-    wait_until,
 )
 from dbml.experiment.ros2peers import (
-    FIRST_FRAMES_TIMEOUT_S,
     FLOAT64_TYPE,
     IMAGE_TYPE,
     OPTIMIZED_SUFFIX,
     PRIORITY_REPEAT_S,
     PRIORITY_SUFFIX,
     ROLES,
+    FrameRecorder,
+    replay_priorities,
+    report_ticks,
     run_paced,
-    step_priority,
+    wait_first_frames,
 )
-from dbml.harness.processes import emit_json, serve_role, stop_on_signals
+from dbml.harness.processes import serve_role, stop_on_signals
 from dbml.protocol.metadata import MessageMeta
 from dbml.runtime.params import ParamView
 from dbml.runtime.reception import ReceptionReporter
@@ -80,7 +77,7 @@ from dbml.transports.registry import open_transport
 from dbml.transports.worker import BackgroundThread
 
 if TYPE_CHECKING:
-    from rclpy.node import Node
+    from dbml.harness.ros2node import PrivateRos
 
 __all__ = [
     "DRIVER_DEPTH",
@@ -91,9 +88,7 @@ __all__ = [
     "PRIORITY_SUFFIX",
     "RCLPY_MISSING",
     "ROLES",
-    "SPIN_TIMEOUT_S",
     "SUBSCRIPTION_DEPTH",
-    "PrivateRos",
     "image_message",
     "image_stamp_ns",
     "main",
@@ -108,21 +103,16 @@ RCLPY_MISSING = (
 DRIVER_DEPTH = 10
 """The camera's and the priority's publishers keep this many (rclpy's usual ``qos=10``)."""
 SUBSCRIPTION_DEPTH = 10
-SPIN_TIMEOUT_S = 0.1
-"""The executor thread's longest wait, so closing is noticed."""
 FRAME_ID = "camera"
 ENCODING = "mono8"
 _NS_PER_S = 1_000_000_000
 _DRIVER_JOIN_S = 5.0
 """How long a camera waits for its driver's frame in progress when it ends."""
-_SPIN_JOIN_S = 2.0
-_EXECUTOR_SHUTDOWN_S = 1.0
 _PLAIN_CDR = frozenset({0x0000, 0x0001, 0x0006, 0x0007})
 """Encapsulations whose body is laid out plainly (CDR, CDR2 of a final type; odd: little
 endian). An ``Image`` is final, so its stamp is the body's first 8 bytes in either."""
 _STAMP = {True: struct.Struct("<iI"), False: struct.Struct(">iI")}
 _ENCAPSULATION_BYTES = 4
-_FIRST_FRAMES_POLL_S = 0.05
 
 
 def _rclpy() -> Any:
@@ -178,70 +168,12 @@ def image_stamp_ns(payload: bytes) -> int | None:
     return int(sec) * _NS_PER_S + int(nanosec)
 
 
-class PrivateRos:
-    """rclpy in a context of this object's own: its nodes, one executor, one spinning thread.
+def _private_ros(*, domain_id: int | None, name: str) -> PrivateRos:
+    """A ``PrivateRos`` (``DbmlError(RCLPY_MISSING)`` without rclpy)."""
+    _rclpy()
+    from dbml.harness.ros2node import PrivateRos
 
-    ``domain_id`` None takes ``ROS_DOMAIN_ID``. Signals stay the program's
-    (``SignalHandlerOptions.NO``). The thread's death (an exception, or the context shut down
-    under it) is said and counted, so the peer's ``Lifetime`` fails the run. ``close`` destroys
-    every node and shuts the context down: nothing of Fast DDS is left behind.
-    """
-
-    def __init__(self, *, domain_id: int | None, name: str) -> None:
-        rclpy = _rclpy()
-        from rclpy.context import Context
-        from rclpy.executors import SingleThreadedExecutor
-        from rclpy.signals import SignalHandlerOptions
-
-        self._rclpy = rclpy
-        self._name = name
-        self.context = Context()
-        options: dict[str, Any] = {"signal_handler_options": SignalHandlerOptions.NO}
-        if domain_id is not None:
-            options["domain_id"] = domain_id
-        rclpy.init(context=self.context, **options)
-        self._nodes: list[Node] = []
-        self._closing = threading.Event()
-        self._spinner: BackgroundThread | None = None
-        try:
-            self._executor = SingleThreadedExecutor(context=self.context)
-        except BaseException:
-            rclpy.try_shutdown(context=self.context)
-            raise
-
-    def node(self, name: str) -> Node:
-        """A node of this context, spun by its executor."""
-        from rclpy.node import Node
-
-        node = Node(name, context=self.context)
-        self._nodes.append(node)
-        self._executor.add_node(node)
-        return node
-
-    def start(self) -> PrivateRos:
-        """Start spinning (once)."""
-        if self._spinner is None:
-            self._spinner = BackgroundThread(self._spin, name=f"spin-{self._name}", log=log)
-            self._spinner.start()
-        return self
-
-    def _spin(self) -> None:
-        while not self._closing.is_set():
-            if not self.context.ok():
-                raise DbmlError(f"{self._name}: the ROS 2 context was shut down under the node")
-            self._executor.spin_once(timeout_sec=SPIN_TIMEOUT_S)
-
-    def close(self) -> None:
-        """Stop spinning, destroy the nodes and shut the context down."""
-        self._closing.set()
-        if self._spinner is not None:
-            self._spinner.join(_SPIN_JOIN_S)
-        try:
-            self._executor.shutdown(timeout_sec=_EXECUTOR_SHUTDOWN_S)
-            for node in self._nodes:
-                node.destroy_node()
-        finally:
-            self._rclpy.try_shutdown(context=self.context)
+    return PrivateRos(domain_id=domain_id, name=name)
 
 
 def _qos(*, reliable: bool, depth: int) -> Any:
@@ -274,7 +206,7 @@ def _serve_camera(role: str, spec: RoleSpec, stop: threading.Event) -> int:
     index = robot_index(role)
     camera = fleet_cameras(spec.robots)[index]
     life = Lifetime(stop, None)
-    ros = PrivateRos(domain_id=spec.domain_id, name=role)
+    ros = _private_ros(domain_id=spec.domain_id, name=role)
     driver: BackgroundThread | None = None
     camera_stop = threading.Event()
     try:
@@ -297,13 +229,14 @@ def _serve_camera(role: str, spec: RoleSpec, stop: threading.Event) -> int:
         serve_role(
             role,
             stop,
-            lambda t0: _replay_priorities(
+            lambda t0: replay_priorities(
                 lambda value: priority.publish(Float64(data=value)),
                 index,
                 t0,
                 spec,
                 stop,
                 life=life,
+                steps=fleet_steps(spec.robots),
             ),
         )
     finally:
@@ -312,81 +245,6 @@ def _serve_camera(role: str, spec: RoleSpec, stop: threading.Event) -> int:
             driver.join(_DRIVER_JOIN_S)
         ros.close()
     return life.exit_code()
-
-
-def _replay_priorities(
-    send: Callable[[float], None],
-    index: int,
-    t0: float,
-    spec: RoleSpec,
-    stop: threading.Event,
-    *,
-    life: Lifetime,
-) -> None:
-    """``send`` robot ``index``'s priority of each step, again every ``PRIORITY_REPEAT_S``.
-
-    The fleet's steps (Table 2's for two robots), until the last step, ``stop``, or a dbml
-    thread's death (``life``).
-    """
-    steps = fleet_steps(spec.robots)
-    if not wait_until(t0, stop):
-        return
-    while not life.over():
-        now = time.time()
-        k = int((now - t0) // spec.step_s)
-        if k >= len(steps):
-            return
-        send(step_priority(steps[k], index))
-        if not wait_until(min(t0 + (k + 1) * spec.step_s, now + PRIORITY_REPEAT_S), stop):
-            return
-
-
-class _Recorder:
-    """The operator's record of each frame, fed by subscription callbacks, read by its ticks.
-
-    A frame's sequence number is the one given (DDS's) or else a per-topic count from 0.
-    """
-
-    def __init__(self, robots: int) -> None:
-        self._lock = threading.Lock()
-        self._rows: list[Arrival] = []
-        self._counts = [0 for _ in range(robots)]
-
-    def record(
-        self,
-        index: int,
-        *,
-        arrival_s: float,
-        seq: int | None,
-        sent_s: float | None,
-        size_bytes: int,
-        rate_hz: float | None,
-    ) -> None:
-        """One frame of robot ``index``."""
-        with self._lock:
-            count = self._counts[index]
-            self._counts[index] += 1
-            self._rows.append(
-                Arrival(
-                    robot=index,
-                    seq=count if seq is None else seq,
-                    sent_s=sent_s,
-                    arrival_s=arrival_s,
-                    size_bytes=size_bytes,
-                    rate_hz=rate_hz,
-                )
-            )
-
-    def counts(self) -> list[int]:
-        """Frames received so far, per robot."""
-        with self._lock:
-            return list(self._counts)
-
-    def take(self) -> list[Arrival]:
-        """The frames since the last call."""
-        with self._lock:
-            rows, self._rows = self._rows, []
-        return rows
 
 
 def _dds_meta(info: Any) -> tuple[bytes, MessageMeta] | None:
@@ -406,7 +264,7 @@ def _dds_meta(info: Any) -> tuple[bytes, MessageMeta] | None:
 
 
 def _frame_callback(
-    recorder: _Recorder,
+    recorder: FrameRecorder,
     index: int,
     camera: RobotCamera,
     *,
@@ -445,47 +303,11 @@ def _frame_callback(
     return record
 
 
-def _wait_first_frames(recorder: _Recorder, topics: list[str], stop: threading.Event) -> None:
-    """Return once every topic delivered a frame; raise naming those that did not."""
-    deadline = time.monotonic() + FIRST_FRAMES_TIMEOUT_S
-    while not all(recorder.counts()) and time.monotonic() < deadline and not stop.is_set():
-        stop.wait(_FIRST_FRAMES_POLL_S)
-    missing = [t for t, n in zip(topics, recorder.counts(), strict=True) if n == 0]
-    if missing and not stop.is_set():
-        raise DbmlError(
-            f"operator: no frame on {', '.join(missing)} within {FIRST_FRAMES_TIMEOUT_S:g} s "
-            "(are the bridges and the robots running?)"
-        )
-
-
-def _report_ticks(
-    view: ParamView,
-    recorder: _Recorder,
-    t0: float,
-    spec: RoleSpec,
-    stop: threading.Event,
-    *,
-    life: Lifetime,
-) -> None:
-    """The operator's run: a report every ``TICK_S`` in ``roles``' format, then ``done``.
-
-    A run that lost a thread is not done (the runner fails it).
-    """
-    cameras = fleet_cameras(spec.robots)
-    variant = Variant.OPTIMIZED if spec.managed else Variant.FULL
-    variants = [variant.value for _ in cameras]
-    while not life.over() and time.time() < t0 + spec.duration_s + TAIL_S:
-        stop.wait(TICK_S)
-        emit_json(operator_tick(view, recorder.take(), variants, cameras=cameras).encode())
-    if not life.failed:
-        emit_json({"type": "done"})
-
-
 def _serve_operator(spec: RoleSpec, stop: threading.Event, *, sample_info: bool) -> int:
     """The operator peer's run; 1 when a thread (its executor's, its transport's) died."""
     life = Lifetime(stop, None)
     cameras = fleet_cameras(spec.robots)
-    recorder = _Recorder(len(cameras))
+    recorder = FrameRecorder(len(cameras))
     suffix = OPTIMIZED_SUFFIX if spec.managed else ""
     topics = [camera.topic + suffix for camera in cameras]
     transport = open_transport(spec.transport, host=spec.host, domain_id=spec.domain_id)
@@ -493,7 +315,7 @@ def _serve_operator(spec: RoleSpec, stop: threading.Event, *, sample_info: bool)
     ros: PrivateRos | None = None
     try:
         reporter = ReceptionReporter(transport).start() if spec.estimate else None
-        ros = PrivateRos(domain_id=spec.domain_id, name="operator")
+        ros = _private_ros(domain_id=spec.domain_id, name="operator")
         node = ros.node("operator")
         for i, (camera, topic) in enumerate(zip(cameras, topics, strict=True)):
             node.create_subscription(
@@ -514,9 +336,14 @@ def _serve_operator(spec: RoleSpec, stop: threading.Event, *, sample_info: bool)
         view = ParamView.of(transport.params)
         if spec.managed:  # unmanaged, no other dbml node runs: nothing to wait for
             transport.wait_for_peers(spec.peer_wait_s)
-        _wait_first_frames(recorder, topics, stop)
+        wait_first_frames(recorder, topics, stop)
+        variant = Variant.OPTIMIZED if spec.managed else Variant.FULL
         serve_role(
-            "operator", stop, lambda t0: _report_ticks(view, recorder, t0, spec, stop, life=life)
+            "operator",
+            stop,
+            lambda t0: report_ticks(
+                view, recorder, t0, spec, stop, life=life, cameras=cameras, variant=variant
+            ),
         )
     finally:
         try:

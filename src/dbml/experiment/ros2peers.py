@@ -46,7 +46,7 @@ from dbml.experiment.roles import TAIL_S, TICK_S, RoleSpec, operator_tick, robot
 from dbml.harness.processes import emit_json, serve_role, stop_on_signals
 from dbml.runtime.params import ParamView
 from dbml.runtime.serve import Lifetime
-from dbml.scenarios.teleop import MAX_RATE_HZ, ROBOTS, STEPS, Step
+from dbml.scenarios.teleop import MAX_RATE_HZ, ROBOTS, STEPS, RobotCamera, Step
 from dbml.transports.base import PRIORITY_SUFFIX, Variant
 from dbml.transports.registry import open_transport
 from dbml.transports.worker import BackgroundThread
@@ -261,19 +261,21 @@ def replay_priorities(
     stop: threading.Event,
     *,
     life: Lifetime,
+    steps: Sequence[Step] = STEPS,
 ) -> None:
-    """``send`` Table 2's priority of each step from its start, again every ``PRIORITY_REPEAT_S``.
+    """``send`` the priority of each step from its start, again every ``PRIORITY_REPEAT_S``.
 
-    Robot ``index``'s, until the last step, ``stop``, or a dbml thread's death (``life``).
+    Robot ``index``'s of ``steps`` (Table 2's, or a fleet's: ``fleet_steps``), until the last
+    step, ``stop``, or a dbml thread's death (``life``).
     """
     if not wait_until(t0, stop):
         return
     while not life.over():
         now = time.time()
         k = int((now - t0) // spec.step_s)
-        if k >= len(STEPS):
+        if k >= len(steps):
             return
-        send(step_priority(STEPS[k], index))
+        send(step_priority(steps[k], index))
         if not wait_until(min(t0 + (k + 1) * spec.step_s, now + PRIORITY_REPEAT_S), stop):
             return
 
@@ -330,20 +332,31 @@ class FrameRecorder:
         self._counts = [0 for _ in range(robots)]
 
     def record(
-        self, index: int, *, arrival_s: float, sent_s: float | None, size_bytes: int
+        self,
+        index: int,
+        *,
+        arrival_s: float,
+        sent_s: float | None,
+        size_bytes: int,
+        seq: int | None = None,
+        rate_hz: float | None = None,
     ) -> None:
-        """One frame of robot ``index`` (its sequence number is the per-topic count from 0)."""
+        """One frame of robot ``index``.
+
+        ``seq`` None: the per-topic count from 0. ``rate_hz``: the rate the frame says it was
+        sent at, None for a plain ROS 2 message of a managed channel (it carries none).
+        """
         with self._lock:
-            seq = self._counts[index]
+            count = self._counts[index]
             self._counts[index] += 1
             self._rows.append(
                 Arrival(
                     robot=index,
-                    seq=seq,
+                    seq=count if seq is None else seq,
                     sent_s=sent_s,
                     arrival_s=arrival_s,
                     size_bytes=size_bytes,
-                    rate_hz=None,  # a plain ROS 2 message carries no rate
+                    rate_hz=rate_hz,
                 )
             )
 
@@ -382,16 +395,18 @@ def report_ticks(
     stop: threading.Event,
     *,
     life: Lifetime,
+    cameras: Sequence[RobotCamera] = ROBOTS,
+    variant: Variant = Variant.OPTIMIZED,
 ) -> None:
     """The operator's run: a report every ``TICK_S`` in ``roles``' format, then ``done``.
 
-    Every subscription is of an optimized copy; a run that lost a thread is not done (the
-    runner fails it).
+    Every subscription is of ``variant`` of each of ``cameras`` (by default the optimized copy
+    of Table 2's); a run that lost a thread is not done (the runner fails it).
     """
-    variants = [Variant.OPTIMIZED.value for _ in ROBOTS]
+    variants = [variant.value for _ in cameras]
     while not life.over() and time.time() < t0 + spec.duration_s + TAIL_S:
         stop.wait(TICK_S)
-        emit_json(operator_tick(view, recorder.take(), variants).encode())
+        emit_json(operator_tick(view, recorder.take(), variants, cameras=cameras).encode())
     if not life.failed:
         emit_json({"type": "done"})
 

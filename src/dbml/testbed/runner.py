@@ -535,6 +535,21 @@ def _routers(network: Network) -> tuple[Helper, ...]:
     )
 
 
+def _base_spec(options: TestbedOptions) -> RoleSpec:
+    """What every role of a run is told, whatever its transport: the options' scenario."""
+    return RoleSpec(
+        step_s=options.step_seconds,
+        managed=options.policy != "unmanaged",
+        link_mbit=options.link_mbit,
+        utilization=options.utilization or 1.0,
+        strategy=options.strategy or Strategy.PAPER.value,
+        estimate=options.estimate,
+        uplinks_mbit=dict(options.uplinks_mbit),
+        peer_wait_s=PEER_WAIT_S,
+        robots=options.robots,
+    )
+
+
 def _specs(
     network: Network, options: TestbedOptions, *, config_file: str | None = None
 ) -> dict[str, RoleSpec]:
@@ -546,18 +561,7 @@ def _specs(
     operator_ep = f"tcp/{network.hosts['op'].address}:{ZENOH_PORT}"
     optimizer_ep = f"tcp/{network.hosts['op'].address}:{OPTIMIZER_PORT}"
     managed = options.policy != "unmanaged"
-    base = RoleSpec(
-        step_s=options.step_seconds,
-        managed=managed,
-        link_mbit=options.link_mbit,
-        utilization=options.utilization or 1.0,
-        strategy=options.strategy or Strategy.PAPER.value,
-        estimate=options.estimate,
-        uplinks_mbit=dict(options.uplinks_mbit),
-        peer_wait_s=PEER_WAIT_S,
-        urgent_stream=options.urgent_stream,
-        robots=options.robots,
-    )
+    base = replace(_base_spec(options), urgent_stream=options.urgent_stream)
     robots = [camera.robot.lower() for camera in fleet_cameras(options.robots)]
     if options.topology == "router":
         client = replace(base, config_file=config_file)
@@ -699,19 +703,7 @@ def _rclpy_run(
     cameras = fleet_cameras(options.robots)
     robots = [camera.robot.lower() for camera in cameras]
     managed = options.policy != "unmanaged"
-    base = RoleSpec(
-        step_s=options.step_seconds,
-        transport="rclpy",
-        managed=managed,
-        link_mbit=options.link_mbit,
-        utilization=options.utilization or 1.0,
-        strategy=options.strategy or Strategy.PAPER.value,
-        estimate=options.estimate,
-        uplinks_mbit=dict(options.uplinks_mbit),
-        peer_wait_s=PEER_WAIT_S,
-        robots=options.robots,
-        domain_id=domain_id,
-    )
+    base = replace(_base_spec(options), transport="rclpy", domain_id=domain_id)
     specs = {"operator": replace(base, host=HOSTS["operator"])}
     if managed:
         specs["optimizer"] = replace(base, host=HOSTS["optimizer"])
