@@ -1,7 +1,7 @@
 """The rclpy transport: real ROS 2 through the user's own rclpy, on whatever RMW it runs.
 
 Tested with Fast DDS (Kilted's ``ros-*`` wheels, ``pip install 'dbml[rclpy]'``); a sourced
-``/opt/ros/<distro>`` works the same, and rclpy is imported by this module only.
+``/opt/ros/<distro>`` works the same; in the library, only this module imports rclpy.
 
 - **Data** is raw CDR both ways: a publisher sends the bytes it is given (``publish(bytes)``), a
   subscription hands over what arrived (``raw=True``); nothing is re-serialised. A topic's type
@@ -225,7 +225,7 @@ def message_class(msg_type: str) -> type:
     return cls
 
 
-def void(_result: object) -> None:
+def _void(_result: object) -> None:
     """Drop a result (rclpy's ``destroy_*`` return a bool nobody needs)."""
 
 
@@ -385,7 +385,7 @@ class _RclpyPublisher:
                 extra={"publish_stats": stats},
             )
         publisher = self._publisher
-        self._transport.release(lambda: void(self._transport.node.destroy_publisher(publisher)))
+        self._transport.release(lambda: _void(self._transport.node.destroy_publisher(publisher)))
 
 
 class _Subscription:
@@ -634,7 +634,7 @@ class RclpyTransport(TransportBase):
             _guarded(f"priority of {topic}", heard),
             QoSProfile(depth=SUBSCRIPTION_DEPTH, reliability=ReliabilityPolicy.BEST_EFFORT),
         )
-        return Closer(lambda: void(node.destroy_subscription(subscription)))
+        return Closer(lambda: _void(node.destroy_subscription(subscription)))
 
     def _on_parameter_event(self, event: Any, info: Any) -> None:
         """A parameter node's changes, with their sender (two arguments: the message info).
