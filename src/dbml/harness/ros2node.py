@@ -44,6 +44,7 @@ SPIN_TIMEOUT_S = 0.1
 SPIN_JOIN_S = 2.0
 """How long ``close`` waits for the executor thread's spin in progress."""
 EXECUTOR_SHUTDOWN_S = 1.0
+"""How long ``close`` lets the executor finish the callbacks it runs."""
 
 
 def _executor(context: Context, *, events: bool) -> Executor:
