@@ -285,33 +285,26 @@ def sniffer_session(port: int) -> zenoh.Session:
     return zenoh.open(config)
 
 
-class SequenceGaps:
-    """Which optimized keys were seen, and how many samples the sniffer's session missed."""
+class SequenceCount:
+    """Which optimized keys a sniffer saw, and the gaps and repeats in each writer's sequence."""
 
-    def __init__(self, session: zenoh.Session, key_expr: str) -> None:
+    def __init__(self) -> None:
         self._lock = threading.Lock()
         self._seen: set[str] = set()
-        self._last: dict[str, int] = {}
+        self._last: dict[object, int] = {}
         self._lost = self._duplicates = 0
-        self._subscriber = session.declare_subscriber(key_expr, self._on_sample)
 
-    def _on_sample(self, sample: zenoh.Sample) -> None:
-        key = str(sample.key_expr)
-        attachment = sample.attachment
-        try:
-            seq = MessageMeta.decode(None if attachment is None else attachment.to_bytes()).seq
-        except TransportError:
-            seq = None
-        with self._lock:
-            self._seen.add(key)
-            if seq is None:
-                return
-            last = self._last.get(key)
-            if last is not None and seq > last + 1:
-                self._lost += seq - last - 1
-            elif last is not None and seq <= last:
-                self._duplicates += 1  # counted twice (or reordered): the sniffer overcounts
-            self._last[key] = seq if last is None else max(last, seq)
+    def _count_locked(self, key: str, writer: object, seq: int | None) -> None:
+        """One sample of ``key`` numbered ``seq`` by ``writer`` (None: not numbered)."""
+        self._seen.add(key)
+        if seq is None:
+            return
+        last = self._last.get(writer)
+        if last is not None and seq > last + 1:
+            self._lost += seq - last - 1
+        elif last is not None and seq <= last:
+            self._duplicates += 1  # counted twice (or reordered): the sniffer overcounts
+        self._last[writer] = seq if last is None else max(last, seq)
 
     def seen(self) -> set[str]:
         with self._lock:
@@ -324,6 +317,24 @@ class SequenceGaps:
     def duplicates(self) -> int:
         with self._lock:
             return self._duplicates
+
+
+class SequenceGaps(SequenceCount):
+    """Which optimized keys were seen, and how many samples the sniffer's session missed."""
+
+    def __init__(self, session: zenoh.Session, key_expr: str) -> None:
+        super().__init__()
+        self._subscriber = session.declare_subscriber(key_expr, self._on_sample)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        attachment = sample.attachment
+        try:
+            seq = MessageMeta.decode(None if attachment is None else attachment.to_bytes()).seq
+        except TransportError:
+            seq = None
+        with self._lock:
+            self._count_locked(key, key, seq)
 
     def close(self) -> None:
         self._subscriber.undeclare()  # type: ignore[no-untyped-call]  # unannotated in stubs
@@ -342,7 +353,7 @@ class Gaps(Protocol):
     def duplicates(self) -> int: ...
 
 
-class Ros2Sniffer:
+class Ros2Sniffer(SequenceCount):
     """A plain rclpy node counting every message on each channel's ``[topic]/optimized``.
 
     Reliable raw subscriptions (dbml's publishers are reliable), so what is missed shows as a
@@ -358,12 +369,9 @@ class Ros2Sniffer:
         from dbml.harness.ros2node import PrivateRos
         from dbml.transports.rclpy import host_of_node
 
+        super().__init__()
         self._host_of_node = host_of_node
-        self._lock = threading.Lock()
         self._arrivals: list[tuple[float, int, bytes]] = []
-        self._seen: set[str] = set()
-        self._last: dict[bytes, int] = {}
-        self._lost = self._duplicates = 0
         self._owners: dict[bytes, str] = {}
         self._topics = [f"{topic}/optimized" for topic in topics]
         self._ros = PrivateRos(domain_id=domain_id, name="sniffer")
@@ -392,15 +400,7 @@ class Ros2Sniffer:
             seq = info.get("publication_sequence_number")
             with self._lock:
                 self._arrivals.append((now, len(data), gid))
-                self._seen.add(key)
-                if not isinstance(seq, int):
-                    return
-                last = self._last.get(gid)
-                if last is not None and seq > last + 1:
-                    self._lost += seq - last - 1
-                elif last is not None and seq <= last:
-                    self._duplicates += 1
-                self._last[gid] = seq if last is None else max(last, seq)
+                self._count_locked(key, gid, seq if isinstance(seq, int) else None)
 
         return on_message
 
@@ -436,18 +436,6 @@ class Ros2Sniffer:
     def clear(self) -> None:
         with self._lock:
             self._arrivals.clear()
-
-    def seen(self) -> set[str]:
-        with self._lock:
-            return set(self._seen)
-
-    def lost(self) -> int:
-        with self._lock:
-            return self._lost
-
-    def duplicates(self) -> int:
-        with self._lock:
-            return self._duplicates
 
     def close(self) -> None:
         self._ros.close()
