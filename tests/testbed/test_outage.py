@@ -12,7 +12,7 @@ import sys
 
 import pytest
 
-from dbml.testbed import Network, leftover_namespaces
+from dbml.testbed import Network, TestbedError, leftover_namespaces
 from dbml.testbed.runner import TestbedOptions, run_teleop_testbed
 
 pytestmark = pytest.mark.integration
@@ -90,3 +90,24 @@ def test_a_down_link_carries_nothing_either_way_until_a_rate_is_set(
         assert network.link_mbit == 4
         assert _reaches(network, "r1", "op")
         assert _reaches(network, "op", "r2")
+
+
+def test_a_robots_own_radio_down_cuts_that_robot_alone(netns_privilege: None) -> None:
+    with Network(link_mbit=8) as network:
+        network.take_link_down(host="r1")
+        assert network.down_hosts == {"r1"}
+        assert not network.link_down  # the shared link is up
+        assert not _reaches(network, "r1", "op")
+        assert not _reaches(network, "op", "r1")
+        assert not _reaches(network, "r2", "r1")
+        assert _reaches(network, "r2", "op")
+        network.set_link_rate(6, host="r1")
+        assert network.down_hosts == set()
+        assert network.uplinks_mbit == {"r1": 6.0}  # the robot's uplink is shaped from now on
+        assert _reaches(network, "r1", "op")
+        assert _reaches(network, "r2", "r1")
+
+
+def test_a_host_outside_the_testbed_is_refused(netns_privilege: None) -> None:
+    with Network(link_mbit=8) as network, pytest.raises(TestbedError, match="'r9' is not a robot"):
+        network.take_link_down(host="r9")

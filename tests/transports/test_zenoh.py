@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 import logging
+import os
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -14,7 +16,18 @@ import zenoh
 from dbml.harness.processes import free_port
 from dbml.protocol import keys
 from dbml.transports import ParamValue, Role, Variant
-from dbml.transports.zenoh import MAX_GRAPH_ENTRIES, ZenohTransport, _ZenohGraph
+from dbml.transports.zenoh import (
+    LEASE_MS,
+    MAX_GRAPH_ENTRIES,
+    OPEN_TIMEOUT_MS,
+    RETRY_MAX_MS,
+    RUNTIME_ENV,
+    RX_THREADS,
+    ZenohTransport,
+    _config,
+    _ZenohGraph,
+    prepare_runtime,
+)
 from tests.conftest import wait_for
 
 
@@ -245,3 +258,24 @@ def test_graph_entries_from_peers_are_bounded_and_a_flood_is_logged_once(
         "graph entries: room again; 100 refused meanwhile",
     ]
     assert len(graph.entries()) == MAX_GRAPH_ENTRIES // 2 - 1
+
+
+def test_the_receiving_runtime_gets_its_threads_unless_the_user_chose(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setenv(RUNTIME_ENV, "")  # recorded, so the test leaves it as it found it
+    monkeypatch.delenv(RUNTIME_ENV)
+    prepare_runtime()
+    assert os.environ[RUNTIME_ENV] == f"(rx: (worker_threads: {RX_THREADS}))"
+    monkeypatch.setenv(RUNTIME_ENV, "(app: (worker_threads: 2))")
+    prepare_runtime()
+    assert os.environ[RUNTIME_ENV] == "(app: (worker_threads: 2))"
+
+
+def test_sessions_drop_a_lost_peer_soon_and_retry_a_returning_one_often() -> None:
+    config = _config(
+        connect=["tcp/127.0.0.1:7000"], listen=[], config_file=None, shared_memory=False, port=1
+    )
+    assert json.loads(config.get_json("transport/link/tx/lease")) == LEASE_MS < 10_000
+    assert json.loads(config.get_json("transport/unicast/open_timeout")) == OPEN_TIMEOUT_MS
+    assert json.loads(config.get_json("connect/retry"))["period_max_ms"] == RETRY_MAX_MS

@@ -140,6 +140,18 @@ def testbed_document(result: TestbedResult) -> dict[str, Any]:
             }
             for o in result.outages
         ]
+    if result.recoveries:
+        summary_document["recoveries"] = [
+            {
+                "robot": r.robot,
+                "scope": r.scope,
+                "down_s": r.down_s,
+                "back_s": r.back_s,
+                "recovery_s": r.recovery_s,
+                "stuck": r.stuck,
+            }
+            for r in result.recoveries
+        ]
     if result.bridges:
         summary_document["bridges"] = [
             {
@@ -160,6 +172,10 @@ def testbed_document(result: TestbedResult) -> dict[str, Any]:
         "link_mbit": options.link_mbit,
         "link_schedule": [list(entry) for entry in options.link_schedule],
         "uplinks_mbit": dict(options.uplinks_mbit),
+        "uplink_schedules": {
+            robot: [list(entry) for entry in schedule]
+            for robot, schedule in options.robot_schedules.items()
+        },
         "estimate": options.estimate,
         "utilization": options.utilization,
         "urgent_stream": options.urgent_stream,

@@ -392,6 +392,7 @@ def _cmd_testbed(args: argparse.Namespace) -> int:
         link_schedule=args.link_schedule,
         estimate=args.estimate,
         uplinks=args.uplink,
+        uplink_schedules=args.uplink_schedule,
         strategy=args.strategy,
         utilization=args.utilization,
         urgent_stream=args.urgent_stream,

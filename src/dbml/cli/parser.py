@@ -242,6 +242,14 @@ def build_parser() -> argparse.ArgumentParser:
         default=[],
         help="shape a robot's own uplink too (e.g. R1=4); implies --strategy lp",
     )
+    testbed_cmd.add_argument(
+        "--uplink-schedule",
+        metavar="ROBOT=SPEC",
+        action="append",
+        default=[],
+        help='a robot\'s own radio over time, as --link-schedule: "R1=0:11,20:0,30:11" '
+        "(R1 out of range from 20 s to 30 s while the others go on)",
+    )
     testbed_cmd.add_argument("--strategy", choices=[s.value for s in Strategy])
     testbed_cmd.add_argument(
         "--utilization", type=_positive, help="share of the link dbml may allocate (0.92)"

@@ -38,6 +38,7 @@ __all__ = [
     "SHM_DIR",
     "claim_domain",
     "fastdds_shm_files",
+    "flock_holders",
     "remove_fastdds_shm",
     "ros2_child_env",
 ]
@@ -118,6 +119,18 @@ def _locked_inodes(pids: Iterable[int], proc_locks: Path) -> set[tuple[int, int,
         if found and found["pid"] in wanted:
             held.add((int(found["major"], 16), int(found["minor"], 16), int(found["inode"])))
     return held
+
+
+def flock_holders(path: Path, proc_locks: Path = PROC_LOCKS) -> set[int]:
+    """The PIDs that hold a ``flock`` on ``path`` (waiters are not holders)."""
+    stat = path.stat()
+    wanted = (os.major(stat.st_dev), os.minor(stat.st_dev), stat.st_ino)
+    return {
+        int(found["pid"])
+        for line in proc_locks.read_text().splitlines()
+        if (found := _PROC_LOCK.match(line))
+        and (int(found["major"], 16), int(found["minor"], 16), int(found["inode"])) == wanted
+    }
 
 
 def _companions(lock: Path) -> list[Path]:

@@ -8,6 +8,7 @@ from typing import Any
 
 from dbml.secure.fleet import Fleet
 from dbml.secure.rules import access_control
+from dbml.transports.zenoh import KEEP_ALIVES_PER_LEASE, LEASE_MS, OPEN_TIMEOUT_MS, RETRY_MAX_MS
 
 __all__ = ["NodeFiles", "zenoh_config"]
 
@@ -44,12 +45,18 @@ def zenoh_config(fleet: Fleet, name: str, files: NodeFiles) -> dict[str, Any]:
             "endpoints": others,
             "timeout_ms": -1,
             "exit_on_failure": False,
-            "retry": {"period_init_ms": 100, "period_max_ms": 2000, "period_increase_factor": 2},
+            "retry": {
+                "period_init_ms": 100,
+                "period_max_ms": RETRY_MAX_MS,
+                "period_increase_factor": 2,
+            },
         },
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": True}, "delay": 0},
         "transport": {
             "shared_memory": {"enabled": False},
+            "unicast": {"open_timeout": OPEN_TIMEOUT_MS},  # as every dbml session's
             "link": {
+                "tx": {"lease": LEASE_MS, "keep_alive": KEEP_ALIVES_PER_LEASE},
                 "tls": {
                     "root_ca_certificate": str(files.ca_certificate),
                     "listen_certificate": str(files.certificate),

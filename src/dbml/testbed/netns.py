@@ -31,6 +31,7 @@ from types import TracebackType
 from dbml.core.errors import DbmlError
 
 __all__ = [
+    "OPERATOR",
     "TOPOLOGIES",
     "TRANSPORTS",
     "Host",
@@ -41,7 +42,8 @@ __all__ = [
 ]
 
 _PREFIX = "dbml-"
-_OPERATOR = "op"
+OPERATOR = "op"
+"""The operator's host: its link is the shared one, the bottleneck every robot crosses."""
 _ROUTER = "rt"
 _ROBOT_NAME = re.compile(r"^[a-z][a-z0-9]{0,5}$")
 _RUN_ID = re.compile(r"^[0-9a-f]{6}$")
@@ -49,8 +51,9 @@ _OPERATOR_SUBNET = 100  # 10.200.100.0/24; robots use 10.200.1.0/24 .. 10.200.99
 _BURST = "32kbit"
 _LATENCY = "200ms"
 _COMMAND_TIMEOUT_S = 10.0
-_DOWN_RULE_PRIORITIES = (100, 101)
-"""``ip rule`` priorities of a down link's two blackhole rules (from and to the operator)."""
+_DOWN_RULE_PRIORITY = 100
+"""The first ``ip rule`` priority of a down link's blackhole rules: two per host (from it, to
+it), the operator's first, then each robot's."""
 _CAP_NET_ADMIN = 12
 _CAP_SYS_ADMIN = 21
 
@@ -120,7 +123,7 @@ class Network:
     link_mbit: float
     """The current bottleneck rate (router toward operator)."""
     uplinks_mbit: dict[str, float]
-    link_down: bool
+    """Robots whose own uplink is shaped, and at what rate."""
 
     def __init__(
         self,
@@ -149,12 +152,10 @@ class Network:
             robot: Host(robot, self._netns(robot), f"10.200.{index + 1}.2")
             for index, robot in enumerate(self.robots)
         }
-        self.hosts[_OPERATOR] = Host(
-            _OPERATOR, self._netns(_OPERATOR), f"10.200.{_OPERATOR_SUBNET}.2"
-        )
+        self.hosts[OPERATOR] = Host(OPERATOR, self._netns(OPERATOR), f"10.200.{_OPERATOR_SUBNET}.2")
         self._created: list[str] = []
         self._built = False
-        self.link_down = False  # set by take_link_down, cleared by set_link_rate
+        self._down: set[str] = set()
 
     @property
     def namespaces(self) -> list[str]:
@@ -185,42 +186,82 @@ class Network:
             raise TestbedError(f"argv={argv!r} must be a list of arguments, not a string")
         return ["ip", "netns", "exec", self.hosts[host].netns, *argv]
 
-    def set_link_rate(self, mbit: float) -> None:
-        """Change the bottleneck rate live; queued packets drain at the new rate."""
-        rate = _check_mbit("link_mbit", mbit)
-        if not self._built:
-            raise TestbedError(f"network run_id={self.run_id} is not built")
-        router = self._netns(_ROUTER)
-        _run(["tc", "-n", router, "qdisc", "change", *self._tbf(self._router_if(_OPERATOR), rate)])
-        self.link_mbit = rate
-        if self.link_down:  # the rate first: what was queued drains at the new one
-            self._bring_link_up()
+    def set_link_rate(self, mbit: float, *, host: str = OPERATOR) -> None:
+        """Change a link's rate live (and bring it up if it was down); queued packets drain.
 
-    def take_link_down(self) -> None:
-        """Drop everything on the operator's link, both ways, until the next ``set_link_rate``.
+        ``host``: the operator's (the shared bottleneck, shaped at the router) or a robot's own
+        uplink (shaped where it leaves the robot; the first change shapes it).
+        """
+        rate = _check_mbit("link_mbit" if host == OPERATOR else f"uplink_mbit[{host!r}]", mbit)
+        self._check_built()
+        if host == OPERATOR:
+            router = self._netns(_ROUTER)
+            tbf = self._tbf(self._router_if(OPERATOR), rate)
+            _run(["tc", "-n", router, "qdisc", "change", *tbf])
+            self.link_mbit = rate
+        else:
+            self._check_robot(host)
+            verb = "change" if host in self.uplinks_mbit else "add"
+            tbf = self._tbf(self._host_if(host), rate)
+            _run(["tc", "-n", self._netns(host), "qdisc", verb, *tbf])
+            self.uplinks_mbit[host] = rate
+        if host in self._down:  # the rate first: what was queued drains at the new one
+            self._bring_link_up(host)
+
+    def take_link_down(self, *, host: str = OPERATOR) -> None:
+        """Drop everything on ``host``'s link, both ways, until its next ``set_link_rate``.
 
         A radio out of range carries nothing either way: the router discards (silently, as
-        a lost packet) what comes from the operator and what goes to it, so TCP sees pure
-        loss. Policy rules rather than netem, which this kernel may lack; the tbf stays.
+        a lost packet) what comes from the host and what goes to it, so TCP sees pure loss.
+        The operator's link is the shared one (every robot loses it); a robot's is its own
+        radio (the others go on). Policy rules rather than netem, which this kernel may lack;
+        the tbf stays.
         """
-        if not self._built:
-            raise TestbedError(f"network run_id={self.run_id} is not built")
-        if self.link_down:
+        self._check_built()
+        if host != OPERATOR:
+            self._check_robot(host)
+        if host in self._down:
             return
         router = self._netns(_ROUTER)
-        subnet = f"10.200.{_OPERATOR_SUBNET}.0/24"
-        matches = (["iif", self._router_if(_OPERATOR)], ["to", subnet])
-        for priority, match in zip(_DOWN_RULE_PRIORITIES, matches, strict=True):
+        matches = (["iif", self._router_if(host)], ["to", self._subnet(host)])
+        for priority, match in zip(self._rule_priorities(host), matches, strict=True):
             _run(
                 ["ip", "-n", router, "rule", "add", "priority", str(priority), *match, "blackhole"]
             )
-        self.link_down = True
+        self._down.add(host)
 
-    def _bring_link_up(self) -> None:
+    @property
+    def down_hosts(self) -> frozenset[str]:
+        """Hosts whose link is down: ``take_link_down`` adds one, ``set_link_rate`` removes it."""
+        return frozenset(self._down)
+
+    @property
+    def link_down(self) -> bool:
+        """Whether the operator's (shared) link is down."""
+        return OPERATOR in self._down
+
+    def _bring_link_up(self, host: str) -> None:
         router = self._netns(_ROUTER)
-        for priority in _DOWN_RULE_PRIORITIES:
+        for priority in self._rule_priorities(host):
             _run(["ip", "-n", router, "rule", "del", "priority", str(priority)])
-        self.link_down = False
+        self._down.discard(host)
+
+    def _check_built(self) -> None:
+        if not self._built:
+            raise TestbedError(f"network run_id={self.run_id} is not built")
+
+    def _check_robot(self, host: str) -> None:
+        if host not in self.robots:
+            raise TestbedError(f"host={host!r} is not a robot (robots: {', '.join(self.robots)})")
+
+    def _subnet(self, host: str) -> str:
+        """``host``'s /24 (the router is .1 in it, the host .2)."""
+        return f"{self.hosts[host].address.rsplit('.', 1)[0]}.0/24"
+
+    def _rule_priorities(self, host: str) -> tuple[int, int]:
+        """The ``ip rule`` priorities of ``host``'s two blackhole rules (from it, to it)."""
+        index = 0 if host == OPERATOR else 1 + self.robots.index(host)
+        return _DOWN_RULE_PRIORITY + 2 * index, _DOWN_RULE_PRIORITY + 2 * index + 1
 
     def close(self) -> None:
         """Delete every namespace this run created (their veth ends go with them); idempotent."""
@@ -253,10 +294,10 @@ class Network:
             self._created.append(netns)  # only what we made: a clash never deletes another run
             _run(["ip", "-n", netns, "link", "set", "lo", "up"])
         _run(["ip", "netns", "exec", router, "sysctl", "-qw", "net.ipv4.ip_forward=1"])
-        for index, role in enumerate([*self.robots, _OPERATOR]):
-            subnet = _OPERATOR_SUBNET if role == _OPERATOR else index + 1
+        for index, role in enumerate([*self.robots, OPERATOR]):
+            subnet = _OPERATOR_SUBNET if role == OPERATOR else index + 1
             self._link(role, subnet)
-        self._shape(router, self._router_if(_OPERATOR), self.link_mbit)
+        self._shape(router, self._router_if(OPERATOR), self.link_mbit)
         for robot, mbit in self.uplinks_mbit.items():
             self._shape(self._netns(robot), self._host_if(robot), mbit)
 
@@ -318,7 +359,7 @@ def _check_robots(robots: Sequence[str]) -> tuple[str, ...]:
                 f"robot name {name!r} must match {_ROBOT_NAME.pattern} "
                 "(it goes into 15-character interface names)"
             )
-        if name in (_OPERATOR, _ROUTER):
+        if name in (OPERATOR, _ROUTER):
             raise TestbedError(f"robot name {name!r} is reserved (op, rt)")
         if name in seen:
             raise TestbedError(f"robot name {name!r} appears twice in robots")

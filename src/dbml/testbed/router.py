@@ -19,11 +19,10 @@ import zenoh
 from dbml.harness.processes import stop_on_signals
 from dbml.runtime.serve import Lifetime
 from dbml.transports.worker import BackgroundThread
+from dbml.transports.zenoh import RETRY_MAX_MS, prepare_runtime, put_link_timeouts
 
-__all__ = ["CONNECT_RETRY_MAX_MS", "main", "open_meshed_router"]
+__all__ = ["main", "open_meshed_router"]
 
-CONNECT_RETRY_MAX_MS = 1000
-"""A router retries a peer router that is not up yet at most this often (ms)."""
 POLL_S = 0.5
 """How often the main thread looks whether a signal asked it to stop, or a thread died."""
 
@@ -46,8 +45,12 @@ def open_meshed_router(*, listen: list[str], connect: list[str]) -> zenoh.Sessio
         config.insert_json5("connect/exit_on_failure", "false")
         config.insert_json5("connect/timeout_ms", "-1")
         config.insert_json5(
-            "connect/retry", f"{{period_init_ms: 100, period_max_ms: {CONNECT_RETRY_MAX_MS}}}"
+            "connect/retry", f"{{period_init_ms: 100, period_max_ms: {RETRY_MAX_MS}}}"
         )
+    put_link_timeouts(
+        config
+    )  # its link crosses the shaped one: an outage's return found as a peer's
+    prepare_runtime()
     return zenoh.open(config)
 
 

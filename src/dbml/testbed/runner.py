@@ -41,17 +41,20 @@ from dbml.experiment.analysis import (
     GOODPUT_AFTER_FRACTION,
     GOODPUT_FRACTION,
     MAX_P95_MS,
+    OUTAGE_RECOVERY_S,
     PEAK_P95_AFTER_DROP_MS,
     RATE_TOLERANCE,
     RECOVERY_S,
     LinkChange,
     LinkPhase,
     Outage,
+    Recovery,
     SeriesPoint,
     StepResult,
     StreamLatency,
     link_at,
     outages,
+    recoveries,
     stream_latency,
 )
 from dbml.experiment.rclpypeers import IMAGE_TYPE, RCLPY_MISSING
@@ -76,6 +79,7 @@ from dbml.scenarios.fleet import (
 from dbml.scenarios.teleop import MAX_RATE_HZ, MIN_RATE_HZ, ROBOTS
 from dbml.testbed.bridge import read_stats
 from dbml.testbed.netns import (
+    OPERATOR,
     TOPOLOGIES,
     TRANSPORTS,
     Network,
@@ -167,6 +171,27 @@ def parse_schedule(text: str) -> tuple[tuple[float, float], ...]:
     return tuple(entries)
 
 
+def parse_robot_schedules(
+    items: Sequence[str], robots: Sequence[str]
+) -> dict[str, tuple[tuple[float, float], ...]]:
+    """``["R1=0:11,20:0,30:11"]`` -> {"R1": ((0, 11), (20, 0), (30, 11))}: a robot's own radio."""
+    schedules: dict[str, tuple[tuple[float, float], ...]] = {}
+    for item in items:
+        robot, sep, spec = item.partition("=")
+        robot = robot.strip().upper()
+        if not sep or robot not in robots:
+            raise TestbedError(
+                f"--uplink-schedule={item!r} must be ROBOT=SPEC with ROBOT in {robots}"
+            )
+        if robot in schedules:
+            raise TestbedError(f"--uplink-schedule={item!r}: {robot} has a schedule already")
+        try:
+            schedules[robot] = parse_schedule(spec)
+        except TestbedError as err:
+            raise TestbedError(f"--uplink-schedule={item!r}: {err}") from None
+    return schedules
+
+
 def parse_uplinks(items: Sequence[str], robots: Sequence[str]) -> dict[str, float]:
     """``["R1=4"]`` -> {"R1": 4.0}; the robot must exist and the rate be > 0."""
     uplinks: dict[str, float] = {}
@@ -197,6 +222,9 @@ class TestbedOptions:
     link_schedule: tuple[tuple[float, float], ...] = ()
     estimate: bool = False
     uplinks_mbit: Mapping[str, float] = field(default_factory=dict)
+    robot_schedules: Mapping[str, tuple[tuple[float, float], ...]] = field(default_factory=dict)
+    """Per robot, its own radio's schedule (``--uplink-schedule R1=SPEC``): 0 takes only that
+    robot's link down, a rate shapes its uplink at it."""
     urgent_stream: bool = False
     """R1 adds a 1,000-byte 20 Hz urgent stream twice, mapped and unmapped (see ``roles``)."""
     robots: int = len(ROBOTS)
@@ -218,6 +246,7 @@ class TestbedOptions:
         link_schedule: str | None = None,
         estimate: bool = False,
         uplinks: Sequence[str] = (),
+        uplink_schedules: Sequence[str] = (),
         strategy: str | None = None,
         utilization: float | None = None,
         urgent_stream: bool = False,
@@ -260,11 +289,17 @@ class TestbedOptions:
             link_schedule=parse_schedule(link_schedule) if link_schedule else (),
             estimate=estimate,
             uplinks_mbit=parse_uplinks(uplinks, [c.robot for c in fleet_cameras(robots)]),
+            robot_schedules=parse_robot_schedules(
+                uplink_schedules, [c.robot for c in fleet_cameras(robots)]
+            ),
             urgent_stream=urgent_stream,
             robots=robots,
             topology=topology,
             transport=transport,
         )
+        both = sorted(set(common.uplinks_mbit) & set(common.robot_schedules))
+        if both:
+            raise TestbedError(f"--uplink and --uplink-schedule both shape {both}: give one")
         if policy == "unmanaged":
             for flag, given in (
                 ("--estimate", estimate),
@@ -298,7 +333,9 @@ class TestbedOptions:
     @property
     def steady(self) -> bool:
         """Whether the link keeps its rate the whole run."""
-        return all(mbit == self.link_mbit for _, mbit in self.link_schedule)
+        return not self.robot_schedules and all(
+            mbit == self.link_mbit for _, mbit in self.link_schedule
+        )
 
     @property
     def fleet(self) -> bool:
@@ -371,6 +408,8 @@ class TestbedResult:
     phases: tuple[LinkPhase, ...] = ()
     outages: tuple[Outage, ...] = ()
     """Per 0 Mbit phase of the schedule: the restoration after it."""
+    recoveries: tuple[Recovery, ...] = ()
+    """Per outage (the shared link's or a robot's own) and robot behind it: back when."""
     urgent: tuple[StreamLatency, ...] = ()
     """With ``urgent_stream``: the mapped and the unmapped copy, over the whole run."""
     expected_hz: tuple[tuple[float, ...], ...] = ()
@@ -459,6 +498,13 @@ class TestbedResult:
                 b.within_one_frame for b in self.bridges
             )
             targets["bridge_publish_never_refused"] = all(b.dropped == 0 for b in self.bridges)
+        returns: dict[tuple[str, float], bool] = {}  # per (scope, return): every robot back
+        for r in self.recoveries:
+            which = (r.scope, r.back_s)
+            returns[which] = returns.get(which, True) and r.back_within(OUTAGE_RECOVERY_S)
+        for (scope, back_s), every in returns.items():
+            within = f"within_{OUTAGE_RECOVERY_S:g}s"
+            targets[f"every_robot_back_{within}_after_{scope}_outage_at_{back_s:g}s"] = every
         for outage in self.outages:  # the release after an outage, each window on its budget
             over = outage.release_over_budget_mbit
             key = f"budget_kept_within_one_message_per_channel_after_outage_at_{outage.end_s:g}s"
@@ -590,18 +636,25 @@ def _specs(
 
 
 def _change_link(
-    network: Network, schedule: Sequence[tuple[float, float]], t0: float, stop: threading.Event
+    network: Network, options: TestbedOptions, t0: float, stop: threading.Event
 ) -> None:
-    for at, mbit in schedule:
+    """Apply the shared link's schedule and each robot's own, in time order, until ``stop``."""
+    changes = [(at, OPERATOR, mbit) for at, mbit in options.link_schedule]
+    for robot, schedule in options.robot_schedules.items():
+        changes += [(at, robot.lower(), mbit) for at, mbit in schedule]
+    for at, host, mbit in sorted(changes):
         if at <= 0:
             continue
         if stop.wait(max(0.0, t0 + at - time.time())):
             return
-        with contextlib.suppress(TestbedError):  # the network is being torn down
+        try:
             if mbit == 0:
-                network.take_link_down()
+                network.take_link_down(host=host)
             else:
-                network.set_link_rate(mbit)
+                network.set_link_rate(mbit, host=host)
+        except TestbedError:
+            if not stop.is_set():  # else the network is being torn down
+                raise
 
 
 def _expected_hz(
@@ -828,7 +881,16 @@ def run_teleop_testbed(
     network = Network(
         robots=tuple(camera.robot.lower() for camera in cameras),
         link_mbit=link_at(options.link_schedule, 0.0, options.link_mbit),
-        uplinks_mbit={robot.lower(): mbit for robot, mbit in options.uplinks_mbit.items()},
+        uplinks_mbit={
+            robot.lower(): mbit
+            for robot, mbit in {
+                **options.uplinks_mbit,
+                **{
+                    r: link_at(own, 0.0, options.link_mbit)
+                    for r, own in options.robot_schedules.items()
+                },
+            }.items()
+        },
     )
     recording = Recording(None, (), (), interrupted=True)
     router = options.topology == "router"
@@ -865,7 +927,7 @@ def run_teleop_testbed(
                         target=_watch_shm, args=(network, stop, shm), name="shm", daemon=True
                     )
                     watch.start()
-                _change_link(network, options.link_schedule, t0, stop)
+                _change_link(network, options, t0, stop)
                 if watch is not None:
                     watch.join()
 
@@ -915,6 +977,15 @@ def run_teleop_testbed(
             t0=recording.t0,
             schedule=options.link_schedule,
             urgent_at=lambda t_s: _urgent_index(options, t_s),
+        ),
+        recoveries=recoveries(
+            recording.arrivals,
+            recording.ticks,
+            robots=[camera.robot for camera in cameras],
+            t0=recording.t0,
+            end_s=len(analysis.steps) * options.step_seconds,
+            schedule=options.link_schedule,
+            robot_schedules=options.robot_schedules,
         ),
         expected_hz=_expected_hz(options, analysis.steps),
         urgent=tuple(

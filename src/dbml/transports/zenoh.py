@@ -53,11 +53,19 @@ except ImportError as err:  # pragma: no cover - eclipse-zenoh is a declared dep
 
 __all__ = [
     "DEFAULT_PORT",
+    "KEEP_ALIVES_PER_LEASE",
+    "LEASE_MS",
     "MAX_GRAPH_ENTRIES",
+    "OPEN_TIMEOUT_MS",
     "PRIORITY_LINK_RANGES",
+    "RETRY_MAX_MS",
+    "RUNTIME_ENV",
+    "RX_THREADS",
     "ZENOH_PRIORITY",
     "ZenohTransport",
     "open_router",
+    "prepare_runtime",
+    "put_link_timeouts",
 ]
 
 log = logging.getLogger("dbml.zenoh")
@@ -86,6 +94,43 @@ local subscriber, the base station's of ``/optimized``, a monitor's): 2,560, six
 Any peer can declare tokens, so past this a new one is refused (its entry is not seen, its
 owner's values not fetched for it) and logged once per flood, with a count; this process's own
 declarations are always kept (its code bounds them). An entry costs a few hundred bytes."""
+
+RX_THREADS = 32
+"""Worker threads of zenoh's receiving runtime (zenoh's default: 2). zenoh sets a 10-s
+``SO_LINGER`` on its TCP links and closes a link whose lease expired on that runtime, so the
+close blocks its thread until the peer acknowledges what was still in flight, or 10 s pass.
+After an outage longer than the lease, one such close per lost link held both default threads,
+and no link was read, not even the new ones to the same peers: every role came back 4.7-6 s
+after the link did. With more threads than links lost at once, the new links are read at once;
+past that number the rest wait for a lingering close, as before."""
+LEASE_MS = 3000
+"""The lease dbml's sessions announce (zenoh's default: 10 s): a peer silent this long is closed
+and opened anew. A session that outlives an outage resumes only when TCP's retransmission timer
+next fires, and it doubles while the link is down (0.2, 0.6, 1.4, 3.0, 6.2, 12.6 s after the
+first loss): with a 10-s lease, a 7-s outage would wait 5.6 s more. With 3 s the timer's next
+expiry comes at most 1.6 s after a shorter outage ends, and a longer one reconnects with a fresh
+connection."""
+KEEP_ALIVES_PER_LEASE = 4
+"""zenoh's keep-alives per lease (its default): one every 0.75 s on an idle link."""
+OPEN_TIMEOUT_MS = 2000
+"""The longest one attempt to open a link takes (zenoh's default: 10 s). A SYN lost in an
+outage is sent again by TCP after 1, 3 and 7 s: an attempt given up after 2 s starts over with
+a fresh SYN, so a returning link is found within about ``OPEN_TIMEOUT_MS`` + ``RETRY_MAX_MS``
+instead of up to 4 s. A handshake takes a few round trips; 2 s leaves a radio link its due."""
+RETRY_MAX_MS = 500
+"""The longest pause between two attempts to reach a ``connect`` endpoint."""
+RUNTIME_ENV = "ZENOH_RUNTIME"
+"""zenoh's runtime settings (RON), read once when its first session opens."""
+
+
+def prepare_runtime() -> None:
+    """Give zenoh's receiving runtime ``RX_THREADS`` threads, unless ``ZENOH_RUNTIME`` is set.
+
+    Call before the process's first session opens; later it changes nothing. Whoever set
+    ``ZENOH_RUNTIME`` chose: it is left as it is.
+    """
+    os.environ.setdefault(RUNTIME_ENV, f"(rx: (worker_threads: {RX_THREADS}))")
+
 
 ZENOH_PRIORITY: dict[TransportPriority, zenoh.Priority] = {
     TransportPriority.REAL_TIME: zenoh.Priority.REAL_TIME,
@@ -116,6 +161,13 @@ def _data_key(topic: str, variant: Variant) -> str:
     return keys.data_key(variant.key(topic))
 
 
+def put_link_timeouts(config: zenoh.Config) -> None:
+    """How soon a lost peer is dropped (``LEASE_MS``) and a returning one found."""
+    config.insert_json5("transport/link/tx/lease", str(LEASE_MS))
+    config.insert_json5("transport/link/tx/keep_alive", str(KEEP_ALIVES_PER_LEASE))
+    config.insert_json5("transport/unicast/open_timeout", str(OPEN_TIMEOUT_MS))
+
+
 def _config(
     *,
     connect: Iterable[str],
@@ -137,6 +189,8 @@ def _config(
         put("scouting/multicast/enabled", "false")
         put("scouting/delay", "0")
         put("transport/shared_memory/enabled", "true" if shared_memory else "false")
+        if not config_file:  # a config file of the user's says its own
+            put_link_timeouts(config)
         if priority_links:
             put("transport/unicast/max_links", str(len(PRIORITY_LINK_RANGES)))
         if connect or listen:
@@ -149,7 +203,7 @@ def _config(
                 )
                 put("connect/exit_on_failure", "false")
                 put("connect/timeout_ms", "-1")
-                put("connect/retry", "{period_init_ms: 100, period_max_ms: 1000}")
+                put("connect/retry", f"{{period_init_ms: 100, period_max_ms: {RETRY_MAX_MS}}}")
         elif not config_file:
             rendezvous = f"tcp/127.0.0.1:{port}"
             put("listen/endpoints", _json_list([rendezvous, "tcp/127.0.0.1:0"], listening=True))
@@ -158,7 +212,7 @@ def _config(
             put("connect/endpoints", _json_list([rendezvous]))
             put("connect/exit_on_failure", "false")
             put("connect/timeout_ms", "-1")
-            put("connect/retry", "{period_init_ms: 100, period_max_ms: 500}")
+            put("connect/retry", f"{{period_init_ms: 100, period_max_ms: {RETRY_MAX_MS}}}")
     except (zenoh.ZError, OSError) as err:
         raise TransportError(f"zenoh config: {err}") from err
     return config
@@ -377,6 +431,7 @@ class ZenohTransport(TransportBase):
             port=port,
             priority_links=priority_links,
         )
+        prepare_runtime()
         try:
             self.session: zenoh.Session = zenoh.open(config)
         except zenoh.ZError as err:
@@ -506,6 +561,8 @@ def open_router(listen: Iterable[str]) -> zenoh.Session:
         config.insert_json5("listen/endpoints", _json_list(endpoints, listening=True))
         config.insert_json5("scouting/multicast/enabled", "false")
         config.insert_json5("transport/shared_memory/enabled", "false")
+        put_link_timeouts(config)
+        prepare_runtime()
         return zenoh.open(config)
     except zenoh.ZError as err:
         raise TransportError(f"zenoh router: cannot listen on {endpoints!r}: {err}") from err

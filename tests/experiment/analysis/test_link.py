@@ -7,7 +7,12 @@ import pytest
 from dbml.core.estimator import EstimatorState, Phase
 from dbml.experiment.analysis import Arrival, Tick, analyse, link_at
 from dbml.testbed import TestbedError
-from dbml.testbed.runner import parse_schedule, parse_uplinks
+from dbml.testbed.runner import (
+    TestbedOptions,
+    parse_robot_schedules,
+    parse_schedule,
+    parse_uplinks,
+)
 
 
 def test_schedule_parses_and_names_bad_values() -> None:
@@ -33,6 +38,31 @@ def test_uplinks_parse_and_name_bad_values() -> None:
     for bad in ("R3=4", "R1", "R1=fast", "R1=0"):
         with pytest.raises(TestbedError, match=f"--uplink={bad!r}"):
             parse_uplinks([bad], ["R1", "R2"])
+
+
+def test_a_robots_own_schedule_parses_and_names_bad_values() -> None:
+    assert parse_robot_schedules(["r1=0:11,20:0,30:11"], ["R1", "R2"]) == {
+        "R1": ((0.0, 11.0), (20.0, 0.0), (30.0, 11.0))
+    }
+    for bad, named in (
+        ("R3=0:11", "ROBOT=SPEC"),
+        ("0:11,20:0", "ROBOT=SPEC"),
+        ("R1=0:0", "must be up at 0 s"),
+        ("R1=0:11,5:x", "'5:x' must be SECONDS:MBIT"),
+    ):
+        with pytest.raises(TestbedError, match=f"--uplink-schedule={bad!r}.*{named}"):
+            parse_robot_schedules([bad], ["R1", "R2"])
+    with pytest.raises(TestbedError, match="R1 has a schedule already"):
+        parse_robot_schedules(["R1=0:11", "R1=0:5"], ["R1", "R2"])
+
+
+def test_a_robots_own_schedule_is_no_steady_link_and_not_with_its_uplink() -> None:
+    options = TestbedOptions.from_flags(uplink_schedules=["R1=0:11,20:0,30:11"])
+    assert options.robot_schedules == {"R1": ((0.0, 11.0), (20.0, 0.0), (30.0, 11.0))}
+    assert not options.steady
+    assert options.uplinks_mbit == {}  # the optimizer's per-link limits are not asked for
+    with pytest.raises(TestbedError, match="both shape"):
+        TestbedOptions.from_flags(uplinks=["R1=4"], uplink_schedules=["R1=0:11"])
 
 
 def test_a_drop_reports_when_latency_recovered() -> None:

@@ -7,8 +7,17 @@ from dataclasses import replace
 
 import pytest
 
-from dbml.experiment.analysis import WINDOW_S, Arrival, Outage, Tick, outages
-from dbml.experiment.analysis.outage import worst_windows
+from dbml.experiment.analysis import (
+    WINDOW_S,
+    WINDOW_STEP_S,
+    Arrival,
+    Outage,
+    Recovery,
+    Tick,
+    outages,
+    recoveries,
+)
+from dbml.experiment.analysis.outage import LINK_SCOPE, down_intervals, worst_windows
 from tests.experiment.analysis.frames import stream
 
 
@@ -99,3 +108,104 @@ def test_the_worst_window_is_the_brute_force_one() -> None:
     )
     assert worst == pytest.approx(brute * 8e-6)
     assert over == pytest.approx(brute * 8e-6 - 5.0)
+
+
+def _recoveries(
+    r1_back_s: float | None, r2_back_s: float | None, *, own: bool = False
+) -> tuple[Recovery, ...]:
+    """R1 (10 Hz) and R2 (4 Hz) over 20 s, the link (or R1's own radio) down 6-9 s.
+
+    Each robot resumes its allocation at its ``*_back_s`` (None: at 1 Hz, its fail-safe, to
+    the end); with ``own``, R2 never stops.
+    """
+    frames = [
+        *stream(0, hz=10, start=0.0, end=6.0, delay=0.05, size=84_000),
+        *stream(1, hz=4, start=0.0, end=9.0 if own else 6.0, delay=0.05, size=21_000),
+    ]
+    backs = (r1_back_s, 9.0 if own else r2_back_s)
+    for robot, hz, back in ((0, 10, backs[0]), (1, 4, backs[1])):
+        frames += stream(
+            robot,
+            hz=hz if back is not None else 1,
+            start=back if back is not None else 9.5,
+            end=20.0,
+            delay=0.05,
+            size=84_000 if robot == 0 else 21_000,
+        )
+    ticks = [Tick(t_s=0.5, allocated_hz=(10.0, 4.0), budget_mbit=8.0, estimate_mbit=None)]
+    schedule = ((0.0, 11.0), (6.0, 0.0), (9.0, 11.0))
+    return recoveries(
+        frames,
+        ticks,
+        robots=["R1", "R2"],
+        t0=0.0,
+        end_s=20.0,
+        schedule=() if own else schedule,
+        robot_schedules={"R1": schedule} if own else {},
+    )
+
+
+def test_every_robot_behind_the_link_is_timed_from_the_return_to_its_allocation() -> None:
+    r1, r2 = _recoveries(10.0, 11.5)
+    assert (r1.robot, r1.scope, r1.down_s, r1.back_s) == ("R1", LINK_SCOPE, 6.0, 9.0)
+    assert r1.recovery_s == pytest.approx(1.0, abs=WINDOW_STEP_S)
+    assert r2.recovery_s == pytest.approx(2.5, abs=WINDOW_STEP_S)
+    assert not r1.stuck
+    assert not r2.stuck
+
+
+def test_a_robot_left_at_its_fail_safe_is_stuck_and_never_recovered() -> None:
+    r1, r2 = _recoveries(None, 9.0)
+    assert r1.recovery_s is None
+    assert r1.stuck
+    assert not r2.stuck
+
+
+def test_a_robots_own_outage_times_that_robot_alone() -> None:
+    (r1,) = _recoveries(9.5, None, own=True)
+    assert (r1.robot, r1.scope) == ("R1", "R1")
+    assert r1.recovery_s == pytest.approx(0.5, abs=WINDOW_STEP_S)
+
+
+def test_down_intervals_leave_out_an_outage_that_never_ends() -> None:
+    assert down_intervals(((0.0, 11.0), (5.0, 0.0), (8.0, 4.0), (12.0, 0.0))) == [(5.0, 8.0)]
+
+
+def test_a_fail_safe_minimum_near_a_low_allocation_is_not_a_recovery() -> None:
+    """At 1 Hz against 1.48 Hz a 1-s window holds one frame either way: its rate says which."""
+    frames = [
+        *stream(0, hz=1.48, start=0.0, end=6.0, delay=0.05, size=21_000),
+        *stream(0, hz=1.0, start=9.2, end=20.0, delay=0.05, size=21_000),
+    ]
+    ticks = [Tick(t_s=0.5, allocated_hz=(1.48,), budget_mbit=8.0, estimate_mbit=None)]
+    (r1,) = recoveries(
+        frames,
+        ticks,
+        robots=["R1"],
+        t0=0.0,
+        end_s=20.0,
+        schedule=((0.0, 11.0), (6.0, 0.0), (9.0, 11.0)),
+        robot_schedules={},
+    )
+    assert r1.recovery_s is None
+    assert r1.stuck
+
+
+def test_a_later_outage_neither_makes_an_earlier_one_stuck_nor_is_judged_too_late() -> None:
+    """R1 back at 9 s, down again from 16 s: the first outage is judged up to the second.
+
+    The second comes back in the run's last seconds: too late to judge, it is left out.
+    """
+    frames = [
+        *stream(0, hz=10, start=0.0, end=6.0, delay=0.05, size=84_000),
+        *stream(0, hz=10, start=9.0, end=16.0, delay=0.05, size=84_000),
+    ]
+    ticks = [Tick(t_s=0.5, allocated_hz=(10.0,), budget_mbit=8.0, estimate_mbit=None)]
+    own = ((0.0, 11.0), (6.0, 0.0), (9.0, 11.0), (16.0, 0.0), (19.5, 11.0))
+    (r1,) = recoveries(
+        frames, ticks, robots=["R1"], t0=0.0, end_s=20.0, schedule=(), robot_schedules={"R1": own}
+    )
+    assert (r1.down_s, r1.back_s) == (6.0, 9.0)
+    assert r1.recovery_s == pytest.approx(0.0, abs=WINDOW_STEP_S)
+    assert not r1.stuck
+    assert r1.back_within(3.0)

@@ -15,11 +15,14 @@ PUBLIC = [
     "LIVE_WINDOW_S",
     "MAX_P95_MS",
     "OUTAGE_AFTER_S",
+    "OUTAGE_RECOVERY_S",
     "PEAK_P95_AFTER_DROP_MS",
     "RATE_TOLERANCE",
     "RATE_TOLERANCE_HZ",
+    "RECOVERED_FLOOR_HZ",
     "RECOVERED_P95_MS",
     "RECOVERY_S",
+    "STUCK_WINDOW_S",
     "WINDOW_S",
     "WINDOW_STEP_S",
     "Analysis",
@@ -27,6 +30,7 @@ PUBLIC = [
     "LinkChange",
     "LinkPhase",
     "Outage",
+    "Recovery",
     "SeriesPoint",
     "StepResult",
     "StreamLatency",
@@ -37,10 +41,12 @@ PUBLIC = [
     "link_at",
     "outages",
     "rate_hz",
+    "recoveries",
     "settle_s",
     "stream_latency",
 ]
-"""The module's names but ``CUT_STAMP``: the estimator's decision time is a field now."""
+"""The module's names but ``CUT_STAMP`` (the estimator's decision time is a field now), and
+what came after it (the recoveries after an outage)."""
 
 
 def test_the_package_exports_the_module_s_names() -> None:

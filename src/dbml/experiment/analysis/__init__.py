@@ -9,13 +9,14 @@ time series, and the recovery after each change of the link's rate. One module p
 phases) and ``outage`` (the restoration after an outage).
 """
 
-from dbml.experiment.analysis.outage import outages
+from dbml.experiment.analysis.outage import outages, recoveries
 from dbml.experiment.analysis.records import (
     Analysis,
     Arrival,
     LinkChange,
     LinkPhase,
     Outage,
+    Recovery,
     SeriesPoint,
     StepResult,
     StreamLatency,
@@ -34,11 +35,14 @@ from dbml.experiment.analysis.thresholds import (
     LIVE_WINDOW_S,
     MAX_P95_MS,
     OUTAGE_AFTER_S,
+    OUTAGE_RECOVERY_S,
     PEAK_P95_AFTER_DROP_MS,
     RATE_TOLERANCE,
     RATE_TOLERANCE_HZ,
+    RECOVERED_FLOOR_HZ,
     RECOVERED_P95_MS,
     RECOVERY_S,
+    STUCK_WINDOW_S,
     WINDOW_S,
     WINDOW_STEP_S,
 )
@@ -55,11 +59,14 @@ __all__ = [
     "LIVE_WINDOW_S",
     "MAX_P95_MS",
     "OUTAGE_AFTER_S",
+    "OUTAGE_RECOVERY_S",
     "PEAK_P95_AFTER_DROP_MS",
     "RATE_TOLERANCE",
     "RATE_TOLERANCE_HZ",
+    "RECOVERED_FLOOR_HZ",
     "RECOVERED_P95_MS",
     "RECOVERY_S",
+    "STUCK_WINDOW_S",
     "WINDOW_S",
     "WINDOW_STEP_S",
     "Analysis",
@@ -67,6 +74,7 @@ __all__ = [
     "LinkChange",
     "LinkPhase",
     "Outage",
+    "Recovery",
     "SeriesPoint",
     "StepResult",
     "StreamLatency",
@@ -77,6 +85,7 @@ __all__ = [
     "link_at",
     "outages",
     "rate_hz",
+    "recoveries",
     "settle_s",
     "stream_latency",
 ]

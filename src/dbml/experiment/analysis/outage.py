@@ -1,17 +1,33 @@
-"""What the restoration after each outage did: the urgent channel first, the budget kept."""
+"""What the restoration after each outage did.
+
+The urgent channel first, the budget kept, and every robot behind the link back at its
+allocation.
+"""
 
 from __future__ import annotations
 
 import bisect
 import itertools
-from collections.abc import Callable, Sequence
+import math
+from collections.abc import Callable, Mapping, Sequence
 
 from dbml.core.spec import bytes_per_s_to_mbit
-from dbml.experiment.analysis.records import Arrival, Outage, Tick
-from dbml.experiment.analysis.thresholds import OUTAGE_AFTER_S, WINDOW_S
+from dbml.experiment.analysis.records import Arrival, Outage, Recovery, Tick
+from dbml.experiment.analysis.thresholds import (
+    OUTAGE_AFTER_S,
+    OUTAGE_RECOVERY_S,
+    RATE_TOLERANCE,
+    RECOVERED_FLOOR_HZ,
+    STUCK_WINDOW_S,
+    WINDOW_S,
+    WINDOW_STEP_S,
+)
 from dbml.experiment.analysis.windows import EDGE_S, RobotFrames
 
-__all__ = ["outages", "worst_windows"]
+__all__ = ["LINK_SCOPE", "down_intervals", "outages", "recoveries", "worst_windows"]
+
+LINK_SCOPE = "link"
+"""The scope of an outage of the shared link: every robot is behind it."""
 
 
 def _budget_at(ticks: Sequence[Tick], t_s: float) -> float | None:
@@ -138,4 +154,85 @@ def outages(
                 release_over_budget_mbit=sent_over,
             )
         )
+    return tuple(found)
+
+
+def down_intervals(schedule: Sequence[tuple[float, float]]) -> list[tuple[float, float]]:
+    """``schedule``'s outages as (down, back) seconds; one still down at the end is left out."""
+    return [
+        (at, schedule[k + 1][0])
+        for k, (at, mbit) in enumerate(schedule)
+        if mbit == 0 and k + 1 < len(schedule)
+    ]
+
+
+def recoveries(
+    frames: Sequence[Arrival],
+    ticks: Sequence[Tick],
+    *,
+    robots: Sequence[str],
+    t0: float,
+    end_s: float,
+    schedule: Sequence[tuple[float, float]],
+    robot_schedules: Mapping[str, Sequence[tuple[float, float]]],
+) -> tuple[Recovery, ...]:
+    """Per outage and robot behind it: when it delivered its allocation again, or stuck.
+
+    ``schedule`` is the shared link's (every robot is behind it), ``robot_schedules`` each
+    robot's own radio; times are seconds after ``t0``, the run ends at ``end_s``. A 1-s window
+    delivers the allocation when its frames sent after the return are within
+    ``RATE_TOLERANCE`` or ``RECOVERED_FLOOR_HZ`` of it (counted: the silence before does not
+    weigh on it) and its last frame says the publisher runs at it (a fail-safe minimum near a
+    low allocation is not it). Windows start every ``WINDOW_STEP_S`` from the return; the
+    first that delivers counts. ``stuck``: none delivers in the ``STUCK_WINDOW_S`` before the
+    robot's next outage or the run's end. An outage back too late to judge is left out.
+    """
+    streams = [RobotFrames(name, i, frames) for i, name in enumerate(robots)]
+    ordered = sorted(ticks, key=lambda t: t.t_s)
+    tick_times = [t.t_s for t in ordered]
+
+    def delivers(k: int, start: float, back: float) -> bool:
+        at = bisect.bisect_right(tick_times, t0 + start + WINDOW_S)
+        hz = ordered[at - 1].allocated_hz[k] if at else None
+        if not hz:
+            return False
+        stream = streams[k]
+        inside = stream.frames[
+            bisect.bisect_left(stream.times, t0 + start) : bisect.bisect_left(
+                stream.times, t0 + start + WINDOW_S
+            )
+        ]
+        fresh = [f for f in inside if f.sent_s is None or f.sent_s >= t0 + back]
+        tolerance = max(RATE_TOLERANCE * hz, RECOVERED_FLOOR_HZ)
+        if not fresh or abs(len(fresh) / WINDOW_S - hz) > tolerance:
+            return False
+        applied = fresh[-1].rate_hz
+        return applied is None or abs(applied - hz) <= RATE_TOLERANCE * hz
+
+    def starts(first: float, last: float) -> list[float]:
+        n = max(0, math.floor((last - first) / WINDOW_STEP_S + EDGE_S) + 1)
+        return [first + i * WINDOW_STEP_S for i in range(n)]
+
+    outages_of = {
+        robot: sorted(down_intervals(schedule) + down_intervals(robot_schedules.get(robot, ())))
+        for robot in robots
+    }
+    scoped = [(LINK_SCOPE, list(robots), schedule)]
+    scoped += [(robot, [robot], own) for robot, own in sorted(robot_schedules.items())]
+    found = []
+    for scope, behind, own in scoped:
+        for down, back in down_intervals(own):
+            if back > end_s - WINDOW_S - OUTAGE_RECOVERY_S:
+                continue  # too late in the run to see it come back
+            for robot in behind:
+                k = robots.index(robot)
+                until = min(
+                    (d for d, _ in outages_of[robot] if d > down), default=end_s
+                )  # its next outage, or the end
+                last_start = until - WINDOW_S
+                at = next((t for t in starts(back, last_start) if delivers(k, t, back)), None)
+                tail = starts(max(back, last_start - STUCK_WINDOW_S), last_start)
+                stuck = not any(delivers(k, t, back) for t in tail)
+                recovery = None if at is None else at - back
+                found.append(Recovery(robot, scope, down, back, recovery, stuck))
     return tuple(found)

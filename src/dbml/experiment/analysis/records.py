@@ -199,3 +199,26 @@ class Outage:
     by the larger one before it, nor a raise counted as excess."""
     release_over_budget_mbit: float | None = None
     """The same of what was sent after the restoration only: what the release sent."""
+
+
+@dataclass(frozen=True, slots=True)
+class Recovery:
+    """One robot after one of its links came back from an outage."""
+
+    robot: str
+    scope: str
+    """Whose link went down: ``"link"`` (the shared one, every robot's) or a robot's own."""
+    down_s: float
+    """When the link went down (seconds after step 1 started)."""
+    back_s: float
+    """When it came back."""
+    recovery_s: float | None
+    """From ``back_s`` to the start of the first 1-s window in which the robot delivered its
+    allocation (None: not before its next outage or the run's end)."""
+    stuck: bool
+    """Not at its allocation in any window of the ``STUCK_WINDOW_S`` before its next outage or
+    the run's end: at its fail-safe minimum, or silent."""
+
+    def back_within(self, limit_s: float) -> bool:
+        """Whether it delivered its allocation within ``limit_s`` and was not stuck after."""
+        return self.recovery_s is not None and self.recovery_s <= limit_s and not self.stuck

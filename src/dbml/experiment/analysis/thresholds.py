@@ -13,11 +13,14 @@ __all__ = [
     "LIVE_WINDOW_S",
     "MAX_P95_MS",
     "OUTAGE_AFTER_S",
+    "OUTAGE_RECOVERY_S",
     "PEAK_P95_AFTER_DROP_MS",
     "RATE_TOLERANCE",
     "RATE_TOLERANCE_HZ",
+    "RECOVERED_FLOOR_HZ",
     "RECOVERED_P95_MS",
     "RECOVERY_S",
+    "STUCK_WINDOW_S",
     "WINDOW_S",
     "WINDOW_STEP_S",
 ]
@@ -56,3 +59,10 @@ LIVE_FRAMES = 400
 """A live view reads at most this many of the newest frames (all of ``LIVE_WINDOW_S``)."""
 OUTAGE_AFTER_S = 5.0
 """After an outage, every 1-s window of this long is held against the budget."""
+OUTAGE_RECOVERY_S = 3.0
+"""After a link comes back, every robot behind it delivers its allocation again within this."""
+RECOVERED_FLOOR_HZ = 1.0
+"""A robot delivers its allocation in a 1-s window when within ``RATE_TOLERANCE`` of it or one
+frame: where a window's edge falls between two frames decides that one."""
+STUCK_WINDOW_S = 2.0
+"""A robot not at its allocation in any window of a run's last this long is stuck."""
