@@ -135,7 +135,9 @@ class ManagedPublisher:
         fresh and the link up, and ``publish`` asks nothing else (set under the lock)."""
         self._closed = False
         self._beacon_warned = False
-        self.rate = Rate(self.current_rate_hz, clock=transport.now)
+        # The loop keeps its own phase across rate changes: one push reaches every publisher at
+        # once, and loops that all restarted from it would send their frames together.
+        self.rate = Rate(self.current_rate_hz, clock=transport.now, keep_phase=True)
         # [topic]/optimized is what crosses the network: it travels in the channel's class.
         self._explicit_priority = transport_priority
         self._map_qos = transport.has_priorities and (

@@ -27,7 +27,8 @@ class _Credit:
         self.rate_hz = rate_hz
         self._cap = cap_frames
         self.frames = 1.0  # the first message goes at once
-        self._seen: float | None = None
+        self.seen: float | None = None
+        """When credit was last earned up to."""
 
     def look(self, now: float, rate_hz: float | None = None) -> None:
         """Earn up to ``now``; a new rate counts from the last look at the lower of the two."""
@@ -38,11 +39,11 @@ class _Credit:
 
     def _earn(self, now: float, earning_hz: float) -> None:
         """Add what ``earning_hz`` earned since the last look (the one rule of credit)."""
-        seen = self._seen
+        seen = self.seen
         if seen is None or now > seen:
             if seen is not None:
                 self.frames = min(self.frames + (now - seen) * earning_hz, self._cap)
-            self._seen = now
+            self.seen = now
 
     def spend(self) -> bool:
         if self.frames < 1.0 - _EPSILON_FRAMES:
@@ -109,6 +110,16 @@ class Rate:
     waiting, so a new allocation applies within ``poll_s`` even in the middle of a long period.
     Ticks keep absolute deadlines (loop work does not add to the period); falling behind by more
     than a period restarts the schedule instead of bursting.
+
+    ``keep_phase``: after the rate changes, the first tick at the new rate goes at the point of
+    the loop's own grid (``first tick + k / rate``) nearest to when the credit allows it (up to
+    half a period earlier or later; the next point if that one is past already), and the loop
+    stays on that grid: it keeps its phase instead of taking the moment of the change as its
+    new one. An optimizer pushes a new allocation to every publisher at once; without this,
+    every loop slowed by one push starts its slow schedule from that push, and a fleet's large
+    frames leave together once a period (measured: three 1 Hz robots of eight within 30 ms of
+    each other, 125 ms apart before the push; their 84 KB frames overflowed the shared link's
+    queue). It costs less than a period's wait once per change.
     """
 
     def __init__(
@@ -118,26 +129,57 @@ class Rate:
         clock: Callable[[], float] = time.monotonic,
         sleep: Callable[[float], None] = time.sleep,
         poll_s: float = 0.05,
+        keep_phase: bool = False,
     ) -> None:
         self._rate_hz = rate_hz
         self._clock = clock
         self._sleep = sleep
         self._poll_s = poll_s
+        self._keep_phase = keep_phase
         self._credit: _Credit | None = None
+        self._anchor = 0.0
+        """The loop's first tick: its phase, kept across rate changes with ``keep_phase``."""
+        self._tick_hz = 0.0
+        """The rate of the last tick: a different one in force is a change."""
 
     def sleep(self) -> None:
         """Block until the loop's next tick."""
         if self._credit is None:  # the loop's first tick is now
-            self._credit = _Credit(self._rate_hz(), cap_frames=1.0)
-            self._credit.look(self._clock())
+            hz = self._rate_hz()
+            self._credit = _Credit(hz, cap_frames=1.0)
+            self._anchor = self._clock()
+            self._credit.look(self._anchor)
             self._credit.spend()
+            self._tick_hz = hz
             return
         credit = self._credit
+        pending: tuple[float, float] | None = None  # a new rate and its tick on the grid
         while True:
-            credit.look(self._clock(), self._rate_hz())
+            now, hz = self._clock(), self._rate_hz()
+            credit.look(now, hz)
+            if self._keep_phase and hz != self._tick_hz and hz > 0:
+                # A new rate: tick at the point of the loop's own grid nearest to when the
+                # credit allows (at most half a period either side; the next one if that point
+                # is past already: every tick at the new rate is a whole period after the one
+                # before, as the publisher's limiter counts), then stay on the grid.
+                if pending is None or pending[0] != hz:
+                    grid = self._grid_point(now + credit.wait_s(), hz)
+                    pending = (hz, grid if grid >= now else grid + 1 / hz)
+                grid = pending[1]
+                if now < grid:
+                    self._sleep(min(grid - now, self._poll_s))
+                    continue
+                credit.frames, credit.seen = 0.0, grid
+                self._tick_hz = hz
+                return
             if credit.spend():
+                self._tick_hz = hz
                 return
             self._sleep(min(credit.wait_s(), self._poll_s))
+
+    def _grid_point(self, due: float, hz: float) -> float:
+        """The point of the loop's grid at ``hz`` (first tick + k / hz) nearest to ``due``."""
+        return self._anchor + round((due - self._anchor) * hz) / hz
 
     def reset(self) -> None:
         """Start the schedule again at the next ``sleep()``."""
