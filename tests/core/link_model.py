@@ -1,14 +1,17 @@
 """A bottleneck link in simulation: FIFO, one frame at a time, capacity changing over time.
 
 Closed loop (open without an estimator): senders share ``utilization * estimate`` by bytes
-(80/20, each capped at its maximum rate), the estimate reaches them ``reaction_s`` late, the
-estimator sees each frame once it has arrived. Pure arithmetic, so the loop is exact and repeatable.
+(80/20, or ``shares`` at each time; each capped at its maximum rate), the estimate reaches them
+``reaction_s`` late, the estimator sees each frame once it has arrived (``report_lag_s`` later,
+as the node judges the window its reports completed). ``jitter_s`` adds a delay per frame after
+the bottleneck (a stream's frames stay in order), as the testbed's traces measured
+(bench/estimator_replay.py). Pure arithmetic, so the loop is exact and repeatable.
 """
 
 from __future__ import annotations
 
 import heapq
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 from dbml.core.estimator import Arrival, BandwidthEstimator, Estimate
@@ -45,8 +48,13 @@ def simulate(
     reaction_s: float = 0.15,
     clock_offsets_s: dict[str, float] | None = None,
     propagation_s: float = 0.001,
+    wire_efficiency: float = WIRE_EFFICIENCY,
+    jitter_s: Callable[[str, int], float] | None = None,
+    report_lag_s: float = 0.0,
+    shares: Callable[[float], Mapping[str, float]] | None = None,
 ) -> Trace:
     offsets = clock_offsets_s or {}
+    last_arrival = dict.fromkeys((name for name, *_ in FRAMES), 0.0)
     trace = Trace()
     start = constant_mbit if estimator is None else estimator.estimate_mbit
     budgets: list[tuple[float, float]] = [(0.0, start)]  # (effective from, Mbit/s)
@@ -58,6 +66,8 @@ def simulate(
 
     def rate_hz(name: str, size: int, max_hz: float, share: float, t: float) -> float:
         budget = next(b for at, b in reversed(budgets) if at <= t)
+        if shares is not None:
+            share = shares(t).get(name, share)
         return max(1.0, min(max_hz, utilization * budget * share / (size * 8e-6)))
 
     t = 0.0
@@ -70,19 +80,23 @@ def simulate(
             if sent >= tick_end:
                 break
             start = max(sent + propagation_s, link_free_s)
-            link_free_s = start + size * 8e-6 / (link_mbit(start) * WIRE_EFFICIENCY)
-            arrival = Arrival(name, seqs[name], sent + offsets.get(name, 0.0), link_free_s, size)
-            heapq.heappush(pending, (link_free_s, order, arrival))
+            link_free_s = start + size * 8e-6 / (link_mbit(start) * wire_efficiency)
+            extra = 0.0 if jitter_s is None else jitter_s(name, seqs[name])
+            arrived_s = max(link_free_s + extra, last_arrival[name])
+            last_arrival[name] = arrived_s
+            arrival = Arrival(name, seqs[name], sent + offsets.get(name, 0.0), arrived_s, size)
+            heapq.heappush(pending, (arrived_s, order, arrival))
             order += 1
             seqs[name] += 1
-            trace.delays.append((link_free_s, link_free_s - sent, name))
+            trace.delays.append((arrived_s, arrived_s - sent, name))
             next_send[name] = sent + 1.0 / rate_hz(name, size, max_hz, share, sent)
-        while pending and pending[0][0] <= tick_end:
+        judged_s = tick_end - report_lag_s
+        while pending and pending[0][0] <= judged_s:
             arrived = heapq.heappop(pending)[2]
             if estimator is not None:
                 estimator.observe(arrived)
         if estimator is not None:
-            estimate = estimator.update(tick_end)
+            estimate = estimator.update(judged_s)
             trace.estimates.append(estimate)
             budgets.append((tick_end + reaction_s, estimate.estimate_mbit))
         offered = sum(

@@ -11,10 +11,19 @@ from dbml.core.estimator import EstimatorState, Phase
 from dbml.protocol import names
 from dbml.protocol.metadata import pack_meta
 from dbml.runtime import estimator as node_estimator
-from dbml.runtime.estimator import LINK_TOPIC, MAX_REPORTERS, LinkBeacon, LinkEstimator
+from dbml.runtime.estimator import (
+    LINK_TOPIC,
+    MAX_REPORTERS,
+    WAKE_GAP_S,
+    WAKE_QUEUE_S,
+    LinkBeacon,
+    LinkEstimator,
+)
 from dbml.runtime.optimizer import OptimizerNode
 from dbml.runtime.reception import (
+    EARLY_FLUSH_QUEUE_S,
     RECEPTION_TOPIC,
+    REPORT_INTERVAL_S,
     ReceivedFrame,
     ReceptionReport,
     ReceptionReporter,
@@ -123,6 +132,11 @@ def test_a_cut_carries_the_wall_clock_time_it_was_decided() -> None:
     assert 2.0 < decided - WALL_S < 3.5  # the base's clock at the decision
     assert cuts[0].text.endswith(f" @{decided:.3f}")  # and the monitor's line shows it
     assert not any(s.decided_at_s is not None for s in states if s.phase is Phase.INCREASE)
+    # the hold that follows, at the cut's estimate, still says when the cut was decided: a
+    # woken tick may publish it before a reader polls
+    after = states[states.index(cuts[0]) + 1]
+    assert after.phase is Phase.HOLD
+    assert after.decided_at_s == decided
 
 
 def test_after_an_outage_the_beacon_names_the_channels_heard_again() -> None:
@@ -283,3 +297,46 @@ def test_streams_and_frames_past_the_estimators_bounds_are_logged_once_per_flood
         ("streams followed: room again; 4 evicted meanwhile", False),
         ("frames kept: room again; 16 refused meanwhile", False),
     ]
+
+
+def _frame(link: Link, *, queued_s: float, after_s: float = 1 / RATE_HZ) -> None:
+    """One frame ``after_s`` after the last, ``queued_s`` later than the link's usual 0.05 s."""
+    link.t += after_s
+    link.op_clock.advance(1000.0 + link.t + 0.05 + queued_s - link.op_clock())
+    meta = pack_meta(link.seq, round((link.t - 50.0) * 1e9), RATE_HZ)
+    link.raw.put(bytes(FRAME_BYTES), attachment=meta)
+    link.seq += 1
+    link.base_clock.advance(link.t + 0.05 + queued_s + 0.2 - link.base_clock())  # as ``run``
+
+
+def test_a_frame_that_queued_is_reported_at_once_at_most_once_an_interval() -> None:
+    """The estimator cuts sooner; a congested link at most doubles the reports."""
+    link = Link()
+    link.run(1.0)
+    wake = link.reporter._worker._wake
+    _frame(link, queued_s=EARLY_FLUSH_QUEUE_S * 0.9)
+    assert not wake.is_set()  # within the usual spread: the periodic flush takes it
+    _frame(link, queued_s=EARLY_FLUSH_QUEUE_S * 1.1)
+    assert wake.is_set()
+    wake.clear()
+    _frame(link, queued_s=EARLY_FLUSH_QUEUE_S * 1.1, after_s=REPORT_INTERVAL_S / 2)
+    assert not wake.is_set()  # one early flush an interval
+    _frame(link, queued_s=EARLY_FLUSH_QUEUE_S * 1.1, after_s=REPORT_INTERVAL_S * 0.6)
+    assert wake.is_set()  # the next interval
+
+
+def test_a_report_of_a_frame_that_queued_wakes_the_estimator_at_once() -> None:
+    link = Link()
+    link.run(1.0)
+    wake = link.estimator._worker._wake
+    _frame(link, queued_s=WAKE_QUEUE_S * 0.9)
+    link.reporter.flush()
+    assert not wake.is_set()  # the next tick judges it
+    _frame(link, queued_s=WAKE_QUEUE_S * 1.1)
+    link.reporter.flush()
+    assert wake.is_set()
+    wake.clear()
+    link.estimator.tick()
+    _frame(link, queued_s=WAKE_QUEUE_S * 1.1, after_s=WAKE_GAP_S / 2)
+    link.reporter.flush()
+    assert not wake.is_set()  # it just judged: a wake waits WAKE_GAP_S after a tick

@@ -7,7 +7,7 @@ import logging
 import pytest
 
 from dbml.protocol.metadata import pack_meta
-from dbml.runtime.reception import MAX_FRAMES, ReceptionReporter
+from dbml.runtime.reception import MAX_FRAMES, MAX_TOPICS, ReceptionReporter
 from dbml.transports import MemoryNetwork, MemoryTransport, Sample
 
 
@@ -30,4 +30,14 @@ def test_frames_recorded_between_flushes_are_bounded_and_a_flood_is_said_once(
         "(told once until half of them are gone)",
         f"received frames recorded: room again; {evicted} evicted meanwhile",
     ]
+    reporter.close()
+
+
+def test_the_quickest_frame_is_kept_for_at_most_max_topics() -> None:
+    """Any peer publishes: a flood of topics restarts the table instead of growing it."""
+    reporter = ReceptionReporter(MemoryTransport(MemoryNetwork(), host="op"))  # not started
+    for k in range(MAX_TOPICS + 1):
+        reporter.record(Sample(f"/r{k}/camera", b"x", pack_meta(0, 0, 1.0)))
+        assert len(reporter._quickest) <= MAX_TOPICS
+    assert list(reporter._quickest) == [f"/r{MAX_TOPICS}/camera"]  # the newest, after a restart
     reporter.close()
