@@ -1,13 +1,12 @@
 """Every stream comes back after an outage: of the shared link or of one robot's radio.
 
-An outage as long as zenoh's lease (10 s) closes the sessions to every peer behind the link,
-and zenoh closes each lost TCP link with a 10-s ``SO_LINGER`` on a thread of its receiving
-runtime. With zenoh's two threads, two such closes held every link, new ones included, until
-the lost data was acknowledged after the return: the roles met again 4.7-6 s after the link
-came back, and a robot stayed at its fail-safe or silent for longer (docs/testbed.md). A short
-outage keeps the sessions: TCP's retransmission does
-the work. Both lengths run here, for the shared link (in both topologies at the lease) and for
-R1's radio alone; ``bench/outage.py`` runs the whole matrix many times.
+An outage of zenoh's default lease (10 s) outlasts dbml's (3 s): the sessions to every peer
+behind the link close, and zenoh closes each lost TCP link with a 10-s ``SO_LINGER`` on a
+thread of its receiving runtime. With zenoh's two threads, two such closes held every link, new
+ones included, until the lost data was acknowledged after the return: the roles met again
+4.7-5.4 s after the link came back (docs/testbed.md). A 1-s outage keeps the sessions: TCP's
+retransmission does the work. Both lengths run here, for the shared link (in both topologies
+at 10 s) and for R1's radio alone; ``bench/outage.py`` runs the whole matrix many times.
 """
 
 from __future__ import annotations

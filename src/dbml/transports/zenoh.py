@@ -100,9 +100,9 @@ RX_THREADS = 32
 ``SO_LINGER`` on its TCP links and closes a link whose lease expired on that runtime, so the
 close blocks its thread until the peer acknowledges what was still in flight, or 10 s pass.
 After an outage longer than the lease, one such close per lost link held both default threads,
-and no link was read, not even the new ones to the same peers: every role came back 4.7-6 s
-after the link did. With more threads than links lost at once, the new links are read at once;
-past that number the rest wait for a lingering close, as before."""
+and no link was read, not even the new ones to the same peers (docs/testbed.md). With more
+threads than links lost at once, the new links are read at once; past that number the rest
+wait for a lingering close."""
 LEASE_MS = 3000
 """The lease dbml's sessions announce (zenoh's default: 10 s): a peer silent this long is closed
 and opened anew. A session that outlives an outage resumes only when TCP's retransmission timer
