@@ -177,6 +177,10 @@ def test_bad_values_from_a_peer_are_ignored_and_the_wire_keeps_the_budget(
             timeout_s=15,
             what="the allocation",
         )
+        # The stream flows before the writes: every 1-s window read below then starts after
+        # its first frame (one that did not once counted 4 of the allocated 5.95 frames).
+        flowing = (line for line in viewer.json_lines(timeout_s=10) if line["bytes_per_s"] > 0)
+        assert next(flowing, None) is not None, viewer.stderr()
         hostile = f.probe.params
         writes: list[tuple[str, ParamValue]] = [
             (names.max_rate(CAMERA), -1),  # once dropped the live channel from the allocation
