@@ -31,7 +31,10 @@ def test_graph_and_node_tokens_round_trip() -> None:
     assert keys.parse_node_key(keys.node_key("0123456789abcdef", "zid1")) == (
         "0123456789abcdef",
         "zid1",
+        True,
     )
+    robot = keys.node_key("0123456789abcdef", "zid1", follows_all=False)
+    assert keys.parse_node_key(robot) == ("0123456789abcdef", "zid1", False)
 
 
 @pytest.mark.parametrize(
@@ -41,7 +44,10 @@ def test_malformed_graph_tokens_are_none(key: str) -> None:
     assert keys.parse_graph_key(key) is None
 
 
-@pytest.mark.parametrize("key", ["dbml/node/a", "dbml/node/a/b/c", "dbml/graph/a/b"])
+@pytest.mark.parametrize(
+    "key",
+    ["dbml/node/a", "dbml/node/a/b", "dbml/node/a/b/c", "dbml/node/a/b/c/d", "dbml/graph/a/b"],
+)
 def test_malformed_node_tokens_are_none(key: str) -> None:
     assert keys.parse_node_key(key) is None
 

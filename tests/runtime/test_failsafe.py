@@ -55,12 +55,42 @@ def test_silence_for_the_periods_falls_back_to_the_minimum_and_is_noted_once() -
 
 def test_a_heartbeat_renews_an_allocation_but_allocates_nothing() -> None:
     allocation = fresh()
-    assert allocation.heartbeat(START_S + 1.0) is None
-    assert allocation.lapsed(START_S + DEADLINE_S + 0.01)  # still counted from the start
     allocation.allocate(12.0, START_S + 2.0)
     assert allocation.heartbeat(START_S + 3.0) == 12.0
     assert allocation.rate_hz(START_S + 3.0 + DEADLINE_S) == 12.0
     assert allocation.rate_hz(START_S + 3.0 + DEADLINE_S + 0.01) == MIN_HZ
+
+
+def test_a_heartbeat_renews_the_wait_for_a_first_allocation() -> None:
+    """A fleet joining at once is admitted over several rounds: the optimizer is alive."""
+    allocation = fresh()
+    for k in range(1, 20):  # ten deadlines' worth of rounds, one every period
+        now = START_S + k * PERIOD_S
+        assert allocation.heartbeat(now) is None
+        assert allocation.waiting(now + DEADLINE_S)
+        assert allocation.note_lapse(now + DEADLINE_S) is None
+    last = START_S + 19 * PERIOD_S
+    assert allocation.lapsed(last + DEADLINE_S + 0.01)  # silence still ends in the fail-safe
+
+
+def test_a_long_wait_is_noted_once_and_ends_with_the_allocation() -> None:
+    allocation = fresh()
+    assert allocation.note_long_wait(START_S + DEADLINE_S) is None  # not longer than usual
+    allocation.heartbeat(START_S + DEADLINE_S)
+    waited = allocation.note_long_wait(START_S + DEADLINE_S + 0.5)
+    assert waited == pytest.approx(DEADLINE_S + 0.5)
+    assert allocation.note_long_wait(START_S + DEADLINE_S + 1.0) is None  # said once
+    allocation.allocate(12.0, START_S + DEADLINE_S + 1.0)
+    assert allocation.note_long_wait(START_S + DEADLINE_S + 1.0) is None  # allocated
+
+
+def test_a_heartbeat_after_the_fail_safe_allocates_nothing() -> None:
+    allocation = fresh()
+    late = START_S + DEADLINE_S + 0.1
+    assert allocation.note_lapse(late) is not None
+    assert allocation.heartbeat(late + 0.1) is None
+    assert allocation.lapsed(late + 0.1)
+    assert allocation.rate_hz(late + 0.1) == MIN_HZ
 
 
 def test_a_new_period_moves_the_deadline_from_the_last_word() -> None:

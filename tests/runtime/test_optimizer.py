@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections.abc import Mapping
 
 import pytest
@@ -226,28 +227,39 @@ def test_a_restarted_optimizer_orders_changes_by_what_publishers_run() -> None:
     assert [topic for topic, _ in fleet.writes] == [R2, R1]
 
 
-def test_a_round_pushes_one_batch_of_what_changed_and_a_heartbeat() -> None:
+def test_a_round_pushes_each_host_its_channels_and_everyone_the_heartbeat() -> None:
+    """A robot's batch holds its own channels' values: its size is the robot's, not the fleet's.
+
+    Status and heartbeat go to everyone.
+    """
     fleet = Fleet()
     fleet.watch_remotely(R1)
     fleet.watch_remotely(R2)
-    batches: list[dict[str, object]] = []
+    batches: list[tuple[str | None, dict[str, object]]] = []
     store = fleet.optimizer._transport.params
     set_many = store.set_many
 
-    def spy(values: Mapping[str, ParamValue]) -> None:
-        batches.append(dict(values))
-        set_many(values)
+    def spy(values: Mapping[str, ParamValue], *, host: str | None = None) -> None:
+        batches.append((host, dict(values)))
+        set_many(values, host=host)
 
     store.set_many = spy  # type: ignore[method-assign]
     fleet.optimizer.optimize()
-    assert len(batches) == 1
-    assert batches[0][names.current_value(R1)] == fleet.rates()[R1]
-    assert batches[0][names.managed(R2)] is True
-    assert batches[0][names.STATUS] == "optimal"
+    by_host = dict(batches)
+    assert len(batches) == len(by_host) == 3
+    assert by_host["r1"] == {
+        names.current_value(R1): fleet.rates()[R1],
+        names.managed(R1): True,
+    }
+    assert by_host["r2"] == {
+        names.current_value(R2): fleet.rates()[R2],
+        names.managed(R2): True,
+    }
+    assert set(by_host[None]) == {names.STATUS, names.STATUS_MESSAGE, names.ROUND}
     fleet.writes.clear()
     for _ in range(3):  # nothing changes: only the heartbeat goes out
         fleet.optimizer.optimize()
-    assert batches[1:] == [{names.ROUND: 2}, {names.ROUND: 3}, {names.ROUND: 4}]
+    assert batches[3:] == [(None, {names.ROUND: k}) for k in (2, 3, 4)]
     assert fleet.writes == []
 
 
@@ -358,3 +370,65 @@ def test_the_channels_tracked_are_bounded_the_known_ones_stay_and_a_flood_is_sai
         "(told once until half of them are gone)",
         f"channels tracked: room again; {over + 3} refused meanwhile",
     ]
+
+
+def test_an_increase_the_acknowledged_decreases_cover_does_not_wait_for_the_slowest() -> None:
+    """A small newcomer goes at once; a large one waits for the silent camera's room.
+
+    Two cameras share the budget, one never acknowledges. Of two channels joining, the small one
+    is covered by the prompt camera's decrease; the large one needs the silent camera's and
+    waits for the acknowledgement timeout (the budget is a promise).
+    """
+    ack_timeout_s = 5.0
+    network = MemoryNetwork()
+    operator = MemoryTransport(network, host="operator")
+    silent = MemoryTransport(network, host="a")
+    set_param = silent.params.set
+
+    def no_acknowledgement(name: str, value: ParamValue) -> None:
+        if name != names.applied("/a/cam"):
+            set_param(name, value)
+
+    silent.params.set = no_acknowledgement  # type: ignore[method-assign]
+    sizes = {"/a/cam": 84_000, "/b/cam": 84_000, "/c/cam": 1_000, "/d/cam": 84_000}
+    for topic in sizes:
+        ManagedSubscriber(operator, topic, lambda _sample: None)
+    publishers = {
+        "/a/cam": ManagedPublisher(silent, "/a/cam", min_rate_hz=1, max_rate_hz=16, priority=0.5),
+        "/b/cam": ManagedPublisher(
+            MemoryTransport(network, host="b"),
+            "/b/cam",
+            min_rate_hz=1,
+            max_rate_hz=16,
+            priority=0.5,
+        ),
+    }
+    optimizer = OptimizerNode(
+        MemoryTransport(network, host="base"),
+        settings=DbmSettings(20 * 84_000 * 8 / 1e6, 1.0, 1.0, Strategy.PAPER),
+        ack_timeout_s=ack_timeout_s,
+    )
+    for topic, publisher in publishers.items():
+        publisher.publish(bytes(sizes[topic]))
+    before = optimizer.optimize().rates_hz
+    arrived: list[tuple[str, float]] = []
+    for topic in ("/c/cam", "/d/cam"):
+        robot = MemoryTransport(network, host=topic[1])
+        publishers[topic] = ManagedPublisher(
+            robot, topic, min_rate_hz=1, max_rate_hz=16, priority=0.5
+        )
+
+        def on_param(name: str, _value: ParamValue, topic: str = topic) -> None:
+            if name == names.current_value(topic):
+                arrived.append((topic, time.monotonic()))
+
+        robot.params.watch(on_param)
+        publishers[topic].publish(bytes(sizes[topic]))
+    started = time.monotonic()
+    result = optimizer.optimize()
+    for camera in ("/a/cam", "/b/cam"):  # both cameras make room
+        assert result.rates_hz[camera] < before[camera]
+    assert [topic for topic, _ in arrived] == ["/c/cam", "/d/cam"]
+    assert arrived[0][1] - started < ack_timeout_s / 2  # at once, not after the timeout
+    assert arrived[1][1] - started >= ack_timeout_s  # the silent camera's room: the timeout
+    optimizer.stop()

@@ -166,7 +166,7 @@ def test_one_view_per_store_and_a_write_during_the_first_read_is_not_lost() -> N
         def set(self, name: str, value: ParamValue) -> None:
             raise AssertionError("not written")
 
-        def set_many(self, values: Mapping[str, ParamValue]) -> None:
+        def set_many(self, values: Mapping[str, ParamValue], *, host: str | None = None) -> None:
             raise AssertionError("not written")
 
         def get(self, name: str) -> ParamValue:

@@ -167,13 +167,20 @@ def test_the_optimizers_heartbeat_keeps_an_unchanged_allocation(
     assert publisher.current_rate_hz() == 12.0
 
 
-def test_a_heartbeat_alone_allocates_nothing(network: MemoryNetwork, clock: ManualClock) -> None:
+def test_a_heartbeat_alone_allocates_nothing_but_the_wait_goes_on(
+    network: MemoryNetwork, clock: ManualClock
+) -> None:
     publisher = robot(network, clock)
     optimizer = MemoryTransport(network, host="op", clock=clock)
-    for round_ in range(1, 5):
+    _operator, remote = remote_reader(network, clock)
+    for round_ in range(1, 10):
         clock.advance(1.0)
         optimizer.params.set(names.ROUND, round_)
+        publisher.publish(b"x")
     assert publisher.current_rate_hz() == 1.0  # still waiting for a first allocation
+    assert not publisher.failsafe  # the optimizer runs: a wait, not a lost optimizer
+    assert remote == []  # and nothing unbudgeted crossed the network meanwhile
+    clock.advance(3.5)  # then silence: the fail-safe
     assert publisher.failsafe
 
 

@@ -93,6 +93,7 @@ ROBOT_FORBIDDEN = [
     "dbml/param/r1/camera/dbm/managed",
     "dbml/param/*/camera/dbm/priority",  # a wildcard cannot reach beyond r1's own keys
     "dbml/batch",
+    "dbml/batch/r2",
     "r2/camera",
     "dbml/param/dbm/status",
     "dbm/link",
@@ -127,6 +128,7 @@ def test_the_optimizer_writes_its_allocation_and_status_only(
     listening(at_robot, sessions["opt"], "dbml/param/dbm/round")
     optimizer_keys = [
         "dbml/batch",
+        "dbml/batch/r1",
         "dbml/param/r1/camera/dbm/frequency/current_value",
         "dbml/param/r1/camera/dbm/managed",
         "dbml/param/dbm/status",
@@ -162,6 +164,7 @@ def test_an_operator_sets_the_budget_and_priorities_only(
         "dbml/param/r1/camera/dbm/frequency/current_value",
         "dbml/param/dbm/status",
         "dbml/batch",
+        "dbml/batch/r1",
         "op/camera",
         "r1/camera",
     ]
@@ -255,12 +258,12 @@ def test_graph_tokens_carry_the_certificate_s_name(
         sessions["r1"].liveliness().declare_token("dbml/elsewhere/x"),
     ]
     allowed = [
-        sessions["r1"].liveliness().declare_token("dbml/node/abc/def"),
+        sessions["r1"].liveliness().declare_token("dbml/node/abc/def/own"),
         sessions["op"].liveliness().declare_token("dbml/graph/sub/op/y.2/optimized/r1/camera"),
         sessions["r1"].liveliness().declare_token("dbml/graph/pub/r1/x.2/optimized/r1/camera"),
     ]
     expected = {
-        "dbml/node/abc/def",
+        "dbml/node/abc/def/own",
         "dbml/graph/sub/op/y.2/optimized/r1/camera",
         "dbml/graph/pub/r1/x.2/optimized/r1/camera",
     }

@@ -100,7 +100,7 @@ def test_the_rules_use_the_runtime_s_own_names() -> None:
     for field in (names.CURRENT_FIELD, names.MANAGED_FIELD):
         assert f"{keys.PARAM}/**/dbm/{field}" in optimizer
         assert f"{keys.PARAM}/r1/**/dbm/{field}" in by_id["r1/put-deny"]["key_exprs"]
-    assert keys.BATCH in optimizer
+    assert f"{keys.BATCH}/**" in optimizer
     # the estimator's beacon: the optimizer's node puts it, and no one else may
     link_key = _data_key(LINK_TOPIC, Variant.FULL)
     assert link_key in optimizer
@@ -138,6 +138,7 @@ def test_only_the_optimizer_puts_batches_and_beacons_robots_their_data_others_re
     for node in NODES:
         assert permitted(document, node, "put", reception) is (node != "opt")
         assert permitted(document, node, "put", keys.BATCH) is (node == "opt")
+        assert permitted(document, node, "put", keys.batch_key("r1")) is (node == "opt")
         assert permitted(document, node, "put", link) is (node == "opt")
         assert permitted(document, node, "put", keys.data_key(TOPIC)) is (node == "r1")
         assert permitted(document, node, "put", keys.data_key(TOPIC + "/optimized")) is (

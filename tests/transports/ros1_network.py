@@ -189,7 +189,7 @@ class _PeerParams:
     def set(self, name: str, value: ParamValue) -> None:
         self._peer.call("set", name, value)
 
-    def set_many(self, values: Mapping[str, ParamValue]) -> None:
+    def set_many(self, values: Mapping[str, ParamValue], *, host: str | None = None) -> None:
         for name, value in values.items():
             self.set(name, value)
 

@@ -500,14 +500,14 @@ def test_only_a_well_formed_dbml_node_token_hides_a_sessions_subscriptions(
     transport = ros2("host-a")
     zid = str(foreign.info.zid())
     liveliness = foreign.liveliness()
-    fake = liveliness.declare_token(f"dbml/node/not-a-node-id/{zid}")
+    fake = liveliness.declare_token(f"dbml/node/not-a-node-id/{zid}/all")
     subscription = liveliness.declare_token(subscription_token(zid, "/r2/lidar/optimized"))
     wait_for(
         lambda: remote_optimized(transport, "/r2/lidar") == [foreign_entry(zid)],
         timeout_s=TIMEOUT_S,
         what="the subscription counted despite a malformed dbml node token",
     )
-    node = liveliness.declare_token(f"dbml/node/0123456789abcdef/{zid}")
+    node = liveliness.declare_token(f"dbml/node/0123456789abcdef/{zid}/all")
     wait_for(
         lambda: not remote_optimized(transport, "/r2/lidar"),
         timeout_s=TIMEOUT_S,
@@ -539,7 +539,7 @@ def test_a_failing_dbml_node_callback_is_logged_not_lost(
     monkeypatch.setattr(transport.graph, "add_dbml", broken)
     with caplog.at_level(logging.ERROR, logger="dbml.ros2"):
         token = foreign.liveliness().declare_token(
-            f"dbml/node/0123456789abcdef/{foreign.info.zid()}"
+            f"dbml/node/0123456789abcdef/{foreign.info.zid()}/all"
         )
         wait_for(
             lambda: "it could not be handled" in caplog.text,

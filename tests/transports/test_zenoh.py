@@ -133,7 +133,7 @@ def test_a_newcomer_costs_each_session_answers_of_its_own_values_only() -> None:
 
 
 def test_a_publishing_session_hears_its_own_channels_not_the_fleets_reports() -> None:
-    """``follow_all_params=False``: globals, batches and its own channels' writes arrive.
+    """``follow_all_params=False``: globals, its host's batches and its own channels' writes.
 
     Other channels' writes are not delivered to it: each one cost every robot of a fleet a
     callback (40 acknowledgements per rate change, to 42 sessions, at 40 x 4).
@@ -156,11 +156,15 @@ def test_a_publishing_session_hears_its_own_channels_not_the_fleets_reports() ->
         wait_for(lambda: fleet.params.get("/r1/cam/dbm/frequency/max") == 10.0, timeout_s=10)
         fleet.params.set("/r2/cam/dbm/frequency/applied_value", 3.0)  # another robot's report
         fleet.params.set("/r1/cam/dbm/message_size_in_bytes", 1)  # a write over its own channel
-        fleet.params.set_many({"/r1/cam/dbm/frequency/current_value": 4.0, "/r2/cam/x": 1})
+        fleet.params.set_many({"/r1/cam/dbm/frequency/current_value": 4.0}, host="r1")
+        fleet.params.set_many({"/r2/cam/dbm/frequency/current_value": 5.0}, host="r2")
+        fleet.params.set_many({"/dbm/round": 3})  # the batch for everyone
         fleet.params.set("/dbm/max_bandwidth_in_mbit", 7.0)  # a global, sent last
         wait_for(lambda: robot.params.get("/dbm/max_bandwidth_in_mbit") == 7.0, timeout_s=10)
         wait_for(lambda: robot.params.get("/r1/cam/dbm/message_size_in_bytes") == 1, timeout_s=10)
-        assert robot.params.get("/r1/cam/dbm/frequency/current_value") == 4.0  # the batch
+        assert robot.params.get("/r1/cam/dbm/frequency/current_value") == 4.0  # its host's batch
+        assert robot.params.get("/dbm/round") == 3
+        assert robot.params.get("/r2/cam/dbm/frequency/current_value") is None  # r2's batch
         assert "dbml/param/r2/cam/dbm/frequency/applied_value" not in delivered
         assert "dbml/param/r1/cam/dbm/message_size_in_bytes" in delivered
     finally:
@@ -216,7 +220,7 @@ class _FakeTransport:
         self.session = _FakeLiveliness()
         self.fetched: list[str] = []
 
-    def fetch_owner_of(self, uid: str) -> None:
+    def fetch_owner_of(self, uid: str, topic: str) -> None:
         self.fetched.append(uid)
 
 

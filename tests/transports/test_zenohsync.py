@@ -93,11 +93,12 @@ def session() -> Iterator[FakeSession]:
     fake.running.set()  # never leave the sync thread waiting
 
 
-def sync_of(session: FakeSession) -> ParamSync:
+def sync_of(session: FakeSession, *, follow_all: bool = True) -> ParamSync:
     return ParamSync(
         cast(zenoh.Session, session),
         "0123456789abcdef",
-        follow_all=True,
+        host="h1",
+        follow_all=follow_all,
         priority=zenoh.Priority.INTERACTIVE_HIGH,
     )
 
@@ -106,9 +107,11 @@ def node(i: int) -> str:
     return f"{i:016x}"
 
 
-def token(i: int, zid: str | None = None, *, gone: bool = False) -> zenoh.Sample:
+def token(
+    i: int, zid: str | None = None, *, gone: bool = False, follows_all: bool = True
+) -> zenoh.Sample:
     kind = zenoh.SampleKind.DELETE if gone else zenoh.SampleKind.PUT
-    key = keys.node_key(node(i), zid or f"{i:x}")
+    key = keys.node_key(node(i), zid or f"{i:x}", follows_all=follows_all)
     return cast(zenoh.Sample, FakeSample(key, kind))
 
 
@@ -141,6 +144,27 @@ def test_sessions_met_are_bounded_and_a_flood_is_logged_once(
         sync.close()
 
 
+def test_two_robots_do_not_meet_but_each_meets_whoever_follows_everything(
+    session: FakeSession,
+) -> None:
+    """A fleet's start: robots meet the optimizer, not each other.
+
+    A robot's graph entries are nothing for another robot to fetch.
+    """
+    robot = sync_of(session, follow_all=False)
+    try:
+        assert session.polled.wait(TIMEOUT_S)  # the sync thread holds still from now on
+        robot._on_node(token(1, follows_all=False))  # another robot
+        robot.fetch_owner_of(f"{node(1)}.1", "/r1/camera")  # its publisher's graph entry
+        assert robot._queued == {}
+        assert robot._is_live(node(1))  # known alive all the same (its values are its to serve)
+        robot._on_node(token(2, follows_all=True))  # the optimizer
+        assert set(robot._queued) == {(node(2), True), (node(2), False)}
+    finally:
+        session.running.set()
+        robot.close()
+
+
 def test_a_session_churning_its_tokens_leaves_nothing_behind(session: FakeSession) -> None:
     """A node id met under one zenoh id and withdrawn under another forgets both."""
     sync = sync_of(session)
@@ -166,8 +190,8 @@ def test_queued_fetches_are_bounded_and_a_flood_is_logged_once(
         with caplog.at_level(logging.WARNING, logger="dbml.zenoh"):
             assert session.polled.wait(TIMEOUT_S)  # the sync thread holds still from now on
             for i in range(MAX_QUEUED_FETCHES + 100):
-                sync.fetch_owner_of(f"{node(i)}.1")
-                sync.fetch_owner_of(f"{node(i)}.2")  # one fetch per session already queued
+                sync.fetch_owner_of(f"{node(i)}.1", "/t")
+                sync.fetch_owner_of(f"{node(i)}.2", "/t")  # one fetch per session already queued
             assert len(sync._queued) == MAX_QUEUED_FETCHES
             assert sync._fetching == MAX_QUEUED_FETCHES
             refused = told(caplog, "parameter fetches queued: 8192 held, the most kept; refusing")
@@ -191,7 +215,7 @@ def test_the_sync_thread_survives_a_failure_and_reports_its_death(
     try:
         session.fail = RuntimeError("one bad poll")
         session.running.set()
-        sync.fetch_owner_of(f"{node(1)}.1")
+        sync.fetch_owner_of(f"{node(1)}.1", "/t")
         wait_for(lambda: not sync._queued, timeout_s=TIMEOUT_S, what="the fetch after a failure")
         assert sync.alive
         assert "parameter sync" in caplog.text
@@ -211,6 +235,7 @@ def test_a_channel_subscriber_declared_as_the_sync_closes_is_undeclared_outside_
     sync = ParamSync(
         cast(zenoh.Session, session),
         "0123456789abcdef",
+        host="h1",
         follow_all=False,
         priority=zenoh.Priority.INTERACTIVE_HIGH,
     )

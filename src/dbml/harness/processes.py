@@ -215,11 +215,12 @@ class RoleProcesses:
         except subprocess.TimeoutExpired:
             return None
 
-    def close(self) -> dict[str, int]:
+    def close(self, *, save_logs: Path | None = None) -> dict[str, int]:
         """Ask, then terminate, then kill: every process started here, by PID.
 
         Each process's exit code, by role: negative for one ended by a signal after the grace
         time, positive for one that failed on its own (a dead thread's role exits 1).
+        ``save_logs``: a directory where each role's whole stderr is kept as ``<role>.log``.
         """
         self.send("stop")
         for role, sig in self._stop_signals.items():
@@ -247,6 +248,9 @@ class RoleProcesses:
             if child.stdout is not None:
                 child.stdout.close()
         for role, stderr in self._logs.items():
+            if save_logs is not None and not stderr.closed:
+                stderr.seek(0)
+                (save_logs / f"{role}.log").write_text(stderr.read())
             if role not in self._tails:
                 self._tails[role] = self.log_tail(role)
             stderr.close()

@@ -7,10 +7,10 @@ secure fleet's access rules build their keys from these functions and constants.
 |---|---|---|
 | data | ``r1/camera``, ``r1/camera/optimized`` | a channel's messages (topic without its ``/``) |
 | parameter | ``dbml/param/<name>`` | one write: ``{"v": value, "t": stamp_ns, "w": writer}`` |
-| batch | ``dbml/batch`` | the optimizer's round: ``{"vs": {name: value}, "t", "w"}`` |
+| batch | ``dbml/batch[/<host>]`` | a round: ``{"vs": {name: value}, "t", "w"}``; or one host's |
 | owned | ``dbml/own/<node id>/<name>`` | what a session serves to a newcomer (queryable) |
 | graph | ``dbml/graph/<role>/<host>/<uid>/<variant>/<topic>`` | a declaration (liveliness) |
-| node | ``dbml/node/<node id>/<zenoh id>`` | a session (liveliness) |
+| node | ``dbml/node/<node id>/<zenoh id>/<all or own>`` | a session and what it follows |
 | link | ``dbm/link`` (topic ``/dbm/link``) | the estimator's beacon |
 | reception | ``dbm/reception`` (topic ``/dbm/reception``) | what subscribers received |
 """
@@ -39,6 +39,7 @@ __all__ = [
     "RECEPTION_TOPIC",
     "ROOT",
     "GraphKey",
+    "batch_key",
     "channel_params_filter",
     "data_key",
     "decode_batch",
@@ -47,6 +48,7 @@ __all__ = [
     "encode_param",
     "global_params_filter",
     "graph_key",
+    "is_host_name",
     "is_node_id",
     "new_node_id",
     "node_key",
@@ -55,6 +57,7 @@ __all__ = [
     "param_key",
     "parse_graph_key",
     "parse_node_key",
+    "topic_params_filter",
 ]
 
 ROOT = "dbml"
@@ -74,10 +77,14 @@ _SHOWN_CHARS = 80
 """How much of a malformed value or message an error quotes."""
 _GRAPH_SPLITS = 6
 """``dbml/graph/<role>/<host>/<uid>/<variant>/<topic...>``: the topic keeps its slashes."""
-_NODE_PARTS = 4
+_NODE_PARTS = 5
+_FOLLOWS_ALL = "all"
+_FOLLOWS_OWN = "own"
 _OWN_PARTS = 4
 _NODE_ID_HEX = 16
 _NODE_ID = re.compile(rf"[0-9a-f]{{{_NODE_ID_HEX}}}")
+_HOST_CHUNK = re.compile(r"[A-Za-z0-9_.~-]+")
+"""A host name as ``dbml.transports.base.resolve_host`` allows them: one key chunk."""
 
 
 def new_node_id() -> str:
@@ -93,6 +100,24 @@ def is_node_id(text: str) -> bool:
 def data_key(topic: str) -> str:
     """The key a topic's messages travel under: the topic without its leading slash."""
     return check_topic(topic)[1:]
+
+
+def is_host_name(text: str) -> bool:
+    """Whether ``text`` is a host name: letters, digits and ``_-.~``, one key chunk."""
+    return _HOST_CHUNK.fullmatch(text) is not None
+
+
+def batch_key(host: str | None = None) -> str:
+    """Where a batch travels: the one for every session, or the one for ``host``'s sessions.
+
+    A round's values of the channels published on ``host`` go to ``dbml/batch/<host>``, so a
+    robot hears its own channels' allocation and not the fleet's.
+    """
+    if host is None:
+        return BATCH
+    if not is_host_name(host):
+        raise TransportError(f"host={short_repr(host)} is not a host name (letters, digits, _-.~)")
+    return f"{BATCH}/{host}"
 
 
 def param_key(name: str) -> str:
@@ -113,7 +138,12 @@ def channel_params_filter(key: str) -> str | None:
     if not key.startswith(PARAM + "/"):
         return None
     split = split_channel_name(key[len(PARAM) :])
-    return None if split is None else f"{param_key(split[0])}{GLOBAL_PREFIX}/**"
+    return None if split is None else topic_params_filter(split[0])
+
+
+def topic_params_filter(topic: str) -> str:
+    """The key expression of every parameter of channel ``topic``."""
+    return f"{param_key(topic)}{GLOBAL_PREFIX}/**"
 
 
 def own_key(node_id: str, name: str = "") -> str:
@@ -129,17 +159,26 @@ def own_name(key: str) -> tuple[str, str] | None:
     return parts[2], "/" + parts[3]
 
 
-def node_key(node_id: str, zid: str) -> str:
-    """A session's liveliness token."""
-    return f"{NODE}/{node_id}/{zid}"
+def node_key(node_id: str, zid: str, *, follows_all: bool = True) -> str:
+    """A session's liveliness token, saying whether it follows every parameter.
+
+    A session that follows only its own channels' (a robot) needs no meeting with another such
+    session: neither holds anything the other hears. Two robots of a fleet then never meet, and
+    a fleet's start costs each robot a meeting with each session that follows everything, not
+    with every robot (80 x 4 robots meeting each other delayed the optimizer's heartbeat by 6 s).
+    """
+    scope = _FOLLOWS_ALL if follows_all else _FOLLOWS_OWN
+    return f"{NODE}/{node_id}/{zid}/{scope}"
 
 
-def parse_node_key(key: str) -> tuple[str, str] | None:
-    """``(node id, zenoh id)`` of a session token; None if malformed."""
+def parse_node_key(key: str) -> tuple[str, str, bool] | None:
+    """``(node id, zenoh id, follows all)`` of a session token; None if malformed."""
     parts = key.split("/")
     if len(parts) != _NODE_PARTS or f"{parts[0]}/{parts[1]}" != NODE:
         return None
-    return parts[2], parts[3]
+    if parts[4] not in (_FOLLOWS_ALL, _FOLLOWS_OWN):
+        return None
+    return parts[2], parts[3], parts[4] == _FOLLOWS_ALL
 
 
 @dataclass(frozen=True, slots=True)

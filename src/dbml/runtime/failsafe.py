@@ -4,9 +4,11 @@ The optimizer pushes a rate (``[topic]/dbm/frequency/current_value``) when it ch
 heartbeat (``/dbm/round``) every period; either one renews the allocation for
 ``failsafe_periods`` periods. Past that deadline nobody is known to be minding the budget, so
 the channel runs at its declared minimum until an allocation or heartbeat is heard again. A
-new channel has no allocation yet: it waits for the first (the optimizer can only make room
-once it knows the size, so the wait counts from when the size is known), and if none comes
-by the deadline it runs at its minimum too.
+new channel has no allocation yet: it waits for the first, sending nothing (the optimizer can
+only make room once it knows the size, so the wait counts from when the size is known). A
+heartbeat during that wait renews it: the optimizer runs, and a fleet joining at once may take
+it several periods to admit, which is no reason to send unbudgeted frames. Only a wait in
+silence ends in the fail-safe, at the minimum.
 
 Pure state: no clock of its own (every call takes ``now``), no lock, no I/O. The publisher
 serialises calls under its lock and does the logging and the acknowledgements outside it.
@@ -38,6 +40,8 @@ class FailSafe:
         "_lapse_noted",
         "_last_heard",
         "_period_s",
+        "_wait_noted",
+        "_wait_since",
         "allocated_hz",
         "deadline",
         "max_rate_hz",
@@ -63,6 +67,9 @@ class FailSafe:
         self.deadline = math.inf
         """The allocation (or the wait for the first one) stands until then."""
         self._lapse_noted = False
+        self._wait_since = now
+        """When the wait for a first allocation began (the size known, else creation)."""
+        self._wait_noted = False
         self._renew(now)
 
     @property
@@ -114,16 +121,19 @@ class FailSafe:
     def heartbeat(self, now: float) -> float | None:
         """The optimizer's heartbeat at ``now``: the allocation it does not push again stands.
 
-        Returns that allocation (None: there is none, and a heartbeat alone allocates nothing).
+        Returns that allocation (None: there is none, and a heartbeat alone allocates nothing,
+        but it renews the wait for the first one: the optimizer is alive).
         """
         allocated = self.allocated_hz
-        if allocated is not None:
+        if allocated is not None or not self._lapse_noted:
             self._heard(now)
         return allocated
 
     def _heard(self, now: float) -> None:
         self._renew(now)
         self._lapse_noted = False
+        if self.allocated_hz is not None:
+            self._wait_noted = False
 
     def set_period(self, period_s: float) -> None:
         """A new optimisation period: the deadline counts from the last word in it."""
@@ -136,7 +146,22 @@ class FailSafe:
         Once the fail-safe was noted the channel stays at its minimum until an allocation.
         """
         if self.allocated_hz is None and not self._lapse_noted:
+            self._wait_since = now
             self._renew(now)
+
+    def note_long_wait(self, now: float) -> float | None:
+        """Seconds waited, the first time a wait renewed by heartbeats outlasts the deadline.
+
+        The optimizer runs but has not admitted the channel (it tracks too many channels, or
+        has not heard the size yet): said once, so the silence is not a mystery.
+        """
+        if not self.waiting(now) or self._wait_noted:
+            return None
+        waited_s = now - self._wait_since
+        if waited_s <= self._failsafe_periods * self._period_s:
+            return None
+        self._wait_noted = True
+        return waited_s
 
     def note_lapse(self, now: float) -> float | None:
         """Seconds since the last word, the first time ``now`` is found in fail-safe; else None.

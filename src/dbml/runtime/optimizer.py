@@ -24,14 +24,16 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, replace
 
 from dbml.core.allocation import Allocation, Status, Strategy, allocate
 from dbml.core.config import DbmSettings
 from dbml.core.errors import DbmlError
-from dbml.core.spec import LinkSpec, Problem, short_repr
-from dbml.protocol import names
+from dbml.core.spec import LinkSpec, Problem, mbit_to_bytes_per_s, short_repr
+from dbml.protocol import keys, names
+from dbml.runtime.admission import Admission
 from dbml.runtime.graph import summarize
 from dbml.runtime.params import (
     ChannelParams,
@@ -80,6 +82,8 @@ class ChannelState:
     managed: bool
     publishers: frozenset[str] = frozenset()
     """The channel's publisher declarations: when they change, its rate is pushed again."""
+    hosts: frozenset[str] = frozenset()
+    """The hosts its publishers run on: its values go in their batches."""
 
     @property
     def topic(self) -> str:
@@ -137,6 +141,9 @@ class OptimizerNode:
         self._ack_timeout_s = ack_timeout_s
         self._estimate = budget_mbit
         self._pushed: dict[str, tuple[float, frozenset[str]]] = {}
+        self._pushed_at: dict[str, float] = {}
+        """When each channel's rate was last pushed: one not acknowledged a period later is
+        pushed again."""
         self._owned: dict[str, ParamValue] = {}
         """What this node last wrote of the values it owns (rates, managed flags, status)."""
         self._rounds = 0
@@ -261,7 +268,9 @@ class OptimizerNode:
             params = channel_params(values, topic)
             if params.bounded:  # else a publisher that has not declared valid bounds yet
                 managed = topic in graph.managed
-                states.append(ChannelState(params, managed, graph.publishers[topic]))
+                states.append(
+                    ChannelState(params, managed, graph.publishers[topic], graph.hosts[topic])
+                )
             if not params.bounded or params.size_bytes is None:
                 incomplete.add(topic)
         self._refresh(entries, incomplete)
@@ -350,9 +359,8 @@ class OptimizerNode:
             log.warning("infeasible: %s", message)
         elif names.STATUS_MESSAGE in updates:
             log.info("%s", message)
-        publishers = {c.topic: c.publishers for c in channels}
         self._owned = owned | {names.current_value(t): r for t, r in rates.items()}
-        self._push(rates, publishers, updates)
+        self._push(rates, channels, updates, dbm.budget_mbit)
         result = Round(channels, rates, status, message, dbm.budget_mbit, outcome.allocation)
         self.last_round = result
         return result
@@ -360,43 +368,152 @@ class OptimizerNode:
     def _push(
         self,
         rates: dict[str, float],
-        publishers: dict[str, frozenset[str]],
+        channels: tuple[ChannelState, ...],
         updates: dict[str, ParamValue],
+        budget_mbit: float | None,
     ) -> None:
-        """Push what changed: decreases first (acknowledged), then the rest and the heartbeat."""
+        """Push what changed: decreases first, each increase once the room covers it, the rest.
+
+        The rest goes with the flags, the status and the heartbeat.
+        """
         params = self._transport.params
+        publishers = {c.topic: c.publishers for c in channels}
+        now = self._transport.now()
         # Changed, or for new publishers (a restarted one heard nothing), or overwritten by
-        # another node (the store is not ours alone): pushed; an unchanged rate is not.
+        # another node (the store is not ours alone), or not acknowledged for a period (the push
+        # or its acknowledgement was lost on the way): pushed; an unchanged rate is not.
         changed = {
             t: r
             for t, r in rates.items()
             if self._pushed.get(t) != (r, publishers.get(t))
             or params.get(names.current_value(t)) != r
+            or (
+                self._applied_hz(t) != r
+                and now - self._pushed_at.get(t, now) >= self._view.dbm().period_s
+            )
         }
 
-        def running(topic: str) -> float | None:
-            """What the publisher acknowledged running, else what we last pushed."""
-            applied = self._applied_hz(topic)
-            if applied is not None:
-                return applied
-            pushed = self._pushed.get(topic)
-            return None if pushed is None else pushed[0]
-
-        before = {t: running(t) for t in changed}
+        before = {t: self._running_hz(t) for t in changed}
         # A channel nobody pushed to yet sends nothing: it rises from zero, after the decreases.
         decreases = {t: r for t, r in changed.items() if (b := before[t]) is not None and r < b}
         increases = {t: r for t, r in changed.items() if t not in decreases}
         if decreases and increases:
-            params.set_many({names.current_value(t): r for t, r in decreases.items()})
-            self._await_acks(decreases)
+            self._send({names.current_value(t): r for t, r in decreases.items()}, channels)
+            self._pushed_at.update(dict.fromkeys(decreases, now))
+            sizes = {
+                c.topic: c.params.size_bytes
+                for c in channels
+                if c.managed and c.params.size_bytes is not None
+            }
+            increases = self._admit(increases, decreases, sizes, budget_mbit, channels)
             decreases = {}
         self._rounds += 1
-        params.set_many(
+        self._send(
             {names.current_value(t): r for t, r in (decreases | increases).items()}
             | updates
-            | {names.ROUND: self._rounds}
+            | {names.ROUND: self._rounds},
+            channels,
         )
+        self._pushed_at.update(dict.fromkeys(decreases | increases, now))
         self._pushed = {t: (r, publishers.get(t, frozenset())) for t, r in rates.items()}
+        for topic in set(self._pushed_at) - set(rates):
+            del self._pushed_at[topic]
+
+    def _admit(
+        self,
+        increases: dict[str, float],
+        decreases: dict[str, float],
+        sizes: dict[str, float],
+        budget_mbit: float | None,
+        channels: tuple[ChannelState, ...],
+    ) -> dict[str, float]:
+        """Push each increase as soon as acknowledged decreases make room for it.
+
+        Bounded by ``ack_timeout_s``; returns the increases still waiting then, which go with the
+        round.
+        """
+        if budget_mbit is None:  # nothing to count room against: every acknowledgement first
+            self._await_acks(decreases)
+            return increases
+        # Each channel at the higher of what it acknowledged and what it was last told: an
+        # increase of an earlier round not acknowledged yet may be in force already.
+        running = {t: max(self._applied_hz(t) or 0.0, self._pushed_hz(t)) for t in sizes}
+        admission = Admission.start(
+            budget_bytes_per_s=mbit_to_bytes_per_s(budget_mbit),
+            running_hz=running,
+            new_hz={t: r for t, r in increases.items() if t in sizes},
+            sizes_bytes=sizes,
+        )
+        waiting = {t for t in decreases if t in sizes}
+        # Real time, as the condition's wait: acknowledgements come from other threads.
+        deadline = time.monotonic() + self._ack_timeout_s
+        unmanaged = {t: r for t, r in increases.items() if t not in sizes}
+
+        def acknowledged() -> list[str]:
+            return [t for t in waiting if self._applied_hz(t) == decreases[t]]
+
+        while True:
+            for topic in acknowledged():
+                waiting.discard(topic)
+                admission.acknowledged(
+                    topic,
+                    before_hz=running.get(topic, 0.0),
+                    after_hz=decreases[topic],
+                    size=sizes[topic],
+                )
+            ready = admission.covered()
+            if ready:
+                now = self._transport.now()
+                self._send({names.current_value(t): increases[t] for t in ready}, channels)
+                self._pushed_at.update(dict.fromkeys(ready, now))
+            if not admission.rest() or not waiting:
+                break
+            left = deadline - time.monotonic()
+            if left <= 0:
+                log.warning(
+                    "no acknowledgement of a decrease from %s; raising others anyway",
+                    sorted(waiting),
+                )
+                break
+            with self._acks:  # the predicate under the lock: no acknowledgement slips by
+                self._acks.wait_for(lambda: bool(acknowledged()), timeout=left)
+        return unmanaged | {t: increases[t] for t in admission.rest()}
+
+    def _send(self, values: dict[str, ParamValue], channels: tuple[ChannelState, ...]) -> None:
+        """Write ``values`` in batches: a channel's to each host that publishes it, the rest to all.
+
+        The rest: global values, channels without a known host. So what a robot hears per round
+        is its own channels' share, whatever the fleet's size.
+        """
+        hosts = {c.topic: c.hosts for c in channels}
+        common: dict[str, ParamValue] = {}
+        by_host: dict[str, dict[str, ParamValue]] = {}
+        for name, value in values.items():
+            split = names.topic_of(name)
+            addressed = hosts.get(split[0], frozenset()) if split is not None else frozenset()
+            valid = [h for h in addressed if keys.is_host_name(h)]
+            if not valid:
+                common[name] = value
+            for host in valid:
+                by_host.setdefault(host, {})[name] = value
+        params = self._transport.params
+        for host in sorted(by_host):
+            params.set_many(by_host[host], host=host)
+        if common:
+            params.set_many(common)
+
+    def _pushed_hz(self, topic: str) -> float:
+        """The rate last pushed to ``topic`` in an earlier round (0 if none)."""
+        pushed = self._pushed.get(topic)
+        return 0.0 if pushed is None else pushed[0]
+
+    def _running_hz(self, topic: str) -> float | None:
+        """What the publisher acknowledged running, else what was last pushed to it."""
+        applied = self._applied_hz(topic)
+        if applied is not None:
+            return applied
+        pushed = self._pushed.get(topic)
+        return None if pushed is None else pushed[0]
 
     def _applied_hz(self, topic: str) -> float | None:
         """The rate the publisher acknowledged (validated by the view)."""

@@ -189,18 +189,22 @@ class ManagedPublisher:
             self._qos_stale = True
 
     def _on_allocation(self, value: float) -> None:
-        """Apply a pushed rate and acknowledge it if it changed."""
+        """Apply a pushed rate and acknowledge it.
+
+        Every push is acknowledged, also one that changes nothing: the optimizer pushes again
+        what was not acknowledged (a push or its acknowledgement lost to a route not yet up).
+        """
         allocation = self._allocation
         with self._lock:
-            previous, recovered = allocation.allocated_hz, allocation.lapse_noted
+            recovered = allocation.lapse_noted
             now = self._now()
             rate = allocation.allocate(value, now)
             self._limiter.set_rate(rate, now)  # from now, exactly: credit is the rate's integral
             self._refresh_locked()
         if recovered:
             self._log_recovery(rate)
-        if rate != previous:  # a non-blocking write: this may be the middleware's callback thread
-            self._transport.params.set(names.applied(self.topic), rate)
+        # A non-blocking write: this may be the middleware's callback thread.
+        self._transport.params.set(names.applied(self.topic), rate)
 
     def _on_dbm_param(self, name: str, value: ParamValue) -> None:
         """A new optimisation period, or the optimizer's heartbeat."""
@@ -243,6 +247,14 @@ class ManagedPublisher:
         with self._lock:
             rate = allocation.rate_hz(now)
             silent_s = allocation.note_lapse(now)
+            waited_s = allocation.note_long_wait(now)
+        if waited_s is not None:
+            log.warning(
+                "%s: no first allocation after %.1f s while the optimizer's rounds arrive; "
+                "sending nothing on the optimized topic until it admits the channel",
+                self.topic,
+                waited_s,
+            )
         if silent_s is not None:
             log.warning(
                 "%s: no allocation heard for %.1f s (%g periods); fail-safe: minimum %.3f Hz",

@@ -94,7 +94,7 @@ def _node_rules(node: FleetNode) -> list[dict[str, Any]]:
     elif node.role is NodeRole.OPERATOR:
         puts.insert(0, _RECEPTION)
     elif node.role is NodeRole.OPTIMIZER:
-        puts[:0] = [keys.BATCH, _LINK]
+        puts[:0] = [f"{keys.BATCH}/**", _LINK]  # the batch for all, and each host's
         replies = [f"{keys.OWN}/**"]  # it keeps, and serves, values whose writer has left
     prefix = f"{node.name}/"
     rules = [
@@ -135,7 +135,7 @@ def access_control(fleet: Fleet) -> dict[str, Any]:
         },
         _rule("subscribe", ["declare_subscriber"], ["**"]),
         _rule("own-values", ["declare_queryable", "query"], [f"{keys.OWN}/**"]),
-        _rule("node-token", ["liveliness_token"], [f"{keys.NODE}/*/*"]),
+        _rule("node-token", ["liveliness_token"], [f"{keys.NODE}/*/*/*"]),
         _rule(
             "liveliness", ["declare_liveliness_subscriber", "liveliness_query"], [f"{keys.ROOT}/**"]
         ),

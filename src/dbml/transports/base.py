@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import enum
 import os
-import re
 import socket
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -27,6 +26,7 @@ from typing import Protocol, Self, runtime_checkable
 
 from dbml.core.errors import TransportError
 from dbml.protocol import names
+from dbml.protocol.keys import is_host_name
 from dbml.protocol.names import PRIORITY_SUFFIX, check_topic
 from dbml.protocol.schema import ParamValue, check_param_value
 
@@ -55,7 +55,6 @@ DEFAULT_ROUTER_ENDPOINT = "tcp/localhost:7447"
 """Where a zenoh router of this host listens (``dbml router``, ``rmw_zenohd``): ROS 2's default.
 
 Here, not beside zenoh, so the command line can name it without importing zenoh."""
-_HOST = re.compile(r"^[A-Za-z0-9_\-.~]+$")
 
 
 def resolve_host(host: str | None = None) -> str:
@@ -64,7 +63,7 @@ def resolve_host(host: str | None = None) -> str:
     Test hosts on one machine share a hostname, so the identity must be settable.
     """
     chosen = host if host is not None else os.environ.get("DBML_HOST") or socket.gethostname()
-    if not _HOST.match(chosen):
+    if not is_host_name(chosen):
         raise TransportError(f"host={chosen!r} must be letters, digits and _-.~ only")
     return chosen
 
@@ -172,10 +171,13 @@ class ParamStore(Protocol):
         """Write ``name`` (``None`` deletes it); returns at once, never waiting on the network."""
         ...
 
-    def set_many(self, values: Mapping[str, ParamValue]) -> None:
+    def set_many(self, values: Mapping[str, ParamValue], *, host: str | None = None) -> None:
         """Write several names as one update: one message where the middleware allows.
 
         The optimizer pushes a round's allocation this way, not one write per channel.
+        ``host``: the values concern the channels published on that host only; a middleware
+        that can address it sends them to that host's sessions (and to those that follow
+        every parameter), so a robot does not hear the fleet's allocation.
         """
         ...
 

@@ -107,7 +107,8 @@ class _MemoryParams:
             network.params[name] = (value, network.next_stamp())
         network.param_watchers.fire(name, value)
 
-    def set_many(self, values: Mapping[str, ParamValue]) -> None:
+    def set_many(self, values: Mapping[str, ParamValue], *, host: str | None = None) -> None:
+        """Every value to every transport: one network, no hosts to address (``host`` unused)."""
         for value in values.values():
             check_param_value(value)
         network = self._transport.network

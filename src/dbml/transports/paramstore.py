@@ -38,6 +38,7 @@ from dbml.core.spec import short_repr
 from dbml.protocol.keys import (
     BATCH,
     PARAM,
+    batch_key,
     decode_batch,
     decode_param,
     encode_batch,
@@ -135,16 +136,21 @@ class ReplicatedParams:
             self._sender.put((key, encode_param(value, stamp, self.node_id)), slot=key)
         self.watchers.fire(name, value)
 
-    def set_many(self, values: Mapping[str, ParamValue]) -> None:
-        """Write several names as one message (one stamp), then notify each change."""
+    def set_many(self, values: Mapping[str, ParamValue], *, host: str | None = None) -> None:
+        """Write several names as one message (one stamp), then notify each change.
+
+        ``host``: the batch goes under that host's batch key, which only its sessions (and
+        those that follow every parameter) hear.
+        """
         if not values:
             return
+        key = batch_key(host)  # checks the host
         with self._lock:
             stamp = self._stamp_locked(list(values))
             data = encode_batch(values, stamp, self.node_id)  # checks every name and value
             for name, value in values.items():
                 self._values[name] = (value, stamp, self.node_id)
-            self._sender.put((BATCH, data))  # never replaced: batches name different sets
+            self._sender.put((key, data))  # never replaced: batches name different sets
         for name, value in values.items():
             self.watchers.fire(name, value)
 

@@ -298,8 +298,11 @@ class RclpyParams:
         """Hold ``value`` here at once; the executor thread hands it to its node."""
         self.set_many({name: value})
 
-    def set_many(self, values: Mapping[str, ParamValue]) -> None:
-        """Hold every value here at once; the executor thread sends them, one message per node."""
+    def set_many(self, values: Mapping[str, ParamValue], *, host: str | None = None) -> None:
+        """Hold every value here at once; the executor thread sends them, one message per node.
+
+        A value lives on its channel's own ROS 2 node already: ``host`` adds nothing.
+        """
         checked = {name: check_param_value(value) for name, value in values.items()}
         for name, value in checked.items():
             _parameter, node, _ros2_name = node_of(name)

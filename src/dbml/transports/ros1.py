@@ -437,8 +437,11 @@ class _Ros1Params:
                         if not left.sent and left.queued is None:
                             del self._own[name]
 
-    def set_many(self, values: Mapping[str, ParamValue]) -> None:
-        """Write each on the parameter server (ROS 1 has no multi-set); all checked first."""
+    def set_many(self, values: Mapping[str, ParamValue], *, host: str | None = None) -> None:
+        """Write each on the parameter server (ROS 1 has no multi-set); all checked first.
+
+        The server holds every value for every node: ``host`` addresses nothing here.
+        """
         for name, value in values.items():
             check_topic(name)
             check_param_value(value)

@@ -732,7 +732,7 @@ class Ros2Transport(TransportBase):
         parsed = keys.parse_node_key(key)
         if parsed is None:
             return  # dbml's own transport logs malformed ones
-        node_id, zid = parsed
+        node_id, zid, _follows_all = parsed
         if not (keys.is_node_id(node_id) and _ZID.fullmatch(zid)):
             self._log.warning(key, "ignoring dbml node token %r: not <16 hex>/<zenoh id>", key)
             return

@@ -391,7 +391,7 @@ class _ZenohGraph:
         if sample.kind == zenoh.SampleKind.PUT:
             # A publisher declares its parameters before it announces itself: what its session
             # owns now includes them, even if their writes went out before they could reach us.
-            self._transport.fetch_owner_of(entry.uid)
+            self._transport.fetch_owner_of(entry.uid, entry.topic)
         self.watchers.fire()
 
 
@@ -441,7 +441,11 @@ class ZenohTransport(TransportBase):
         # Each declaration until it is closed: a dropped zenoh object is undeclared.
         self._declared: set[_Declaration] = set()
         self._sync = ParamSync(
-            self.session, self.node_id, follow_all=follow_all_params, priority=_CONTROL
+            self.session,
+            self.node_id,
+            host=self.host,
+            follow_all=follow_all_params,
+            priority=_CONTROL,
         )
         self.params = self._sync.params
         self.graph = _ZenohGraph(self)
@@ -454,13 +458,21 @@ class ZenohTransport(TransportBase):
 
     # -- the parameter store ----------------------------------------------------------------
 
-    def fetch_owner_of(self, uid: str) -> None:
-        """Fetch what the session that made graph entry ``uid`` owns."""
-        self._sync.fetch_owner_of(uid)
+    def fetch_owner_of(self, uid: str, topic: str) -> None:
+        """Fetch what the session that made graph entry ``uid`` on ``topic`` owns.
+
+        Only if this session hears that channel's parameters.
+        """
+        self._sync.fetch_owner_of(uid, topic)
 
     def refresh(self, entry: GraphEntry) -> None:
         """Meet the session that made ``entry`` again: both fetch what the other owns."""
         self._sync.refresh(entry.uid)
+
+    @property
+    def control_messages_received(self) -> int:
+        """Parameter writes and batches delivered to this session so far (for measurement)."""
+        return self._sync.received_messages
 
     def wait_for_peers(self, timeout_s: float) -> bool:
         """Wait until another dbml session is reachable and what the sessions met own is here."""
@@ -561,6 +573,8 @@ def open_router(listen: Iterable[str]) -> zenoh.Session:
         config.insert_json5("listen/endpoints", _json_list(endpoints, listening=True))
         config.insert_json5("scouting/multicast/enabled", "false")
         config.insert_json5("transport/shared_memory/enabled", "false")
+        # A session may open a link per range of priorities (``priority_links``) to it.
+        config.insert_json5("transport/unicast/max_links", str(len(PRIORITY_LINK_RANGES)))
         put_link_timeouts(config)
         prepare_runtime()
         return zenoh.open(config)
