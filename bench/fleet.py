@@ -27,7 +27,9 @@ parameters. Per size:
   ``WireSniffer`` in the operator's session) over the budget, from convergence to the end of the
   reactions; ``..._steady`` over the steady state only; ``delivered_mean_over_budget``: its mean;
   ``delivered_ideal_over_budget``: the same window over perfectly periodic publishers at the
-  allocated rates, which reads above 1 too (a window holds whole messages): the metric's floor.
+  allocated rates, which reads above 1 too (a window holds whole messages): the metric's floor;
+  ``sent_over_budget``: the worst window by the messages' send times (their metadata), the same
+  span, so a receiver that stalled and took a burst late does not read as overspend.
 - ``failsafe_events``: warnings containing ``fail-safe`` logged in the robot processes, from start
   to teardown. ``sessions``: robots + operator + optimizer + probe.
 - ``robot_control_msgs_per_s``: parameter writes and batches delivered to the robots' sessions,
@@ -306,6 +308,9 @@ def run_operator(
                 since_s, until_s, limit = (float(w) for w in words[1:])
                 arrivals = [a for a in sniffer.arrivals(since_s=since_s) if a[0] <= until_s]
                 stats = window_stats(arrivals, limit_bytes=limit)
+                wall = time.time() - time.monotonic()  # the send times are wall clock
+                sent = [s for s in sniffer.sent(since_s=since_s + wall) if s[0] <= until_s + wall]
+                by_send_time = window_stats(sent, limit_bytes=limit)
                 emit(
                     {
                         "type": "stats",
@@ -314,6 +319,7 @@ def run_operator(
                         "windows": stats.windows,
                         "worst_bytes": stats.worst_bytes,
                         "over_share": stats.over_share,
+                        "worst_sent_bytes": by_send_time.worst_bytes,
                     }
                 )
     finally:
@@ -720,6 +726,7 @@ def empty_row(
         "delivered_over_budget_steady": None,
         "delivered_mean_over_budget": None,
         "delivered_ideal_over_budget": None,
+        "sent_over_budget": None,
         "fleet_cpu_pct": None,
         "host_cpu_pct": None,
         "robot_control_msgs_per_s": None,
@@ -904,6 +911,7 @@ def run_size(
     stats = fleet.operator_stats(t_a, time.monotonic(), budget_bps)
     if stats is not None and stats["windows"]:
         row["delivered_over_budget"] = round(stats["worst_bytes"] / budget_bps, 4)
+        row["sent_over_budget"] = round(stats["worst_sent_bytes"] / budget_bps, 4)
     if fleet.dead() and row["error"] is None:
         row["error"] = f"ended before the teardown: {fleet.dead()}"
 

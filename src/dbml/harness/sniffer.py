@@ -4,6 +4,8 @@ The budget is a promise about bytes on the wire, not about the rates the optimiz
 benchmarks and tests that claim it count what a plain zenoh subscriber receives: every sample's
 payload size and arrival time, on a key expression such as ``*/*/optimized``. ``worst_window``
 slides a window (1 s by default) over every arrival and returns the most bytes any window held.
+Where a sample carries dbml's metadata, its send time is kept too (``sent``): windows by send
+time tell a publisher's overspend from a receiver that stalled and took a burst late.
 """
 
 from __future__ import annotations
@@ -15,10 +17,14 @@ from dataclasses import dataclass
 
 import zenoh
 
+from dbml.core.errors import TransportError
+from dbml.protocol.metadata import MessageMeta
+
 __all__ = ["WindowStats", "WireSniffer", "window_stats"]
 
 WINDOW_S = 1.0
 """The paper's budget is per second: the default sliding window."""
+_NS_PER_S = 1e9
 
 
 @dataclass(frozen=True, slots=True)
@@ -76,12 +82,27 @@ class WireSniffer:
         self._clock = clock
         self._lock = threading.Lock()
         self._arrivals: list[tuple[float, int]] = []
+        self._sent: list[tuple[float, int]] = []
         self._subscriber = session.declare_subscriber(key_expr, self._on_sample)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         size = len(sample.payload)
+        attachment = sample.attachment
+        sent_s = None
+        if attachment is not None:
+            try:
+                sent_s = MessageMeta.decode(attachment.to_bytes()).sent_ns / _NS_PER_S
+            except TransportError:
+                sent_s = None  # not dbml's: its arrival alone counts
         with self._lock:
             self._arrivals.append((self._clock(), size))
+            if sent_s is not None:
+                self._sent.append((sent_s, size))
+
+    def sent(self, *, since_s: float = -float("inf")) -> list[tuple[float, int]]:
+        """Every ``(sent_s, bytes)`` carrying a send time (wall clock) at or after ``since_s``."""
+        with self._lock:
+            return [s for s in self._sent if s[0] >= since_s]
 
     def arrivals(self, *, since_s: float = -float("inf")) -> list[tuple[float, int]]:
         """Every ``(t_s, bytes)`` recorded at or after ``since_s``."""
@@ -92,6 +113,7 @@ class WireSniffer:
         """Forget what was recorded (a warm-up, say)."""
         with self._lock:
             self._arrivals.clear()
+            self._sent.clear()
 
     def close(self) -> None:
         """Stop recording."""

@@ -24,16 +24,14 @@ from __future__ import annotations
 
 import logging
 import threading
-import time
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, replace
 
 from dbml.core.allocation import Allocation, Status, Strategy, allocate
 from dbml.core.config import DbmSettings
 from dbml.core.errors import DbmlError
-from dbml.core.spec import LinkSpec, Problem, mbit_to_bytes_per_s, short_repr
+from dbml.core.spec import LinkSpec, Problem, short_repr
 from dbml.protocol import keys, names
-from dbml.runtime.admission import Admission
 from dbml.runtime.graph import summarize
 from dbml.runtime.params import (
     ChannelParams,
@@ -360,7 +358,7 @@ class OptimizerNode:
         elif names.STATUS_MESSAGE in updates:
             log.info("%s", message)
         self._owned = owned | {names.current_value(t): r for t, r in rates.items()}
-        self._push(rates, channels, updates, dbm.budget_mbit)
+        self._push(rates, channels, updates)
         result = Round(channels, rates, status, message, dbm.budget_mbit, outcome.allocation)
         self.last_round = result
         return result
@@ -370,12 +368,8 @@ class OptimizerNode:
         rates: dict[str, float],
         channels: tuple[ChannelState, ...],
         updates: dict[str, ParamValue],
-        budget_mbit: float | None,
     ) -> None:
-        """Push what changed: decreases first, each increase once the room covers it, the rest.
-
-        The rest goes with the flags, the status and the heartbeat.
-        """
+        """Push what changed: decreases first (acknowledged), then the rest and the heartbeat."""
         params = self._transport.params
         publishers = {c.topic: c.publishers for c in channels}
         now = self._transport.now()
@@ -400,12 +394,7 @@ class OptimizerNode:
         if decreases and increases:
             self._send({names.current_value(t): r for t, r in decreases.items()}, channels)
             self._pushed_at.update(dict.fromkeys(decreases, now))
-            sizes = {
-                c.topic: c.params.size_bytes
-                for c in channels
-                if c.managed and c.params.size_bytes is not None
-            }
-            increases = self._admit(increases, decreases, sizes, budget_mbit, channels)
+            self._await_acks(decreases)
             decreases = {}
         self._rounds += 1
         self._send(
@@ -418,66 +407,6 @@ class OptimizerNode:
         self._pushed = {t: (r, publishers.get(t, frozenset())) for t, r in rates.items()}
         for topic in set(self._pushed_at) - set(rates):
             del self._pushed_at[topic]
-
-    def _admit(
-        self,
-        increases: dict[str, float],
-        decreases: dict[str, float],
-        sizes: dict[str, float],
-        budget_mbit: float | None,
-        channels: tuple[ChannelState, ...],
-    ) -> dict[str, float]:
-        """Push each increase as soon as acknowledged decreases make room for it.
-
-        Bounded by ``ack_timeout_s``; returns the increases still waiting then, which go with the
-        round.
-        """
-        if budget_mbit is None:  # nothing to count room against: every acknowledgement first
-            self._await_acks(decreases)
-            return increases
-        # Each channel at the higher of what it acknowledged and what it was last told: an
-        # increase of an earlier round not acknowledged yet may be in force already.
-        running = {t: max(self._applied_hz(t) or 0.0, self._pushed_hz(t)) for t in sizes}
-        admission = Admission.start(
-            budget_bytes_per_s=mbit_to_bytes_per_s(budget_mbit),
-            running_hz=running,
-            new_hz={t: r for t, r in increases.items() if t in sizes},
-            sizes_bytes=sizes,
-        )
-        waiting = {t for t in decreases if t in sizes}
-        # Real time, as the condition's wait: acknowledgements come from other threads.
-        deadline = time.monotonic() + self._ack_timeout_s
-        unmanaged = {t: r for t, r in increases.items() if t not in sizes}
-
-        def acknowledged() -> list[str]:
-            return [t for t in waiting if self._applied_hz(t) == decreases[t]]
-
-        while True:
-            for topic in acknowledged():
-                waiting.discard(topic)
-                admission.acknowledged(
-                    topic,
-                    before_hz=running.get(topic, 0.0),
-                    after_hz=decreases[topic],
-                    size=sizes[topic],
-                )
-            ready = admission.covered()
-            if ready:
-                now = self._transport.now()
-                self._send({names.current_value(t): increases[t] for t in ready}, channels)
-                self._pushed_at.update(dict.fromkeys(ready, now))
-            if not admission.rest() or not waiting:
-                break
-            left = deadline - time.monotonic()
-            if left <= 0:
-                log.warning(
-                    "no acknowledgement of a decrease from %s; raising others anyway",
-                    sorted(waiting),
-                )
-                break
-            with self._acks:  # the predicate under the lock: no acknowledgement slips by
-                self._acks.wait_for(lambda: bool(acknowledged()), timeout=left)
-        return unmanaged | {t: increases[t] for t in admission.rest()}
 
     def _send(self, values: dict[str, ParamValue], channels: tuple[ChannelState, ...]) -> None:
         """Write ``values`` in batches: a channel's to each host that publishes it, the rest to all.
@@ -501,11 +430,6 @@ class OptimizerNode:
             params.set_many(by_host[host], host=host)
         if common:
             params.set_many(common)
-
-    def _pushed_hz(self, topic: str) -> float:
-        """The rate last pushed to ``topic`` in an earlier round (0 if none)."""
-        pushed = self._pushed.get(topic)
-        return 0.0 if pushed is None else pushed[0]
 
     def _running_hz(self, topic: str) -> float | None:
         """What the publisher acknowledged running, else what was last pushed to it."""
