@@ -373,6 +373,7 @@ class OptimizerNode:
         params = self._transport.params
         publishers = {c.topic: c.publishers for c in channels}
         now = self._transport.now()
+        period_s = self._view.dbm().period_s  # once per round, not once per channel
         # Changed, or for new publishers (a restarted one heard nothing), or overwritten by
         # another node (the store is not ours alone), or not acknowledged for a period (the push
         # or its acknowledgement was lost on the way): pushed; an unchanged rate is not.
@@ -381,10 +382,7 @@ class OptimizerNode:
             for t, r in rates.items()
             if self._pushed.get(t) != (r, publishers.get(t))
             or params.get(names.current_value(t)) != r
-            or (
-                self._applied_hz(t) != r
-                and now - self._pushed_at.get(t, now) >= self._view.dbm().period_s
-            )
+            or (self._applied_hz(t) != r and now - self._pushed_at.get(t, now) >= period_s)
         }
 
         before = {t: self._running_hz(t) for t in changed}
