@@ -28,7 +28,12 @@ ifdef _ROS_WHEELS_BOOTSTRAP_COMPLETE
 unexport _ROS_WHEELS_BOOTSTRAP_COMPLETE LD_LIBRARY_PATH
 endif
 
-.PHONY: run run-ros1 demo-ros1 ros1 test lint typecheck pytest pytest-ros1 bench clean
+# The browser test's page: Foxglove Studio (@foxglove/studio-base, from npm) built into web/studio/dist.
+STUDIO := web/studio
+STUDIO_DIST := $(STUDIO)/dist/index.html
+HAVE_NPM := $(shell command -v npm >/dev/null 2>&1 && echo yes)
+
+.PHONY: run run-ros1 demo-ros1 ros1 test lint typecheck pytest pytest-ros1 bench studio screenshot clean
 
 $(STAMP): pyproject.toml
 	rm -rf $(VENV)
@@ -67,8 +72,18 @@ lint: $(STAMP)
 typecheck: $(STAMP)
 	$(BIN)/mypy src tests bench
 
-pytest: $(STAMP)
+# Without npm the browser tests skip (under CI=true they fail: the page must be there).
+pytest: $(STAMP) $(if $(HAVE_NPM),$(STUDIO_DIST))
 	$(BIN)/pytest -m "not ros1"
+
+$(STUDIO_DIST): $(STUDIO)/package.json $(STUDIO)/package-lock.json $(STUDIO)/build.mjs $(STUDIO)/index.html $(STUDIO)/page.js
+	cd $(STUDIO) && npm ci --no-audit --no-fund && npm run build
+
+studio: $(STUDIO_DIST)
+
+# The README's picture: the browser test's live screenshot of the demo.
+screenshot: $(STAMP) $(STUDIO_DIST)
+	DBML_SCREENSHOT=docs/foxglove.png $(BIN)/pytest -m browser -k live tests/browser
 
 ifeq ($(HAVE_ROS1),yes)
 pytest-ros1: $(ROS1_STAMP)
@@ -90,4 +105,5 @@ else
 endif
 
 clean:
-	rm -rf $(VENV) $(ROS1_VENV) .mypy_cache .pytest_cache .ruff_cache .hypothesis
+	rm -rf $(VENV) $(ROS1_VENV) .mypy_cache .pytest_cache .ruff_cache .hypothesis \
+		$(STUDIO)/node_modules $(STUDIO)/dist

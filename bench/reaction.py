@@ -21,7 +21,14 @@ priority`` does, which makes the same call). The timer starts before the request
 acknowledgement is R1's ``frequency.applied_value`` changing on that node, heard through
 ``/parameter_events``. The service's own round trip (request to response) is reported beside it.
 
+``--foxglove`` measures the same series twice in one run: first without the live view (the
+reference), then with the optimizer serving it (``dbml optimizer --foxglove PORT --record
+FILE``) to a Foxglove client of this process that subscribes to every channel, as the app does.
+Both documents are printed, with the view's cost: the difference of the percentiles, and what
+the optimizer process said its view spent per look.
+
     python bench/reaction.py [--json] [--changes 200] [--transport zenoh|rclpy] [--setter ros2|dbml]
+                             [--foxglove]
 """
 
 from __future__ import annotations
@@ -31,6 +38,7 @@ import contextlib
 import json
 import math
 import os
+import re
 import socket
 import subprocess
 import sys
@@ -46,6 +54,10 @@ from typing import Any
 import numpy as np
 from rich.console import Console
 from rich.table import Table
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from tests.foxglove_client import FoxgloveClient
 
 from dbml import ChannelSpec, Problem, allocate
 from dbml.harness.ros2env import (
@@ -205,8 +217,8 @@ class Probe:
         self._handle.close()
 
 
-def start_fleet(fleet: Fleet, config: Path) -> None:
-    fleet.start("optimizer", "optimizer", "--config", str(config), "--host", "base")
+def start_fleet(fleet: Fleet, config: Path, view: tuple[str, ...] = ()) -> None:
+    fleet.start("optimizer", "optimizer", "--config", str(config), "--host", "base", *view)
     for topic, size, host in CAMERAS:
         fleet.start(
             f"publish-{host}",
@@ -344,7 +356,51 @@ def open_network(transport_name: str, setter: str, workdir: Path) -> Iterator[Ne
             os.environ.update(saved)
 
 
-def measure(changes: int, transport_name: str = "zenoh", setter: str = "ros2") -> dict[str, Any]:
+class Viewer:
+    """A Foxglove client on its own thread, subscribed to every channel, counting messages."""
+
+    def __init__(self, url: str) -> None:
+        self._url = url
+        self._stop = threading.Event()
+        self.client: FoxgloveClient | None = None
+        self.error: str | None = None
+        self._thread = threading.Thread(target=self._run, name="viewer", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        try:
+            with FoxgloveClient(self._url, timeout_s=READY_S) as client:
+                self.client = client
+                client.pump(self._stop.is_set, timeout_s=MEASURE_S + 2 * READY_S)
+        except Exception as err:  # said in the document, not a dead bench
+            self.error = repr(err)
+
+    def counts(self) -> dict[str, int]:
+        client = self.client
+        if client is None:
+            return {}
+        return {topic: len(messages) for topic, messages in dict(client.messages).items()}
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=STOP_S)
+
+
+VIEW_COST = re.compile(r"live view: (\d+) looks, ([0-9.]+) ms mean, ([0-9.]+) ms max per look")
+
+
+def view_cost(log_text: str) -> dict[str, float] | None:
+    """What the optimizer's view said it spent per look (at its close)."""
+    found = VIEW_COST.findall(log_text)
+    if not found:
+        return None
+    looks, mean_ms, max_ms = found[-1]
+    return {"looks": int(looks), "mean_ms": float(mean_ms), "max_ms": float(max_ms)}
+
+
+def measure(
+    changes: int, transport_name: str = "zenoh", setter: str = "ros2", *, foxglove: bool = False
+) -> dict[str, Any]:
     table = {p: expected_rates(p) for p in PRIORITIES}
     if same_rate(table[PRIORITIES[0]][R1], table[PRIORITIES[1]][R1]):
         raise SystemExit("the priorities chosen do not change R1's rate")
@@ -360,13 +416,20 @@ def measure(changes: int, transport_name: str = "zenoh", setter: str = "ros2") -
         )
         transport = network.transport
         fleet = Fleet(network.env, network.transport_args, workdir)
+        view: tuple[str, ...] = ()
+        viewer: Viewer | None = None
+        if foxglove:
+            port = free_port()
+            view = ("--foxglove", f"127.0.0.1:{port}", "--record", str(workdir / "view.mcap"))
         probe: Probe | None = None
         latencies_ms: list[float] = []
         misses = unsettled = attempted = 0
         shm: list[Path] = []
         try:
             probe = Probe(transport)
-            start_fleet(fleet, config)
+            start_fleet(fleet, config, view)
+            if foxglove:
+                viewer = Viewer(f"ws://{view[1]}")
             if not transport.wait_for_peers(READY_S):
                 raise SystemExit(f"no dbml process reached\n{fleet.logs()}")
             if network.ros2 is not None and not network.ros2.wait_for_service(SERVICE_S):
@@ -408,9 +471,12 @@ def measure(changes: int, transport_name: str = "zenoh", setter: str = "ros2") -
         finally:
             if probe is not None:
                 probe.close()
+            if viewer is not None:
+                viewer.close()
             fleet.stop()
             if shm:
                 remove_fastdds_shm(shm)
+        optimizer_log = (workdir / "optimizer.log").read_text(errors="replace")
 
     def stat(values: list[float], q: float | None) -> float | None:
         if not values:
@@ -433,8 +499,13 @@ def measure(changes: int, transport_name: str = "zenoh", setter: str = "ros2") -
         "exited": exited,
         "setter": network.setter,
         "load_average_1min": round(os.getloadavg()[0], 2),
+        "foxglove": foxglove,
         **network.extra,
     }
+    if viewer is not None:
+        document["viewer_messages"] = viewer.counts()
+        document["viewer_error"] = viewer.error
+        document["view_cost_per_look"] = view_cost(optimizer_log)
     if network.ros2 is not None:
         trips = network.ros2.round_trips_ms
         document["set_parameters_round_trip_p50_ms"] = stat(trips, 50)
@@ -444,6 +515,10 @@ def measure(changes: int, transport_name: str = "zenoh", setter: str = "ros2") -
         if network.ros2.refused:
             document["set_parameters_refusal"] = network.ros2.refused[0]
     return document
+
+
+def _difference(a: float | None, b: float | None) -> float | None:
+    return None if a is None or b is None else round(a - b, 3)
 
 
 def main() -> None:
@@ -459,9 +534,27 @@ def main() -> None:
         default="ros2",
         help="rclpy: a plain node's SetParameters call (ros2, default) or params.set (dbml)",
     )
+    parser.add_argument(
+        "--foxglove",
+        action="store_true",
+        help="measure without the live view, then with the optimizer serving it to a client",
+    )
     args = parser.parse_args()
     if args.changes < 1:
         parser.error("--changes must be >= 1")
+    if args.foxglove:
+        without = measure(args.changes, args.transport, args.setter)
+        with_view = measure(args.changes, args.transport, args.setter, foxglove=True)
+        compared: dict[str, Any] = {
+            "benchmark": "reaction_with_foxglove",
+            "reference": "the same series without the live view, in this run",
+            "without_view": without,
+            "with_view": with_view,
+            "p50_ms_added": _difference(with_view["p50_ms"], without["p50_ms"]),
+            "p99_ms_added": _difference(with_view["p99_ms"], without["p99_ms"]),
+        }
+        print(json.dumps(compared))
+        return
     document = measure(args.changes, args.transport, args.setter)
     if args.json:
         print(json.dumps(document))

@@ -17,7 +17,7 @@ from dbml.core.errors import DbmlError, MissingExtraError
 from dbml.core.extras import EXTRAS, require
 
 REPO = Path(__file__).resolve().parents[1]
-OPTIONAL = ("matplotlib", "cryptography", "rclpy", "rosbags", "zenoh_ros2_sdk")
+OPTIONAL = ("matplotlib", "cryptography", "rclpy", "rosbags", "zenoh_ros2_sdk", "foxglove", "mcap")
 """What the extras bring, by the names they are imported as."""
 WITHOUT_EXTRAS = f"import sys\nfor name in {OPTIONAL!r}:\n    sys.modules[name] = None\n"
 DBML = WITHOUT_EXTRAS + "from dbml.cli import main\nsys.exit(main(sys.argv[1:]))\n"
@@ -101,6 +101,23 @@ def test_plot_names_the_plot_extra_before_running(command: str, tmp_path: Path) 
     assert not picture.exists()
 
 
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["demo", "teleop", "--json", "--foxglove", "0"],
+        ["testbed", "teleop", "--json", "--record", "run.mcap"],
+        ["monitor", "--foxglove", "0"],
+        ["optimizer", "--record", "run.mcap"],
+    ],
+)
+def test_the_live_view_names_the_viz_extra_before_running(argv: list[str], tmp_path: Path) -> None:
+    result = run(DBML, *argv, cwd=tmp_path)
+    assert result.returncode == 2
+    assert result.stdout == ""
+    assert result.stderr == installing("--foxglove and --record", "foxglove-sdk", "viz")
+    assert not (tmp_path / "run.mcap").exists()
+
+
 def test_the_ros2_transport_names_the_ros2_extra() -> None:
     result = run(DBML, "priority", "/r1/camera", "0.5", "--transport", "ros2")
     assert result.returncode == 2
@@ -153,7 +170,7 @@ def test_require_names_the_package_as_pip_knows_it(monkeypatch: pytest.MonkeyPat
 
 def test_require_refuses_an_extra_that_does_not_exist() -> None:
     with pytest.raises(
-        ValueError, match=r"^extra='plots' is not one of: plot, rclpy, ros2, secure$"
+        ValueError, match=r"^extra='plots' is not one of: plot, rclpy, ros2, secure, viz$"
     ):
         require("json", extra="plots", what="a test")
 

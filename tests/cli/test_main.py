@@ -242,6 +242,20 @@ HZ = ("--min-hz", "1", "--max-hz", "16")
         (["budget", "-3"], "/dbm/max_bandwidth_in_mbit=-3"),
         (["budget", "1e400"], "/dbm/max_bandwidth_in_mbit=inf"),
         (["budget", "11", "--utilization", "1.5"], "/dbm/max_bandwidth_utilization=1.5"),
+        (["foxglove", "layout", "--camera", "/r1/camera/optimized"], "is reserved"),
+        (["foxglove", "layout", "--channel", "r1"], "topic='r1'"),
+        (["monitor", "--foxglove", "host:"], "--foxglove='host:' must be [HOST:]PORT"),
+        (["optimizer", "--foxglove", "70000"], "--foxglove='70000': the port must be in"),
+        (["monitor", "--record", "/nonexistent/dir/v.mcap"], "directory '/nonexistent/dir'"),
+        (["demo", "teleop", "--record", "/"], "--record='/' is a directory"),
+        (
+            ["demo", "teleop", "--transport", "rclpy", "--foxglove", "0"],
+            "--foxglove/--record with --transport='rclpy'",
+        ),
+        (
+            ["testbed", "teleop", "--transport", "rclpy", "--foxglove", "0"],
+            "--foxglove/--record with --transport rclpy",
+        ),
     ],
 )
 def test_bad_command_lines_are_one_line_exit_2(
@@ -254,3 +268,18 @@ def test_bad_command_lines_are_one_line_exit_2(
     assert message in err
     assert err.count("\n") == 1
     assert "Traceback" not in err
+
+
+def test_the_foxglove_layout_shows_the_cameras_and_plots_the_channels(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    code, out, err = run(capsys, "foxglove", "layout")
+    assert (code, err) == (0, "")
+    layout = json.loads(out)
+    cameras = {c.get("cameraTopic") for c in layout["configById"].values()}
+    assert {"/r1/camera/optimized", "/r2/camera/optimized"} <= cameras
+    code, out, _ = run(capsys, "foxglove", "layout", "--camera", "/a/cam", "--channel", "/b/lidar")
+    text = json.dumps(json.loads(out))
+    assert "/a/cam/optimized" in text
+    assert "/b/lidar/dbm/frequency/current_value.data" in text
+    assert "/r1/camera" not in text

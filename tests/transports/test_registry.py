@@ -82,7 +82,7 @@ def test_optional_capabilities_have_defaults_on_every_transport() -> None:
     with transport:
         assert transport.wait_for_peers(0.0) is True
         assert transport.confirm_param("/x", timeout_s=0.0) is True
-        assert transport.camera_frame("/r1/camera", 12) == bytes(12)
+        assert transport.camera_frame("/r1/camera", 12) == bytes(range(12))
     with pytest.raises(TransportError, match="is closed"):
         transport.declare_publisher("/t")
 

@@ -34,6 +34,7 @@ from dbml.runtime.monitor import MonitorView
 from dbml.scenarios.reproduce import RobotRow, reproduce_table2
 from dbml.transports.base import Transport
 from dbml.transports.registry import TRANSPORTS, open_transport
+from dbml.view.target import ViewTarget
 
 __all__ = ["EXIT_INFEASIBLE", "EXIT_MISMATCH", "EXIT_OK", "EXIT_USAGE", "main"]
 
@@ -42,6 +43,8 @@ EXIT_MISMATCH = 1
 EXIT_INFEASIBLE = 3
 EXIT_INTERRUPTED = 130
 """What a shell reports for a program ended by Ctrl-C."""
+log = logging.getLogger("dbml")
+
 _ROUTER_POLL_S = 0.5
 """How often ``dbml router`` looks whether a signal asked it to stop."""
 
@@ -144,17 +147,37 @@ def _setup_logging(verbose: bool = True) -> None:
     logging.getLogger("rospy").setLevel(logging.WARNING)  # its INFO is its own start-up chatter
 
 
+def _view_target(args: argparse.Namespace) -> ViewTarget | None:
+    """``--foxglove`` and ``--record``, checked (and the ``viz`` extra there) before a run."""
+    target = ViewTarget.from_flags(args.foxglove, args.record)
+    if target is not None:
+        require("foxglove", extra="viz", what="--foxglove and --record", package="foxglove-sdk")
+        require("rosbags", extra="viz", what="--foxglove and --record")
+    return target
+
+
 def _run_node(
     args: argparse.Namespace,
     body: Callable[[Transport, threading.Event], int],
     *,
     follow_all_params: bool = True,
+    view: ViewTarget | None = None,
 ) -> int:
     with stop_on_signals() as stop:
         transport = _open(args, follow_all_params=follow_all_params)
         _setup_logging()
         try:
-            return body(transport, stop)
+            if view is None:
+                return body(transport, stop)
+            from dbml.view.live import open_view
+
+            live = open_view(transport, view)
+            try:
+                if view.endpoint is not None:
+                    log.info("live view: ws://%s (Foxglove: Open connection)", live.endpoint)
+                return body(transport, stop)
+            finally:
+                live.close()
         finally:
             transport.close()
 
@@ -166,6 +189,7 @@ def _cmd_optimizer(args: argparse.Namespace) -> int:
             "--estimate needs per-message send times and sequence numbers, which "
             f"--transport {args.transport} messages do not carry: use --transport zenoh or rclpy"
         )
+    view = _view_target(args)
     settings: DbmSettings | None = None
     links: tuple[LinkSpec, ...] = ()
     if args.config:
@@ -182,6 +206,7 @@ def _cmd_optimizer(args: argparse.Namespace) -> int:
             estimate=args.estimate,
             write_defaults=entry.params_complete_at_start,
         ),
+        view=view,
     )
 
 
@@ -274,6 +299,7 @@ def _cmd_budget(args: argparse.Namespace) -> int:
 
 
 def _cmd_monitor(args: argparse.Namespace) -> int:
+    view = _view_target(args)
     if args.json:
 
         def show(view: MonitorView) -> None:
@@ -284,16 +310,18 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
         return _run_node(
             args,
             lambda t, stop: commands.run_monitor(t, show=show, stop=stop, duration_s=args.duration),
+            view=view,
         )
     with Live(console=Console(), auto_refresh=False) as live:
         return _run_node(
             args,
             lambda t, stop: commands.run_monitor(
                 t,
-                show=lambda view: live.update(render.monitor_table(view), refresh=True),
+                show=lambda shown: live.update(render.monitor_table(shown), refresh=True),
                 stop=stop,
                 duration_s=args.duration,
             ),
+            view=view,
         )
 
 
@@ -358,7 +386,9 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from dbml.cli.documents import demo_document
     from dbml.demo.runner import DemoOptions, run_teleop_demo
 
-    options = DemoOptions(step_seconds=args.step_seconds, transport=args.transport)
+    options = DemoOptions(
+        step_seconds=args.step_seconds, transport=args.transport, view=_view_target(args)
+    )
     console = Console(stderr=args.json)
     title = "dbml demo teleop — live"
     with render.ExperimentView(
@@ -399,6 +429,7 @@ def _cmd_testbed(args: argparse.Namespace) -> int:
         robots=args.robots,
         topology=args.topology,
         transport=args.transport,
+        view=_view_target(args),
     )
     console = Console(stderr=args.json)
     with render.ExperimentView(
@@ -425,6 +456,16 @@ def _cmd_testbed(args: argparse.Namespace) -> int:
         ),
     )
     return EXIT_INTERRUPTED if result.interrupted else EXIT_OK
+
+
+def _cmd_foxglove(args: argparse.Namespace) -> int:
+    from dbml.protocol.names import check_channel
+    from dbml.view.layout import DEFAULT_CAMERAS, studio_layout
+
+    cameras = [check_channel(t) for t in args.camera] or list(DEFAULT_CAMERAS)
+    channels = [check_channel(t) for t in args.channel] or cameras
+    print(json.dumps(studio_layout(cameras=cameras, channels=channels), indent=2))
+    return EXIT_OK
 
 
 def _cmd_secure(args: argparse.Namespace) -> int:
@@ -470,6 +511,7 @@ _HANDLERS: dict[str, Callable[[argparse.Namespace], int]] = {
     "demo": _cmd_demo,
     "testbed": _cmd_testbed,
     "secure": _cmd_secure,
+    "foxglove": _cmd_foxglove,
 }
 
 

@@ -88,6 +88,19 @@ def _transport_options(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _view_options(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("live view (pip install 'dbml[viz]')")
+    group.add_argument(
+        "--foxglove",
+        metavar="[HOST:]PORT",
+        help="serve the live view to Foxglove or Lichtblick over WebSocket (host default "
+        "127.0.0.1): allocation, budget, rates, log, and the budget and priorities to set",
+    )
+    group.add_argument(
+        "--record", metavar="FILE.mcap", help="record the live view's channels to an MCAP file"
+    )
+
+
 def _positive(text: str) -> float:
     """A finite number > 0 (argparse reports a text that is no number)."""
     try:
@@ -131,6 +144,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="estimate the usable bandwidth from what subscribers receive (at most the budget)",
     )
     _transport_options(optimizer_cmd)
+    _view_options(optimizer_cmd)
 
     publish_cmd = commands.add_parser("publish", help="a managed publisher of synthetic payloads")
     publish_cmd.add_argument("topic", help="e.g. /r1/camera")
@@ -170,6 +184,7 @@ def build_parser() -> argparse.ArgumentParser:
     monitor_cmd.add_argument("--json", action="store_true", help="one JSON object per channel")
     monitor_cmd.add_argument("--duration", type=_positive, help="stop after S seconds")
     _transport_options(monitor_cmd)
+    _view_options(monitor_cmd)
 
     bridge_cmd = commands.add_parser(
         "bridge", help="put an existing topic under management, its publisher untouched"
@@ -217,6 +232,7 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"default {DEFAULT_TRANSPORT}; ros1 uses the master at $ROS_MASTER_URI or starts one; "
         + "; ".join(f"{name}: {entry.summary}" for name, entry in TRANSPORTS.items()),
     )
+    _view_options(demo_cmd)
 
     testbed_cmd = commands.add_parser(
         "testbed", help="experiments over real tc-shaped links in network namespaces (root)"
@@ -284,6 +300,30 @@ def build_parser() -> argparse.ArgumentParser:
     )
     testbed_cmd.add_argument("--json", action="store_true", help="one JSON object on stdout")
     testbed_cmd.add_argument("--plot", metavar="FILE.png", help="rates, latency and budget")
+    _view_options(testbed_cmd)
+
+    foxglove_cmd = commands.add_parser("foxglove", help="the live view's Foxglove layout")
+    foxglove_commands = foxglove_cmd.add_subparsers(
+        dest="foxglove_command", required=True, parser_class=_Parser
+    )
+    layout_cmd = foxglove_commands.add_parser(
+        "layout", help="print the Foxglove layout (JSON) of dbml's live view"
+    )
+    layout_cmd.add_argument(
+        "--camera",
+        action="append",
+        default=[],
+        metavar="TOPIC",
+        help="a channel whose frames get an image panel (repeatable; default the demo's "
+        "/r1/camera and /r2/camera)",
+    )
+    layout_cmd.add_argument(
+        "--channel",
+        action="append",
+        default=[],
+        metavar="TOPIC",
+        help="a channel whose rates are plotted (repeatable; default the cameras)",
+    )
 
     secure_cmd = commands.add_parser(
         "secure", help="mutual TLS and access control per role for a fleet across machines"

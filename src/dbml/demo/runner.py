@@ -36,6 +36,7 @@ from dbml.harness.rosmaster import RosMaster
 from dbml.scenarios.reproduce import reproduce_table2
 from dbml.scenarios.teleop import LINK_MBIT, MAX_RATE_HZ, MIN_RATE_HZ, ROBOTS, STEPS
 from dbml.transports.registry import TRANSPORTS
+from dbml.view.target import ViewTarget
 
 __all__ = ["MIN_STEP_S", "DemoOptions", "DemoResult", "DemoRobot", "DemoStep", "run_teleop_demo"]
 
@@ -67,6 +68,8 @@ class DemoOptions:
 
     step_seconds: float = 3.0
     transport: str = "zenoh"
+    view: ViewTarget | None = None
+    """``--foxglove``/``--record``: the operator's live view (its frames, the allocation)."""
 
     def __post_init__(self) -> None:
         if not self.step_seconds >= MIN_STEP_S:
@@ -76,6 +79,12 @@ class DemoOptions:
         if self.transport not in TRANSPORTS:
             raise DbmlError(
                 f"--transport={self.transport!r} is not one of: {', '.join(TRANSPORTS)}"
+            )
+        if self.view is not None and self.transport in PEERS_MODULES:
+            raise DbmlError(
+                f"--foxglove/--record with --transport={self.transport!r}: the operator is a "
+                "plain ROS 2 node there, without dbml's view; run the view beside it with "
+                f"`dbml monitor --transport {self.transport} --foxglove PORT`"
             )
 
 
@@ -256,6 +265,12 @@ def run_teleop_demo(options: DemoOptions, *, observe: Observer | None = None) ->
         role: RoleSpec(step_s=options.step_seconds, transport=options.transport, host=host)
         for role, host in HOSTS.items()
     }
+    if options.view is not None:  # the operator's: it receives the frames
+        specs["operator"] = replace(
+            specs["operator"],
+            foxglove=options.view.foxglove_flag,
+            record=options.view.record_flag,
+        )
     helpers: tuple[Helper, ...] = ()
     with contextlib.ExitStack() as run:
         master = RosMaster.reuse_or_start() if options.transport == "ros1" else None

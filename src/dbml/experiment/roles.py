@@ -57,6 +57,8 @@ from dbml.scenarios.teleop import LINK_MBIT, MAX_RATE_HZ, MIN_RATE_HZ, ROBOTS, S
 from dbml.transports.base import Handle, Sample, Transport, Variant
 from dbml.transports.registry import open_transport
 from dbml.transports.worker import BackgroundThread
+from dbml.view.live import LiveView, open_view
+from dbml.view.target import ViewTarget
 
 __all__ = [
     "HOSTS",
@@ -144,6 +146,10 @@ class RoleSpec:
     """A zenoh config file (the testbed's router topology: ``mode: "client"``)."""
     domain_id: int | None = None
     """The ROS 2 domain of the ``ros2`` and ``rclpy`` roles (None: ``ROS_DOMAIN_ID``)."""
+    foxglove: str | None = None
+    """The operator's live view: its Foxglove server's ``HOST:PORT`` (``--foxglove``)."""
+    record: str | None = None
+    """The operator's live view: its MCAP recording (``--record``)."""
 
     def to_json(self) -> str:
         """The spec as one JSON object (the role process's argument)."""
@@ -346,13 +352,19 @@ def _operator(
     *,
     life: Lifetime,
     emit: Emit,
+    live: LiveView | None = None,
 ) -> None:
     lock = threading.Lock()
     rows: list[Arrival] = []
+    cameras = fleet_cameras(spec.robots)
 
     def receiver(index: int) -> Callable[[Sample], None]:
+        shown = cameras[index].topic if live is not None and index < len(cameras) else None
+
         def on_sample(sample: Sample) -> None:
             arrival_s = time.time()
+            if shown is not None and live is not None:
+                live.frame(shown, sample.payload)
             try:
                 meta: MessageMeta | None = MessageMeta.decode(sample.attachment)
             except TransportError:
@@ -374,7 +386,6 @@ def _operator(
     reporter = ReceptionReporter(transport).start() if spec.estimate else None
     handles: list[Handle] = []
     subscribers: list[ManagedSubscriber] = []
-    cameras = fleet_cameras(spec.robots)
     for i, camera in enumerate(cameras):
         if spec.managed:
             subscriber = ManagedSubscriber(transport, camera.topic, receiver(i), reporter=reporter)
@@ -442,7 +453,13 @@ def _run_role(
 ) -> int:
     """The role's run; its exit code (the optimizer's, which ends at a death of its own)."""
     if role == "operator":
-        _operator(transport, t0, spec, stop, life=life, emit=emit)
+        target = ViewTarget.from_flags(spec.foxglove, spec.record)
+        live = None if target is None else open_view(transport, target)
+        try:
+            _operator(transport, t0, spec, stop, life=life, emit=emit, live=live)
+        finally:
+            if live is not None:
+                live.close()
     elif role == "optimizer":
         return _optimizer(transport, t0, spec, stop)
     elif spec.managed:

@@ -31,6 +31,7 @@ from types import TracebackType
 from dbml.core.errors import DbmlError
 
 __all__ = [
+    "NETNS_DIR",
     "OPERATOR",
     "TOPOLOGIES",
     "TRANSPORTS",
@@ -42,6 +43,8 @@ __all__ = [
 ]
 
 _PREFIX = "dbml-"
+NETNS_DIR = "/run/netns"
+"""Where ``ip netns add`` keeps a namespace's file."""
 OPERATOR = "op"
 """The operator's host: its link is the shared one, the bottleneck every robot crosses."""
 _ROUTER = "rt"
@@ -185,6 +188,14 @@ class Network:
         if isinstance(argv, str):
             raise TestbedError(f"argv={argv!r} must be a list of arguments, not a string")
         return ["ip", "netns", "exec", self.hosts[host].netns, *argv]
+
+    def netns_path(self, host: str) -> str:
+        """The file of ``host``'s namespace, for ``setns(2)`` (``ip netns`` keeps it there)."""
+        if host not in self.hosts:
+            raise TestbedError(
+                f"host {host!r} is not in the testbed (hosts: {', '.join(self.hosts)})"
+            )
+        return f"{NETNS_DIR}/{self.hosts[host].netns}"
 
     def set_link_rate(self, mbit: float, *, host: str = OPERATOR) -> None:
         """Change a link's rate live (and bring it up if it was down); queued packets drain.

@@ -30,7 +30,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -78,6 +78,7 @@ from dbml.scenarios.fleet import (
 )
 from dbml.scenarios.teleop import MAX_RATE_HZ, MIN_RATE_HZ, ROBOTS
 from dbml.testbed.bridge import read_stats
+from dbml.testbed.forward import NetnsForward
 from dbml.testbed.netns import (
     OPERATOR,
     TOPOLOGIES,
@@ -86,6 +87,7 @@ from dbml.testbed.netns import (
     TestbedError,
     privilege_problem,
 )
+from dbml.view.target import ViewTarget
 
 __all__ = [
     "ALLOCATION_TOLERANCE_HZ",
@@ -235,6 +237,8 @@ class TestbedOptions:
     utilization: float | None = DEFAULT_UTILIZATION
     transport: str = TRANSPORTS[0]
     """``zenoh``, or ``rclpy``: real ROS 2 (see the module's docstring)."""
+    view: ViewTarget | None = None
+    """``--foxglove``/``--record``: the operator's live view, its server reached from here."""
 
     @classmethod
     def from_flags(
@@ -253,6 +257,7 @@ class TestbedOptions:
         robots: int = len(ROBOTS),
         topology: str = TOPOLOGIES[0],
         transport: str = TRANSPORTS[0],
+        view: ViewTarget | None = None,
     ) -> TestbedOptions:
         """The options of the command line's flags; a bad one raises naming the flag."""
         if policy not in POLICIES:
@@ -263,6 +268,11 @@ class TestbedOptions:
             raise TestbedError(
                 f"--topology={topology} is zenoh-only (a zenoh router per host): "
                 "--transport rclpy meets over DDS discovery"
+            )
+        if transport == "rclpy" and view is not None:
+            raise TestbedError(
+                "--foxglove/--record with --transport rclpy: the operator is a plain rclpy "
+                "node there, without dbml's view"
             )
         if transport == "rclpy" and urgent_stream:
             raise TestbedError(
@@ -296,6 +306,7 @@ class TestbedOptions:
             robots=robots,
             topology=topology,
             transport=transport,
+            view=view,
         )
         both = sorted(set(common.uplinks_mbit) & set(common.robot_schedules))
         if both:
@@ -635,6 +646,38 @@ def _specs(
     return specs
 
 
+VIEW_PORT = 8765
+"""The operator's live view inside its namespace (a fresh one: the port is free there)."""
+
+
+def _with_view(spec: RoleSpec, view: ViewTarget) -> RoleSpec:
+    """The operator's spec with its live view: its server inside its namespace."""
+    inside = None if view.endpoint is None else f"127.0.0.1:{VIEW_PORT}"
+    return replace(spec, foxglove=inside, record=view.record_flag)
+
+
+@contextlib.contextmanager
+def _forward_view(network: Network, view: ViewTarget) -> Iterator[None]:
+    """``--foxglove [HOST:]PORT`` on this machine, leading to the operator's view inside."""
+    if view.endpoint is None:
+        yield
+        return
+    try:
+        forward = NetnsForward(
+            network.netns_path(OPERATOR),
+            host=view.endpoint.host,
+            port=view.endpoint.port,
+            target_port=VIEW_PORT,
+        ).start()
+    except OSError as err:
+        raise TestbedError(f"--foxglove={view.endpoint}: {err}") from None
+    log.info("live view: ws://%s:%d (the operator's, forwarded)", view.endpoint.host, forward.port)
+    try:
+        yield
+    finally:
+        forward.close()
+
+
 def _change_link(
     network: Network, options: TestbedOptions, t0: float, stop: threading.Event
 ) -> None:
@@ -912,6 +955,9 @@ def run_teleop_testbed(
         try:
             network.build()
             specs = _specs(network, options, config_file=client_config if router else None)
+            if options.view is not None:
+                specs["operator"] = _with_view(specs["operator"], options.view)
+                run.enter_context(_forward_view(network, options.view))
             helpers = _routers(network) if router else ()
             command = _zenoh_command(network)
             if rclpy:

@@ -155,6 +155,9 @@ class Publisher(Protocol):
         ...
 
 
+_RAMP = bytes(range(256))
+
+
 class ParamStore(Protocol):
     """Parameters under the paper's names, such as ``/r1/camera/dbm/priority``.
 
@@ -341,8 +344,12 @@ class TransportBase:
         """Nothing to ask again: the store is complete."""
 
     def camera_frame(self, topic: str, size_bytes: int) -> bytes:
-        """A synthetic camera frame of ``size_bytes``: raw bytes over this transport."""
-        return bytes(size_bytes)
+        """A synthetic camera frame of ``size_bytes``: raw bytes over this transport.
+
+        A ramp of byte values rather than zeros, so a viewer that shows the frames as pictures
+        (the live view's image panels) shows stripes, not a black square.
+        """
+        return (_RAMP * (size_bytes // len(_RAMP) + 1))[:size_bytes]
 
     def topic_type(self, topic: str, *, timeout_s: float) -> str | None:
         """Topics carry untyped bytes here: no type to find."""
