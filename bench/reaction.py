@@ -362,12 +362,14 @@ class Viewer:
     def __init__(self, url: str) -> None:
         self._url = url
         self._stop = threading.Event()
-        self.client: FoxgloveClient | None = None
+        self.client: Any = None
+        """The ``tests.foxglove_client.FoxgloveClient`` once connected."""
         self.error: str | None = None
         self._thread = threading.Thread(target=self._run, name="viewer", daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
+
         try:
             with FoxgloveClient(self._url, timeout_s=READY_S) as client:
                 self.client = client

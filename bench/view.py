@@ -35,6 +35,7 @@ from dbml import (
     OptimizerNode,
     open_transport,
 )
+from dbml.protocol.schema import Writer
 from dbml.view.live import LiveView, open_view
 from dbml.view.target import ViewTarget
 
@@ -79,7 +80,7 @@ def measure(channels: int, rounds: int) -> dict[str, Any]:
     with tempfile.TemporaryDirectory(prefix="dbml-view-bench-") as tmp:
         target = ViewTarget.from_flags("127.0.0.1:0", str(Path(tmp) / "view.mcap"))
         assert target is not None
-        view: LiveView = open_view(operator, target)
+        view: LiveView = open_view(operator, target, writers=frozenset({Writer.OPERATOR}))
         stop = threading.Event()
         connected = threading.Event()
         received: list[int] = []

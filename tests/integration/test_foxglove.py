@@ -160,6 +160,8 @@ def test_the_demo_view_live_and_recorded(demo: Any) -> None:
         )
         later = client.json_messages("/dbm/allocation")[before:]
         assert all(a["budget_mbit"] == pytest.approx(11.0) for a in later), later
+        # Nothing reached the store: a -3 written there would be named by the optimizer's view.
+        assert not any("ignored" in (a["status_message"] or "") for a in later), later
 
         # A good value moves the allocation, and is answered with itself.
         client.set_parameter("half", BUDGET, 5.5)

@@ -10,10 +10,11 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from dbml.protocol import names
-from dbml.protocol.schema import ParamError, ParamValue
+from dbml.protocol.schema import ParamError, ParamValue, Writer
 from dbml.view import frames
 
 R1, R2 = "/r1/camera", "/r2/camera"
+OPERATOR = frozenset({Writer.OPERATOR})
 
 
 def table2_step1() -> dict[str, ParamValue]:
@@ -96,7 +97,7 @@ def test_the_topics_are_the_paper_s_names_beside_dbml_s() -> None:
 
 def test_what_a_viewer_may_set_is_what_an_operator_writes() -> None:
     settable = frames.settable_names([R2, R1])
-    assert settable[:2] == [names.BANDWIDTH, names.UTILIZATION]
+    assert settable == [names.BANDWIDTH, names.UTILIZATION, names.priority(R1), names.priority(R2)]
     assert names.priority(R1) in settable
     assert names.priority(R2) in settable
     assert names.STATUS not in settable
@@ -116,20 +117,29 @@ def test_what_a_viewer_may_set_is_what_an_operator_writes() -> None:
         (names.priority(R1), 2.0, "/r1/camera/dbm/priority=2.0 must be"),
         (names.priority("/r9/camera"), 0.5, "not a parameter a viewer may set"),
         (names.current_value(R1), 3.0, "not a parameter a viewer may set"),
-        (names.STRATEGY, "fastest", "is not valid"),
+        (names.STRATEGY, "fair", "not a parameter a viewer may set"),
+        ("/" * 300, 1.0, "'" + "/" * 60),
     ],
 )
 def test_a_bad_setting_is_refused_naming_the_name_and_the_value(
     name: str, value: object, why: str
 ) -> None:
-    with pytest.raises(ParamError, match=re.escape(why)):
-        frames.check_setting(name, value, [R1, R2])
+    with pytest.raises(ParamError, match=re.escape(why)) as raised:
+        frames.check_setting(name, value, [R1, R2], writers=OPERATOR)
+    assert len(str(raised.value)) < 200  # a name from the network is shortened
 
 
 def test_a_good_setting_passes_as_the_schema_takes_it() -> None:
-    assert frames.check_setting(names.BANDWIDTH, 5, [R1]) == 5.0
-    assert frames.check_setting(names.priority(R1), 1, [R1]) == 1.0
-    assert frames.check_setting(names.STRATEGY, "fair", [R1]) == "fair"
+    assert frames.check_setting(names.BANDWIDTH, 5, [R1], writers=OPERATOR) == 5.0
+    assert frames.check_setting(names.priority(R1), 1, [R1], writers=OPERATOR) == 1.0
+    publisher = frozenset({Writer.PUBLISHER})  # a robot's process: its own priority source
+    assert frames.check_setting(names.priority(R1), 0.5, [R1], writers=publisher) == 0.5
+
+
+def test_a_setting_the_role_does_not_write_is_refused() -> None:
+    optimizer = frozenset({Writer.OPTIMIZER, Writer.ESTIMATOR})
+    with pytest.raises(ParamError, match=r"=5.0: this process does not write it"):
+        frames.check_setting(names.BANDWIDTH, 5.0, [R1], writers=optimizer)
 
 
 @given(st.integers(min_value=1, max_value=10_000_000))

@@ -34,8 +34,10 @@ def test_all_is_sorted() -> None:
     assert layout_module.__all__ == sorted(layout_module.__all__)
 
 
-def test_default_cameras() -> None:
-    assert DEFAULT_CAMERAS == ("/r1/camera", "/r2/camera")
+def test_the_default_cameras_are_the_demo_s() -> None:
+    from dbml.scenarios.teleop import ROBOTS
+
+    assert tuple(camera.topic for camera in ROBOTS) == DEFAULT_CAMERAS
 
 
 @pytest.mark.parametrize("delivered", [True, False])

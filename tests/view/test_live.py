@@ -19,11 +19,12 @@ from dbml import (
     open_transport,
 )
 from dbml.protocol import names
-from dbml.protocol.schema import ParamError, ParamValue
+from dbml.protocol.schema import ParamError, ParamValue, Writer
+from dbml.runtime.params import ParamView
 from dbml.transports.base import Transport
 from dbml.view import frames
 from dbml.view.frames import LogLevel
-from dbml.view.live import MAX_QUEUED_FRAMES, LiveView
+from dbml.view.live import MAX_QUEUED_FRAMES, LiveView, ViewSettings
 from dbml.view.target import ViewEndpoint
 from tests.conftest import wait_for
 
@@ -59,8 +60,7 @@ class MemorySink:
         with self.lock:
             self.cdr.append((topic, schema_name, payload, time_ns))
 
-    def log_text(self, topic: str, level: LogLevel, message: str, *, time_ns: int) -> None:
-        assert topic == frames.LOG_TOPIC
+    def log_text(self, level: LogLevel, message: str, *, time_ns: int) -> None:
         with self.lock:
             self.text.append((level, message))
 
@@ -107,12 +107,21 @@ def fleet() -> Iterator[Fleet]:
     publisher.close()
 
 
+OPERATOR = frozenset({Writer.OPERATOR})
+
+
+def live_view(fleet: Fleet, writers: frozenset[Writer] = OPERATOR, **options: Any) -> LiveView:
+    """The operator's view of the fleet, into the fleet's memory sink."""
+    settings = ViewSettings(fleet.operator, ParamView.of(fleet.operator.params), writers=writers)
+    return LiveView(fleet.operator, fleet.sink, settings=settings, **options)
+
+
 def allocations_are(sink: MemorySink, count: int) -> bool:
     return len(sink.on(frames.ALLOCATION_TOPIC)) == count
 
 
 def test_one_allocation_and_one_rate_sample_per_round(fleet: Fleet) -> None:
-    view = LiveView(fleet.operator, fleet.sink, interval_s=60).start()
+    view = live_view(fleet, interval_s=60).start()
     try:
         wait_for(lambda: bool(fleet.sink.on(frames.ALLOCATION_TOPIC)), what="the first look")
         seen = len(fleet.sink.on(frames.ALLOCATION_TOPIC))
@@ -134,7 +143,7 @@ def test_one_allocation_and_one_rate_sample_per_round(fleet: Fleet) -> None:
 
 
 def test_status_changes_and_refused_values_are_logged_once(fleet: Fleet) -> None:
-    view = LiveView(fleet.operator, fleet.sink, interval_s=0.05).start()
+    view = live_view(fleet, interval_s=0.05).start()
     try:
         fleet.optimizer.optimize()
         wait_for(lambda: any(m.startswith("optimal:") for _, m in fleet.sink.text), what="status")
@@ -160,7 +169,7 @@ def test_status_changes_and_refused_values_are_logged_once(fleet: Fleet) -> None
 
 def test_frames_become_images_and_the_delivered_rate(fleet: Fleet) -> None:
     now = [10 * 10**9]
-    view = LiveView(fleet.operator, fleet.sink, interval_s=60, clock=lambda: now[0])
+    view = live_view(fleet, interval_s=60, clock=lambda: now[0], monotonic=lambda: now[0])
     for k in range(5):  # 5 frames 0.1 s apart, then the view looks 0.5 s after the first
         now[0] = 10 * 10**9 + k * 10**8
         view.frame(R1, bytes(range(256)) * 82 + bytes(8))  # 21,000 bytes
@@ -181,7 +190,7 @@ def test_frames_become_images_and_the_delivered_rate(fleet: Fleet) -> None:
 
 def test_frames_past_the_queue_drop_the_oldest(fleet: Fleet) -> None:
     now = [0]
-    view = LiveView(fleet.operator, fleet.sink, clock=lambda: now[0])  # not started: no drain
+    view = live_view(fleet, clock=lambda: now[0])  # not started: no drain
     for k in range(MAX_QUEUED_FRAMES + 10):
         now[0] = k
         view.frame(R1, bytes(100))
@@ -191,13 +200,18 @@ def test_frames_past_the_queue_drop_the_oldest(fleet: Fleet) -> None:
 
 
 def test_settings_write_as_dbml_budget_does_and_refuse_what_it_refuses(fleet: Fleet) -> None:
-    view = LiveView(fleet.operator, fleet.sink, interval_s=0.05).start()
+    view = live_view(fleet, interval_s=0.05).start()
     try:
         settings = view.settings
         wait_for(lambda: R1 in settings.topics(), what="the channel")
         assert settings.current()[names.BANDWIDTH] == 4.0
         with pytest.raises(ParamError, match="max_bandwidth_in_mbit=-3"):
             settings.set(names.BANDWIDTH, -3)
+        with pytest.raises(ParamError, match=r"max_bandwidth_in_mbit='8': is not a number|'8'"):
+            settings.set(names.BANDWIDTH, "8")
+        # Nothing was written: the store itself (not a view that would refuse -3 anyway).
+        assert fleet.operator.params.get(names.BANDWIDTH) == 4.0
+        assert fleet.optimizer.dbm().bandwidth_mbit == 4.0
         assert settings.set(names.BANDWIDTH, 8) == 8.0
         wait_for(lambda: fleet.optimizer.budget_mbit() == 8.0, what="the optimizer's budget")
         wait_for(
@@ -207,3 +221,20 @@ def test_settings_write_as_dbml_budget_does_and_refuse_what_it_refuses(fleet: Fl
     finally:
         view.close()
     assert fleet.optimizer.optimize().rates_hz[R1] == pytest.approx(8e6 / 8 / 84_000)
+
+
+def test_a_process_sets_only_what_its_role_writes(fleet: Fleet) -> None:
+    """An optimizer's process serving the view does not write the budget.
+
+    Its own store would take the value, whatever a secure fleet's rules let through to others.
+    """
+    view = live_view(fleet, writers=frozenset({Writer.OPTIMIZER, Writer.ESTIMATOR}))
+    try:
+        wait_for(lambda: R1 in view.settings.topics(), what="the channel")
+        with pytest.raises(ParamError, match=r"does not write it \(written by: operator\)"):
+            view.settings.set(names.BANDWIDTH, 8.0)
+        with pytest.raises(ParamError, match="written by: operator, publisher"):
+            view.settings.set(names.priority(R1), 1.0)
+        assert fleet.operator.params.get(names.BANDWIDTH) == 4.0
+    finally:
+        view.close()

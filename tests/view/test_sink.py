@@ -10,7 +10,7 @@ import pytest
 from dbml.protocol.schema import ParamError, ParamValue
 from dbml.view import frames
 from dbml.view.frames import LogLevel
-from dbml.view.sink import Sink
+from dbml.view.sink import MAX_REFUSALS_PER_S, Sink
 from dbml.view.target import ViewEndpoint
 from tests.foxglove_client import FoxgloveClient
 
@@ -80,7 +80,7 @@ def test_every_channel_is_recorded_with_its_schema(sink: tuple[Sink, Settings, P
     server.log_cdr(
         "/r1/camera/optimized", "sensor_msgs/msg/Image", "uint8[] data", b"\x00\x01", time_ns=7
     )
-    server.log_text(frames.LOG_TOPIC, LogLevel.WARNING, "infeasible: too little", time_ns=8)
+    server.log_text(LogLevel.WARNING, "infeasible: too little", time_ns=8)
     server.refused("refused: /dbm/max_bandwidth_in_mbit=-3")
     server.close()
     server.close()  # idempotent
@@ -107,6 +107,24 @@ def test_every_channel_is_recorded_with_its_schema(sink: tuple[Sink, Settings, P
         ("/dbm/log", "foxglove.Log", "protobuf", "protobuf", 8),
     ]
     assert [g[0] for g in got[4:]] == ["/dbm/log"]  # the refusal, on the log too
+
+
+def test_a_flood_of_values_is_refused_whole_and_refusals_are_bounded(
+    sink: tuple[Sink, Settings, Path],
+) -> None:
+    server, settings, _ = sink
+    assert server.address is not None
+    flood = [{"name": f"/r{i}/camera/dbm/priority", "value": 0.5} for i in range(100)]
+    with FoxgloveClient(f"ws://{server.address}", timeout_s=5) as client:
+        client.send({"op": "setParameters", "parameters": flood, "id": "flood"})
+        for k in range(3 * MAX_REFUSALS_PER_S):
+            client.set_parameter(f"bad{k}", BUDGET, -k - 1)
+        last = f"bad{3 * MAX_REFUSALS_PER_S - 1}"
+        assert client.pump(lambda: client.answer(last) is not None, timeout_s=5)
+        statuses = client.statuses()
+    assert statuses[0] == "refused: a setParameters of 100 values (at most 32): none set"
+    assert len(statuses) <= MAX_REFUSALS_PER_S * 2  # two seconds at most, not 31 statuses
+    assert settings.values[BUDGET] == 11.0
 
 
 def test_an_address_in_use_is_one_line_naming_the_flag(sink: tuple[Sink, Settings, Path]) -> None:

@@ -14,7 +14,7 @@ import os
 import sys
 import threading
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -29,7 +29,8 @@ from dbml.core.errors import DbmlError
 from dbml.core.extras import require
 from dbml.core.spec import LinkSpec
 from dbml.experiment.analysis import SeriesPoint
-from dbml.harness.processes import stop_on_signals
+from dbml.harness.processes import free_port, stop_on_signals
+from dbml.protocol.schema import Writer
 from dbml.runtime.monitor import MonitorView
 from dbml.scenarios.reproduce import RobotRow, reproduce_table2
 from dbml.transports.base import Transport
@@ -147,13 +148,27 @@ def _setup_logging(verbose: bool = True) -> None:
     logging.getLogger("rospy").setLevel(logging.WARNING)  # its INFO is its own start-up chatter
 
 
-def _view_target(args: argparse.Namespace) -> ViewTarget | None:
-    """``--foxglove`` and ``--record``, checked (and the ``viz`` extra there) before a run."""
+def _view_target(args: argparse.Namespace, *, pick_port: bool = False) -> ViewTarget | None:
+    """``--foxglove`` and ``--record``, checked (and the ``viz`` extra there) before a run.
+
+    ``pick_port``: port 0 is chosen here, for a view served by a child process (``_announce``
+    says it once the run's options are known to be good).
+    """
     target = ViewTarget.from_flags(args.foxglove, args.record)
-    if target is not None:
-        require("foxglove", extra="viz", what="--foxglove and --record", package="foxglove-sdk")
-        require("rosbags", extra="viz", what="--foxglove and --record")
+    if target is None:
+        return None
+    require("foxglove", extra="viz", what="--foxglove and --record", package="foxglove-sdk")
+    require("rosbags", extra="viz", what="--foxglove and --record")
+    endpoint = target.endpoint
+    if pick_port and endpoint is not None and endpoint.port == 0:
+        target = replace(target, endpoint=replace(endpoint, port=free_port()))
     return target
+
+
+def _announce(view: ViewTarget | None) -> None:
+    """Where a child process serves the view, on stderr (stdout may be ``--json``'s)."""
+    if view is not None and view.endpoint is not None:
+        sys.stderr.write(f"live view: ws://{view.endpoint} (Foxglove: Open connection)\n")
 
 
 def _run_node(
@@ -162,6 +177,7 @@ def _run_node(
     *,
     follow_all_params: bool = True,
     view: ViewTarget | None = None,
+    writers: frozenset[Writer] = frozenset({Writer.OPERATOR}),
 ) -> int:
     with stop_on_signals() as stop:
         transport = _open(args, follow_all_params=follow_all_params)
@@ -171,7 +187,7 @@ def _run_node(
                 return body(transport, stop)
             from dbml.view.live import open_view
 
-            live = open_view(transport, view)
+            live = open_view(transport, view, writers=writers)
             try:
                 if view.endpoint is not None:
                     log.info("live view: ws://%s (Foxglove: Open connection)", live.endpoint)
@@ -207,6 +223,7 @@ def _cmd_optimizer(args: argparse.Namespace) -> int:
             write_defaults=entry.params_complete_at_start,
         ),
         view=view,
+        writers=frozenset({Writer.OPTIMIZER, Writer.ESTIMATOR}),  # what the optimizer's node runs
     )
 
 
@@ -387,8 +404,11 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from dbml.demo.runner import DemoOptions, run_teleop_demo
 
     options = DemoOptions(
-        step_seconds=args.step_seconds, transport=args.transport, view=_view_target(args)
+        step_seconds=args.step_seconds,
+        transport=args.transport,
+        view=_view_target(args, pick_port=True),
     )
+    _announce(options.view)
     console = Console(stderr=args.json)
     title = "dbml demo teleop — live"
     with render.ExperimentView(
@@ -429,8 +449,9 @@ def _cmd_testbed(args: argparse.Namespace) -> int:
         robots=args.robots,
         topology=args.topology,
         transport=args.transport,
-        view=_view_target(args),
+        view=_view_target(args, pick_port=True),
     )
+    _announce(options.view)
     console = Console(stderr=args.json)
     with render.ExperimentView(
         Console(stderr=True),

@@ -45,6 +45,7 @@ from dbml.experiment.report import OperatorReport
 from dbml.harness.processes import Emit, emit_json, serve_role, stop_on_signals
 from dbml.protocol import names
 from dbml.protocol.metadata import MessageMeta, pack_meta
+from dbml.protocol.schema import Writer
 from dbml.runtime.params import ParamView
 from dbml.runtime.priority import collision_priority_source
 from dbml.runtime.publisher import ManagedPublisher
@@ -92,6 +93,8 @@ PERIOD_S = 1.0
 """The optimisation period (the paper's 1 s): the publishers' heartbeat."""
 PEER_WAIT_S = 10.0
 """How long a role waits to reach the others before it reports ready."""
+_OPERATOR = frozenset({Writer.OPERATOR})
+"""The operator's view sets what an operator writes: the budget and priorities."""
 _URGENT_JOIN_S = 5.0
 """How long robot R1 waits for its urgent streams' last tick (a send in progress)."""
 
@@ -454,7 +457,7 @@ def _run_role(
     """The role's run; its exit code (the optimizer's, which ends at a death of its own)."""
     if role == "operator":
         target = ViewTarget.from_flags(spec.foxglove, spec.record)
-        live = None if target is None else open_view(transport, target)
+        live = None if target is None else open_view(transport, target, writers=_OPERATOR)
         try:
             _operator(transport, t0, spec, stop, life=life, emit=emit, live=live)
         finally:

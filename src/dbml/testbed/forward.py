@@ -46,19 +46,19 @@ def socket_in(netns_path: str) -> socket.socket:
     failed: list[BaseException] = []
 
     def enter_make_leave() -> None:
-        home = os.open("/proc/thread-self/ns/net", os.O_RDONLY)
-        target = os.open(netns_path, os.O_RDONLY)
         try:
-            _setns(target)
-            try:
-                made.append(socket.socket(socket.AF_INET, socket.SOCK_STREAM))
-            finally:
-                _setns(home)
+            with contextlib.ExitStack() as files:
+                home = os.open("/proc/thread-self/ns/net", os.O_RDONLY)
+                files.callback(os.close, home)
+                target = os.open(netns_path, os.O_RDONLY)
+                files.callback(os.close, target)
+                _setns(target)
+                try:
+                    made.append(socket.socket(socket.AF_INET, socket.SOCK_STREAM))
+                finally:
+                    _setns(home)
         except BaseException as err:  # handed to the caller, raised there
             failed.append(err)
-        finally:
-            os.close(target)
-            os.close(home)
 
     thread = threading.Thread(target=enter_make_leave, name="dbml-netns-socket", daemon=True)
     thread.start()
@@ -128,10 +128,12 @@ class NetnsForward:
                 with contextlib.suppress(OSError):  # one side closed: end both
                     while chunk := source.recv(_CHUNK):
                         sink.sendall(chunk)
-            finally:
+            finally:  # shutdown wakes the other direction's recv; close alone would not
                 for end in (source, sink):
                     with self._lock:
                         self._open.discard(end)
+                    with contextlib.suppress(OSError):
+                        end.shutdown(socket.SHUT_RDWR)
                     end.close()
 
         return pump

@@ -4,8 +4,8 @@ Pure: each message is built from the validated parameter values a process holds 
 schema's names, read through ``dbml.runtime.params``) and the live channels, so ``dbml monitor``,
 ``dbml optimizer`` and the demo's operator show one allocation the same way. The topics are the
 paper's names where it has one (``[topic]/dbm/frequency/current_value``) and dbml's own under
-``/dbm`` otherwise. Which parameters a viewer may set is the schema's answer too: those an
-operator writes (``Writer.OPERATOR``), checked by the schema's own rule.
+``/dbm`` otherwise. A viewer may set what ``dbml budget`` and ``dbml priority`` set, checked by
+the schema's own rule, where the schema gives the serving process's role the writing of it.
 """
 
 from __future__ import annotations
@@ -55,10 +55,8 @@ LOG_TOPIC = f"{schema.GLOBAL_PREFIX}/log"
 DELIVERED_FIELD = "frequency/delivered_value"
 """Beside the paper's ``frequency/current_value``: the rate that arrived where it is measured."""
 
-SETTABLE: tuple[Parameter, ...] = tuple(
-    p for p in schema.PARAMETERS if Writer.OPERATOR in p.writers
-)
-"""What a viewer may set: the parameters an operator writes (``dbml budget``, ``dbml priority``)."""
+SETTABLE: tuple[Parameter, ...] = (schema.BANDWIDTH, schema.UTILIZATION, schema.PRIORITY)
+"""What a viewer may set: what ``dbml budget`` and ``dbml priority`` set."""
 
 _NUMBER = {"type": "number"}
 _NULLABLE_NUMBER = {"type": "number", "description": "null when not known"}
@@ -312,14 +310,26 @@ def settable_names(topics: Iterable[str]) -> list[str]:
     return globals_ + per_channel
 
 
-def check_setting(name: str, value: object, topics: Iterable[str]) -> ParamValue:
+def check_setting(
+    name: str, value: object, topics: Iterable[str], *, writers: frozenset[Writer]
+) -> ParamValue:
     """``value`` for ``name`` as a viewer set it, checked as ``dbml budget|priority`` check it.
 
-    ``ParamError`` naming the name and the value: a name that is not an operator's parameter of
-    dbml or of a live channel, a value its rule refuses (-3, NaN, a string for a number).
+    ``writers`` are the roles of the process that serves the view: it writes only what the
+    schema gives them (an optimizer's process does not write the budget, an operator's does),
+    as a secure fleet's rules would hold it to. ``ParamError`` naming the name and the value: a
+    name that is not the budget's or a live channel's priority, one these writers do not own, a
+    value its rule refuses (-3, NaN, a string for a number).
     """
+    shown = short_repr(name)
     if name not in settable_names(topics):
-        raise ParamError(f"{name}={short_repr(value)}: not a parameter a viewer may set")
+        raise ParamError(f"{shown}={short_repr(value)}: not a parameter a viewer may set")
+    parameter = schema.lookup(name)
+    if parameter is None or not parameter[0].writers & writers:
+        owners = ", ".join(sorted(w.value for w in parameter[0].writers)) if parameter else "-"
+        raise ParamError(
+            f"{name}={short_repr(value)}: this process does not write it (written by: {owners})"
+        )
     try:
         good = schema.check_param_value(value)
     except TransportError as err:  # a list, a dict: no parameter's value

@@ -17,6 +17,7 @@ channels metered); frames past the queue are dropped, counted and said once per 
 
 from __future__ import annotations
 
+import ipaddress
 import logging
 import threading
 import time
@@ -29,7 +30,7 @@ from dbml.core.errors import SpecError
 from dbml.core.estimator import EstimatorState
 from dbml.core.extras import require
 from dbml.protocol import names
-from dbml.protocol.schema import ParamValue
+from dbml.protocol.schema import ParamValue, Writer
 from dbml.runtime.graph import published_topics
 from dbml.runtime.params import ParamView, channel_params
 from dbml.transports.base import Handle, Transport
@@ -42,6 +43,8 @@ from dbml.view.target import ViewEndpoint, ViewTarget
 __all__ = [
     "BUDGET_INTERVAL_S",
     "DELIVERED_WINDOW_S",
+    "MAX_ARRIVALS",
+    "MAX_METERED",
     "MAX_QUEUED_FRAMES",
     "VIEW_INTERVAL_S",
     "LiveView",
@@ -63,6 +66,8 @@ MAX_QUEUED_FRAMES = 64
 """Frames waiting for the view's thread; past it the oldest is dropped (the view lags)."""
 MAX_METERED = 4096
 """Channels whose arrivals the view counts."""
+MAX_ARRIVALS = 1024
+"""Arrivals kept per channel for its delivered rate: more than a second of any camera."""
 _NS = 1_000_000_000
 _EARLY = 0.9
 """A periodic wake counts as the interval's end a little early: the worker's clock is another."""
@@ -74,12 +79,17 @@ class ViewSettings:
     ``current`` is the value in force of every settable name of dbml and of the live channels;
     ``set`` checks a value by the schema's rule (``frames.check_setting``) and writes it to the
     store from this process, as ``dbml budget`` and ``dbml priority`` do; the store never
-    blocks its caller. A refused value writes nothing.
+    blocks its caller. A refused value writes nothing. ``writers`` are the roles of the serving
+    process: a value the schema gives none of them is refused here, since its own store would
+    take it whatever a secure fleet's rules let through on the wire.
     """
 
-    def __init__(self, transport: Transport, view: ParamView) -> None:
+    def __init__(
+        self, transport: Transport, view: ParamView, *, writers: frozenset[Writer]
+    ) -> None:
         self._transport = transport
         self._view = view
+        self.writers = writers
 
     def topics(self) -> list[str]:
         """The live channels: published, with declared bounds."""
@@ -99,7 +109,7 @@ class ViewSettings:
 
     def set(self, name: str, value: object) -> ParamValue:
         """Write ``value`` once it passed; ``ParamError`` naming both if it did not."""
-        checked = frames.check_setting(name, value, self.topics())
+        checked = frames.check_setting(name, value, self.topics(), writers=self.writers)
         self._transport.params.set(name, checked)
         log.info("%s set to %s from the view", name, checked)
         return checked
@@ -114,7 +124,7 @@ class ViewCost:
     max_ms: float
 
 
-@dataclass
+@dataclass(frozen=True, slots=True)
 class _Frame:
     topic: str
     payload: bytes
@@ -169,8 +179,8 @@ class ViewSink(Protocol):
     ) -> None:
         """A ROS 2 message in CDR."""
 
-    def log_text(self, topic: str, level: LogLevel, message: str, *, time_ns: int) -> None:
-        """A log line."""
+    def log_text(self, level: LogLevel, message: str, *, time_ns: int) -> None:
+        """A line on ``/dbm/log``."""
 
     def publish_parameters(self, values: Mapping[str, ParamValue]) -> None:
         """The settable values that changed."""
@@ -183,7 +193,8 @@ class LiveView:
     """Follow ``transport`` and write what it shows to ``sink``; ``start()`` runs it.
 
     ``clock`` gives the messages' log time (ns, wall clock: a recording lines up with other
-    ones).
+    ones); ``monotonic`` (ns) times the looks and the delivered rate's window, which a step of
+    the wall clock must not stall.
     """
 
     def __init__(
@@ -191,18 +202,22 @@ class LiveView:
         transport: Transport,
         sink: ViewSink,
         *,
-        settings: ViewSettings | None = None,
+        settings: ViewSettings,
         interval_s: float = VIEW_INTERVAL_S,
         clock: Callable[[], int] = time.time_ns,
+        monotonic: Callable[[], int] = time.monotonic_ns,
     ) -> None:
         self._transport = transport
         self._sink = sink
         self._clock = clock
+        self._monotonic = monotonic
         self._view = ParamView.of(transport.params)
-        self.settings = settings or ViewSettings(transport, self._view)
+        self.settings = settings
         self._lock = threading.Lock()
         self._queued: deque[_Frame] = deque()
-        self._dropped = Overflow("frames queued for the view", MAX_QUEUED_FRAMES, log=log)
+        self._dropped = Overflow(
+            "frames queued for the view", MAX_QUEUED_FRAMES, log=log, evicts=True
+        )
         self._arrivals: dict[str, deque[int]] = {}
         self._metered_full = Overflow("channels metered by the view", MAX_METERED, log=log)
         self._images: _Images | None = None
@@ -234,7 +249,7 @@ class LiveView:
 
     def frame(self, topic: str, payload: bytes) -> None:
         """A frame this process received on ``topic``: an image and a delivered-rate count."""
-        now = self._clock()
+        now, tick = self._clock(), self._monotonic()
         with self._lock:
             if len(self._queued) >= MAX_QUEUED_FRAMES:
                 self._queued.popleft()
@@ -245,8 +260,8 @@ class LiveView:
                 if len(self._arrivals) >= MAX_METERED:
                     self._metered_full.refuse()
                     return
-                arrivals = self._arrivals[topic] = deque()
-            arrivals.append(now)
+                arrivals = self._arrivals[topic] = deque(maxlen=MAX_ARRIVALS)
+            arrivals.append(tick)
         self._worker.wake()
 
     # -- the view's thread --------------------------------------------------------------------
@@ -254,18 +269,18 @@ class LiveView:
     def _tick(self) -> None:
         """Frames at every wake; the rest after a round, or once an interval passed."""
         self._frames()
-        now = self._clock()
-        if not self._round_due.is_set() and now - self._looked_ns < self._interval_ns:
+        now, tick = self._clock(), self._monotonic()
+        if not self._round_due.is_set() and tick - self._looked_ns < self._interval_ns:
             return
         self._round_due.clear()
-        self._looked_ns = now
+        self._looked_ns = tick
         started = time.perf_counter()
         values = self._view.values()
         frame = frames.allocation_frame(values, published_topics(self._transport.graph.entries()))
         self._allocation(values, frame, now)
         self._budget(values, now)
         self._log_changes(values, now)
-        self._delivered(now)
+        self._delivered(now, tick)
         self._parameters(values, [c.topic for c in frame.channels])
         spent = time.perf_counter() - started
         self._looks += 1
@@ -276,9 +291,11 @@ class LiveView:
         self, values: Mapping[str, ParamValue], frame: AllocationFrame, now: int
     ) -> None:
         counter = values.get(names.ROUND)
-        unchanged = self._last_allocation is not None and _same(frame, self._last_allocation)
-        if counter == self._round and unchanged:
-            return
+        if counter is not None:  # once per round: between rounds, rates and inputs disagree
+            if counter == self._round:
+                return
+        elif self._last_allocation is not None and _same(frame, self._last_allocation):
+            return  # no optimizer heard: what the values say, when it changes
         self._round, self._last_allocation = counter, frame
         self._sink.log_json(
             frames.ALLOCATION_TOPIC, frames.ALLOCATION_SCHEMA, frame.as_json(), time_ns=now
@@ -306,13 +323,11 @@ class LiveView:
         status = (values.get(names.STATUS), values.get(names.STATUS_MESSAGE))
         if status != self._status and status[0] is not None:
             level = LogLevel.WARNING if status[0] == "infeasible" else LogLevel.INFO
-            self._sink.log_text(frames.LOG_TOPIC, level, f"{status[0]}: {status[1]}", time_ns=now)
+            self._sink.log_text(level, f"{status[0]}: {status[1]}", time_ns=now)
         self._status = status
         problems = frozenset(self._view.problems())
         for problem in sorted(problems - self._problems):
-            self._sink.log_text(
-                frames.LOG_TOPIC, LogLevel.WARNING, f"ignored: {problem}", time_ns=now
-            )
+            self._sink.log_text(LogLevel.WARNING, f"ignored: {problem}", time_ns=now)
         self._problems = problems
 
     def _frames(self) -> None:
@@ -333,8 +348,8 @@ class LiveView:
                 time_ns=frame.time_ns,
             )
 
-    def _delivered(self, now: int) -> None:
-        since = now - int(DELIVERED_WINDOW_S * _NS)
+    def _delivered(self, now: int, tick: int) -> None:
+        since = tick - int(DELIVERED_WINDOW_S * _NS)
         with self._lock:
             counts = {}
             for topic, arrivals in self._arrivals.items():
@@ -410,6 +425,13 @@ def _same(a: AllocationFrame, b: AllocationFrame) -> bool:
     )
 
 
+def _loopback(host: str) -> bool:
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return host == "localhost"
+
+
 def _phase(values: Mapping[str, ParamValue]) -> str | None:
     state = values.get(names.ESTIMATOR_STATE)
     if not isinstance(state, str):
@@ -420,16 +442,24 @@ def _phase(values: Mapping[str, ParamValue]) -> str | None:
         return None
 
 
-def open_view(transport: Transport, target: ViewTarget) -> LiveView:
+def open_view(transport: Transport, target: ViewTarget, *, writers: frozenset[Writer]) -> LiveView:
     """A started ``LiveView`` of ``transport`` to a Foxglove server and/or an MCAP file.
 
-    Needs the ``viz`` extra (foxglove-sdk; rosbags for the images).
+    ``writers``: the roles of this process (what a viewer may set through it). Needs the
+    ``viz`` extra (foxglove-sdk; rosbags for the images).
     """
     require("foxglove", extra="viz", what="--foxglove and --record", package="foxglove-sdk")
     require("rosbags", extra="viz", what="--foxglove and --record")
     from dbml.view.sink import Sink
 
-    settings = ViewSettings(transport, ParamView.of(transport.params))
+    endpoint = target.endpoint
+    if endpoint is not None and not _loopback(endpoint.host):
+        log.warning(
+            "the live view on %s has no authentication: whoever reaches it sees the allocation "
+            "and the frames, and may set the budget and priorities",
+            endpoint,
+        )
+    settings = ViewSettings(transport, ParamView.of(transport.params), writers=writers)
     sink = Sink(
         endpoint=target.endpoint,
         record=target.record,

@@ -12,7 +12,9 @@ foxglove-sdk is the ``viz`` extra: import this module after ``require`` (``dbml.
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -34,6 +36,8 @@ from dbml.view.target import ViewEndpoint
 __all__ = [
     "IMAGE_SCHEMA_NAME",
     "MAX_CHANNELS",
+    "MAX_REFUSALS_PER_S",
+    "MAX_SETTINGS_PER_REQUEST",
     "Settings",
     "Sink",
 ]
@@ -43,6 +47,12 @@ log = logging.getLogger("dbml.view")
 MAX_CHANNELS = 4096
 """The most channels a sink advertises: they follow the live graph, which any peer can fill."""
 IMAGE_SCHEMA_NAME = "sensor_msgs/msg/Image"
+MAX_SETTINGS_PER_REQUEST = 32
+"""Values one ``setParameters`` may carry: the budget and a fleet's priorities fit; a flood not."""
+MAX_REFUSALS_PER_S = 10
+"""Refusals said (log, ``/dbm/log``, status to every client) per second; past it, counted and
+said with the next refusal after that second: a client that loops on bad values fills neither
+disk nor links."""
 
 
 class Settings(Protocol):
@@ -88,14 +98,19 @@ class _Listener(ServerListener):
         request_id: str | None = None,
     ) -> list[foxglove.Parameter]:
         del client, request_id
+        if len(parameters) > MAX_SETTINGS_PER_REQUEST:
+            self._refused(
+                f"refused: a setParameters of {len(parameters)} values "
+                f"(at most {MAX_SETTINGS_PER_REQUEST}): none set"
+            )
+            return []
         for parameter in parameters:
             try:
                 self._settings.set(parameter.name, parameter.get_value())
             except SpecError as err:
                 self._refused(f"refused: {err}")
             except Exception:  # a value the SDK cannot hand over: refused, never a dead thread
-                self._refused(f"refused: {parameter.name}: unreadable value")
-                log.exception("setParameters of %s", short_repr(parameter.name))
+                self._refused(f"refused: {short_repr(parameter.name)}: unreadable value")
         return self._values([p.name for p in parameters])
 
 
@@ -114,7 +129,10 @@ class Sink:
         self._context = foxglove.Context()
         self._channels: dict[str, foxglove.Channel] = {}
         self._full = Overflow("view channels", MAX_CHANNELS, log=log)
-        self._log_channel: LogChannel | None = None
+        self._log_channel = LogChannel(LOG_TOPIC, context=self._context)
+        self._refusals_lock = threading.Lock()
+        self._refusals_window = (0, 0, 0)
+        """The refusals' second (monotonic s), how many were said in it, how many not."""
         self._server = None
         self._writer = None
         try:
@@ -177,12 +195,8 @@ class Sink:
         if channel is not None:
             channel.log(payload, log_time=time_ns)
 
-    def log_text(self, topic: str, level: LogLevel, message: str, *, time_ns: int) -> None:
-        """A ``foxglove.Log`` line on ``topic``."""
-        from foxglove.channels import LogChannel
-
-        if self._log_channel is None:
-            self._log_channel = LogChannel(topic, context=self._context)
+    def log_text(self, level: LogLevel, message: str, *, time_ns: int) -> None:
+        """A ``foxglove.Log`` line on ``/dbm/log``."""
         stamp = Timestamp(sec=time_ns // 1_000_000_000, nsec=time_ns % 1_000_000_000)
         severity = getattr(FoxgloveLevel, level.value)
         line = Log(timestamp=stamp, level=severity, message=message, name="dbml")
@@ -196,11 +210,32 @@ class Sink:
             )
 
     def refused(self, message: str) -> None:
-        """A value refused: said to the clients as a warning status, on ``/dbm/log``, logged."""
+        """A value refused: said to the clients as a warning status, on ``/dbm/log``, logged.
+
+        At most ``MAX_REFUSALS_PER_S`` a second; the others are counted, and said in one line
+        with the next refusal of a later second.
+        """
+        second = int(time.monotonic())
+        with self._refusals_lock:
+            start, said, unsaid = self._refusals_window
+            if second != start:
+                self._refusals_window = (second, 1, 0)
+            elif said < MAX_REFUSALS_PER_S:
+                self._refusals_window = (start, said + 1, unsaid)
+            else:
+                self._refusals_window = (start, said, unsaid + 1)
+                return
+        if second != start and unsaid:
+            self._say(f"{unsaid} more refusals in the second before not shown")
+        self._say(message)
+
+    def _say(self, message: str) -> None:
         log.warning("%s", message)
-        self.log_text(LOG_TOPIC, LogLevel.WARNING, message, time_ns=time.time_ns())
-        if self._server is not None:
-            self._server.publish_status(message, StatusLevel.Warning)
+        self.log_text(LogLevel.WARNING, message, time_ns=time.time_ns())
+        server = self._server  # close() may clear it meanwhile (this runs on the SDK's thread)
+        if server is not None:
+            with contextlib.suppress(Exception):
+                server.publish_status(message, StatusLevel.Warning)
 
     def close(self) -> None:
         """Stop the server and finish the recording (idempotent)."""
