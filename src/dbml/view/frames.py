@@ -30,6 +30,7 @@ __all__ = [
     "BUDGET_TOPIC",
     "DELIVERED_FIELD",
     "FREQUENCY_SCHEMA",
+    "IMAGE_TYPE",
     "LOG_TOPIC",
     "SETTABLE",
     "AllocationFrame",
@@ -52,6 +53,8 @@ BUDGET_TOPIC = f"{schema.GLOBAL_PREFIX}/budget"
 """The budget in force: the link's bandwidth, the utilization, the estimate."""
 LOG_TOPIC = f"{schema.GLOBAL_PREFIX}/log"
 """Status changes and refused values, as ``foxglove.Log``."""
+IMAGE_TYPE = "sensor_msgs/msg/Image"
+"""The frames' ROS 2 type, so ROS 2 tools and the app's image panel read them."""
 DELIVERED_FIELD = "frequency/delivered_value"
 """Beside the paper's ``frequency/current_value``: the rate that arrived where it is measured."""
 

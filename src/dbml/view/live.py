@@ -134,13 +134,13 @@ class _Frame:
 class _Images:
     """Frames as ROS 2 ``sensor_msgs/msg/Image`` in CDR (rosbags' typestore, no ROS 2)."""
 
+    name = frames.IMAGE_TYPE
+
     def __init__(self) -> None:
         from rosbags.typesys import Stores, get_typestore
 
         self._store = get_typestore(Stores.ROS2_JAZZY)
         self.definition = self._store.generate_msgdef(self.name, ros_version=2)[0]
-
-    name = "sensor_msgs/msg/Image"
 
     def encode(self, frame: _Frame) -> bytes:
         import numpy as np
@@ -278,7 +278,7 @@ class LiveView:
         values = self._view.values()
         frame = frames.allocation_frame(values, published_topics(self._transport.graph.entries()))
         self._allocation(values, frame, now)
-        self._budget(values, now)
+        self._budget(values, now, tick)
         self._log_changes(values, now)
         self._delivered(now, tick)
         self._parameters(values, [c.topic for c in frame.channels])
@@ -309,12 +309,12 @@ class LiveView:
                     time_ns=now,
                 )
 
-    def _budget(self, values: Mapping[str, ParamValue], now: int) -> None:
+    def _budget(self, values: Mapping[str, ParamValue], now: int, tick: int) -> None:
         budget = frames.budget_frame(values, estimator_phase=_phase(values))
         last = self._last_budget
-        if last is not None and last[0] == budget and now - last[1] < BUDGET_INTERVAL_S * _NS:
+        if last is not None and last[0] == budget and tick - last[1] < BUDGET_INTERVAL_S * _NS:
             return
-        self._last_budget = (budget, now)
+        self._last_budget = (budget, tick)
         self._sink.log_json(
             frames.BUDGET_TOPIC, frames.BUDGET_SCHEMA, budget.as_json(), time_ns=now
         )

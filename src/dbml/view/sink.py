@@ -34,7 +34,6 @@ from dbml.view.frames import LOG_TOPIC, LogLevel
 from dbml.view.target import ViewEndpoint
 
 __all__ = [
-    "IMAGE_SCHEMA_NAME",
     "MAX_CHANNELS",
     "MAX_REFUSALS_PER_S",
     "MAX_SETTINGS_PER_REQUEST",
@@ -46,9 +45,8 @@ log = logging.getLogger("dbml.view")
 
 MAX_CHANNELS = 4096
 """The most channels a sink advertises: they follow the live graph, which any peer can fill."""
-IMAGE_SCHEMA_NAME = "sensor_msgs/msg/Image"
 MAX_SETTINGS_PER_REQUEST = 32
-"""Values one ``setParameters`` may carry: the budget and a fleet's priorities fit; a flood not."""
+"""Values one ``setParameters`` may carry: the app sends the one a person edits; a flood is not."""
 MAX_REFUSALS_PER_S = 10
 """Refusals said (log, ``/dbm/log``, status to every client) per second; past it, counted and
 said with the next refusal after that second: a client that loops on bad values fills neither
