@@ -13,7 +13,7 @@ import pytest
 
 from dbml.protocol import names
 from dbml.protocol.keys import encode_param, param_key
-from dbml.runtime.estimator import LINK_TOPIC, LinkBeacon
+from dbml.runtime.estimator import LINK_TOPIC, Heard, LinkBeacon
 from dbml.transports.base import ParamValue
 from tests.conftest import MONITOR_JSON_KEYS, wait_for
 from tests.integration.procs import fleet, publish_argv
@@ -298,7 +298,9 @@ def test_forged_link_beacons_never_widen_the_wire(tmp_path: Path) -> None:
             what="the allocation",
         )
         beacon = f.probe.declare_publisher(LINK_TOPIC)
-        everyone = frozenset({CAMERA, "/r2/camera"})
+        # the most a forged count can give: nothing owed that was not heard in the last second
+        owed_nothing = Heard(newest_seq=10**9, recent_frames=0)
+        everyone = dict.fromkeys((CAMERA, "/r2/camera"), owed_nothing)
         garbage = [b"{not json", b'{"up": true, "heard": [1]}', b'{"up": "false"}']
         stop = threading.Event()
 

@@ -11,7 +11,7 @@ from collections.abc import Mapping
 
 import pytest
 
-from dbml.runtime.estimator import LinkBeacon
+from dbml.runtime.estimator import Heard, LinkBeacon
 from dbml.runtime.outage import (
     BEACON_WINDOW,
     HEARD_WAIT_S,
@@ -52,7 +52,7 @@ class Channel:
         up: bool,
         *,
         release_s: Mapping[str, float] | None = None,
-        heard: frozenset[str] | None = None,
+        heard: Mapping[str, Heard] | None = None,
     ) -> bytes | None:
         """Hear a beacon stamped now (in line with the others); what it releases, counted."""
         beacon = LinkBeacon(up, dict(release_s or {}), sent_s=self.now, heard=heard)
@@ -165,6 +165,43 @@ def test_what_a_release_owes_is_bounded_by_one_window_of_the_rate() -> None:
     assert channel.steady()
 
 
+def _after_a_long_outage(heard: Heard | None) -> list[bool]:
+    """Eight frames into the dead link, the last two heard after it: what a release lets go.
+
+    As after an outage longer than the lease: the session that held the first six closed and
+    dropped them, and the two sent as the link came back (the fail-safe's, say) arrived.
+    """
+    channel = Channel()
+    channel.beacon(up=True)
+    channel.advance(LINK_SILENCE_S + 0.01)
+    channel.admit(b"held")
+    channel.sent += 8
+    channel.beacon(up=True, release_s={TOPIC: 0.0}, heard=None if heard is None else {TOPIC: heard})
+    went = []
+    for _ in range(8):
+        channel.advance(PERIOD_S)
+        went.append(channel.steady())
+    return went
+
+
+def test_a_release_owes_only_what_lands_in_its_window() -> None:
+    # heard: the newest is the last sent, two arrived in the last second: two owed, less the
+    # release's own frame
+    assert _after_a_long_outage(Heard(newest_seq=8, recent_frames=2)) == [False] + [True] * 7
+    # one more sent after the newest heard is still in the link: owed too
+    assert _after_a_long_outage(Heard(newest_seq=7, recent_frames=2)) == [False] * 2 + [True] * 6
+    # no word of what arrived: all eight are owed, as before the estimator counted
+    assert _after_a_long_outage(None) == [False] * 7 + [True]
+
+
+def test_a_forged_count_owes_no_less_than_the_frames_the_link_may_hold() -> None:
+    # a count above what was sent cannot owe more than all of it
+    assert _after_a_long_outage(Heard(newest_seq=0, recent_frames=1000)) == [False] * 7 + [True]
+    # a newest seq beyond what was sent leaves only the recent frames owed: as an outage in
+    # which nothing went into the dead link, never more credit than that
+    assert _after_a_long_outage(Heard(newest_seq=10**9, recent_frames=0)) == [True] * 8
+
+
 def test_a_backlog_releases_once_heard_or_after_the_wait() -> None:
     heard = Channel()
     heard.beacon(up=True)
@@ -172,8 +209,9 @@ def test_a_backlog_releases_once_heard_or_after_the_wait() -> None:
     assert heard.steady()  # into the dead link
     heard.advance(LINK_SILENCE_S + 0.01)
     heard.admit(b"held")
-    nobody: frozenset[str] = frozenset()
-    assert heard.beacon(up=True, release_s={TOPIC: 0.0}, heard=frozenset({OTHER})) is None
+    nobody: dict[str, Heard] = {}
+    other = {OTHER: Heard(newest_seq=7, recent_frames=1)}
+    assert heard.beacon(up=True, release_s={TOPIC: 0.0}, heard=other) is None
     assert heard.gate.holding(heard.now)
     heard.advance(HEARD_WAIT_S - 0.01)
     assert heard.beacon(up=True, release_s={TOPIC: 0.0}, heard=nobody) is None
@@ -190,7 +228,7 @@ def test_a_channel_heard_again_releases_at_once() -> None:
     assert channel.steady()
     channel.advance(LINK_SILENCE_S + 0.01)
     channel.admit(b"held")
-    channel.beacon(up=True, release_s={TOPIC: 0.0}, heard=frozenset({TOPIC}))
+    channel.beacon(up=True, release_s={TOPIC: 0.0}, heard={TOPIC: Heard(channel.sent, 1)})
     assert not channel.gate.holding(channel.now)
 
 
@@ -202,13 +240,13 @@ def test_what_went_before_the_last_up_beacon_is_neither_owed_nor_awaited() -> No
     channel.beacon(up=True)  # the link carried them
     channel.advance(LINK_SILENCE_S + 0.01)
     channel.admit(b"held")
-    assert channel.beacon(up=True, release_s={TOPIC: 0.0}, heard=frozenset()) == b"held"
+    assert channel.beacon(up=True, release_s={TOPIC: 0.0}, heard={}) == b"held"
 
 
 def test_nothing_sent_into_the_dead_link_need_not_be_heard() -> None:
     channel = silent(Channel())
     channel.admit(b"held")
-    assert channel.beacon(up=True, release_s={TOPIC: 0.0}, heard=frozenset()) == b"held"
+    assert channel.beacon(up=True, release_s={TOPIC: 0.0}, heard={}) == b"held"
 
 
 def test_a_hold_lasts_at_most_its_bound_and_says_so_once() -> None:

@@ -19,8 +19,10 @@ from dbml.protocol.metadata import MessageMeta
 from dbml.runtime import ManagedPublisher
 from dbml.runtime.estimator import (
     HEARD_MAX,
+    HEARD_RECENT_MAX,
     LINK_TOPIC,
     RELEASE_MAX_S,
+    Heard,
     LinkBeacon,
     LinkEstimator,
     release_offsets,
@@ -159,11 +161,11 @@ def _stuck(fleet: Fleet, topic: str) -> ManagedPublisher:
 def test_a_channel_with_a_backlog_releases_once_it_is_heard(fleet: Fleet) -> None:
     camera = _stuck(fleet, "/r1/camera")
     back = {"/r1/camera": 0.0}
-    fleet.say(LinkBeacon(up=True, release_s=back, heard=frozenset({"/r2/camera"})))
+    fleet.say(LinkBeacon(up=True, release_s=back, heard={"/r2/camera": Heard(3, 1)}))
     assert camera.holding  # the link is back, but our backlog is not through yet
     fleet.clock.advance(PERIOD_S)
     assert not camera.publish(b"newer")
-    fleet.say(LinkBeacon(up=True, release_s=back, heard=frozenset({"/r1/camera"})))
+    fleet.say(LinkBeacon(up=True, release_s=back, heard={"/r1/camera": Heard(1, 1)}))
     assert not camera.holding
     fleet.clock.advance(2 * PERIOD_S)  # the owed frame paid for
     fleet.say(LinkBeacon(up=True))
@@ -173,7 +175,7 @@ def test_a_channel_with_a_backlog_releases_once_it_is_heard(fleet: Fleet) -> Non
 def test_a_backlog_never_heard_waits_only_so_long(fleet: Fleet) -> None:
     """Frames the middleware dropped in the outage never arrive: the wait is bounded."""
     camera = _stuck(fleet, "/r1/camera")
-    nobody: frozenset[str] = frozenset()
+    nobody: dict[str, Heard] = {}
     waited = 0.0
     while camera.holding and waited < 3 * HEARD_WAIT_S:
         fleet.say(LinkBeacon(up=True, release_s={"/r1/camera": 0.0}, heard=nobody))
@@ -189,7 +191,7 @@ def test_a_channel_that_sent_nothing_into_the_dead_link_need_not_be_heard(
     camera = _confirmed_then_silent(fleet, "/r1/camera")
     assert not camera.publish(b"held")
     sent = len(fleet.received)
-    fleet.say(LinkBeacon(up=True, release_s={"/r1/camera": 0.0}, heard=frozenset()))
+    fleet.say(LinkBeacon(up=True, release_s={"/r1/camera": 0.0}, heard={}))
     assert not camera.holding
     assert fleet.payloads()[sent:] == [b"held"]
 
@@ -367,7 +369,18 @@ BAD_BEACONS = [
     b'{"up": true, "heard": "/r1/camera"}',
     b'{"up": true, "heard": [1]}',
     b'{"up": true, "heard": {"/r1/camera": true}}',
-    b'{"up": true, "heard": [' + b",".join([b'"/a"'] * (HEARD_MAX + 1)) + b"]}",
+    b'{"up": true, "heard": ["/r1/camera"]}',
+    b'{"up": true, "heard": {"/r1/camera": [1]}}',
+    b'{"up": true, "heard": {"/r1/camera": [1, 2, 3]}}',
+    b'{"up": true, "heard": {"/r1/camera": [-1, 0]}}',
+    b'{"up": true, "heard": {"/r1/camera": [1, -1]}}',
+    b'{"up": true, "heard": {"/r1/camera": [1.5, 0]}}',
+    b'{"up": true, "heard": {"/r1/camera": [true, 0]}}',
+    b'{"up": true, "heard": {"/r1/camera": [1, "2"]}}',
+    b'{"up": true, "heard": {"/r1/camera": [1, ' + str(HEARD_RECENT_MAX + 1).encode() + b"]}}",
+    b'{"up": true, "heard": {'
+    + b",".join(b'"/a%d": [0, 0]' % k for k in range(HEARD_MAX + 1))
+    + b"}}",
     b"[" * 100_000 + b"]" * 100_000,
     b"[true]",
     b"\xff\xfe",
@@ -488,6 +501,8 @@ def test_the_beacon_travels_in_the_datas_own_class() -> None:
 def test_an_encoded_beacon_round_trips() -> None:
     beacon = LinkBeacon(up=False, release_s={"/r1/camera": 0.5}, sent_s=12.5)
     assert LinkBeacon.decode(beacon.encode()) == beacon
-    heard = LinkBeacon(up=True, sent_s=1.0, heard=frozenset({"/r1/camera", "/r2/camera"}))
+    heard = LinkBeacon(
+        up=True, sent_s=1.0, heard={"/r1/camera": Heard(12, 3), "/r2/camera": Heard(0, 0)}
+    )
     assert LinkBeacon.decode(heard.encode()) == heard
     assert json.loads(beacon.encode())["up"] is False

@@ -24,6 +24,7 @@ import logging
 import math
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -55,11 +56,14 @@ from dbml.transports.overflow import Overflow
 __all__ = [
     "ESTIMATE_INTERVAL_S",
     "HEARD_MAX",
+    "HEARD_RECENT_MAX",
     "LINK_TOPIC",
     "MAX_REPORTERS",
+    "OWED_WINDOW_S",
     "RELEASE_MAX_S",
     "WAKE_GAP_S",
     "WAKE_QUEUE_S",
+    "Heard",
     "LinkBeacon",
     "LinkEstimator",
     "release_offsets",
@@ -90,6 +94,13 @@ RELEASE_MAX_S = 2.0
 together at it, and a beacon naming one outside ``[0, RELEASE_MAX_S]`` is malformed."""
 HEARD_MAX = 4096
 """The most channels a beacon names as heard; a beacon naming more is malformed."""
+OWED_WINDOW_S = 1.0
+"""A release owes the frames of its channel that land in this window: those that arrived this
+long before it and those still in the link (a beacon's ``heard`` says both)."""
+HEARD_RECENT_MAX = 256
+"""The most arrivals of one channel a beacon counts (older ones than ``OWED_WINDOW_S`` are
+forgotten): a faster channel's release owes at most this many. A beacon counting more for a
+channel is malformed."""
 MAX_REPORTERS = 1024
 """The most reporting hosts whose clock offsets are kept (a fleet has tens). A host name comes
 from the network: a report from one more host evicts the one silent the longest, whose offset
@@ -97,6 +108,17 @@ is learnt again from its next report, so a flood of made-up names costs at most 
 memory. The table never shrinks otherwise: such a flood is logged once in the node's life."""
 _DECODE_ERRORS = (ValueError, OverflowError, RecursionError, TypeError, KeyError, AttributeError)
 """What untrusted JSON can raise on its way in (``UnicodeDecodeError`` is a ``ValueError``)."""
+
+
+@dataclass(frozen=True, slots=True)
+class Heard:
+    """What arrived of one channel since an outage began, as its release needs to know it."""
+
+    newest_seq: int
+    """The sequence number of its newest frame that arrived: later ones may still be in the
+    link; earlier ones arrived, or were dropped with a session the outage closed."""
+    recent_frames: int
+    """Its frames that arrived in the last ``OWED_WINDOW_S``: they share the release's window."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -108,11 +130,11 @@ class LinkBeacon:
     """Per channel, how long after the link is back its held message goes out (0: first)."""
     sent_s: float = 0.0
     """The estimator's clock: a beacon that sat in a buffer through the outage is stale."""
-    heard: frozenset[str] | None = None
-    """After an outage, the channels whose frames arrived again (None: not said). A channel
-    that sent into the dead link waits to be heard before it releases: until then its TCP
-    connection still holds that backlog, and a release would queue behind it and arrive
-    bunched with it, over the budget."""
+    heard: Mapping[str, Heard] | None = None
+    """After an outage, the channels whose frames arrived again, and what of them (None: not
+    said). A channel that sent into the dead link waits to be heard before it releases: until
+    then its TCP connection still holds that backlog, and a release would queue behind it and
+    arrive bunched with it, over the budget. What arrived says what the release owes."""
 
     def encode(self) -> bytes:
         """The beacon as compact JSON."""
@@ -122,7 +144,9 @@ class LinkBeacon:
             "sent_s": self.sent_s,
         }
         if self.heard is not None:
-            document["heard"] = sorted(self.heard)
+            document["heard"] = {
+                topic: [h.newest_seq, h.recent_frames] for topic, h in sorted(self.heard.items())
+            }
         return json.dumps(document).encode()
 
     @classmethod
@@ -150,15 +174,45 @@ class LinkBeacon:
             raise TransportError(f"malformed link beacon {data[:80]!r}: {err}") from err
 
 
-def _heard(value: object) -> frozenset[str] | None:
-    """A beacon's ``heard``: absent, or a list of at most ``HEARD_MAX`` strings."""
+def _heard(value: object) -> dict[str, Heard] | None:
+    """A beacon's ``heard``: absent, or at most ``HEARD_MAX`` ``{topic: [seq, recent]}``.
+
+    Both are integers from 0, ``recent`` at most ``HEARD_RECENT_MAX``.
+    """
     if value is None:
         return None
-    if not isinstance(value, list) or len(value) > HEARD_MAX:
-        raise ValueError(f"heard is not a list of at most {HEARD_MAX} topics")
-    if not all(isinstance(topic, str) for topic in value):
-        raise TypeError("heard names a topic that is not a string")
-    return frozenset(value)
+    if not isinstance(value, dict) or len(value) > HEARD_MAX:
+        raise ValueError(f"heard is not an object of at most {HEARD_MAX} topics")
+    heard = {}
+    for topic, counts in value.items():
+        match counts:
+            case [int() as seq, int() as recent] if (
+                not isinstance(seq, bool)
+                and not isinstance(recent, bool)
+                and seq >= 0
+                and 0 <= recent <= HEARD_RECENT_MAX
+            ):
+                heard[topic] = Heard(seq, recent)
+            case _:
+                raise ValueError(
+                    f"heard[{topic!r}]={counts!r} is not [newest seq, recent frames], integers"
+                    f" from 0 (recent at most {HEARD_RECENT_MAX})"
+                )
+    return heard
+
+
+@dataclass(slots=True)
+class _Arrivals:
+    """One channel's arrivals, as a beacon's ``heard`` counts them."""
+
+    newest_s: float
+    newest_seq: int
+    recent_s: deque[float]
+    """Arrival times on the estimator's clock, newest last (at most ``HEARD_RECENT_MAX``)."""
+
+    def heard(self, now: float) -> Heard:
+        recent = sum(1 for at in self.recent_s if at > now - OWED_WINDOW_S)
+        return Heard(self.newest_seq, recent)
 
 
 def release_offsets(
@@ -224,8 +278,8 @@ class LinkEstimator:
         # exceeded the budget by 2.2 Mbit/s in 2 of 4 testbed runs, against 0.4-0.7).
         self._beacon = transport.declare_publisher(LINK_TOPIC)
         self._order_until = -math.inf
-        self._arrived: dict[str, float] = {}
-        """Per channel, its newest frame's arrival on our clock (at most ``HEARD_MAX``)."""
+        self._arrived: dict[str, _Arrivals] = {}
+        """Per channel, its newest frames' arrivals on our clock (at most ``HEARD_MAX``)."""
         self._silent_from = math.inf
         """The estimator's time when it last declared an outage: frames after it are back."""
         self._ticked_s = -math.inf
@@ -263,9 +317,7 @@ class LinkEstimator:
             estimator = self._estimator
             if estimator is not None:
                 for frame in report.frames:
-                    arrived = self._arrived
-                    if frame.topic in arrived or len(arrived) < HEARD_MAX:
-                        arrived[frame.topic] = max(arrived.get(frame.topic, -math.inf), now)
+                    self._arrival(frame.topic, frame.seq, now)
                     queued = max(
                         queued,
                         estimator.observe(
@@ -289,6 +341,22 @@ class LinkEstimator:
             self._streams_full.refuse(evicted)
         if refused:
             self._samples_full.refuse(refused)
+
+    def _arrival(self, topic: str, seq: int, now: float) -> None:
+        """Count a frame of ``topic`` numbered ``seq`` that arrived ``now``; lock held."""
+        arrivals = self._arrived.get(topic)
+        if arrivals is None:
+            if len(self._arrived) >= HEARD_MAX:
+                return
+            arrivals = _Arrivals(now, max(seq, 0), deque(maxlen=HEARD_RECENT_MAX))
+            self._arrived[topic] = arrivals
+        arrivals.newest_s = max(arrivals.newest_s, now)
+        if seq > arrivals.newest_seq or seq == 0:  # 0 again: the publisher restarted
+            arrivals.newest_seq = seq  # a report's seq is from the network: never below 0
+        recent = arrivals.recent_s
+        while recent and recent[0] <= now - OWED_WINDOW_S:
+            recent.popleft()
+        recent.append(now)
 
     def tick(self) -> Estimate | None:
         """One estimator update: every ``interval_s``, and soon after a queued frame.
@@ -317,7 +385,7 @@ class LinkEstimator:
         """Tell publishers whether frames arrive (and, around an outage, the release order)."""
         down = estimate.phase is Phase.OUTAGE
         now = self._transport.now()
-        heard: frozenset[str] | None = None
+        heard: dict[str, Heard] | None = None
         if down:
             if now > self._order_until:  # a new outage: frames from now on are the link back
                 self._silent_from = now
@@ -325,7 +393,11 @@ class LinkEstimator:
         elif now <= self._order_until:
             with self._lock:
                 silent = self._silent_from
-                heard = frozenset(t for t, at in self._arrived.items() if at > silent)
+                heard = {
+                    topic: arrivals.heard(now)
+                    for topic, arrivals in self._arrived.items()
+                    if arrivals.newest_s > silent
+                }
         release: dict[str, float] = {}
         if now <= self._order_until:  # only around an outage: it reads every parameter
             channels: dict[str, tuple[float, float]] = {}

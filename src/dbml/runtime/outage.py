@@ -10,8 +10,9 @@ next beacon or ``publish``, whichever comes first) and goes on at its rate, with
 message's credit: the outage's time is not banked into a burst. What it sent after the last
 beacon it heard (before it knew, probes, the fail-safe's) sat in the dead link's buffer: such
 a channel releases only once the estimator says its frames arrive again (``HEARD_WAIT_S``), so
-fresh frames do not queue behind that backlog, and the release owes it (up to
-``OWED_WINDOW_S`` of its rate).
+fresh frames do not queue behind that backlog, and the release owes what of it lands in the
+release's window (``OWED_WINDOW_S``): the frames the estimator heard in the last second and
+those sent after the newest it heard. What a session the outage closed dropped is not owed.
 
 The hold can only be safer than the fail-safe, never worse: it lasts at most ``HOLD_MAX_S``,
 after which the channel runs at its minimum (as without an allocation) until a beacon says the
@@ -32,7 +33,7 @@ import math
 from collections import deque
 from collections.abc import Mapping
 
-from dbml.runtime.estimator import LinkBeacon
+from dbml.runtime.estimator import OWED_WINDOW_S, Heard, LinkBeacon
 from dbml.runtime.rate import RateLimiter
 
 __all__ = [
@@ -60,10 +61,6 @@ PROBE_RATE_HZ = 1 / PROBE_INTERVAL_S
 HEARD_WAIT_S = 1.0
 """After an outage, a channel that sent into the dead link waits until the estimator says its
 frames arrive again (``LinkBeacon.heard``), at most this long after the link is back."""
-OWED_WINDOW_S = 1.0
-"""A release owes the frames the channel sent since the last beacon it heard, up to this long
-at its rate: TCP still holds them from before the outage and delivers them when the link
-returns, so the backlog and the release share one window's budget instead of adding up."""
 HOLD_MAX_S = 5.0
 """The longest a hold lasts (seconds): then the channel runs at its fail-safe minimum until a
 beacon says the link is back. A hold is a refinement of the fail-safe, never a stop."""
@@ -109,6 +106,8 @@ class OutageGate:
         self._release_at: float | None = None
         self._back_at: float | None = None
         """When a beacon first said the link is back in the hold in force."""
+        self._heard: Heard | None = None
+        """What the estimator last said arrived of this channel since the outage began."""
         self._probe_turn: tuple[int, int] | None = None
         """(this channel's place, how many) in the last outage beacon's release order."""
         self._probe_at = -math.inf
@@ -165,6 +164,7 @@ class OutageGate:
             # Repeated outage beacons do not extend the hold: it began once.
             self._hold_from = now if start is None else start
             self.link_deadline, self._release_at, self._back_at = -math.inf, None, None
+            self._heard = None
             self._probe_turn = _turn(beacon.release_s, self.topic)
             return None
         if start is None:
@@ -174,6 +174,8 @@ class OutageGate:
         # Back: go at our place in the release order, once our backlog is through.
         if self._back_at is None:
             self._back_at = now
+        if beacon.heard is not None and self.topic in beacon.heard:
+            self._heard = beacon.heard[self.topic]
         if self._release_at is None and self._clear(now, beacon.heard, sent_seq):
             self._release_at = now + beacon.release_s.get(self.topic, 0.0)
         if self._release_at is None or now < self._release_at:
@@ -222,18 +224,37 @@ class OutageGate:
 
         The credit left is at most one frame (the message that goes now, or the next one), so
         the outage's time is never banked into a burst; a probe that just went leaves less.
-        What was sent since the last beacon is owed (``OWED_WINDOW_S``): it arrives now too.
+        What was sent since the last beacon is owed as far as it lands in the release's window
+        (``OWED_WINDOW_S``, see ``_owed``).
         """
+        owed = min(self._owed(sent_seq), rate_hz * OWED_WINDOW_S)
         self._hold_from, self._release_at, self._probe_turn, self.held = None, None, None, None
-        self._back_at = None
+        self._back_at, self._heard = None, None
         self.link_deadline = now + LINK_SILENCE_S
         self._expiry_noted = False
-        owed = min(float(sent_seq - self._confirmed_seq), rate_hz * OWED_WINDOW_S)
         self._confirmed_seq = sent_seq
         self._limiter.restart(rate_hz, now, owed_frames=owed)
         return send and self._limiter.allow(now)
 
-    def _clear(self, now: float, heard: frozenset[str] | None, sent_seq: int) -> bool:
+    def _owed(self, sent_seq: int) -> float:
+        """The frames sent since the last beacon that said the link was up that a release owes.
+
+        Without word from the estimator, all of them. With it, only those that land in the
+        release's window: the ones it heard in the last ``OWED_WINDOW_S`` and the ones sent
+        after the newest it heard (still in the link). The rest arrived earlier, or were
+        dropped with a session the outage closed: owing them would silence the channel for up
+        to a second, long enough for the estimator to read a second outage. Never more than
+        all of them; a forged count can at most owe nothing, as after an outage in which
+        nothing went into the dead link.
+        """
+        sent = sent_seq - self._confirmed_seq
+        heard = self._heard
+        if heard is None:
+            return float(sent)
+        in_link = max(0, sent_seq - heard.newest_seq)
+        return float(min(sent, heard.recent_frames + in_link))
+
+    def _clear(self, now: float, heard: Mapping[str, Heard] | None, sent_seq: int) -> bool:
         """Whether nothing we sent is still stuck in the link (see ``HEARD_WAIT_S``)."""
         if sent_seq == self._confirmed_seq or heard is None or self.topic in heard:
             return True

@@ -209,3 +209,40 @@ def test_a_later_outage_neither_makes_an_earlier_one_stuck_nor_is_judged_too_lat
     assert r1.recovery_s == pytest.approx(0.0, abs=WINDOW_STEP_S)
     assert not r1.stuck
     assert r1.back_within(3.0)
+
+
+def test_a_robot_following_a_moving_allocation_is_back_and_not_stuck() -> None:
+    """An allocation that moves within a window is followed, not met at once.
+
+    It moves just after the return (a step) and every 0.2 s up to the end (the estimator
+    raising the budget by 6 % a tick); the robot follows each change 50 ms later. Judged
+    against the allocation at each window's end, the window across the step would not count,
+    and the last 2 s, never at an allocation that has already moved on, would be stuck.
+    """
+    changes = [(0.5, 14.0), (10.0, 11.0), *((14.0 + 0.2 * i, 5.0 * 1.06**i) for i in range(30))]
+
+    def allocated(t_s: float) -> float:
+        return next(hz for at, hz in reversed(changes) if at <= t_s)
+
+    frames, seq, t = [], 0, 0.55
+    while t < 20.0:
+        hz = allocated(t - 0.05)
+        if not 6.0 <= t < 9.2:  # nothing crosses the dead link
+            frames.append(Arrival(0, seq, t, t + 0.05, 84_000, hz))
+            seq += 1
+        t += 1 / hz
+    ticks = [
+        Tick(t_s=at, allocated_hz=(hz,), budget_mbit=8.0, estimate_mbit=None) for at, hz in changes
+    ]
+    (r1,) = recoveries(
+        frames,
+        ticks,
+        robots=["R1"],
+        t0=0.0,
+        end_s=20.0,
+        schedule=((0.0, 11.0), (6.0, 0.0), (9.0, 11.0)),
+        robot_schedules={},
+    )
+    assert r1.recovery_s is not None
+    assert r1.recovery_s <= 0.5  # the first window from its return at 9.2 s
+    assert not r1.stuck

@@ -30,36 +30,36 @@ LINK_SCOPE = "link"
 """The scope of an outage of the shared link: every robot is behind it."""
 
 
-def _budget_at(ticks: Sequence[Tick], t_s: float) -> float | None:
-    """The budget in force at ``t_s``: the last one seen at or before it, else the first after.
+def _held(
+    points: Sequence[tuple[float, float]], start: float, end: float
+) -> tuple[float, list[float]] | None:
+    """Over ``[start, end)``: a value's mean weighted by time, and every value in force.
 
-    ``ticks`` are sorted by time and all carry a budget.
+    ``points`` are (time, value) sorted by time, each value held until the next point; before
+    the first point, the first holds. None: no points. Rates follow a budget or an allocation
+    as it moves (a rate earns credit over time), so a window is owed the integral: judged
+    against its start alone, a window while the estimator raises the budget would count the
+    raise as excess, and one while it cuts would hide the cut.
     """
-    k = bisect.bisect_right([t.t_s for t in ticks], t_s)
-    if k > 0:
-        return ticks[k - 1].budget_mbit
-    return ticks[0].budget_mbit if ticks else None
+    if not points:
+        return None
+    k = bisect.bisect_right([t for t, _ in points], start)
+    value = points[k - 1][1] if k > 0 else points[0][1]
+    in_force, weighted, at = [value], 0.0, start
+    for t, after in points[k:]:
+        if t >= end:
+            break
+        weighted += value * (t - at)
+        value, at = after, t
+        in_force.append(value)
+    weighted += value * (end - at)
+    return weighted / (end - start), in_force
 
 
 def _budget_over(ticks: Sequence[Tick], start: float, end: float) -> float | None:
-    """The mean budget in force over ``[start, end)``, weighted by time.
-
-    Rates follow the budget as it moves (a rate earns credit over time), so a window is owed
-    the budget's integral: judged against its start alone, a window while the estimator raises
-    the budget would count the raise as excess, and one while it cuts would hide the cut.
-    ``ticks`` are sorted by time and all carry a budget.
-    """
-    budget = _budget_at(ticks, start)
-    if budget is None:
-        return None
-    weighted, at = 0.0, start
-    for tick in ticks:
-        if at < tick.t_s < end:
-            weighted += budget * (tick.t_s - at)
-            budget, at = tick.budget_mbit, tick.t_s
-            assert budget is not None  # the caller keeps only ticks with a budget
-    weighted += budget * (end - at)
-    return weighted / (end - start)
+    """The mean budget in force over ``[start, end)`` (``ticks`` sorted by time)."""
+    held = _held([(t.t_s, t.budget_mbit) for t in ticks if t.budget_mbit is not None], start, end)
+    return None if held is None else held[0]
 
 
 def worst_windows(
@@ -181,21 +181,25 @@ def recoveries(
     ``schedule`` is the shared link's (every robot is behind it), ``robot_schedules`` each
     robot's own radio; times are seconds after ``t0``, the run ends at ``end_s``. A 1-s window
     delivers the allocation when its frames sent after the return are within
-    ``RATE_TOLERANCE`` or ``RECOVERED_FLOOR_HZ`` of it (counted: the silence before does not
-    weigh on it) and its last frame says the publisher runs at it (a fail-safe minimum near a
-    low allocation is not it). Windows start every ``WINDOW_STEP_S`` from the return; the
+    ``RATE_TOLERANCE`` or ``RECOVERED_FLOOR_HZ`` of the allocation's mean over it (counted: the
+    silence before does not weigh on it; the mean: an allocation that moves within the window,
+    at a step or as the estimator moves the budget, is followed, not met at once) and its last
+    frame says the publisher runs at an allocation in force over it (a fail-safe minimum near
+    a low allocation is not one). Windows start every ``WINDOW_STEP_S`` from the return; the
     first that delivers counts. ``stuck``: none delivers in the ``STUCK_WINDOW_S`` before the
     robot's next outage or the run's end. An outage back too late to judge is left out.
     """
     streams = [RobotFrames(name, i, frames) for i, name in enumerate(robots)]
     ordered = sorted(ticks, key=lambda t: t.t_s)
-    tick_times = [t.t_s for t in ordered]
+    allocations = [
+        [(t.t_s, t.allocated_hz[k] or 0.0) for t in ordered] for k in range(len(robots))
+    ]  # no allocation: 0 Hz, which no window delivers
 
     def delivers(k: int, start: float, back: float) -> bool:
-        at = bisect.bisect_right(tick_times, t0 + start + WINDOW_S)
-        hz = ordered[at - 1].allocated_hz[k] if at else None
-        if not hz:
+        held = _held(allocations[k], t0 + start, t0 + start + WINDOW_S)
+        if held is None or min(held[1]) <= 0:
             return False
+        hz, in_force = held
         stream = streams[k]
         inside = stream.frames[
             bisect.bisect_left(stream.times, t0 + start) : bisect.bisect_left(
@@ -207,7 +211,7 @@ def recoveries(
         if not fresh or abs(len(fresh) / WINDOW_S - hz) > tolerance:
             return False
         applied = fresh[-1].rate_hz
-        return applied is None or abs(applied - hz) <= RATE_TOLERANCE * hz
+        return applied is None or any(abs(applied - h) <= RATE_TOLERANCE * h for h in in_force)
 
     def starts(first: float, last: float) -> list[float]:
         n = max(0, math.floor((last - first) / WINDOW_STEP_S + EDGE_S) + 1)
