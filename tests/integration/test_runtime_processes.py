@@ -13,8 +13,9 @@ import pytest
 
 from dbml.protocol import names
 from dbml.protocol.keys import encode_param, param_key
+from dbml.protocol.metadata import MessageMeta
 from dbml.runtime.estimator import LINK_TOPIC, Heard, LinkBeacon
-from dbml.transports.base import ParamValue
+from dbml.transports.base import ParamValue, Sample, Variant
 from tests.conftest import MONITOR_JSON_KEYS, wait_for
 from tests.integration.procs import fleet, publish_argv
 
@@ -280,12 +281,13 @@ def test_a_forged_graph_token_neither_pulls_the_full_stream_nor_unmanages(
 def test_forged_link_beacons_never_widen_the_wire(tmp_path: Path) -> None:
     """Forged ``/dbm/link`` beacons from a plain session never raise what is sent.
 
-    The flood: garbage, outages, releases naming every channel as heard, beacons stamped an
-    hour ahead, up and down alternating every few milliseconds. A beacon can make a publisher
-    hold (send less), but nothing in one may raise a rate: each release spends the same credit
-    as any message. Measured on the wire by the passive subscriber's 1-s windows while the
-    flood lasts: 2-3 of the allocated 5.95 frames a second (each release owes the message the
-    one before it sent).
+    The flood: garbage, outages, releases naming every channel as heard (without counts, with
+    a count from another run, and with the count that owes least: the newest number read off
+    the wire, nothing recent), beacons stamped an hour ahead, up and down alternating every few
+    milliseconds. A beacon can make a publisher hold (send less), but nothing in one may raise
+    a rate: each release spends the same credit as any message, and a count can at most owe
+    nothing. Measured on the wire by the passive subscriber's 1-s windows while the flood
+    lasts.
     """
     budget = 4 * 125_000
     with fleet() as f:
@@ -298,9 +300,18 @@ def test_forged_link_beacons_never_widen_the_wire(tmp_path: Path) -> None:
             what="the allocation",
         )
         beacon = f.probe.declare_publisher(LINK_TOPIC)
-        # the most a forged count can give: nothing owed that was not heard in the last second
-        owed_nothing = Heard(newest_seq=10**9, recent_frames=0)
-        everyone = dict.fromkeys((CAMERA, "/r2/camera"), owed_nothing)
+        newest = [0]  # the camera's newest sequence number, as anyone on the network sees it
+
+        def on_frame(sample: Sample) -> None:
+            if sample.attachment is not None:
+                newest[0] = max(newest[0], MessageMeta.decode(sample.attachment).seq)
+
+        watch = f.probe.subscribe(CAMERA, on_frame, Variant.OPTIMIZED)
+
+        def heard(k: int) -> dict[str, Heard] | None:
+            counts = [None, Heard(10**9, 0), Heard(newest[0], 0)][k % 3]
+            return None if counts is None else {CAMERA: counts, "/r2/camera": counts}
+
         garbage = [b"{not json", b'{"up": true, "heard": [1]}', b'{"up": "false"}']
         stop = threading.Event()
 
@@ -310,7 +321,7 @@ def test_forged_link_beacons_never_widen_the_wire(tmp_path: Path) -> None:
                     return
                 now = f.probe.now()
                 forged = [
-                    LinkBeacon(up=k % 2 == 0, release_s={CAMERA: 0.0}, sent_s=now, heard=everyone),
+                    LinkBeacon(up=k % 2 == 0, release_s={CAMERA: 0.0}, sent_s=now, heard=heard(k)),
                     LinkBeacon(up=True, release_s={CAMERA: 0.0}, sent_s=now - 3600.0),
                 ]
                 for data in [*(b.encode() for b in forged), garbage[k % len(garbage)]]:
@@ -329,6 +340,7 @@ def test_forged_link_beacons_never_widen_the_wire(tmp_path: Path) -> None:
             stop.set()
             flooder.join(timeout=5)
             beacon.close()
+            watch.close()
         assert len(rates) == 5
         assert max(rates) <= 1.1 * budget  # whole frames per 1-s window: at most one extra
         assert min(rates) >= FRAME_BYTES  # held and owed, never silenced: the minimum, 1 Hz

@@ -140,29 +140,89 @@ def test_a_cut_carries_the_wall_clock_time_it_was_decided() -> None:
     assert after.decided_at_s == decided
 
 
-def test_after_an_outage_the_beacon_names_the_channels_heard_again() -> None:
-    link = Link()
+def _down(link: Link) -> list[LinkBeacon]:
+    """Frames for 2 s, then 2 s without one (an outage); the beacons the operator hears."""
     beacons: list[LinkBeacon] = []
     link.operator.subscribe(LINK_TOPIC, lambda s: beacons.append(LinkBeacon.decode(s.payload)))
     link.run(2.0)
     assert beacons
     assert all(b.up and b.heard is None for b in beacons)  # no outage: not said
-    for _ in range(20):  # 2 s without a frame: the link is down
+    for _ in range(20):
         link.t += 0.1
         link.base_clock.advance(0.1)
         link.estimator.tick()
-    down = len(beacons)
     assert not beacons[-1].up
     assert beacons[-1].heard is None
     link.estimator.tick()  # still down, nothing arrived: nobody is heard
-    link.run(0.5)
+    return beacons
+
+
+def _heard_after(beacons: list[LinkBeacon], down: int) -> Heard | None:
     after = [b for b in beacons[down:] if b.up]
     assert after, beacons[down:]
     assert all(b.heard is not None for b in after)
-    heard = (after[-1].heard or {}).get("/cam")
+    return (after[-1].heard or {}).get("/cam")
+
+
+def test_after_an_outage_the_beacon_names_the_channels_heard_again() -> None:
+    link = Link()
+    beacons = _down(link)
+    down = len(beacons)
+    link.run(0.5)
     # what a release owes is counted from it: the newest frame, and the five since the return
     # (the ones before the outage are more than a second old)
-    assert heard == Heard(newest_seq=link.seq - 1, recent_frames=5)
+    assert _heard_after(beacons, down) == Heard(newest_seq=link.seq - 1, recent_frames=5)
+
+
+def test_the_beacon_counts_the_last_second_of_arrivals_only() -> None:
+    link = Link()
+    beacons = _down(link)
+    down = len(beacons)
+    link.run(1.5)  # 15 frames since the return, 10 of them in the last second
+    assert _heard_after(beacons, down) == Heard(newest_seq=link.seq - 1, recent_frames=10)
+
+
+def test_a_restarted_publishers_numbers_are_its_newest() -> None:
+    link = Link()
+    beacons = _down(link)
+    down = len(beacons)
+    link.seq = 1  # the robot's process restarted during the outage
+    link.run(0.5)
+    assert _heard_after(beacons, down) == Heard(newest_seq=5, recent_frames=5)
+
+
+def test_a_channel_heard_on_two_hosts_counts_as_the_one_that_heard_least() -> None:
+    """A second subscriber's host heard two of the five, the older ones.
+
+    Not seven frames, nor the newest of both: a release owes what the slower path may still
+    carry.
+    """
+    link = Link()
+    beacons = _down(link)
+    down = len(beacons)
+    link.run(0.5)
+    late = tuple(
+        ReceivedFrame("/cam", seq, 0, 0.0, FRAME_BYTES) for seq in (link.seq - 5, link.seq - 4)
+    )
+    report = ReceptionReport("op2", link.base_clock(), late).encode()
+    link.estimator._on_report(Sample(RECEPTION_TOPIC, report, None))
+    link.estimator.tick()
+    assert _heard_after(beacons, down) == Heard(newest_seq=link.seq - 4, recent_frames=5)
+
+
+def test_the_channels_a_beacon_counts_are_bounded(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(node_estimator, "HEARD_MAX", 2)
+    link = Link()
+    beacons = _down(link)
+    down = len(beacons)
+    link.run(0.5)
+    others = tuple(ReceivedFrame(f"/t{k}", 1, 0, 0.0, 10) for k in range(5))
+    report = ReceptionReport("op", link.base_clock(), others).encode()
+    link.estimator._on_report(Sample(RECEPTION_TOPIC, report, None))
+    link.estimator.tick()
+    last = [b for b in beacons[down:] if b.up][-1]
+    assert last.heard is not None
+    assert set(last.heard) == {"/cam", "/t0"}  # the first two channels reported, no more
 
 
 def test_lost_frames_lower_the_budget() -> None:
@@ -214,11 +274,19 @@ def test_reports_are_sent_only_while_someone_listens() -> None:
     assert [(f.topic, f.seq, f.size_bytes) for f in report.frames] == [("/cam", 0, 10)]
 
 
-def test_a_malformed_report_names_itself() -> None:
+@pytest.mark.parametrize(
+    "data",
+    [
+        b'{"host": "op"}',
+        b'{"host": "op", "now_s": 1, "frames": [["/cam", 1e400, 0, 0.0, 10]]}',  # inf seq
+        b'{"host": "op", "now_s": 1, "frames": [["/cam", 1, 0, 0.0, Infinity]]}',
+    ],
+)
+def test_a_malformed_report_names_itself(data: bytes) -> None:
     from dbml.core.errors import TransportError
 
     with pytest.raises(TransportError, match="malformed reception report"):
-        ReceptionReport.decode(b'{"host": "op"}')
+        ReceptionReport.decode(data)
 
 
 def test_clock_offsets_are_kept_for_at_most_max_reporters_hosts(

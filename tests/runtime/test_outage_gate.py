@@ -194,12 +194,38 @@ def test_a_release_owes_only_what_lands_in_its_window() -> None:
     assert _after_a_long_outage(None) == [False] * 7 + [True]
 
 
-def test_a_forged_count_owes_no_less_than_the_frames_the_link_may_hold() -> None:
+def test_a_count_never_owes_more_than_was_sent_and_at_most_nothing() -> None:
     # a count above what was sent cannot owe more than all of it
     assert _after_a_long_outage(Heard(newest_seq=0, recent_frames=1000)) == [False] * 7 + [True]
-    # a newest seq beyond what was sent leaves only the recent frames owed: as an outage in
-    # which nothing went into the dead link, never more credit than that
-    assert _after_a_long_outage(Heard(newest_seq=10**9, recent_frames=0)) == [True] * 8
+    # the most a forged count can give: nothing owed, as after an outage in which nothing went
+    # into the dead link; never more credit than that
+    assert _after_a_long_outage(Heard(newest_seq=8, recent_frames=0)) == [True] * 8
+
+
+def test_a_newest_number_above_ours_is_another_runs_and_owes_everything() -> None:
+    """An estimator that counted a publisher before it restarted has a higher newest number."""
+    assert _after_a_long_outage(Heard(newest_seq=10**9, recent_frames=0)) == [False] * 7 + [True]
+
+
+def test_what_was_heard_before_a_second_outage_is_not_owed_by_its_release() -> None:
+    channel = Channel()
+    channel.beacon(up=True)
+    channel.advance(LINK_SILENCE_S + 0.01)
+    channel.admit(b"held")
+    channel.sent += 8
+    # back: heard (nothing owed by that count), but not yet at its place in the order ...
+    late = {TOPIC: 0.5}
+    assert channel.beacon(up=True, release_s=late, heard={TOPIC: Heard(8, 0)}) is None
+    # ... and down again before it: the count is of the link as it was, not as it will be
+    assert channel.beacon(up=False, release_s=late) is None
+    channel.advance(0.5)
+    channel.beacon(up=True, release_s={TOPIC: 0.0}, heard=None)
+    assert not channel.gate.holding(channel.now)
+    went = []
+    for _ in range(8):
+        channel.advance(PERIOD_S)
+        went.append(channel.steady())
+    assert went == [False] * 7 + [True]  # no word this time: all eight owed
 
 
 def test_a_backlog_releases_once_heard_or_after_the_wait() -> None:

@@ -11,9 +11,11 @@ from dataclasses import dataclass
 
 from dbml.core.errors import TransportError
 
-__all__ = ["MessageMeta", "pack_meta"]
+__all__ = ["SEQ_MAX", "MessageMeta", "pack_meta"]
 
 _LAYOUT = struct.Struct("<Qqd")
+SEQ_MAX = 2**64 - 1
+"""The largest sequence number the layout carries (an unsigned 64-bit field)."""
 pack_meta = _LAYOUT.pack
 """``pack_meta(seq, sent_ns, rate_hz)``: the encoding without building an object (hot path)."""
 

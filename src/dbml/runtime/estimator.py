@@ -42,6 +42,7 @@ from dbml.core.estimator import (
 )
 from dbml.core.spec import check_number, mbit_to_bytes_per_s
 from dbml.protocol import keys, names
+from dbml.protocol.metadata import SEQ_MAX
 from dbml.runtime.params import ParamView
 from dbml.runtime.reception import (
     EARLY_FLUSH_QUEUE_S,
@@ -112,10 +113,14 @@ _DECODE_ERRORS = (ValueError, OverflowError, RecursionError, TypeError, KeyError
 
 @dataclass(frozen=True, slots=True)
 class Heard:
-    """What arrived of one channel since an outage began, as its release needs to know it."""
+    """What arrived of one channel, as its release after an outage needs to know it.
+
+    With subscribers on several hosts, the one that heard the least: the lowest newest number
+    and the most recent frames, so a release never owes less than any of them saw.
+    """
 
     newest_seq: int
-    """The sequence number of its newest frame that arrived: later ones may still be in the
+    """The sequence number of the newest frame that arrived: later ones may still be in the
     link; earlier ones arrived, or were dropped with a session the outage closed."""
     recent_frames: int
     """Its frames that arrived in the last ``OWED_WINDOW_S``: they share the release's window."""
@@ -177,7 +182,8 @@ class LinkBeacon:
 def _heard(value: object) -> dict[str, Heard] | None:
     """A beacon's ``heard``: absent, or at most ``HEARD_MAX`` ``{topic: [seq, recent]}``.
 
-    Both are integers from 0, ``recent`` at most ``HEARD_RECENT_MAX``.
+    Both are integers from 0: ``seq`` at most ``SEQ_MAX``, ``recent`` at most
+    ``HEARD_RECENT_MAX``.
     """
     if value is None:
         return None
@@ -189,7 +195,7 @@ def _heard(value: object) -> dict[str, Heard] | None:
             case [int() as seq, int() as recent] if (
                 not isinstance(seq, bool)
                 and not isinstance(recent, bool)
-                and seq >= 0
+                and 0 <= seq <= SEQ_MAX
                 and 0 <= recent <= HEARD_RECENT_MAX
             ):
                 heard[topic] = Heard(seq, recent)
@@ -207,12 +213,19 @@ class _Arrivals:
 
     newest_s: float
     newest_seq: int
+    """The number of the frame reported last (a lower one than before: the publisher restarted)."""
     recent_s: deque[float]
-    """Arrival times on the estimator's clock, newest last (at most ``HEARD_RECENT_MAX``)."""
+    """When reports of its frames came, on the estimator's clock, newest last (at most
+    ``HEARD_RECENT_MAX``, none older than ``OWED_WINDOW_S`` at the last one)."""
 
     def heard(self, now: float) -> Heard:
         recent = sum(1 for at in self.recent_s if at > now - OWED_WINDOW_S)
         return Heard(self.newest_seq, recent)
+
+
+def _least(a: Heard, b: Heard) -> Heard:
+    """What two hosts heard of one channel, as the one that heard the least."""
+    return Heard(min(a.newest_seq, b.newest_seq), max(a.recent_frames, b.recent_frames))
 
 
 def release_offsets(
@@ -278,8 +291,8 @@ class LinkEstimator:
         # exceeded the budget by 2.2 Mbit/s in 2 of 4 testbed runs, against 0.4-0.7).
         self._beacon = transport.declare_publisher(LINK_TOPIC)
         self._order_until = -math.inf
-        self._arrived: dict[str, _Arrivals] = {}
-        """Per channel, its newest frames' arrivals on our clock (at most ``HEARD_MAX``)."""
+        self._arrived: dict[tuple[str, str], _Arrivals] = {}
+        """Per reporting host and channel, its newest frames' arrivals (at most ``HEARD_MAX``)."""
         self._silent_from = math.inf
         """The estimator's time when it last declared an outage: frames after it are back."""
         self._ticked_s = -math.inf
@@ -317,7 +330,7 @@ class LinkEstimator:
             estimator = self._estimator
             if estimator is not None:
                 for frame in report.frames:
-                    self._arrival(frame.topic, frame.seq, now)
+                    self._arrival(report.host, frame.topic, frame.seq, now)
                     queued = max(
                         queued,
                         estimator.observe(
@@ -342,17 +355,22 @@ class LinkEstimator:
         if refused:
             self._samples_full.refuse(refused)
 
-    def _arrival(self, topic: str, seq: int, now: float) -> None:
-        """Count a frame of ``topic`` numbered ``seq`` that arrived ``now``; lock held."""
-        arrivals = self._arrived.get(topic)
+    def _arrival(self, host: str, topic: str, seq: int, now: float) -> None:
+        """Count a frame of ``topic`` numbered ``seq`` that ``host`` reported ``now``; lock held.
+
+        A host reports its frames in the order they arrived, each channel's in the order they
+        were sent: the last one reported is the newest, and a lower number than before means
+        the publisher restarted. The number comes from the network: kept within the layout's.
+        """
+        seq = min(max(seq, 0), SEQ_MAX)
+        arrivals = self._arrived.get((host, topic))
         if arrivals is None:
             if len(self._arrived) >= HEARD_MAX:
                 return
-            arrivals = _Arrivals(now, max(seq, 0), deque(maxlen=HEARD_RECENT_MAX))
-            self._arrived[topic] = arrivals
+            arrivals = _Arrivals(now, seq, deque(maxlen=HEARD_RECENT_MAX))
+            self._arrived[(host, topic)] = arrivals
         arrivals.newest_s = max(arrivals.newest_s, now)
-        if seq > arrivals.newest_seq or seq == 0:  # 0 again: the publisher restarted
-            arrivals.newest_seq = seq  # a report's seq is from the network: never below 0
+        arrivals.newest_seq = seq
         recent = arrivals.recent_s
         while recent and recent[0] <= now - OWED_WINDOW_S:
             recent.popleft()
@@ -393,11 +411,11 @@ class LinkEstimator:
         elif now <= self._order_until:
             with self._lock:
                 silent = self._silent_from
-                heard = {
-                    topic: arrivals.heard(now)
-                    for topic, arrivals in self._arrived.items()
-                    if arrivals.newest_s > silent
-                }
+                heard = {}
+                for (_, topic), arrivals in self._arrived.items():
+                    if arrivals.newest_s > silent:
+                        mine, other = arrivals.heard(now), heard.get(topic)
+                        heard[topic] = mine if other is None else _least(mine, other)
         release: dict[str, float] = {}
         if now <= self._order_until:  # only around an outage: it reads every parameter
             channels: dict[str, tuple[float, float]] = {}

@@ -245,11 +245,12 @@ class OutageGate:
         dropped with a session the outage closed: owing them would silence the channel for up
         to a second, long enough for the estimator to read a second outage. Never more than
         all of them; a forged count can at most owe nothing, as after an outage in which
-        nothing went into the dead link.
+        nothing went into the dead link. A newest number above ours was counted before this
+        publisher (re)started: no word.
         """
         sent = sent_seq - self._confirmed_seq
         heard = self._heard
-        if heard is None:
+        if heard is None or heard.newest_seq > sent_seq:  # a count of another run of ours
             return float(sent)
         in_link = max(0, sent_seq - heard.newest_seq)
         return float(min(sent, heard.recent_frames + in_link))

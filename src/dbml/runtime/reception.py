@@ -90,7 +90,7 @@ class ReceptionReport:
                 for topic, seq, sent, arrival, size in document["frames"]
             )
             return cls(str(document["host"]), float(document["now_s"]), frames)
-        except (ValueError, KeyError, TypeError) as err:
+        except (ValueError, KeyError, TypeError, OverflowError) as err:
             raise TransportError(f"malformed reception report {data[:80]!r}") from err
 
 

@@ -246,3 +246,39 @@ def test_a_robot_following_a_moving_allocation_is_back_and_not_stuck() -> None:
     assert r1.recovery_s is not None
     assert r1.recovery_s <= 0.5  # the first window from its return at 9.2 s
     assert not r1.stuck
+
+
+def test_a_fail_safe_minimum_under_a_rising_allocation_is_not_a_recovery() -> None:
+    """A robot at its fail-safe minimum while the allocation rises is not back.
+
+    From the return the allocation rises from 1.5 Hz by 6 % every 0.2 s; the robot stays at
+    its fail-safe 1 Hz for 3.5 s, then follows. A window's count may be within one frame of
+    its mean: the applied rate, against the allocation when each frame was sent, says no.
+    """
+    changes = [(0.5, 4.0), *((9.0 + 0.2 * i, 1.5 * 1.06**i) for i in range(45))]
+
+    def allocated(t_s: float) -> float:
+        return next(hz for at, hz in reversed(changes) if at <= t_s)
+
+    frames, seq, t = [], 0, 9.0
+    while t < 20.0:
+        hz = 1.0 if t < 12.5 else allocated(t - 0.05)
+        frames.append(Arrival(0, seq, t, t + 0.05, 21_000, hz))
+        seq += 1
+        t += 1 / hz
+    ticks = [
+        Tick(t_s=at, allocated_hz=(hz,), budget_mbit=8.0, estimate_mbit=None) for at, hz in changes
+    ]
+    (r1,) = recoveries(
+        frames,
+        ticks,
+        robots=["R1"],
+        t0=0.0,
+        end_s=20.0,
+        schedule=((0.0, 11.0), (6.0, 0.0), (9.0, 11.0)),
+        robot_schedules={},
+    )
+    assert r1.recovery_s is not None
+    assert r1.recovery_s >= 3.0  # not before it followed, 3.5 s after the return
+    assert not r1.back_within(3.0)
+    assert not r1.stuck

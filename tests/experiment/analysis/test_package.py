@@ -5,6 +5,7 @@ from __future__ import annotations
 from dbml.experiment import analysis
 
 PUBLIC = [
+    "APPLIED_LAG_S",
     "BUDGET_BACK_FRACTION",
     "BUDGET_BACK_S",
     "FIRST_CUT_S",

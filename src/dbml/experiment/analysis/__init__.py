@@ -25,6 +25,7 @@ from dbml.experiment.analysis.records import (
 )
 from dbml.experiment.analysis.steps import analyse
 from dbml.experiment.analysis.thresholds import (
+    APPLIED_LAG_S,
     BUDGET_BACK_FRACTION,
     BUDGET_BACK_S,
     FIRST_CUT_S,
@@ -49,6 +50,7 @@ from dbml.experiment.analysis.thresholds import (
 from dbml.experiment.analysis.windows import latest, link_at, rate_hz, settle_s, stream_latency
 
 __all__ = [
+    "APPLIED_LAG_S",
     "BUDGET_BACK_FRACTION",
     "BUDGET_BACK_S",
     "FIRST_CUT_S",

@@ -14,6 +14,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dbml.core.spec import bytes_per_s_to_mbit
 from dbml.experiment.analysis.records import Arrival, Outage, Recovery, Tick
 from dbml.experiment.analysis.thresholds import (
+    APPLIED_LAG_S,
     OUTAGE_AFTER_S,
     OUTAGE_RECOVERY_S,
     RATE_TOLERANCE,
@@ -184,10 +185,11 @@ def recoveries(
     ``RATE_TOLERANCE`` or ``RECOVERED_FLOOR_HZ`` of the allocation's mean over it (counted: the
     silence before does not weigh on it; the mean: an allocation that moves within the window,
     at a step or as the estimator moves the budget, is followed, not met at once) and its last
-    frame says the publisher runs at an allocation in force over it (a fail-safe minimum near
-    a low allocation is not one). Windows start every ``WINDOW_STEP_S`` from the return; the
-    first that delivers counts. ``stuck``: none delivers in the ``STUCK_WINDOW_S`` before the
-    robot's next outage or the run's end. An outage back too late to judge is left out.
+    frame says the publisher runs at an allocation in force within ``APPLIED_LAG_S`` of its
+    sending (a fail-safe minimum near a low allocation is not one). Windows start every
+    ``WINDOW_STEP_S`` from the return; the first that delivers counts. ``stuck``: none
+    delivers in the ``STUCK_WINDOW_S`` before the robot's next outage or the run's end. An
+    outage back too late to judge is left out.
     """
     streams = [RobotFrames(name, i, frames) for i, name in enumerate(robots)]
     ordered = sorted(ticks, key=lambda t: t.t_s)
@@ -197,9 +199,9 @@ def recoveries(
 
     def delivers(k: int, start: float, back: float) -> bool:
         held = _held(allocations[k], t0 + start, t0 + start + WINDOW_S)
-        if held is None or min(held[1]) <= 0:
+        if held is None or min(held[1]) <= 0:  # not allocated for part of it
             return False
-        hz, in_force = held
+        hz = held[0]
         stream = streams[k]
         inside = stream.frames[
             bisect.bisect_left(stream.times, t0 + start) : bisect.bisect_left(
@@ -210,8 +212,13 @@ def recoveries(
         tolerance = max(RATE_TOLERANCE * hz, RECOVERED_FLOOR_HZ)
         if not fresh or abs(len(fresh) / WINDOW_S - hz) > tolerance:
             return False
-        applied = fresh[-1].rate_hz
-        return applied is None or any(abs(applied - h) <= RATE_TOLERANCE * h for h in in_force)
+        last = fresh[-1]
+        if last.rate_hz is None:
+            return True
+        sent = last.arrival_s if last.sent_s is None else last.sent_s
+        near = _held(allocations[k], sent - APPLIED_LAG_S, sent + APPLIED_LAG_S)
+        assert near is not None  # the window's own allocations are there
+        return any(abs(last.rate_hz - h) <= RATE_TOLERANCE * h for h in near[1])
 
     def starts(first: float, last: float) -> list[float]:
         n = max(0, math.floor((last - first) / WINDOW_STEP_S + EDGE_S) + 1)

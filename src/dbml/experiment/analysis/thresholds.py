@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 __all__ = [
+    "APPLIED_LAG_S",
     "BUDGET_BACK_FRACTION",
     "BUDGET_BACK_S",
     "FIRST_CUT_S",
@@ -66,3 +67,6 @@ RECOVERED_FLOOR_HZ = 1.0
 frame: where a window's edge falls between two frames decides that one."""
 STUCK_WINDOW_S = 2.0
 """A robot not at its allocation in any window of a run's last this long is stuck."""
+APPLIED_LAG_S = 0.25
+"""A frame's applied rate is an allocation the operator saw in force this close to its send
+time: the operator reads the allocation every 0.2 s, the publisher applies it when pushed."""
