@@ -171,13 +171,8 @@ def test_down_intervals_leave_out_an_outage_that_never_ends() -> None:
     assert down_intervals(((0.0, 11.0), (5.0, 0.0), (8.0, 4.0), (12.0, 0.0))) == [(5.0, 8.0)]
 
 
-def test_a_fail_safe_minimum_near_a_low_allocation_is_not_a_recovery() -> None:
-    """At 1 Hz against 1.48 Hz a 1-s window holds one frame either way: its rate says which."""
-    frames = [
-        *stream(0, hz=1.48, start=0.0, end=6.0, delay=0.05, size=21_000),
-        *stream(0, hz=1.0, start=9.2, end=20.0, delay=0.05, size=21_000),
-    ]
-    ticks = [Tick(t_s=0.5, allocated_hz=(1.48,), budget_mbit=8.0, estimate_mbit=None)]
+def _r1_after_6_to_9(frames: list[Arrival], ticks: list[Tick]) -> Recovery:
+    """R1's recovery over a 20-s run whose link is down from 6 to 9 s."""
     (r1,) = recoveries(
         frames,
         ticks,
@@ -187,6 +182,17 @@ def test_a_fail_safe_minimum_near_a_low_allocation_is_not_a_recovery() -> None:
         schedule=((0.0, 11.0), (6.0, 0.0), (9.0, 11.0)),
         robot_schedules={},
     )
+    return r1
+
+
+def test_a_fail_safe_minimum_near_a_low_allocation_is_not_a_recovery() -> None:
+    """At 1 Hz against 1.48 Hz a 1-s window holds one frame either way: its rate says which."""
+    frames = [
+        *stream(0, hz=1.48, start=0.0, end=6.0, delay=0.05, size=21_000),
+        *stream(0, hz=1.0, start=9.2, end=20.0, delay=0.05, size=21_000),
+    ]
+    ticks = [Tick(t_s=0.5, allocated_hz=(1.48,), budget_mbit=8.0, estimate_mbit=None)]
+    r1 = _r1_after_6_to_9(frames, ticks)
     assert r1.recovery_s is None
     assert r1.stuck
 
@@ -211,6 +217,35 @@ def test_a_later_outage_neither_makes_an_earlier_one_stuck_nor_is_judged_too_lat
     assert r1.back_within(3.0)
 
 
+def _following(
+    changes: list[tuple[float, float]],
+    *,
+    start_s: float,
+    fail_safe_until_s: float = 0.0,
+    silent: tuple[float, float] = (0.0, 0.0),
+) -> Recovery:
+    """R1 under an allocation that takes each ``(time, Hz)`` of ``changes``; the link down 6-9 s.
+
+    From ``start_s`` it sends at its 1-Hz fail-safe until ``fail_safe_until_s``, then follows
+    each change 50 ms later; nothing it sends within ``silent`` crosses the dead link.
+    """
+
+    def allocated(t_s: float) -> float:
+        return next(hz for at, hz in reversed(changes) if at <= t_s)
+
+    frames, seq, t = [], 0, start_s
+    while t < 20.0:
+        hz = 1.0 if t < fail_safe_until_s else allocated(t - 0.05)
+        if not silent[0] <= t < silent[1]:
+            frames.append(Arrival(0, seq, t, t + 0.05, 84_000, hz))
+            seq += 1
+        t += 1 / hz
+    ticks = [
+        Tick(t_s=at, allocated_hz=(hz,), budget_mbit=8.0, estimate_mbit=None) for at, hz in changes
+    ]
+    return _r1_after_6_to_9(frames, ticks)
+
+
 def test_a_robot_following_a_moving_allocation_is_back_and_not_stuck() -> None:
     """An allocation that moves within a window is followed, not met at once.
 
@@ -220,29 +255,7 @@ def test_a_robot_following_a_moving_allocation_is_back_and_not_stuck() -> None:
     and the last 2 s, never at an allocation that has already moved on, would be stuck.
     """
     changes = [(0.5, 14.0), (10.0, 11.0), *((14.0 + 0.2 * i, 5.0 * 1.06**i) for i in range(30))]
-
-    def allocated(t_s: float) -> float:
-        return next(hz for at, hz in reversed(changes) if at <= t_s)
-
-    frames, seq, t = [], 0, 0.55
-    while t < 20.0:
-        hz = allocated(t - 0.05)
-        if not 6.0 <= t < 9.2:  # nothing crosses the dead link
-            frames.append(Arrival(0, seq, t, t + 0.05, 84_000, hz))
-            seq += 1
-        t += 1 / hz
-    ticks = [
-        Tick(t_s=at, allocated_hz=(hz,), budget_mbit=8.0, estimate_mbit=None) for at, hz in changes
-    ]
-    (r1,) = recoveries(
-        frames,
-        ticks,
-        robots=["R1"],
-        t0=0.0,
-        end_s=20.0,
-        schedule=((0.0, 11.0), (6.0, 0.0), (9.0, 11.0)),
-        robot_schedules={},
-    )
+    r1 = _following(changes, start_s=0.55, silent=(6.0, 9.2))
     assert r1.recovery_s is not None
     assert r1.recovery_s <= 0.5  # the first window from its return at 9.2 s
     assert not r1.stuck
@@ -256,28 +269,7 @@ def test_a_fail_safe_minimum_under_a_rising_allocation_is_not_a_recovery() -> No
     its mean: the applied rate, against the allocation when each frame was sent, says no.
     """
     changes = [(0.5, 4.0), *((9.0 + 0.2 * i, 1.5 * 1.06**i) for i in range(45))]
-
-    def allocated(t_s: float) -> float:
-        return next(hz for at, hz in reversed(changes) if at <= t_s)
-
-    frames, seq, t = [], 0, 9.0
-    while t < 20.0:
-        hz = 1.0 if t < 12.5 else allocated(t - 0.05)
-        frames.append(Arrival(0, seq, t, t + 0.05, 21_000, hz))
-        seq += 1
-        t += 1 / hz
-    ticks = [
-        Tick(t_s=at, allocated_hz=(hz,), budget_mbit=8.0, estimate_mbit=None) for at, hz in changes
-    ]
-    (r1,) = recoveries(
-        frames,
-        ticks,
-        robots=["R1"],
-        t0=0.0,
-        end_s=20.0,
-        schedule=((0.0, 11.0), (6.0, 0.0), (9.0, 11.0)),
-        robot_schedules={},
-    )
+    r1 = _following(changes, start_s=9.0, fail_safe_until_s=12.5)
     assert r1.recovery_s is not None
     assert r1.recovery_s >= 3.0  # not before it followed, 3.5 s after the return
     assert not r1.back_within(3.0)
