@@ -1,25 +1,28 @@
 """Foxglove Studio, a real one in headless Chromium, shows dbml's view with the shipped layout.
 
 Two ways in, one layout: a recording (``ds=remote-file``: Studio reads the MCAP by byte ranges)
-and a live server (``ds=foxglove-websocket``). Each test waits until the page shows the
-allocation of Table 2's first step (/r1/camera 12.37 Hz, /r2/camera 16 Hz, 11 Mbit/s), checks
-that nothing left the machine, and keeps a screenshot; the live one's goes to
-``$DBML_SCREENSHOT`` when set (the README's docs/foxglove.png).
+and a live server (``ds=foxglove-websocket``). The recording opens at Table 2's first step and
+the page must show it (/r1/camera 12.37 Hz, /r2/camera 16 Hz, 11 Mbit/s). The live page loads
+while the demo runs, after a moment no test can choose (3.5 s on a quiet machine, 15 s on a busy
+one): it must show whichever of Table 2's allocations is in force, then follow the demo to the
+next one. Each test checks that nothing left the machine and keeps a screenshot; the live one's
+goes to ``$DBML_SCREENSHOT`` when set (the README's docs/foxglove.png, taken at step 6).
 
-The data is the main job's: ``dbml demo teleop --foxglove PORT --record FILE``, watched live
-(its steps 1-2 and 8-10 are Table 2's 12.37 / 16 Hz), then its recording, opened at step 1.
+The data is the main job's: ``dbml demo teleop --foxglove PORT --record FILE``, watched live,
+then its recording.
 """
 
 from __future__ import annotations
 
 import contextlib
+import itertools
 import json
 import os
 import re
 import socket
 import subprocess
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -45,18 +48,44 @@ pytestmark = pytest.mark.browser
 
 READY_TIMEOUT_S = 90.0
 
-# Table 2, step 1: what the optimizer gave each camera under an 11 Mbit/s budget.
 BUDGET_MBIT = 11.0
-RATES_HZ = {"/r1/camera": 12.37, "/r2/camera": 16.0}
-STEP1_R2_FLOOR_HZ = 16.0
-"""R2 alone has a priority in step 1 (tc 10 s): eq. 2 gives it all the weight, eq. 3 its maximum."""
+TOPICS = ("/r1/camera", "/r2/camera")
+
+
+@dataclass(frozen=True, slots=True)
+class Shown:
+    """One of Table 2's allocations as the view shows it: each camera's rate and floor (Hz).
+
+    The rates are the paper's; the floors are eq. 4's, worked by hand from the step's
+    priorities (eq. 2 weighs a priority by its message size: 84,000 and 21,000 bytes).
+    """
+
+    name: str
+    rates_hz: tuple[float, float]
+    floors_hz: tuple[float, float]
+
+
+STEP1 = Shown("steps 1, 8-10", (12.37, 16.0), (1.0, 16.0))
+"""Only R2 has a priority: eq. 2 gives it all the weight, eq. 4 its maximum as its floor."""
+STEP2 = Shown("step 2 (and before step 1)", (12.37, 16.0), (1.0, 1.0))
+"""No priority: both floors at the minimum."""
+STEP3 = Shown("steps 3-5, 7", (16.0, 1.48), (16.0, 1.0))
+"""Only R1 has a priority."""
+STEP6 = Shown("step 6", (13.0, 13.48), (13.0, 4.0))
+"""Equal priorities (tc 15 s): p' is 0.8 and 0.2, so the floors are 15 x p' + 1."""
+SEQUENCE = (STEP2, STEP1, STEP2, STEP3, STEP3, STEP3, STEP6, STEP3, STEP1, STEP1, STEP1)
+"""What the demo shows, in order: before its first step, then Table 2's ten."""
+NEXT: Mapping[Shown, frozenset[Shown]] = {
+    shown: frozenset(b for a, b in itertools.pairwise(SEQUENCE) if a == shown and b != a)
+    for shown in SEQUENCE
+}
+"""Which allocation the demo goes to from each (the ones it holds for several steps included)."""
 
 
 # --- the two data sources: a live demo, then its recording ---------------------------------------
 
 DEMO_STEP_S = 5.0
-"""Long enough that step 1 (and the moments before it, whose rates are the same) outlasts the
-page's load: it shows Table 2's step 1 live."""
+"""Each allocation holds 5-15 s: long enough for the page to draw one before the next."""
 DEMO_START_S = 60.0
 DEMO_END_S = 120.0
 """The demo's 10 steps, its start and its end, after the live test."""
@@ -123,7 +152,7 @@ def step1_time(record: Path) -> str:
         for _, _channel, message in make_reader(stream).iter_messages(topics=["/dbm/allocation"]):
             allocation = json.loads(message.data)
             priorities = [c["priority"] for c in allocation["channels"]]
-            if len(priorities) == len(RATES_HZ) and any(priorities):
+            if len(priorities) == len(TOPICS) and any(priorities):
                 at = datetime.fromtimestamp(message.log_time / 1e9 + 1.0, tz=UTC)
                 return at.isoformat().replace("+00:00", "Z")
     raise AssertionError(f"{record}: no allocation of step 1")
@@ -137,7 +166,7 @@ def browser() -> str:
     return require_browser()
 
 
-LAYOUT = studio_layout(cameras=DEFAULT_CAMERAS, channels=list(RATES_HZ))
+LAYOUT = studio_layout(cameras=DEFAULT_CAMERAS, channels=list(TOPICS))
 
 
 @pytest.fixture
@@ -180,23 +209,29 @@ def _near(shown: str | None, value: float) -> bool:
         return False
 
 
-def missing_step(page: DevTools) -> str | None:
-    """What the page does not show yet of Table 2's step 1 (None: all of it).
+def _shown_rows(page: DevTools) -> tuple[Shown | None, str]:
+    """Which of Table 2's allocations the allocation table shows, and what it shows."""
+    rows = table_rows(page.panel_texts().get(_panel("Table"), ""))
+    cells = [(rows.get(t, {}).get("rate_hz"), rows.get(t, {}).get("floor_hz")) for t in TOPICS]
+    for shown in (STEP1, STEP2, STEP3, STEP6):
+        pairs = zip(cells, shown.rates_hz, shown.floors_hz, strict=True)
+        if all(_near(rate, r) and _near(floor, f) for (rate, floor), r, f in pairs):
+            return shown, ""
+    return None, f"allocation table: (rate_hz, floor_hz) {cells}, not one of Table 2's"
 
-    The allocation table's rate_hz column, R2's priority floor (step 1's event: before it both
-    priorities are 0, with the same rates), the rates in the plot's legend, the budget panel's
-    budget_mbit, and a frame (its stamp) in each camera's image panel.
+
+def missing_allocation(page: DevTools, shown: Shown) -> str | None:
+    """What the page does not show yet of allocation ``shown`` (None: all of it).
+
+    The allocation table's rate_hz and floor_hz columns, the rates in the plot's legend, the
+    budget panel's budget_mbit, and a frame (its stamp) in each camera's image panel.
     """
+    found, gap = _shown_rows(page)
+    if found != shown:
+        return gap or f"allocation table: {found.name if found else None}, not {shown.name}"
     panels = page.panel_texts()
-    rows = table_rows(panels.get(_panel("Table"), ""))
     legend = panels.get(_panel("Plot"), "").split()
-    floor = rows.get("/r2/camera", {}).get("floor_hz")
-    if not _near(floor, STEP1_R2_FLOOR_HZ):
-        return f"allocation table: /r2/camera floor_hz {floor!r}, not {STEP1_R2_FLOOR_HZ:g}"
-    for topic, rate in RATES_HZ.items():
-        shown = rows.get(topic, {}).get("rate_hz")
-        if not _near(shown, rate):
-            return f"allocation table: {topic} rate_hz {shown!r}, not {rate:g}"
+    for rate in shown.rates_hz:
         if not any(_near(word, rate) for word in legend):
             return f"plot legend: no {rate:g}"
     budget = message_fields(panels.get(_panel("RawMessages", topicPath="/dbm/budget"), ""))
@@ -211,15 +246,39 @@ def missing_step(page: DevTools) -> str | None:
     return None
 
 
-def missing_live(page: DevTools) -> str | None:
-    """The step, and the server's parameters in the Parameters panel (a recording has none)."""
-    gap = missing_step(page)
-    if gap is not None:
-        return gap
-    parameters = page.panel_texts().get(_panel("Parameters"), "")
-    if "/dbm/max_bandwidth_in_mbit" not in parameters:
-        return "parameters panel: no /dbm/max_bandwidth_in_mbit"
-    return None
+def missing_step1(page: DevTools) -> str | None:
+    """Table 2's first step, where a recording opens."""
+    return missing_allocation(page, STEP1)
+
+
+class LiveAllocations:
+    """The live page's allocations as it follows the demo: any of Table 2's, then the next.
+
+    The first is whichever the page shows once loaded, whole (table, plot, budget, frames and
+    the server's parameters in the Parameters panel); the next must be one the demo goes to from
+    it, shown whole too: the page follows the live allocation, not one it happened to load on.
+    """
+
+    def __init__(self) -> None:
+        self.seen: list[Shown] = []
+
+    def missing(self, page: DevTools) -> str | None:
+        found, rows = _shown_rows(page)
+        if found is None:
+            return rows
+        if self.seen and found == self.seen[-1]:
+            return f"still {found.name}: waiting for the demo's next allocation"
+        if self.seen and found not in NEXT[self.seen[-1]]:
+            raise AssertionError(f"the page went from {self.seen[-1].name} to {found.name}")
+        gap = missing_allocation(page, found)
+        if gap is None and "/dbm/max_bandwidth_in_mbit" not in page.panel_texts().get(
+            _panel("Parameters"), ""
+        ):
+            gap = "parameters panel: no /dbm/max_bandwidth_in_mbit"
+        if gap is not None:
+            return gap
+        self.seen.append(found)
+        return None if len(self.seen) >= 2 else f"{found.name} shown: waiting for the next"
 
 
 def _open(
@@ -229,7 +288,7 @@ def _open(
     ds: str,
     ds_url: str,
     screenshot: Path,
-    missing: Callable[[DevTools], str | None] = missing_step,
+    missing: Callable[[DevTools], str | None] = missing_step1,
     settle_s: float = 1.0,
     time: str | None = None,
     then: Callable[[DevTools], str | None] | None = None,
@@ -238,9 +297,9 @@ def _open(
 
     ``mounts`` are served beside the page (``/run/`` holds layout.json); ``BASE`` in ``ds_url``
     stands for the server's address; ``time`` (RFC 3339) is where a recording opens. The
-    screenshot is taken ``settle_s`` after the page showed the step (the plot and images draw
-    what the text already shows), after ``then`` shows nothing missing if given. Returns the
-    page-ready time in seconds, from navigation to the step shown (printed too: ``pytest -s``).
+    screenshot is taken ``settle_s`` after the page showed what it waits for (the plot and images
+    draw what the text already shows), after ``then`` shows nothing missing if given. Returns
+    the seconds from navigation to nothing ``missing`` (printed too: ``pytest -s``).
     """
     with (
         static_server({"/": DIST, **mounts}) as base,
@@ -255,43 +314,32 @@ def _open(
         )
         started = monotonic()
         page.navigate(url)
-        page.wait_for(missing, timeout_s=READY_TIMEOUT_S, what="Table 2's step 1")
+        page.wait_for(missing, timeout_s=READY_TIMEOUT_S, what="Table 2's allocations")
         ready_s = monotonic() - started
         if then is not None:
             page.wait_for(then, timeout_s=READY_TIMEOUT_S, what="the moment of the screenshot")
         page.pump(settle_s)
         assert is_png(page.screenshot(screenshot)), screenshot
         assert page.outside_requests() == []
-    print(f"{ds}: page ready in {ready_s:.1f} s; screenshot {screenshot}")
+    print(f"{ds}: shown {ready_s:.1f} s after navigation; screenshot {screenshot}")
     return ready_s
-
-
-STEP6_HZ = {"/r1/camera": 13.0, "/r2/camera": 13.48}
-"""Table 2's step 6, where both cameras share: the screenshot waits for it, so its plot shows the
-steps before it."""
-
-
-def missing_step6(page: DevTools) -> str | None:
-    rows = table_rows(page.panel_texts().get(_panel("Table"), ""))
-    for topic, rate in STEP6_HZ.items():
-        shown = rows.get(topic, {}).get("rate_hz")
-        if not _near(shown, rate):
-            return f"allocation table: {topic} rate_hz {shown!r}, not {rate:g}"
-    return None
 
 
 def test_live_server_in_studio(browser: str, live_url: str, layout_dir: Path) -> None:
     target = os.environ.get("DBML_SCREENSHOT")
     screenshot = Path(target) if target else layout_dir.parent / "live.png"
+    live = LiveAllocations()
     _open(
         browser,
         {"/run/": layout_dir},
         ds="foxglove-websocket",
         ds_url=live_url,
         screenshot=screenshot,
-        missing=missing_live,
-        then=missing_step6,
+        missing=live.missing,
+        # The README's picture: step 6, where both cameras share, after the steps before it.
+        then=(lambda page: missing_allocation(page, STEP6)) if target else None,
     )
+    assert len(live.seen) == 2, live.seen
 
 
 def test_recording_opens_in_studio(browser: str, recording: Path, layout_dir: Path) -> None:
