@@ -71,6 +71,19 @@ def test_rate_sleep_keeps_absolute_deadlines() -> None:
     assert clock() - ticks[-1] == pytest.approx(0.5)
 
 
+def test_rate_sleep_makes_up_for_late_wake_ups() -> None:
+    """A sleep that returns late (a busy machine) does not slow the loop: the next is earlier."""
+    clock = ManualClock()
+
+    def oversleep(seconds: float) -> None:
+        clock.advance(seconds + 0.002)
+
+    rate = Rate(lambda: 16.0, clock=clock, sleep=oversleep)
+    for _ in range(161):
+        rate.sleep()
+    assert clock() == pytest.approx(10.0, abs=0.0625)  # 160 periods, not 160 x 64.5 ms
+
+
 def test_rate_sleep_does_not_burst_after_falling_behind() -> None:
     clock = ManualClock()
     rate = Rate(lambda: 10.0, clock=clock, sleep=clock.advance)

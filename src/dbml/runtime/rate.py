@@ -18,6 +18,8 @@ __all__ = ["Rate", "RateLimiter"]
 
 _EPSILON_FRAMES = 1e-9
 """Rounding slack, so a message exactly one period later is never refused."""
+_PACER_BEHIND_FRAMES = 2.0
+"""A loop this many ticks behind (a whole period late) restarts its schedule: no burst."""
 
 
 class _Credit:
@@ -108,8 +110,10 @@ class Rate:
 
     The loop earns one tick per period of the rate in force, read every ``poll_s`` while
     waiting, so a new allocation applies within ``poll_s`` even in the middle of a long period.
-    Ticks keep absolute deadlines (loop work does not add to the period); falling behind by more
-    than a period restarts the schedule instead of bursting.
+    Ticks keep absolute deadlines: neither loop work nor a late wake-up (a sleep returns after
+    its time, later on a busy machine) adds to the period, so the loop runs at the rate itself
+    (each tick's wake-up delay lost, 1.6 ms at 16 Hz on a loaded testbed, cost 2.5 % of the
+    rate); falling behind by a whole period restarts the schedule instead of bursting.
 
     ``keep_phase``: after the rate changes, the first tick at the new rate goes at the point of
     the loop's own grid (``first tick + k / rate``) nearest to when the credit allows it (up to
@@ -146,7 +150,7 @@ class Rate:
         """Block until the loop's next tick."""
         if self._credit is None:  # the loop's first tick is now
             hz = self._rate_hz()
-            self._credit = _Credit(hz, cap_frames=1.0)
+            self._credit = _Credit(hz, cap_frames=_PACER_BEHIND_FRAMES)
             self._anchor = self._clock()
             self._credit.look(self._anchor)
             self._credit.spend()
@@ -157,6 +161,8 @@ class Rate:
         while True:
             now, hz = self._clock(), self._rate_hz()
             credit.look(now, hz)
+            if credit.frames >= _PACER_BEHIND_FRAMES - _EPSILON_FRAMES:
+                credit.frames = 1.0  # a period or more behind: this tick now, then on schedule
             if self._keep_phase and hz != self._tick_hz and hz > 0:
                 # A new rate: tick at the point of the loop's own grid nearest to when the
                 # credit allows (at most half a period either side; the next one if that point
