@@ -18,6 +18,14 @@ def test_a_slow_stream_is_timed_exactly_in_a_short_step(offset_s: float) -> None
     assert rate_hz(times, start, 6.0) == pytest.approx(1.48, rel=1e-9)
 
 
+def test_a_stream_delayed_now_and_then_by_another_is_timed_at_its_rate() -> None:
+    # 16 Hz whose every third frame waits 62 ms behind another robot's 84 KB frame, in a 1.33 s
+    # window that ends just after a delayed one (its first-to-last span reads 15.3 Hz)
+    times = [k / 16 + (0.075 if k % 3 == 0 else 0.013) for k in range(64)]
+    start, end = 2.05 + settle_s(2.0), 4.05
+    assert rate_hz(times, start, end) == pytest.approx(16.0, rel=0.01)
+
+
 def test_a_window_without_a_gap_to_time_counts() -> None:
     assert rate_hz([0.5], 0.0, 2.0) == 0.5
     assert rate_hz([], 0.0, 2.0) == 0.0
