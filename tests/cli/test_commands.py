@@ -18,6 +18,7 @@ from dbml.core import DbmSettings, SpecError
 from dbml.protocol import names
 from dbml.runtime import ManagedPublisher, ManagedSubscriber, OptimizerNode
 from dbml.runtime.monitor import MonitorView, channel_rows
+from dbml.runtime.rounds import RoundFollower
 from dbml.transports import MemoryNetwork, MemoryTransport
 from tests.conftest import MONITOR_JSON_KEYS
 
@@ -56,8 +57,13 @@ def test_monitor_rows_and_json() -> None:
     camera.publish(bytes(84_000))
     idle.publish(bytes(1000))
     ManagedSubscriber(MemoryTransport(network, host="operator"), "/r1/camera", lambda s: None)
-    OptimizerNode(MemoryTransport(network, host="base"), settings=DbmSettings(11.0)).optimize()
-    rows = {row.topic: row for row in channel_rows(MemoryTransport(network, host="viewer"))}
+    viewer = MemoryTransport(network, host="viewer")
+    rounds = RoundFollower(viewer)
+    optimizer = OptimizerNode(MemoryTransport(network, host="base"), settings=DbmSettings(11.0))
+    # Before the optimizer's first report: the rate pushed, no share of the budget.
+    assert channel_rows(viewer, rounds.latest())[0].share is None
+    optimizer.optimize()
+    rows = {row.topic: row for row in channel_rows(viewer, rounds.latest())}
     assert rows["/r1/camera"].managed
     assert rows["/r1/camera"].host == "robot1"
     # the only managed channel: p' = 1, floor = max = 16 Hz

@@ -10,8 +10,10 @@ import pytest
 
 from dbml.core import DbmSettings, LinkSpec, Status, Strategy
 from dbml.protocol import names
+from dbml.protocol.messages import ROUND_TOPIC
 from dbml.runtime import ManagedPublisher, ManagedSubscriber, OptimizerNode, Round
 from dbml.runtime.optimizer import MAX_CHANNELS
+from dbml.runtime.rounds import RoundFollower
 from dbml.transports import ManualClock, MemoryNetwork, MemoryTransport, ParamValue, Role, Variant
 from tests.conftest import wait_for
 
@@ -369,3 +371,82 @@ def test_the_channels_tracked_are_bounded_the_known_ones_stay_and_a_flood_is_sai
         "(told once until half of them are gone)",
         f"channels tracked: room again; {over + 3} refused meanwhile",
     ]
+
+
+# -- the round report: what the view and the monitor show --------------------------------------
+
+
+def test_a_round_reports_table2_with_the_paper_s_floors() -> None:
+    fleet = Fleet()
+    fleet.watch_remotely(R1)
+    fleet.watch_remotely(R2)
+    fleet.priority(R2, 10 / 17)  # Table 2's step 1: tc 20 s and 10 s
+    report = fleet.optimizer.optimize().report()
+    assert report.status is Status.OPTIMAL
+    assert report.strategy is Strategy.PAPER
+    assert report.budget_mbit == 11.0
+    assert report.round == fleet.operator.params.get(names.ROUND)
+    r1, r2 = report.channels
+    assert (r1.topic, r2.topic) == (R1, R2)
+    # Eq. 2: only R2 has a priority, so it weighs everything; eq. 4: its floor is its maximum.
+    assert (r1.normalized_priority, r2.normalized_priority) == (0.0, 1.0)
+    assert (r1.floor_hz, r2.floor_hz) == (1.0, 16.0)
+    assert (round(r1.rate_hz or 0, 2), r2.rate_hz) == (12.37, 16.0)
+    assert r1.share == pytest.approx((r1.rate_hz or 0) * 84_000 / 1_375_000)
+    assert (r1.size_bytes, r1.min_hz, r1.max_hz, r2.priority) == (84_000, 1.0, 16.0, 10 / 17)
+    assert report.allocated_mbit == pytest.approx(11.0, abs=1e-6)
+
+
+def test_a_round_reports_an_unmanaged_channel_at_its_maximum_without_floor_or_share() -> None:
+    fleet = Fleet()
+    fleet.watch_remotely(R2)
+    report = fleet.optimizer.optimize().report()
+    r1 = report.channel(R1)
+    assert r1 is not None
+    assert (r1.managed, r1.rate_hz) == (False, 16.0)
+    assert (r1.floor_hz, r1.normalized_priority, r1.share) == (None, None, None)
+    assert report.allocated_mbit == pytest.approx(16 * 21_000 * 8 / 1e6)  # R2's alone
+
+
+def test_a_round_without_a_budget_reports_no_floors_and_no_shares() -> None:
+    fleet = Fleet()
+    fleet.watch_remotely(R1)
+    fleet.operator.params.set(names.BANDWIDTH, None)
+    report = fleet.optimizer.optimize().report()
+    assert report.status is Status.INFEASIBLE
+    assert report.budget_mbit is None
+    assert all(c.floor_hz is None and c.share is None for c in report.channels)
+
+
+def test_a_round_reports_what_its_links_allowed() -> None:
+    """A rate an uplink held down: no allocation of the parameter values alone would show it."""
+    fleet = Fleet(strategy=Strategy.LP, links=[LinkSpec("uplink-r1", 2.0, (R1,))])
+    fleet.watch_remotely(R1)
+    fleet.watch_remotely(R2)
+    fleet.priority(R1, 1.0)
+    report = fleet.optimizer.optimize().report()
+    r1 = report.channel(R1)
+    assert r1 is not None
+    assert (r1.rate_hz or 0) * 84_000 * 8 / 1e6 == pytest.approx(2.0)  # not its floor, 16 Hz
+    assert r1.floor_hz == 16.0
+    assert report.status is Status.INFEASIBLE
+    assert "uplink-r1" in report.message
+
+
+def test_rounds_are_published_to_whoever_follows_them() -> None:
+    fleet = Fleet()
+    fleet.watch_remotely(R1)
+    viewer = MemoryTransport(fleet.network, host="viewer")
+    rounds = RoundFollower(viewer)
+    assert rounds.latest() is None
+    first = fleet.optimizer.optimize().report()
+    assert rounds.latest() == first
+    # A peer's malformed report is dropped where it enters: the optimizer's stands.
+    rogue = viewer.declare_publisher(ROUND_TOPIC)
+    rogue.put(b'{"round": -1}')
+    rogue.put(b"\xff")
+    assert rounds.latest() == first
+    second = fleet.optimizer.optimize().report()
+    assert rounds.latest() == second
+    assert second.round == first.round + 1
+    rounds.close()

@@ -14,6 +14,7 @@ import pytest
 import zenoh
 
 from dbml.protocol import keys, names
+from dbml.protocol.messages import ROUND_TOPIC
 from dbml.protocol.schema import (
     PARAMETERS,
     Kind,
@@ -134,12 +135,14 @@ def test_every_parameter_has_an_owner_a_validator_and_a_rule(parameter: Paramete
 def test_only_the_optimizer_puts_batches_and_beacons_robots_their_data_others_reports() -> None:
     document = access_control(small_fleet())
     link = keys.data_key(keys.LINK_TOPIC)
+    rounds = keys.data_key(ROUND_TOPIC)
     reception = keys.data_key(keys.RECEPTION_TOPIC)
     for node in NODES:
         assert permitted(document, node, "put", reception) is (node != "opt")
         assert permitted(document, node, "put", keys.BATCH) is (node == "opt")
         assert permitted(document, node, "put", keys.batch_key("r1")) is (node == "opt")
         assert permitted(document, node, "put", link) is (node == "opt")
+        assert permitted(document, node, "put", rounds) is (node == "opt")
         assert permitted(document, node, "put", keys.data_key(TOPIC)) is (node == "r1")
         assert permitted(document, node, "put", keys.data_key(TOPIC + "/optimized")) is (
             node == "r1"

@@ -38,43 +38,6 @@ def table2_step1() -> dict[str, ParamValue]:
     return values
 
 
-def test_the_allocation_carries_the_paper_s_floors_and_the_rates_pushed() -> None:
-    frame = frames.allocation_frame(table2_step1(), [R2, R1, R1])
-    assert [c.topic for c in frame.channels] == [R1, R2]
-    r1, r2 = frame.channels
-    # Eq. 2: only R2 has priority, so it weighs everything; eq. 3: its floor is its maximum.
-    assert (r1.normalized_priority, r2.normalized_priority) == (0.0, 1.0)
-    assert (r1.floor_hz, r2.floor_hz) == (1.0, 16.0)
-    assert (round(r1.rate_hz or 0, 2), r2.rate_hz) == (12.37, 16.0)
-    assert r1.share == pytest.approx(12.369047619 * 84_000 / 1_375_000)
-    assert frame.allocated_mbit == pytest.approx(11.0, abs=1e-6)
-    document = frame.as_json()
-    assert document["round"] == 7
-    assert document["status"] == "optimal"
-    assert document["budget_mbit"] == 11.0
-    assert set(document["channels"][0]) == set(
-        frames.ALLOCATION_SCHEMA["properties"]["channels"]["items"]["properties"]
-    )
-
-
-def test_a_channel_without_bounds_is_not_shown_and_an_unmanaged_one_has_no_floor() -> None:
-    values = table2_step1()
-    values[names.managed(R1)] = False
-    del values[names.min_rate(R2)]
-    frame = frames.allocation_frame(values, [R1, R2, "/r3/lidar"])
-    assert [c.topic for c in frame.channels] == [R1]
-    (r1,) = frame.channels
-    assert (r1.managed, r1.floor_hz, r1.normalized_priority, r1.share) == (False, None, None, None)
-
-
-def test_no_budget_no_floors_and_no_share() -> None:
-    values = table2_step1()
-    del values[names.BANDWIDTH]
-    frame = frames.allocation_frame(values, [R1, R2])
-    assert frame.budget_mbit is None
-    assert all(c.floor_hz is None and c.share is None for c in frame.channels)
-
-
 def test_the_budget_is_the_estimate_below_the_configured_one() -> None:
     values = table2_step1() | {names.UTILIZATION: 0.9, names.ESTIMATE: 6.0}
     budget = frames.budget_frame(values, estimator_phase="hold")

@@ -121,25 +121,39 @@ def allocations_are(sink: MemorySink, count: int) -> bool:
 
 
 def test_one_allocation_and_one_rate_sample_per_round(fleet: Fleet) -> None:
-    view = live_view(fleet, interval_s=60).start()
+    view = live_view(fleet, interval_s=0.05).start()
     try:
-        wait_for(lambda: bool(fleet.sink.on(frames.ALLOCATION_TOPIC)), what="the first look")
-        seen = len(fleet.sink.on(frames.ALLOCATION_TOPIC))
+        wait_for(lambda: bool(fleet.sink.on(frames.BUDGET_TOPIC)), what="the first look")
+        assert fleet.sink.on(frames.ALLOCATION_TOPIC) == []  # nothing before a round's report
         for k in range(1, 6):  # each round heard before the next (faster ones coalesce)
             fleet.optimizer.optimize()
-            wait_for(functools.partial(allocations_are, fleet.sink, seen + k), what=f"round {k}")
+            wait_for(functools.partial(allocations_are, fleet.sink, k), what=f"round {k}")
     finally:
         view.close()
     allocations = fleet.sink.on(frames.ALLOCATION_TOPIC)
-    rounds = [a["round"] for a in allocations[seen:]]
-    assert rounds == sorted(set(rounds)), rounds  # one message per round, in order
-    assert len(rounds) == 5
+    rounds = [a["round"] for a in allocations]
+    assert rounds == [1, 2, 3, 4, 5]  # one message per round, the optimizer's own counter
     last = allocations[-1]
     assert [c["topic"] for c in last["channels"]] == [R1]
     assert last["channels"][0]["rate_hz"] == pytest.approx(4e6 / 8 / 84_000)
-    rated = sum(1 for a in allocations if a["channels"] and a["channels"][0]["rate_hz"])
-    assert len(fleet.sink.on(frames.frequency_topic(R1))) == rated
+    assert len(fleet.sink.on(frames.frequency_topic(R1))) == 5
     assert fleet.sink.closed
+
+
+def test_the_allocation_is_the_optimizer_s_not_one_made_again(fleet: Fleet) -> None:
+    """The view shows the round as reported: a floor the optimizer's links pulled back too."""
+    view = live_view(fleet, interval_s=0.05).start()
+    try:
+        reported = fleet.optimizer.optimize().report()
+        wait_for(functools.partial(allocations_are, fleet.sink, 1), what="the round")
+    finally:
+        view.close()
+    (shown,) = fleet.sink.on(frames.ALLOCATION_TOPIC)
+    assert shown == reported.as_json()
+    assert set(shown) == set(frames.ALLOCATION_SCHEMA["properties"])
+    assert set(shown["channels"][0]) == set(
+        frames.ALLOCATION_SCHEMA["properties"]["channels"]["items"]["properties"]
+    )
 
 
 def test_status_changes_and_refused_values_are_logged_once(fleet: Fleet) -> None:
@@ -153,9 +167,9 @@ def test_status_changes_and_refused_values_are_logged_once(fleet: Fleet) -> None
             lambda: any("/r1/camera/dbm/priority=5.0" in m for _, m in fleet.sink.text),
             what="the refused priority",
         )
-        fleet.optimizer.optimize()
-        fleet.optimizer.optimize()
-        wait_for(lambda: len(fleet.sink.on(frames.ALLOCATION_TOPIC)) >= 3, what="rounds")
+        for k in (2, 3):  # each round heard before the next
+            fleet.optimizer.optimize()
+            wait_for(functools.partial(allocations_are, fleet.sink, k), what=f"round {k}")
     finally:
         view.close()
     with fleet.sink.lock:

@@ -29,6 +29,7 @@ from dbml.runtime.bridge import FIRST_MESSAGE_TIMEOUT_S, Bridge
 from dbml.runtime.monitor import MonitorView, monitor_view
 from dbml.runtime.publisher import ManagedPublisher
 from dbml.runtime.reception import ReceptionReporter
+from dbml.runtime.rounds import RoundFollower
 from dbml.runtime.serve import PEER_WAIT_S, Lifetime, run_optimizer
 from dbml.runtime.subscriber import ManagedSubscriber
 from dbml.transports.base import ParamValue, Sample, Transport, TransportPriority
@@ -239,10 +240,21 @@ def run_monitor(
     duration_s: float | None = None,
     interval_s: float = 1.0,
 ) -> int:
-    """Hand a fresh ``MonitorView`` to ``show`` every ``interval_s`` until stopped."""
-    transport.wait_for_peers(PEER_WAIT_S)
-    life = Lifetime(stop, duration_s)
-    while not life.over():
-        show(monitor_view(transport))
-        stop.wait(interval_s)
-    return life.exit_code()
+    """Hand a fresh ``MonitorView`` to ``show`` every ``interval_s`` until stopped.
+
+    The optimizer reports every period: the first view waits up to ``interval_s`` for its
+    report, so it shows the shares of the budget from the start.
+    """
+    rounds = RoundFollower(transport)
+    try:
+        transport.wait_for_peers(PEER_WAIT_S)
+        life = Lifetime(stop, duration_s)
+        first = True
+        while not life.over():
+            report = rounds.wait(interval_s) if first else rounds.latest()
+            first = False
+            show(monitor_view(transport, report))
+            stop.wait(interval_s)
+        return life.exit_code()
+    finally:
+        rounds.close()

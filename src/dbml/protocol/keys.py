@@ -12,6 +12,7 @@ secure fleet's access rules build their keys from these functions and constants.
 | graph | ``dbml/graph/<role>/<host>/<uid>/<variant>/<topic>`` | a declaration (liveliness) |
 | node | ``dbml/node/<node id>/<zenoh id>/<all or own>`` | a session and what it follows |
 | link | ``dbm/link`` (topic ``/dbm/link``) | the estimator's beacon |
+| round | ``dbm/optimizer/round`` | the optimizer's report (``dbml.protocol.messages``) |
 | reception | ``dbm/reception`` (topic ``/dbm/reception``) | what subscribers received |
 """
 

@@ -1,4 +1,9 @@
-"""What ``dbml monitor`` shows, as data: every live channel with its allocation and state."""
+"""What ``dbml monitor`` shows, as data: every live channel with its allocation and state.
+
+The allocation and each channel's share of the budget are the optimizer's, from its newest
+``RoundReport`` (``dbml.runtime.rounds``); the rest (hosts, priorities, sizes) from the graph and
+the parameters. Before any report is heard a row shows the rate pushed, and no share.
+"""
 
 from __future__ import annotations
 
@@ -7,8 +12,8 @@ from typing import Any
 
 from dbml.core.errors import SpecError
 from dbml.core.estimator import EstimatorState
-from dbml.core.spec import mbit_to_bytes_per_s
 from dbml.protocol import names, schema
+from dbml.protocol.messages import RoundReport
 from dbml.protocol.schema import PARAMETERS, Parameter
 from dbml.runtime.graph import is_managed, published_topics, publisher_hosts
 from dbml.runtime.params import channel_params, dbm_params, valid_values
@@ -71,13 +76,11 @@ class MonitorView:
     status_message: str | None
 
 
-def monitor_view(transport: Transport) -> MonitorView:
-    """Read the graph and the (validated) parameters once."""
+def monitor_view(transport: Transport, report: RoundReport | None = None) -> MonitorView:
+    """Read the graph and the (validated) parameters once, beside the optimizer's ``report``."""
     entries = transport.graph.entries()
     values = valid_values(transport.params.snapshot())
     dbm = dbm_params(values)
-    budget_mbit = dbm.budget_mbit
-    budget = None if budget_mbit is None else mbit_to_bytes_per_s(budget_mbit)
     status = values.get(names.STATUS)
     estimator_text = _estimator_text(values.get(names.ESTIMATOR_STATE))
     rows = []
@@ -86,10 +89,9 @@ def monitor_view(transport: Transport) -> MonitorView:
         if channel.max_rate_hz is None:
             continue  # not a dbml channel (ROS 1's graph lists every topic, /rosout too)
         managed = is_managed(entries, topic)
-        size, allocated = channel.size_bytes, channel.current_rate_hz
-        share = None
-        if managed and budget and size is not None and allocated is not None:
-            share = allocated * size / budget
+        reported = None if report is None else report.channel(topic)
+        allocated = channel.current_rate_hz if reported is None else reported.rate_hz
+        share = None if reported is None else reported.share
         if allocated is None:
             state = "no allocation"
         elif not managed:
@@ -102,7 +104,7 @@ def monitor_view(transport: Transport) -> MonitorView:
                 host=",".join(sorted(publisher_hosts(entries, topic))),
                 managed=managed,
                 priority=channel.priority,
-                size_bytes=size,
+                size_bytes=channel.size_bytes,
                 allocated_hz=allocated,
                 share=share,
                 status=state,
@@ -130,6 +132,6 @@ def _estimator_text(value: object) -> str | None:
         return None
 
 
-def channel_rows(transport: Transport) -> list[ChannelRow]:
+def channel_rows(transport: Transport, report: RoundReport | None = None) -> list[ChannelRow]:
     """Every live channel as ``dbml monitor`` shows it."""
-    return list(monitor_view(transport).rows)
+    return list(monitor_view(transport, report).rows)

@@ -7,7 +7,9 @@ allocates, and pushes each publisher its rate through ``[topic]/dbm/frequency/cu
 - at once when a priority, a size, a bound, the budget or the graph changes, coalescing bursts.
 
 A round pushes only what changed: rates, ``managed`` flags, the status, and ``/dbm/round``, the
-heartbeat that tells publishers their rate still stands. When some rates go down and others up it
+heartbeat that tells publishers their rate still stands. Then it says what it decided, whole, in
+a ``RoundReport`` on ``/dbm/optimizer/round`` (when anyone listens): the live view and ``dbml
+monitor`` show that, and never allocate themselves. When some rates go down and others up it
 is two writes (``set_many``): the decreases first, acknowledged (or ``ACK_TIMEOUT_S`` passed)
 before the increases go out, so the budget is not exceeded while rates change; otherwise one.
 Each write is one message where the middleware allows (zenoh's batch), one write per name over
@@ -30,8 +32,9 @@ from dataclasses import dataclass, field, replace
 from dbml.core.allocation import Allocation, Status, Strategy, allocate
 from dbml.core.config import DbmSettings
 from dbml.core.errors import DbmlError
-from dbml.core.spec import LinkSpec, Problem, short_repr
+from dbml.core.spec import LinkSpec, Problem, mbit_to_bytes_per_s, short_repr
 from dbml.protocol import keys, names
+from dbml.protocol.messages import MAX_REPORTED_CHANNELS, ROUND_TOPIC, ChannelRound, RoundReport
 from dbml.runtime.graph import summarize
 from dbml.runtime.params import (
     ChannelParams,
@@ -41,7 +44,14 @@ from dbml.runtime.params import (
     write_settings,
 )
 from dbml.runtime.worker import PeriodicWorker
-from dbml.transports.base import GraphEntry, Handle, ParamValue, Role, Transport
+from dbml.transports.base import (
+    GraphEntry,
+    Handle,
+    ParamValue,
+    Role,
+    Transport,
+    TransportPriority,
+)
 from dbml.transports.overflow import Overflow
 
 __all__ = ["MAX_CHANNELS", "ChannelState", "OptimizerNode", "Round"]
@@ -63,7 +73,7 @@ ACK_TIMEOUT_S = 0.25
 """How long increases wait for publishers to acknowledge the decreases pushed before them."""
 COALESCE_S = 0.002
 """Triggers within this time of the first run one round."""
-MAX_CHANNELS = 4096
+MAX_CHANNELS = MAX_REPORTED_CHANNELS
 """The most channels (published topics) the optimizer tracks: what it remembers per channel
 (rates pushed, publishers asked again) and each round's allocation grow with them. A fleet of
 160 robots with 4 channels has 640, six times less. Any peer can announce publishers, so past
@@ -100,6 +110,50 @@ class Round:
     budget_mbit: float | None
     """What was allocatable: the estimate, else bandwidth times utilization."""
     allocation: Allocation | None
+    strategy: Strategy = Strategy.PAPER
+    number: int = 0
+    """The round's counter, as ``/dbm/round`` carries it."""
+
+    def report(self) -> RoundReport:
+        """The round as the optimizer says it on the wire: every live channel, floors included."""
+        allocation = self.allocation
+        allocated: dict[str, tuple[float, float]] = {}
+        if allocation is not None:
+            allocated = {
+                topic: (float(allocation.normalized_priority[i]), float(allocation.floor_hz[i]))
+                for i, topic in enumerate(allocation.topics)
+            }
+        budget = None if self.budget_mbit is None else mbit_to_bytes_per_s(self.budget_mbit)
+        channels = []
+        for state in self.channels:
+            params, rate = state.params, self.rates_hz.get(state.topic)
+            size = params.size_bytes
+            share = None
+            if state.managed and budget and rate is not None and size is not None:
+                share = rate * size / budget
+            normalized, floor = allocated.get(state.topic, (None, None))
+            channels.append(
+                ChannelRound(
+                    topic=state.topic,
+                    managed=state.managed,
+                    priority=params.priority,
+                    min_hz=params.floor_hz,
+                    max_hz=params.max_rate_hz or 0.0,
+                    size_bytes=size,
+                    normalized_priority=normalized,
+                    floor_hz=floor,
+                    rate_hz=rate,
+                    share=share,
+                )
+            )
+        return RoundReport(
+            round=self.number,
+            status=self.status,
+            message=self.message,
+            strategy=self.strategy,
+            budget_mbit=self.budget_mbit,
+            channels=tuple(channels),
+        )
 
 
 @dataclass(frozen=True, slots=True)
@@ -156,6 +210,10 @@ class OptimizerNode:
         self._channels_full = Overflow("channels tracked", MAX_CHANNELS, log=log)
         self._acks = threading.Condition()
         self.last_round: Round | None = None
+        # Telemetry, not control: it never goes ahead of an allocation on a saturated link.
+        self._reports = transport.declare_publisher(
+            ROUND_TOPIC, priority=TransportPriority.DATA_LOW
+        )
         params = transport.params
         if settings is not None:
             write_settings(params, settings)
@@ -359,8 +417,19 @@ class OptimizerNode:
             log.info("%s", message)
         self._owned = owned | {names.current_value(t): r for t, r in rates.items()}
         self._push(rates, channels, updates)
-        result = Round(channels, rates, status, message, dbm.budget_mbit, outcome.allocation)
+        result = Round(
+            channels,
+            rates,
+            status,
+            message,
+            dbm.budget_mbit,
+            outcome.allocation,
+            dbm.strategy,
+            self._rounds,
+        )
         self.last_round = result
+        if self._reports.has_subscribers:
+            self._reports.put(result.report().encode())
         return result
 
     def _push(
@@ -472,3 +541,4 @@ class OptimizerNode:
         for handle in self._handles:
             handle.close()
         self._handles.clear()
+        self._reports.close()

@@ -20,6 +20,7 @@ from types import MappingProxyType
 from typing import Any
 
 from dbml.protocol import keys
+from dbml.protocol.messages import ROUND_TOPIC
 from dbml.protocol.schema import PARAMETERS, Parameter, Scope, Writer
 from dbml.secure.fleet import Fleet, FleetNode, NodeRole
 
@@ -49,6 +50,8 @@ _MESSAGES = (
 _LINK = keys.data_key(keys.LINK_TOPIC)
 """The estimator's beacon: the optimizer's node runs the estimator and puts it; everyone may
 subscribe. Without it a secured fleet would silently lose outage handling."""
+_ROUND = keys.data_key(ROUND_TOPIC)
+"""What each round decided: the optimizer's node puts it, the views and monitors read it."""
 _RECEPTION = keys.data_key(keys.RECEPTION_TOPIC)
 """What managed subscribers received, for the estimator: robots and operators subscribe, so
 both report. Without it a secured fleet's estimator would hear nothing."""
@@ -94,7 +97,7 @@ def _node_rules(node: FleetNode) -> list[dict[str, Any]]:
     elif node.role is NodeRole.OPERATOR:
         puts.insert(0, _RECEPTION)
     elif node.role is NodeRole.OPTIMIZER:
-        puts[:0] = [f"{keys.BATCH}/**", _LINK]  # the batch for all, and each host's
+        puts[:0] = [f"{keys.BATCH}/**", _LINK, _ROUND]  # the batch for all, and each host's
         replies = [f"{keys.OWN}/**"]  # it keeps, and serves, values whose writer has left
     prefix = f"{node.name}/"
     rules = [
@@ -121,9 +124,10 @@ def access_control(fleet: Fleet) -> dict[str, Any]:
     its session token and watch dbml's liveliness tokens; beyond that each node may put and
     reply only on what its role owns (a robot: its topics' data, its reception reports and its
     channels' parameters except the optimizer's fields; an operator: its reception reports, the
-    budget settings and any channel's priority; the optimizer: its batch, its beacon, status and
-    allocation fields) and declare graph tokens under its own host name. Rule ids hold a ``/``
-    (node rules) or not (common rules), so no node name can collide with another rule's id.
+    budget settings and any channel's priority; the optimizer: its batch, its beacon, its round
+    reports, status and allocation fields) and declare graph tokens under its own host name.
+    Rule ids hold a ``/`` (node rules) or not (common rules), so no node name can collide with
+    another rule's id.
     """
     common = [
         {

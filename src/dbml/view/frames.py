@@ -1,11 +1,12 @@
 """What the live view shows, as data: its topics, their JSON schemas and the messages on them.
 
-Pure: each message is built from the validated parameter values a process holds (the wire
-schema's names, read through ``dbml.runtime.params``) and the live channels, so ``dbml monitor``,
-``dbml optimizer`` and the demo's operator show one allocation the same way. The topics are the
-paper's names where it has one (``[topic]/dbm/frequency/current_value``) and dbml's own under
-``/dbm`` otherwise. A viewer may set what ``dbml budget`` and ``dbml priority`` set, checked by
-the schema's own rule, where the schema gives the serving process's role the writing of it.
+Pure. The allocation is the optimizer's own ``RoundReport`` (``dbml.protocol.messages``), shown
+as it said it, so ``dbml monitor``, ``dbml optimizer`` and the demo's operator show one round the
+same way; the budget is built from the validated parameter values a process holds (read through
+``dbml.runtime.params``). The topics are the paper's names where it has one
+(``[topic]/dbm/frequency/current_value``) and dbml's own under ``/dbm`` otherwise. A viewer may
+set what ``dbml budget`` and ``dbml priority`` set, checked by the schema's own rule, where the
+schema gives the serving process's role the writing of it.
 """
 
 from __future__ import annotations
@@ -16,12 +17,11 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from dbml.core.allocation import Allocation, allocate
-from dbml.core.errors import DbmlError, TransportError
-from dbml.core.spec import Problem, mbit_to_bytes_per_s, short_repr
+from dbml.core.errors import TransportError
+from dbml.core.spec import short_repr
 from dbml.protocol import names, schema
 from dbml.protocol.schema import ParamError, Parameter, ParamValue, Scope, Writer
-from dbml.runtime.params import channel_params, dbm_params
+from dbml.runtime.params import dbm_params
 
 __all__ = [
     "ALLOCATION_SCHEMA",
@@ -33,11 +33,8 @@ __all__ = [
     "IMAGE_TYPE",
     "LOG_TOPIC",
     "SETTABLE",
-    "AllocationFrame",
     "BudgetFrame",
-    "ChannelFrame",
     "LogLevel",
-    "allocation_frame",
     "budget_frame",
     "check_setting",
     "delivered_topic",
@@ -48,7 +45,7 @@ __all__ = [
 ]
 
 ALLOCATION_TOPIC = f"{schema.GLOBAL_PREFIX}/allocation"
-"""One message per optimizer round: the status and every channel's allocation."""
+"""One message per optimizer round: its ``RoundReport``, the status and every channel's rate."""
 BUDGET_TOPIC = f"{schema.GLOBAL_PREFIX}/budget"
 """The budget in force: the link's bandwidth, the utilization, the estimate."""
 LOG_TOPIC = f"{schema.GLOBAL_PREFIX}/log"
@@ -140,76 +137,6 @@ class LogLevel(enum.StrEnum):
 
 
 @dataclass(frozen=True, slots=True)
-class ChannelFrame:
-    """One channel in a round: what it declared, its priority floor and what it was given.
-
-    ``normalized_priority`` and ``floor_hz`` are eq. 2-3 over the managed channels (None for an
-    unmanaged or unsized one); ``rate_hz`` is the rate the optimizer pushed; ``share`` is of the
-    budget.
-    """
-
-    topic: str
-    priority: float
-    normalized_priority: float | None
-    floor_hz: float | None
-    rate_hz: float | None
-    min_hz: float
-    max_hz: float
-    size_bytes: float | None
-    share: float | None
-    managed: bool
-
-    def as_json(self) -> dict[str, Any]:
-        """The channel as ``/dbm/allocation`` carries it."""
-        return {
-            "topic": self.topic,
-            "priority": self.priority,
-            "normalized_priority": self.normalized_priority,
-            "floor_hz": self.floor_hz,
-            "rate_hz": self.rate_hz,
-            "min_hz": self.min_hz,
-            "max_hz": self.max_hz,
-            "size_bytes": self.size_bytes,
-            "share": self.share,
-            "managed": self.managed,
-        }
-
-
-@dataclass(frozen=True, slots=True)
-class AllocationFrame:
-    """One round as ``/dbm/allocation`` carries it."""
-
-    round: int | None
-    status: str | None
-    status_message: str | None
-    strategy: str
-    budget_mbit: float | None
-    channels: tuple[ChannelFrame, ...]
-
-    @property
-    def allocated_mbit(self) -> float:
-        """What the managed channels' rates add up to, in Mbit/s."""
-        total = sum(
-            c.rate_hz * c.size_bytes
-            for c in self.channels
-            if c.managed and c.rate_hz is not None and c.size_bytes is not None
-        )
-        return total * 8 / 1e6
-
-    def as_json(self) -> dict[str, Any]:
-        """The message."""
-        return {
-            "round": self.round,
-            "status": self.status,
-            "status_message": self.status_message,
-            "strategy": self.strategy,
-            "budget_mbit": self.budget_mbit,
-            "allocated_mbit": self.allocated_mbit,
-            "channels": [c.as_json() for c in self.channels],
-        }
-
-
-@dataclass(frozen=True, slots=True)
 class BudgetFrame:
     """The budget in force, as ``/dbm/budget`` carries it."""
 
@@ -239,68 +166,6 @@ def budget_frame(values: Mapping[str, ParamValue], *, estimator_phase: str | Non
         budget_mbit=dbm.budget_mbit,
         estimate_mbit=dbm.estimate_mbit,
         estimator_phase=estimator_phase,
-    )
-
-
-def _allocate(problem: Problem, strategy: str) -> Allocation | None:
-    """The allocation of ``problem``, or None where the values do not make one."""
-    try:
-        return allocate(problem, strategy=strategy)
-    except DbmlError:
-        return None
-
-
-def allocation_frame(values: Mapping[str, ParamValue], topics: Iterable[str]) -> AllocationFrame:
-    """The round the values describe, for the live ``topics`` that declared their bounds.
-
-    The rates are the ones pushed (``current_value``); the normalized priorities and floors are
-    recomputed from the same values by the core (they are not on the wire), so they are the
-    optimizer's whenever its inputs reached this process.
-    """
-    dbm = dbm_params(values)
-    channels = [channel_params(values, topic) for topic in sorted(set(topics))]
-    channels = [c for c in channels if c.bounded]
-    managed = [c for c in channels if c.managed]
-    specs = [spec for c in managed if (spec := c.spec()) is not None]
-    budget = dbm.link_and_utilization()
-    floors: dict[str, tuple[float, float]] = {}
-    if specs and budget is not None:
-        problem = Problem(tuple(specs), bandwidth_mbit=budget[0], utilization=budget[1])
-        allocation = _allocate(problem, dbm.strategy.value)
-        if allocation is not None:
-            floors = {c.topic: (c.normalized_priority, c.floor_hz) for c in allocation.channels}
-    budget_bytes = None if dbm.budget_mbit is None else mbit_to_bytes_per_s(dbm.budget_mbit)
-    frames = []
-    for channel in channels:
-        rate, size = channel.current_rate_hz, channel.size_bytes
-        share = None
-        if channel.managed and budget_bytes and rate is not None and size is not None:
-            share = rate * size / budget_bytes
-        normalized, floor = floors.get(channel.topic, (None, None))
-        frames.append(
-            ChannelFrame(
-                topic=channel.topic,
-                priority=channel.priority,
-                normalized_priority=normalized,
-                floor_hz=floor,
-                rate_hz=rate,
-                min_hz=channel.min_rate_hz or 0.0,
-                max_hz=channel.max_rate_hz or 0.0,
-                size_bytes=size,
-                share=share,
-                managed=channel.managed is True,
-            )
-        )
-    status = values.get(names.STATUS)
-    message = values.get(names.STATUS_MESSAGE)
-    counter = values.get(names.ROUND)
-    return AllocationFrame(
-        round=int(counter) if isinstance(counter, int | float) and math.isfinite(counter) else None,
-        status=status if isinstance(status, str) else None,
-        status_message=message if isinstance(message, str) else None,
-        strategy=dbm.strategy.value,
-        budget_mbit=dbm.budget_mbit,
-        channels=tuple(frames),
     )
 
 

@@ -3,8 +3,9 @@
 A ``LiveView`` follows a transport's parameters and graph and writes to a ``Sink`` (a Foxglove
 server, an MCAP file) on a thread of its own:
 
-- ``/dbm/allocation`` once per optimizer round (the heartbeat ``/dbm/round`` wakes it), and the
-  allocated rate of every channel on ``[topic]/dbm/frequency/current_value``;
+- ``/dbm/allocation``: each round the optimizer reports (``RoundReport``, heard through a
+  ``RoundFollower``), as it reported it, and the allocated rate of every channel on
+  ``[topic]/dbm/frequency/current_value``; nothing while no optimizer reports;
 - ``/dbm/budget`` when it changes and at least every ``BUDGET_INTERVAL_S``;
 - ``/dbm/log``: status changes, and values refused (from the network or from a viewer);
 - where the process receives frames (``frame``), each one as an image on ``[topic]/optimized``
@@ -30,14 +31,16 @@ from dbml.core.errors import SpecError
 from dbml.core.estimator import EstimatorState
 from dbml.core.extras import require
 from dbml.protocol import names
+from dbml.protocol.messages import RoundReport
 from dbml.protocol.schema import ParamValue, Writer
 from dbml.runtime.graph import published_topics
 from dbml.runtime.params import ParamView, channel_params
+from dbml.runtime.rounds import RoundFollower
 from dbml.transports.base import Handle, Transport
 from dbml.transports.overflow import Overflow
 from dbml.transports.worker import PeriodicWorker
 from dbml.view import frames
-from dbml.view.frames import AllocationFrame, LogLevel
+from dbml.view.frames import LogLevel
 from dbml.view.target import ViewEndpoint, ViewTarget
 
 __all__ = [
@@ -91,9 +94,9 @@ class ViewSettings:
         self._view = view
         self.writers = writers
 
-    def topics(self) -> list[str]:
-        """The live channels: published, with declared bounds."""
-        values = self._view.values()
+    def topics(self, values: Mapping[str, ParamValue] | None = None) -> list[str]:
+        """The live channels: published, with declared bounds (in ``values`` if given)."""
+        values = self._view.values() if values is None else values
         topics = published_topics(self._transport.graph.entries())
         return sorted(t for t in topics if channel_params(values, t).bounded)
 
@@ -221,8 +224,8 @@ class LiveView:
         self._arrivals: dict[str, deque[int]] = {}
         self._metered_full = Overflow("channels metered by the view", MAX_METERED, log=log)
         self._images: _Images | None = None
-        self._round: ParamValue = None
-        self._last_allocation: AllocationFrame | None = None
+        self._shown: RoundReport | None = None
+        """The last round report written: each one is written once."""
         self._last_budget: tuple[frames.BudgetFrame, int] | None = None
         self._status: tuple[ParamValue, ParamValue] = (None, None)
         self._problems: frozenset[str] = frozenset()
@@ -238,14 +241,14 @@ class LiveView:
         self._worker = PeriodicWorker(
             self._tick, interval_s=interval_s, name="dbml-view", log=log, immediate=True
         )
-        self._handles: list[Handle] = [self._view.watch_dbm(self._on_dbm)]
+        self._rounds = RoundFollower(transport)
+        self._handles: list[Handle] = [self._rounds.watch(self._on_round)]
 
     # -- fed from callbacks: never block ------------------------------------------------------
 
-    def _on_dbm(self, name: str, _value: ParamValue) -> None:
-        if name == names.ROUND:
-            self._round_due.set()
-            self._worker.wake()
+    def _on_round(self, _report: RoundReport) -> None:
+        self._round_due.set()
+        self._worker.wake()
 
     def frame(self, topic: str, payload: bytes) -> None:
         """A frame this process received on ``topic``: an image and a delivered-rate count."""
@@ -276,31 +279,25 @@ class LiveView:
         self._looked_ns = tick
         started = time.perf_counter()
         values = self._view.values()
-        frame = frames.allocation_frame(values, published_topics(self._transport.graph.entries()))
-        self._allocation(values, frame, now)
+        self._allocation(self._rounds.latest(), now)
         self._budget(values, now, tick)
         self._log_changes(values, now)
         self._delivered(now, tick)
-        self._parameters(values, [c.topic for c in frame.channels])
+        self._parameters(values, self.settings.topics(values))
         spent = time.perf_counter() - started
         self._looks += 1
         self._look_s += spent
         self._look_max_s = max(self._look_max_s, spent)
 
-    def _allocation(
-        self, values: Mapping[str, ParamValue], frame: AllocationFrame, now: int
-    ) -> None:
-        counter = values.get(names.ROUND)
-        if counter is not None:  # once per round: between rounds, rates and inputs disagree
-            if counter == self._round:
-                return
-        elif self._last_allocation is not None and _same(frame, self._last_allocation):
-            return  # no optimizer heard: what the values say, when it changes
-        self._round, self._last_allocation = counter, frame
+    def _allocation(self, report: RoundReport | None, now: int) -> None:
+        """The optimizer's newest round, once: between rounds nothing new was decided."""
+        if report is None or report is self._shown:
+            return
+        self._shown = report
         self._sink.log_json(
-            frames.ALLOCATION_TOPIC, frames.ALLOCATION_SCHEMA, frame.as_json(), time_ns=now
+            frames.ALLOCATION_TOPIC, frames.ALLOCATION_SCHEMA, report.as_json(), time_ns=now
         )
-        for channel in frame.channels:
+        for channel in report.channels:
             if channel.rate_hz is not None:
                 self._sink.log_json(
                     frames.frequency_topic(channel.topic),
@@ -392,6 +389,7 @@ class LiveView:
         for handle in self._handles:
             handle.close()
         self._handles.clear()
+        self._rounds.close()
         self._worker.stop()
         try:
             self._round_due.set()
@@ -413,16 +411,6 @@ class LiveView:
         """What looking (after a round, or an interval) cost this process so far."""
         looks = self._looks
         return ViewCost(looks, self._look_s / looks * 1e3 if looks else 0.0, self._look_max_s * 1e3)
-
-
-def _same(a: AllocationFrame, b: AllocationFrame) -> bool:
-    """The same allocation, whatever the round counter says."""
-    return (a.status, a.status_message, a.budget_mbit, a.channels) == (
-        b.status,
-        b.status_message,
-        b.budget_mbit,
-        b.channels,
-    )
 
 
 def _loopback(host: str) -> bool:
