@@ -6,9 +6,9 @@ from dataclasses import dataclass
 from typing import Any
 
 from dbml.core.errors import SpecError
-from dbml.core.estimator import EstimatorState
 from dbml.core.spec import mbit_to_bytes_per_s
 from dbml.protocol import names, schema
+from dbml.protocol.messages import EstimatorState
 from dbml.protocol.schema import PARAMETERS, Parameter
 from dbml.runtime.graph import is_managed, published_topics, publisher_hosts
 from dbml.runtime.params import channel_params, dbm_params, valid_values
