@@ -141,8 +141,9 @@ class LinkEstimator:
     """Estimate the shared link from reception reports; ``budget_mbit`` feeds the optimizer.
 
     What the network fills is bounded, and a flood is logged once with a count (an
-    ``Overflow`` each, told outside the lock): the reporting hosts here (``MAX_REPORTERS``),
-    the streams and frames in :class:`~dbml.estimator.BandwidthEstimator`.
+    ``Overflow`` each, told outside the lock): the reporting hosts (``MAX_REPORTERS``) and
+    the channels each one heard (``HEARD_MAX``) here, the streams and frames in
+    :class:`~dbml.estimator.BandwidthEstimator`.
     """
 
     def __init__(
@@ -183,7 +184,11 @@ class LinkEstimator:
         self._beacon = transport.declare_publisher(LINK_TOPIC)
         self._order_until = -math.inf
         self._arrived: dict[tuple[str, str], _Arrivals] = {}
-        """Per reporting host and channel, its newest frames' arrivals (at most ``HEARD_MAX``)."""
+        """Per reporting host and channel, its newest frames' arrivals, the one heard from
+        longest ago first. At most ``HEARD_MAX``: one more evicts the first (a flood of made-up
+        hosts or channels cannot keep a real one out), and each tick forgets those no beacon
+        can name any more (``_forget_unheard``)."""
+        self._arrivals_full = Overflow("channels heard per host", HEARD_MAX, log=log, evicts=True)
         self._silent_from = math.inf
         """The estimator's time when it last declared an outage: frames after it are back."""
         self._ticked_s = -math.inf
@@ -208,7 +213,7 @@ class LinkEstimator:
             log.warning("%s", err)
             return
         now = self._transport.now()
-        evicted = refused = 0
+        evicted = refused = displaced = 0
         queued = 0.0
         with self._lock:
             known = self._offsets.pop(report.host, math.inf)
@@ -221,7 +226,7 @@ class LinkEstimator:
             estimator = self._estimator
             if estimator is not None:
                 for frame in report.frames:
-                    self._arrival(report.host, frame.topic, frame.seq, now)
+                    displaced += self._arrival(report.host, frame.topic, frame.seq, now)
                     queued = max(
                         queued,
                         estimator.observe(
@@ -241,30 +246,37 @@ class LinkEstimator:
             self._worker.wake()  # a frame queued: judge now, a cut is due sooner than the tick
         if full:
             self._reporters_full.refuse()
+        if displaced:
+            self._arrivals_full.refuse(displaced)
         if evicted:
             self._streams_full.refuse(evicted)
         if refused:
             self._samples_full.refuse(refused)
 
-    def _arrival(self, host: str, topic: str, seq: int, now: float) -> None:
+    def _arrival(self, host: str, topic: str, seq: int, now: float) -> int:
         """Count a frame of ``topic`` numbered ``seq`` that ``host`` reported ``now``; lock held.
 
         A host reports its frames in the order they arrived, each channel's in the order they
         were sent: the last one reported is the newest, and a lower number than before means
-        the publisher restarted.
+        the publisher restarted. Returns 1 if it is a new channel of ``host`` while
+        ``HEARD_MAX`` channels are, and it evicted the one heard from longest ago), else 0.
         """
-        arrivals = self._arrived.get((host, topic))
+        arrived = self._arrived
+        evicted = 0
+        arrivals = arrived.pop((host, topic), None)
         if arrivals is None:
-            if len(self._arrived) >= HEARD_MAX:
-                return
+            if len(arrived) >= HEARD_MAX:
+                del arrived[next(iter(arrived))]  # the one heard from longest ago
+                evicted = 1
             arrivals = _Arrivals(now, seq, deque(maxlen=HEARD_RECENT_MAX))
-            self._arrived[(host, topic)] = arrivals
+        arrived[(host, topic)] = arrivals  # now the one heard last
         arrivals.newest_s = max(arrivals.newest_s, now)
         arrivals.newest_seq = seq
         recent = arrivals.recent_s
         while recent and recent[0] <= now - OWED_WINDOW_S:
             recent.popleft()
         recent.append(now)
+        return evicted
 
     def tick(self) -> Estimate | None:
         """One estimator update: every ``interval_s``, and soon after a queued frame.
@@ -287,7 +299,28 @@ class LinkEstimator:
         self._samples_full.room(samples)
         self._publish(estimate)
         self._send_beacon(estimate)
+        self._arrivals_full.room(self._forget_unheard(self._transport.now()))
         return estimate
+
+    def _forget_unheard(self, now: float) -> int:
+        """Forget the channels no later beacon can name; how many are left.
+
+        A beacon's ``heard`` names a channel heard since the outage began, while the release
+        order is in force, and counts its arrivals of the last ``OWED_WINDOW_S``. A channel
+        last heard before that window and, unless the order is in force, before the outage
+        began, is in no later beacon: the next report of it counts from nothing, as it would.
+        """
+        forget_to = now - OWED_WINDOW_S
+        if now <= self._order_until:  # a later outage tick keeps the order, and its start
+            forget_to = min(forget_to, self._silent_from)
+        with self._lock:
+            arrived = self._arrived
+            while arrived:
+                first = next(iter(arrived))  # the one heard from longest ago
+                if arrived[first].newest_s > forget_to:
+                    break
+                del arrived[first]
+            return len(arrived)
 
     def _send_beacon(self, estimate: Estimate) -> None:
         """Tell publishers whether frames arrive (and, around an outage, the release order)."""
