@@ -308,6 +308,23 @@ def test_reports_are_sent_only_while_someone_listens() -> None:
     assert [(f.topic, f.seq, f.size_bytes) for f in report.frames] == [("/cam", 0, 10)]
 
 
+def test_a_report_the_estimators_arithmetic_cannot_take_is_refused_and_it_ticks_on(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A 400-digit frame size once passed the decode and broke the next tick (int to float)."""
+    link = Link()
+    link.run(0.5)
+    huge = b"1" + b"0" * 400
+    report = b'{"host": "op", "now_s": 0.0, "frames": [["/cam", 99, 0, 0.0, ' + huge + b"]]}"
+    with caplog.at_level(logging.WARNING, logger="dbml.estimator"):
+        link.estimator._on_report(Sample(RECEPTION_TOPIC, report, None))
+    assert [r.getMessage()[:26] for r in caplog.records] == ["malformed reception report"]
+    assert "frames[0].size_bytes=1000" in caplog.records[0].getMessage()
+    link.run(0.5)
+    assert link.estimator.tick() is not None
+    assert link.estimator.budget_mbit() == pytest.approx(9.0)
+
+
 def test_clock_offsets_are_kept_for_at_most_max_reporters_hosts(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
