@@ -18,6 +18,7 @@ PACKAGES = [
     "dbml.cli",
     "dbml.core",
     "dbml.demo",
+    "dbml.estimator",
     "dbml.experiment",
     "dbml.experiment.analysis",
     "dbml.harness",

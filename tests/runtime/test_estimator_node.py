@@ -6,9 +6,16 @@ import logging
 
 import pytest
 
-from dbml.core import estimator as core_estimator
-from dbml.core.estimator import EstimatorState, Phase
+from dbml.estimator import Phase
+from dbml.estimator import shared as estimator_shared
 from dbml.protocol import names
+from dbml.protocol.messages import (
+    EstimatorState,
+    Heard,
+    LinkBeacon,
+    ReceivedFrame,
+    ReceptionReport,
+)
 from dbml.protocol.metadata import pack_meta
 from dbml.runtime import estimator as node_estimator
 from dbml.runtime.estimator import (
@@ -16,17 +23,15 @@ from dbml.runtime.estimator import (
     MAX_REPORTERS,
     WAKE_GAP_S,
     WAKE_QUEUE_S,
-    Heard,
-    LinkBeacon,
     LinkEstimator,
 )
 from dbml.runtime.optimizer import OptimizerNode
+from dbml.runtime.outage import HEARD_WAIT_S, PROBE_INTERVAL_S
+from dbml.runtime.publisher import ManagedPublisher
 from dbml.runtime.reception import (
     EARLY_FLUSH_QUEUE_S,
     RECEPTION_TOPIC,
     REPORT_INTERVAL_S,
-    ReceivedFrame,
-    ReceptionReport,
     ReceptionReporter,
 )
 from dbml.runtime.subscriber import ManagedSubscriber
@@ -210,7 +215,10 @@ def test_a_channel_heard_on_two_hosts_counts_as_the_one_that_heard_least() -> No
     assert _heard_after(beacons, down) == Heard(newest_seq=link.seq - 4, recent_frames=5)
 
 
-def test_the_channels_a_beacon_counts_are_bounded(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_the_channels_a_beacon_counts_are_bounded_by_the_ones_heard_last(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Channel names come from any peer's reports: one more evicts the one heard longest ago."""
     monkeypatch.setattr(node_estimator, "HEARD_MAX", 2)
     link = Link()
     beacons = _down(link)
@@ -218,11 +226,37 @@ def test_the_channels_a_beacon_counts_are_bounded(monkeypatch: pytest.MonkeyPatc
     link.run(0.5)
     others = tuple(ReceivedFrame(f"/t{k}", 1, 0, 0.0, 10) for k in range(5))
     report = ReceptionReport("op", link.base_clock(), others).encode()
-    link.estimator._on_report(Sample(RECEPTION_TOPIC, report, None))
-    link.estimator.tick()
+    with caplog.at_level(logging.WARNING, logger="dbml.estimator"):
+        link.estimator._on_report(Sample(RECEPTION_TOPIC, report, None))
+        link.estimator.tick()
     last = [b for b in beacons[down:] if b.up][-1]
     assert last.heard is not None
-    assert set(last.heard) == {"/cam", "/t0"}  # the first two channels reported, no more
+    assert set(last.heard) == {"/t3", "/t4"}  # the last two reported, no more
+    assert [r.getMessage() for r in caplog.records] == [
+        "channels heard per host: 2 held, the most kept; evicting the oldest "
+        "(told once until half of them are gone)"
+    ]
+    link.run(0.1)  # the real channel again: it evicts the one heard longest ago
+    last = [b for b in beacons[down:] if b.up][-1]
+    assert set(last.heard or {}) == {"/t4", "/cam"}
+
+
+def test_channels_no_beacon_can_name_are_forgotten() -> None:
+    """A flood of made-up channels ends: what it filled is gone once no beacon can name it."""
+    link = Link()
+    link.run(0.5)
+    others = tuple(ReceivedFrame(f"/t{k}", 1, 0, 0.0, 10) for k in range(50))
+    report = ReceptionReport("op", link.base_clock(), others).encode()
+    link.estimator._on_report(Sample(RECEPTION_TOPIC, report, None))
+    assert len(link.estimator._arrived) == 51
+    link.run(0.5)  # within the release's window: still counted
+    assert len(link.estimator._arrived) == 51
+    link.run(1.0)  # past it, and no outage: only the real channel is left
+    assert list(link.estimator._arrived) == [("op", "/cam")]
+    beacons = _down(link)  # in an outage and its release order, what came after it counts
+    down = len(beacons)
+    link.run(0.5)
+    assert _heard_after(beacons, down) == Heard(newest_seq=link.seq - 1, recent_frames=5)
 
 
 def test_lost_frames_lower_the_budget() -> None:
@@ -274,19 +308,21 @@ def test_reports_are_sent_only_while_someone_listens() -> None:
     assert [(f.topic, f.seq, f.size_bytes) for f in report.frames] == [("/cam", 0, 10)]
 
 
-@pytest.mark.parametrize(
-    "data",
-    [
-        b'{"host": "op"}',
-        b'{"host": "op", "now_s": 1, "frames": [["/cam", 1e400, 0, 0.0, 10]]}',  # inf seq
-        b'{"host": "op", "now_s": 1, "frames": [["/cam", 1, 0, 0.0, Infinity]]}',
-    ],
-)
-def test_a_malformed_report_names_itself(data: bytes) -> None:
-    from dbml.core.errors import TransportError
-
-    with pytest.raises(TransportError, match="malformed reception report"):
-        ReceptionReport.decode(data)
+def test_a_report_the_estimators_arithmetic_cannot_take_is_refused_and_it_ticks_on(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A 400-digit frame size once passed the decode and broke the next tick (int to float)."""
+    link = Link()
+    link.run(0.5)
+    huge = b"1" + b"0" * 400
+    report = b'{"host": "op", "now_s": 0.0, "frames": [["/cam", 99, 0, 0.0, ' + huge + b"]]}"
+    with caplog.at_level(logging.WARNING, logger="dbml.estimator"):
+        link.estimator._on_report(Sample(RECEPTION_TOPIC, report, None))
+    assert [r.getMessage()[:26] for r in caplog.records] == ["malformed reception report"]
+    assert "frames[0].size_bytes=1000" in caplog.records[0].getMessage()
+    link.run(0.5)
+    assert link.estimator.tick() is not None
+    assert link.estimator.budget_mbit() == pytest.approx(9.0)
 
 
 def test_clock_offsets_are_kept_for_at_most_max_reporters_hosts(
@@ -319,7 +355,7 @@ def test_streams_and_frames_past_the_estimators_bounds_are_logged_once_per_flood
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """The core estimator only counts what it evicts and refuses: its node says it, unlocked."""
-    for module in (core_estimator, node_estimator):
+    for module in (estimator_shared, node_estimator):
         monkeypatch.setattr(module, "MAX_STREAMS", 8)
         monkeypatch.setattr(module, "MAX_SAMPLES", 16)
     clock = ManualClock(0.0)
@@ -412,3 +448,100 @@ def test_a_report_of_a_frame_that_queued_wakes_the_estimator_at_once() -> None:
     _frame(link, queued_s=WAKE_QUEUE_S * 1.1, after_s=WAKE_GAP_S / 2)
     link.reporter.flush()
     assert not wake.is_set()  # it just judged: a wake waits WAKE_GAP_S after a tick
+
+
+# -- a flood of made-up reporting hosts never keeps a real channel's release waiting ------------
+
+FLOOD_HOSTS = 10_000
+CAMERA = "/r1/camera"
+
+
+class OutageLink:
+    """A robot's managed publisher, an operator reporting what it receives, an estimating base.
+
+    One manual clock; ``up`` False is a dead link (the operator receives nothing), and the
+    publisher hears the estimator's beacons as it would over the link's other direction.
+    """
+
+    def __init__(self) -> None:
+        self.clock = ManualClock(100.0)
+        network = MemoryNetwork()
+        self.base = MemoryTransport(network, host="base", clock=self.clock)
+        self.base.params.set(names.BANDWIDTH, 10.0)
+        self.base.params.set(names.UTILIZATION, 0.9)
+        self.estimator = LinkEstimator(self.base, wall_clock_s=self.clock)
+        operator = MemoryTransport(network, host="op", clock=self.clock)
+        self.reporter = ReceptionReporter(operator)
+        self.up = True
+        self.beacons: list[LinkBeacon] = []
+        operator.subscribe(CAMERA, self._receive, Variant.OPTIMIZED)
+        operator.subscribe(LINK_TOPIC, lambda s: self.beacons.append(LinkBeacon.decode(s.payload)))
+        robot = MemoryTransport(network, host="r1", clock=self.clock)
+        self.camera = ManagedPublisher(
+            robot,
+            CAMERA,
+            min_rate_hz=1.0,
+            max_rate_hz=16.0,
+            priority=0.9,
+            wall_clock_ns=lambda: round(self.clock() * 1e9),
+        )
+        self.base.params.set(names.current_value(CAMERA), RATE_HZ)
+        self.forger = MemoryTransport(network, host="forger", clock=self.clock)
+        self.rounds = 0
+
+    def _receive(self, sample: Sample) -> None:
+        if self.up:
+            self.reporter.record(sample)
+
+    def step(self) -> None:
+        """0.1 s: a frame, the operator's report, the optimizer's heartbeat, the estimator."""
+        self.clock.advance(1 / RATE_HZ)
+        self.camera.publish(bytes(FRAME_BYTES // 10))
+        self.reporter.flush()
+        self.rounds += 1
+        self.base.params.set(names.ROUND, self.rounds)
+        self.estimator.tick()
+
+    def flood(self) -> None:
+        """A report from each of ``FLOOD_HOSTS`` made-up hosts, each of a channel of its own."""
+        forged = self.forger.declare_publisher(RECEPTION_TOPIC)
+        for k in range(FLOOD_HOSTS):
+            frame = ReceivedFrame(f"/forged{k}/camera", 1, 0, self.clock(), 1_000)
+            forged.put(ReceptionReport(f"forged-{k}", self.clock(), (frame,)).encode())
+        forged.close()
+
+
+@pytest.mark.parametrize("when", ["before the channel", "in the outage"])
+def test_a_flood_of_forged_reporters_never_keeps_a_channels_release_waiting(when: str) -> None:
+    """Forged reports from 10,000 hosts, then the link out: the real channel is still heard.
+
+    Back from the outage, the camera (which sent into the dead link: its probes) waits to be
+    heard before it releases. It is heard at the first report after the link is back, so it
+    releases long before ``HEARD_WAIT_S``, the bound on a wait for a channel never heard.
+    """
+    link = OutageLink()
+    link.step()  # the first tick makes the core estimator
+    if when == "before the channel":
+        link.flood()
+    for _ in range(20):  # 2 s up
+        link.step()
+    assert not link.camera.holding
+    link.up = False
+    for _ in range(15):  # 1.5 s down: declared, and held
+        link.step()
+    assert link.camera.holding
+    assert not link.beacons[-1].up
+    if when == "in the outage":
+        link.flood()
+    link.up = True
+    back = link.clock()
+    while link.camera.holding and link.clock() - back < 2 * HEARD_WAIT_S:
+        link.step()
+    released = link.clock() - back
+    assert not link.camera.holding
+    # the first probe after the link is back (one every PROBE_INTERVAL_S), its report, a tick
+    assert released <= PROBE_INTERVAL_S + 2 / RATE_HZ < HEARD_WAIT_S
+    heard = [b.heard for b in link.beacons if b.up and b.heard and CAMERA in b.heard]
+    assert heard, "the release was not on the camera's own word"
+    link.estimator.close()
+    link.camera.close()

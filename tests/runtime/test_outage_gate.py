@@ -11,7 +11,7 @@ from collections.abc import Mapping
 
 import pytest
 
-from dbml.runtime.estimator import Heard, LinkBeacon
+from dbml.protocol.messages import Heard, LinkBeacon
 from dbml.runtime.outage import (
     BEACON_WINDOW,
     HEARD_WAIT_S,

@@ -18,7 +18,8 @@ import pytest
 from dbml.cli.main import main
 from dbml.experiment import rclpypeers
 from dbml.experiment.ros2peers import FrameRecorder
-from dbml.runtime.reception import RECEPTION_TOPIC, ReceptionReport, ReceptionReporter
+from dbml.protocol.messages import ReceptionReport
+from dbml.runtime.reception import RECEPTION_TOPIC, ReceptionReporter
 from dbml.scenarios.teleop import MAX_RATE_HZ, ROBOTS
 from dbml.testbed import Network, TestbedError, leftover_namespaces
 from dbml.testbed.bridge import STATS_LOGGER, PublishStatsHandler, read_stats

@@ -14,9 +14,9 @@ from dataclasses import dataclass
 from typing import Any
 
 from dbml.core.errors import SpecError
-from dbml.core.estimator import EstimatorState
 from dbml.core.spec import check_number, short_repr
 from dbml.experiment.analysis import Arrival, Tick
+from dbml.protocol.messages import EstimatorState
 
 __all__ = ["TICK", "OperatorReport"]
 

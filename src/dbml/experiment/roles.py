@@ -38,12 +38,12 @@ from typing import Any
 from dbml.core.allocation import Strategy
 from dbml.core.config import DbmSettings
 from dbml.core.errors import DbmlError, SpecError, TransportError
-from dbml.core.estimator import EstimatorState
 from dbml.core.spec import LinkSpec
 from dbml.experiment.analysis import Arrival, Tick
 from dbml.experiment.report import OperatorReport
 from dbml.harness.processes import Emit, emit_json, serve_role, stop_on_signals
 from dbml.protocol import names
+from dbml.protocol.messages import EstimatorState
 from dbml.protocol.metadata import MessageMeta, pack_meta
 from dbml.protocol.schema import Writer
 from dbml.runtime.params import ParamView

@@ -1,6 +1,6 @@
-"""The wire schema: parameters, names, keys and message metadata, written once for all."""
+"""The wire schema: parameters, names, keys, message metadata and messages, written once for all."""
 
-from dbml.protocol import keys, metadata, names, schema
+from dbml.protocol import keys, messages, metadata, names, schema
 from dbml.protocol.schema import PARAMETERS, ParamError, Parameter, Scope, Writer, check_param
 
 __all__ = [
@@ -11,6 +11,7 @@ __all__ = [
     "Writer",
     "check_param",
     "keys",
+    "messages",
     "metadata",
     "names",
     "schema",

@@ -263,7 +263,7 @@ ESTIMATOR_STATE = Parameter(
     Scope.GLOBAL,
     Kind.TEXT,
     _ESTIMATOR,
-    "What the estimator sees, as JSON (``dbml.core.estimator.EstimatorState``): phase, receive "
+    "What the estimator sees, as JSON (``dbml.protocol.messages.EstimatorState``): phase, receive "
     "rate, queueing delay, losses and when it decided.",
 )
 MIN_RATE = Parameter(

@@ -2,70 +2,66 @@
 
 It listens to ``/dbm/reception`` (what managed subscribers actually receive), maps each
 reporter's clock onto its own (the smallest report transit seen, so reporters on other machines
-work too), runs :class:`~dbml.core.estimator.BandwidthEstimator` every ``interval_s`` (and at
+work too), runs :class:`~dbml.estimator.BandwidthEstimator` every ``interval_s`` (and at
 once after a report with a frame that queued ``WAKE_QUEUE_S``), and publishes the estimate in
 ``/dbm/estimated_bandwidth_in_mbit`` with its state in ``/dbm/estimator_state`` (an
-:class:`~dbml.core.estimator.EstimatorState` as JSON: ``dbml monitor`` shows its text, the
+:class:`~dbml.protocol.messages.EstimatorState` as JSON: ``dbml monitor`` shows its text, the
 testbed reads a cut's decision time from it). The cap is the configured budget,
 ``/dbm/max_bandwidth_in_mbit`` times ``/dbm/max_bandwidth_utilization``: the estimate never
 exceeds it.
 
-Every tick it also sends a small :class:`LinkBeacon` on ``LINK_TOPIC``: whether frames arrive
-(``up``) or the link is in an outage, and during and just after one the order in which the
-channels' held messages go out when it ends (highest priority first, each after the ones
-before it had time to cross at the budget). Publishers that heard a beacon hold their newest
-message when the beacons stop (a link down both ways) or say outage.
+Every tick it also sends a small :class:`~dbml.protocol.messages.LinkBeacon` on
+``LINK_TOPIC``: whether frames arrive (``up``) or the link is in an outage, and during and just
+after one the order in which the channels' held messages go out when it ends (highest priority
+first, each after the ones before it had time to cross at the budget). Publishers that heard a
+beacon hold their newest message when the beacons stop (a link down both ways) or say outage.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import threading
 import time
 from collections import deque
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass
 
 from dbml.core.errors import TransportError
-from dbml.core.estimator import (
+from dbml.core.spec import mbit_to_bytes_per_s
+from dbml.estimator import (
     MAX_SAMPLES,
     MAX_STREAMS,
     Arrival,
     BandwidthEstimator,
     Estimate,
     EstimatorSettings,
-    EstimatorState,
     Phase,
 )
-from dbml.core.spec import check_number, mbit_to_bytes_per_s
 from dbml.protocol import keys, names
-from dbml.protocol.metadata import SEQ_MAX
-from dbml.runtime.params import ParamView
-from dbml.runtime.reception import (
-    EARLY_FLUSH_QUEUE_S,
-    RECEPTION_TOPIC,
-    REPORT_INTERVAL_S,
+from dbml.protocol.messages import (
+    HEARD_MAX,
+    HEARD_RECENT_MAX,
+    RELEASE_MAX_CHANNELS,
+    RELEASE_MAX_S,
+    EstimatorState,
+    Heard,
+    LinkBeacon,
     ReceptionReport,
 )
+from dbml.runtime.params import ParamView
+from dbml.runtime.reception import EARLY_FLUSH_QUEUE_S, RECEPTION_TOPIC, REPORT_INTERVAL_S
 from dbml.runtime.worker import PeriodicWorker
 from dbml.transports.base import Sample, Transport
 from dbml.transports.overflow import Overflow
 
 __all__ = [
     "ESTIMATE_INTERVAL_S",
-    "HEARD_MAX",
-    "HEARD_RECENT_MAX",
     "LINK_TOPIC",
     "MAX_REPORTERS",
     "OWED_WINDOW_S",
-    "RELEASE_MAX_S",
     "WAKE_GAP_S",
     "WAKE_QUEUE_S",
-    "Heard",
-    "LinkBeacon",
     "LinkEstimator",
     "release_offsets",
 ]
@@ -90,121 +86,14 @@ LINK_TOPIC = keys.LINK_TOPIC
 """Where the estimator's :class:`LinkBeacon` goes every tick."""
 RELEASE_ORDER_S = 2.0
 """After an outage, beacons carry the release order this long (publishers may hear late)."""
-RELEASE_MAX_S = 2.0
-"""The latest place in a release order (seconds after the link is back): later ones go
-together at it, and a beacon naming one outside ``[0, RELEASE_MAX_S]`` is malformed."""
-HEARD_MAX = 4096
-"""The most channels a beacon names as heard; a beacon naming more is malformed."""
 OWED_WINDOW_S = 1.0
 """A release owes the frames of its channel that land in this window: those that arrived this
 long before it and those still in the link (a beacon's ``heard`` says both)."""
-HEARD_RECENT_MAX = 256
-"""The most arrivals of one channel a beacon counts (older ones than ``OWED_WINDOW_S`` are
-forgotten): a faster channel's release owes at most this many. A beacon counting more for a
-channel is malformed."""
 MAX_REPORTERS = 1024
 """The most reporting hosts whose clock offsets are kept (a fleet has tens). A host name comes
 from the network: a report from one more host evicts the one silent the longest, whose offset
 is learnt again from its next report, so a flood of made-up names costs at most this much
 memory. The table never shrinks otherwise: such a flood is logged once in the node's life."""
-_DECODE_ERRORS = (ValueError, OverflowError, RecursionError, TypeError, KeyError, AttributeError)
-"""What untrusted JSON can raise on its way in (``UnicodeDecodeError`` is a ``ValueError``)."""
-
-
-@dataclass(frozen=True, slots=True)
-class Heard:
-    """What arrived of one channel, as its release after an outage needs to know it.
-
-    With subscribers on several hosts, the one that heard the least: the lowest newest number
-    and the most recent frames, so a release never owes less than any of them saw.
-    """
-
-    newest_seq: int
-    """The sequence number of the newest frame that arrived: later ones may still be in the
-    link; earlier ones arrived, or were dropped with a session the outage closed."""
-    recent_frames: int
-    """Its frames that arrived in the last ``OWED_WINDOW_S``: they share the release's window."""
-
-
-@dataclass(frozen=True, slots=True)
-class LinkBeacon:
-    """The estimator's word on the link: up or down, and the release order after an outage."""
-
-    up: bool
-    release_s: Mapping[str, float] = field(default_factory=dict)
-    """Per channel, how long after the link is back its held message goes out (0: first)."""
-    sent_s: float = 0.0
-    """The estimator's clock: a beacon that sat in a buffer through the outage is stale."""
-    heard: Mapping[str, Heard] | None = None
-    """After an outage, the channels whose frames arrived again, and what of them (None: not
-    said). A channel that sent into the dead link waits to be heard before it releases: until
-    then its TCP connection still holds that backlog, and a release would queue behind it and
-    arrive bunched with it, over the budget. What arrived says what the release owes."""
-
-    def encode(self) -> bytes:
-        """The beacon as compact JSON."""
-        document: dict[str, Any] = {
-            "up": self.up,
-            "release_s": dict(self.release_s),
-            "sent_s": self.sent_s,
-        }
-        if self.heard is not None:
-            document["heard"] = {
-                topic: [h.newest_seq, h.recent_frames] for topic, h in sorted(self.heard.items())
-            }
-        return json.dumps(document).encode()
-
-    @classmethod
-    def decode(cls, data: bytes) -> LinkBeacon:
-        """A beacon from its bytes; ``TransportError`` if they are malformed.
-
-        It comes from the network: ``up`` must be a JSON boolean (``"false"`` is not false),
-        every number finite, every release place within ``[0, RELEASE_MAX_S]``, so nothing in
-        it can hold a channel for long or break the thread that reads it.
-        """
-        try:
-            document: dict[str, Any] = json.loads(data)
-            up = document["up"]
-            if not isinstance(up, bool):
-                raise TypeError(f"up={up!r} is not a boolean")
-            release = {
-                str(t): check_number(
-                    v, field=f"release_s[{t!r}]", minimum=0.0, maximum=RELEASE_MAX_S
-                )
-                for t, v in document.get("release_s", {}).items()
-            }
-            sent = check_number(document.get("sent_s", 0.0), field="sent_s")
-            return cls(up, release, sent, _heard(document.get("heard")))
-        except _DECODE_ERRORS as err:
-            raise TransportError(f"malformed link beacon {data[:80]!r}: {err}") from err
-
-
-def _heard(value: object) -> dict[str, Heard] | None:
-    """A beacon's ``heard``: absent, or at most ``HEARD_MAX`` ``{topic: [seq, recent]}``.
-
-    Both are integers from 0: ``seq`` at most ``SEQ_MAX``, ``recent`` at most
-    ``HEARD_RECENT_MAX``.
-    """
-    if value is None:
-        return None
-    if not isinstance(value, dict) or len(value) > HEARD_MAX:
-        raise ValueError(f"heard is not an object of at most {HEARD_MAX} topics")
-    heard = {}
-    for topic, counts in value.items():
-        match counts:
-            case [int() as seq, int() as recent] if (
-                not isinstance(seq, bool)
-                and not isinstance(recent, bool)
-                and 0 <= seq <= SEQ_MAX
-                and 0 <= recent <= HEARD_RECENT_MAX
-            ):
-                heard[topic] = Heard(seq, recent)
-            case _:
-                raise ValueError(
-                    f"heard[{topic!r}]={counts!r} is not [newest seq, recent frames], integers"
-                    f" from 0 (recent at most {HEARD_RECENT_MAX})"
-                )
-    return heard
 
 
 @dataclass(slots=True)
@@ -236,9 +125,11 @@ def release_offsets(
     Highest priority first (ties: the larger message, whose normalised priority is higher,
     then the topic), each once the messages before it had time to cross at the budget, so the
     release itself never outruns the budget; none later than ``RELEASE_MAX_S`` (the ones that
-    would be go together then, each at its own rate from there).
+    would be go together then, each at its own rate from there). At most
+    ``RELEASE_MAX_CHANNELS`` are named (the highest priorities): a beacon names no more.
     """
     order = sorted(channels, key=lambda t: (-channels[t][0], -channels[t][1], t))
+    del order[RELEASE_MAX_CHANNELS:]
     offsets, at = {}, 0.0
     for topic in order:
         offsets[topic] = min(at, RELEASE_MAX_S)
@@ -250,8 +141,9 @@ class LinkEstimator:
     """Estimate the shared link from reception reports; ``budget_mbit`` feeds the optimizer.
 
     What the network fills is bounded, and a flood is logged once with a count (an
-    ``Overflow`` each, told outside the lock): the reporting hosts here (``MAX_REPORTERS``),
-    the streams and frames in :class:`~dbml.core.estimator.BandwidthEstimator`.
+    ``Overflow`` each, told outside the lock): the reporting hosts (``MAX_REPORTERS``) and
+    the channels each one heard (``HEARD_MAX``) here, the streams and frames in
+    :class:`~dbml.estimator.BandwidthEstimator`.
     """
 
     def __init__(
@@ -292,7 +184,11 @@ class LinkEstimator:
         self._beacon = transport.declare_publisher(LINK_TOPIC)
         self._order_until = -math.inf
         self._arrived: dict[tuple[str, str], _Arrivals] = {}
-        """Per reporting host and channel, its newest frames' arrivals (at most ``HEARD_MAX``)."""
+        """Per reporting host and channel, its newest frames' arrivals, the one heard from
+        longest ago first. At most ``HEARD_MAX``: one more evicts the first (a flood of made-up
+        hosts or channels cannot keep a real one out), and each tick forgets those no beacon
+        can name any more (``_forget_unheard``)."""
+        self._arrivals_full = Overflow("channels heard per host", HEARD_MAX, log=log, evicts=True)
         self._silent_from = math.inf
         """The estimator's time when it last declared an outage: frames after it are back."""
         self._ticked_s = -math.inf
@@ -317,7 +213,7 @@ class LinkEstimator:
             log.warning("%s", err)
             return
         now = self._transport.now()
-        evicted = refused = 0
+        evicted = refused = displaced = 0
         queued = 0.0
         with self._lock:
             known = self._offsets.pop(report.host, math.inf)
@@ -330,7 +226,7 @@ class LinkEstimator:
             estimator = self._estimator
             if estimator is not None:
                 for frame in report.frames:
-                    self._arrival(report.host, frame.topic, frame.seq, now)
+                    displaced += self._arrival(report.host, frame.topic, frame.seq, now)
                     queued = max(
                         queued,
                         estimator.observe(
@@ -350,31 +246,37 @@ class LinkEstimator:
             self._worker.wake()  # a frame queued: judge now, a cut is due sooner than the tick
         if full:
             self._reporters_full.refuse()
+        if displaced:
+            self._arrivals_full.refuse(displaced)
         if evicted:
             self._streams_full.refuse(evicted)
         if refused:
             self._samples_full.refuse(refused)
 
-    def _arrival(self, host: str, topic: str, seq: int, now: float) -> None:
+    def _arrival(self, host: str, topic: str, seq: int, now: float) -> int:
         """Count a frame of ``topic`` numbered ``seq`` that ``host`` reported ``now``; lock held.
 
         A host reports its frames in the order they arrived, each channel's in the order they
         were sent: the last one reported is the newest, and a lower number than before means
-        the publisher restarted. The number comes from the network: kept within the layout's.
+        the publisher restarted. Returns 1 if it is a new channel of ``host`` while
+        ``HEARD_MAX`` channels are, and it evicted the one heard from longest ago), else 0.
         """
-        seq = min(max(seq, 0), SEQ_MAX)
-        arrivals = self._arrived.get((host, topic))
+        arrived = self._arrived
+        evicted = 0
+        arrivals = arrived.pop((host, topic), None)
         if arrivals is None:
-            if len(self._arrived) >= HEARD_MAX:
-                return
+            if len(arrived) >= HEARD_MAX:
+                del arrived[next(iter(arrived))]  # the one heard from longest ago
+                evicted = 1
             arrivals = _Arrivals(now, seq, deque(maxlen=HEARD_RECENT_MAX))
-            self._arrived[(host, topic)] = arrivals
+        arrived[(host, topic)] = arrivals  # now the one heard last
         arrivals.newest_s = max(arrivals.newest_s, now)
         arrivals.newest_seq = seq
         recent = arrivals.recent_s
         while recent and recent[0] <= now - OWED_WINDOW_S:
             recent.popleft()
         recent.append(now)
+        return evicted
 
     def tick(self) -> Estimate | None:
         """One estimator update: every ``interval_s``, and soon after a queued frame.
@@ -397,7 +299,28 @@ class LinkEstimator:
         self._samples_full.room(samples)
         self._publish(estimate)
         self._send_beacon(estimate)
+        self._arrivals_full.room(self._forget_unheard(self._transport.now()))
         return estimate
+
+    def _forget_unheard(self, now: float) -> int:
+        """Forget the channels no later beacon can name; how many are left.
+
+        A beacon's ``heard`` names a channel heard since the outage began, while the release
+        order is in force, and counts its arrivals of the last ``OWED_WINDOW_S``. A channel
+        last heard before that window and, unless the order is in force, before the outage
+        began, is in no later beacon: the next report of it counts from nothing, as it would.
+        """
+        forget_to = now - OWED_WINDOW_S
+        if now <= self._order_until:  # a later outage tick keeps the order, and its start
+            forget_to = min(forget_to, self._silent_from)
+        with self._lock:
+            arrived = self._arrived
+            while arrived:
+                first = next(iter(arrived))  # the one heard from longest ago
+                if arrived[first].newest_s > forget_to:
+                    break
+                del arrived[first]
+            return len(arrived)
 
     def _send_beacon(self, estimate: Estimate) -> None:
         """Tell publishers whether frames arrive (and, around an outage, the release order)."""

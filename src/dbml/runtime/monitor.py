@@ -11,9 +11,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from dbml.core.errors import SpecError
-from dbml.core.estimator import EstimatorState
 from dbml.protocol import names, schema
-from dbml.protocol.messages import RoundReport
+from dbml.protocol.messages import EstimatorState, RoundReport
 from dbml.protocol.schema import PARAMETERS, Parameter
 from dbml.runtime.graph import is_managed, published_topics, publisher_hosts
 from dbml.runtime.params import channel_params, dbm_params, valid_values

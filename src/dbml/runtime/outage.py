@@ -33,7 +33,8 @@ import math
 from collections import deque
 from collections.abc import Mapping
 
-from dbml.runtime.estimator import OWED_WINDOW_S, Heard, LinkBeacon
+from dbml.protocol.messages import Heard, LinkBeacon
+from dbml.runtime.estimator import OWED_WINDOW_S
 from dbml.runtime.rate import RateLimiter
 
 __all__ = [

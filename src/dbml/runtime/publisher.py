@@ -31,8 +31,9 @@ from collections.abc import Callable
 from dbml.core.errors import TransportError
 from dbml.core.spec import ChannelSpec, check_number
 from dbml.protocol import names
+from dbml.protocol.messages import LinkBeacon
 from dbml.protocol.metadata import pack_meta
-from dbml.runtime.estimator import LINK_TOPIC, LinkBeacon
+from dbml.runtime.estimator import LINK_TOPIC
 from dbml.runtime.failsafe import FAILSAFE_PERIODS, FailSafe
 from dbml.runtime.outage import (
     BEACON_WINDOW,

@@ -10,14 +10,12 @@ nothing otherwise.
 
 from __future__ import annotations
 
-import json
 import logging
 import threading
-from dataclasses import dataclass
-from typing import Any
 
 from dbml.core.errors import TransportError
 from dbml.protocol import keys
+from dbml.protocol.messages import MAX_NAME_CHARS, MAX_REPORT_FRAMES, ReceivedFrame, ReceptionReport
 from dbml.protocol.metadata import MessageMeta
 from dbml.runtime.worker import PeriodicWorker
 from dbml.transports.base import Sample, Transport
@@ -29,8 +27,6 @@ __all__ = [
     "MAX_TOPICS",
     "RECEPTION_TOPIC",
     "REPORT_INTERVAL_S",
-    "ReceivedFrame",
-    "ReceptionReport",
     "ReceptionReporter",
 ]
 
@@ -46,52 +42,13 @@ may have slowed, and the estimator cuts sooner for it (at most one early flush p
 ``interval_s``, so a congested link at most doubles the reports)."""
 MAX_TOPICS = 4096
 """Topics whose quickest frame is kept; past it the table starts again (any peer publishes)."""
-MAX_FRAMES = 10_000
-"""Frames kept between two flushes at most. A base station that subscribes to every channel of
-160 robots with 4 channels at 30 Hz records about a thousand per ``REPORT_INTERVAL_S``: this is
-ten times that (a flush late by half a second). What any peer publishes is recorded, so past
-this the oldest half is dropped (they are stale by then), logged once per flood with a count
-(the flood ends when a flush takes what is left). A frame is about 200 bytes: 2 MB at most."""
-
-
-@dataclass(frozen=True, slots=True)
-class ReceivedFrame:
-    """One frame as a subscriber received it."""
-
-    topic: str
-    seq: int
-    sent_ns: int
-    """The publisher's wall clock."""
-    arrival_s: float
-    """The reporter's clock (its transport's ``now()``)."""
-    size_bytes: int
-
-
-@dataclass(frozen=True, slots=True)
-class ReceptionReport:
-    """A batch of frames one host received, with the reporter's clock at sending."""
-
-    host: str
-    now_s: float
-    frames: tuple[ReceivedFrame, ...]
-
-    def encode(self) -> bytes:
-        """The report as JSON bytes."""
-        rows = [[f.topic, f.seq, f.sent_ns, f.arrival_s, f.size_bytes] for f in self.frames]
-        return json.dumps({"host": self.host, "now_s": self.now_s, "frames": rows}).encode()
-
-    @classmethod
-    def decode(cls, data: bytes) -> ReceptionReport:
-        """A report from its bytes; ``TransportError`` if they are malformed."""
-        try:
-            document: dict[str, Any] = json.loads(data)
-            frames = tuple(
-                ReceivedFrame(str(topic), int(seq), int(sent), float(arrival), int(size))
-                for topic, seq, sent, arrival, size in document["frames"]
-            )
-            return cls(str(document["host"]), float(document["now_s"]), frames)
-        except (ValueError, KeyError, TypeError, OverflowError) as err:
-            raise TransportError(f"malformed reception report {data[:80]!r}") from err
+MAX_FRAMES = MAX_REPORT_FRAMES
+"""Frames kept between two flushes at most, the most one report carries. A base station that
+subscribes to every channel of 160 robots with 4 channels at 30 Hz records about a thousand per
+``REPORT_INTERVAL_S``: this is ten times that (a flush late by half a second). What any peer
+publishes is recorded, so past this the oldest half is dropped (they are stale by then), logged
+once per flood with a count (the flood ends when a flush takes what is left). A frame is about
+200 bytes: 2 MB at most."""
 
 
 class ReceptionReporter:
@@ -116,8 +73,8 @@ class ReceptionReporter:
 
     def record(self, sample: Sample) -> None:
         """Note one received frame (called on the middleware's thread: cheap, never blocks)."""
-        if sample.attachment is None:
-            return
+        if sample.attachment is None or len(sample.topic) > MAX_NAME_CHARS:
+            return  # a name longer than a report carries would cost the whole report
         try:
             meta = MessageMeta.decode(sample.attachment)
         except TransportError:

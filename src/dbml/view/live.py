@@ -28,10 +28,9 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 from dbml.core.errors import SpecError
-from dbml.core.estimator import EstimatorState
 from dbml.core.extras import require
 from dbml.protocol import names
-from dbml.protocol.messages import RoundReport
+from dbml.protocol.messages import EstimatorState, RoundReport
 from dbml.protocol.schema import ParamValue, Writer
 from dbml.runtime.graph import published_topics
 from dbml.runtime.params import ParamView, channel_params

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from dbml.core.estimator import EstimatorState
 from dbml.experiment.analysis.thresholds import RATE_TOLERANCE
+from dbml.protocol.messages import EstimatorState
 
 __all__ = [
     "Analysis",

@@ -14,10 +14,17 @@ import heapq
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
-from dbml.core.estimator import Arrival, BandwidthEstimator, Estimate
+from dbml.estimator import Arrival, BandwidthEstimator, Estimate
 
 FRAMES = (("r1", 84_000, 16.0, 0.8), ("r2", 21_000, 16.0, 0.2))  # stream, bytes, max Hz, share
 WIRE_EFFICIENCY = 0.957  # payload Mbit/s per shaped Mbit/s measured with raw TCP (FACTS.md)
+CAP_MBIT = 11.0 * 0.92
+"""The testbed's budget on its 11-Mbit/s link: the estimate's cap."""
+
+
+def drop_and_rise(t: float) -> float:
+    """The testbed's drop: 11 Mbit/s, 5 from 20 s, 11 again from 40 s."""
+    return 11.0 if t < 20 or t >= 40 else 5.0
 
 
 @dataclass

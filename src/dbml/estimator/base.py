@@ -1,0 +1,227 @@
+"""What every part of the estimator speaks: frames, results, one update's view, the detector.
+
+The shared loop (:mod:`dbml.estimator.shared`) keeps the streams and reads outages; a design is
+a :class:`Detector` that reads overuse from a :class:`View` of one update and moves the
+estimate. This module holds the words both sides use and the measurements more than one of
+them takes (rates, packet pairs, slopes), so that a design is a module of its own that imports
+only this one. Pure: every time is an argument.
+"""
+
+from __future__ import annotations
+
+import enum
+import itertools
+import math
+from collections import deque
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
+
+from dbml.core.errors import SpecError
+from dbml.core.spec import bytes_per_s_to_mbit
+
+if TYPE_CHECKING:
+    from dbml.estimator.shared import EstimatorSettings
+
+__all__ = [
+    "RATE_FRAMES",
+    "Arrival",
+    "Decision",
+    "Detector",
+    "DetectorSettings",
+    "Estimate",
+    "Judged",
+    "Phase",
+    "Sample",
+    "View",
+    "busy_rate_mbit",
+    "check_positive",
+    "check_shares",
+    "receive_rate_mbit",
+    "slope",
+]
+
+RATE_FRAMES = 4
+"""A rate needs this many frames: fewer in a window, and the last few stand in for it."""
+_MIN_SLOPE_POINTS = 3
+"""A trend needs at least this many points."""
+_MIN_SPREAD_S2 = 1e-6
+"""Below this variance of times (s^2), points are simultaneous: no slope."""
+
+Sample = tuple[float, float, int]
+"""One kept frame: (arrival time, one-way or queueing delay, size in bytes)."""
+
+
+class Phase(enum.StrEnum):
+    """What the estimator is doing: probing up, holding, or cutting after overuse."""
+
+    INCREASE = "increase"
+    HOLD = "hold"
+    DECREASE = "decrease"
+    OUTAGE = "outage"
+
+
+@dataclass(frozen=True, slots=True)
+class Arrival:
+    """One frame received from a stream (one publisher's topic as one receiver gets it)."""
+
+    stream: str
+    seq: int
+    sent_s: float
+    """The sender's clock; it may differ from the receiver's by a constant offset."""
+    arrival_s: float
+    """The estimator's clock."""
+    size_bytes: int
+
+
+@dataclass(frozen=True, slots=True)
+class Estimate:
+    """The estimator's state after an update."""
+
+    t_s: float
+    estimate_mbit: float
+    phase: Phase
+    received_mbit: float
+    """What arrived over the last window, in Mbit/s."""
+    queue_delay_s: float
+    delay_trend: float
+    """Seconds of queueing delay gained per second (negative while the queue drains)."""
+    lost: int
+    """Frames lost (sequence gaps) since the previous update."""
+
+
+@dataclass(frozen=True, slots=True)
+class Judged:
+    """One stream whose delays speak for the link at this update."""
+
+    latest_s: float
+    """Its newest frame's queueing delay (over its least delay in ``base_window_s``)."""
+    least_s: float
+    """The least queueing in the trend window: a frame that waited behind another's is not a
+    standing queue, the least one is."""
+    slope: float
+    """Seconds of queueing gained per second over the trend window."""
+    samples: deque[Sample]
+    """Its kept frames with their one-way delays, oldest first (read only)."""
+    window: list[Sample]
+    """Its frames of the trend window (or its last few, if slow), with queueing delays."""
+
+
+@dataclass(frozen=True, slots=True)
+class View:
+    """What one update measured, for the detector that decides on it."""
+
+    now_s: float
+    dt_s: float
+    settling: bool
+    """After an outage: the backlog drains, nothing is judged yet."""
+    lost: int
+    recent: list[Sample]
+    """(arrival, queueing delay, size) of all streams' kept frames, in arrival order."""
+    judged: list[Judged]
+    """The streams that speak for the link, each judged on its own: a publisher's backlog sits
+    in its own connection's buffers."""
+    received: float
+    cut_rate: float
+    """The receive rate, with a silent stream's share as before its silence."""
+    estimate_mbit: float
+    """The estimate before this update."""
+    max_mbit: float
+    speaks: Callable[[str], bool | None]
+    """Whether a stream's delays speak for the link now (None: the stream is not followed)."""
+
+    def pairs(self, window_s: float) -> list[Sample]:
+        """The frames of the last window (and the one before them): the packet pairs."""
+        window = [r for r in self.recent if r[0] > self.now_s - window_s]
+        return self.recent[-len(window) - 1 :] if len(window) >= RATE_FRAMES else self.recent[-5:]
+
+
+@dataclass(frozen=True, slots=True)
+class Decision:
+    """What a detector decided: the phase and the estimate (the loop keeps it in bounds)."""
+
+    phase: Phase
+    estimate_mbit: float
+
+
+class Detector(Protocol):
+    """One design: how overuse is read and what a cut and an increase are.
+
+    The shared loop tells it each frame it kept and each stream whose history restarts, and
+    asks it for a decision once an update has measured the streams (not during an outage).
+    """
+
+    def observe(self, arrival: Arrival) -> None:
+        """A frame the loop kept (its delay is in its stream's history)."""
+
+    def forget(self, stream: str | None) -> None:
+        """``stream``'s history restarts.
+
+        None: every stream's, and the frames not yet decided on (the link is down).
+        """
+
+    def decide(self, view: View) -> Decision:
+        """The phase and the estimate after ``view``."""
+
+
+@runtime_checkable
+class DetectorSettings(Protocol):
+    """A design's own settings (a frozen dataclass): they make its detector."""
+
+    def detector(self, shared: EstimatorSettings) -> Detector:
+        """A fresh detector (it keeps state: one per estimator)."""
+
+
+def check_positive(owner: str, settings: object, names: Iterable[str]) -> None:
+    """Each of ``names`` is a finite number above 0; ``SpecError`` naming it if not."""
+    for name in names:
+        value = getattr(settings, name)
+        if not (math.isfinite(value) and value > 0):
+            raise SpecError(f"{owner} {name}={value!r} must be a positive number")
+
+
+def check_shares(owner: str, settings: object, names: Iterable[str]) -> None:
+    """Each of ``names`` is in (0, 1]; ``SpecError`` naming it if not."""
+    for name in names:
+        value = getattr(settings, name)
+        if not 0 < value <= 1:
+            raise SpecError(f"{owner} {name}={value!r} must be in (0, 1]")
+
+
+def slope(points: list[tuple[float, float]]) -> float:
+    """Least-squares slope of y over t; 0 without enough spread."""
+    if len(points) < _MIN_SLOPE_POINTS:
+        return 0.0
+    n = len(points)
+    mean_t = sum(t for t, _ in points) / n
+    mean_y = sum(y for _, y in points) / n
+    var = sum((t - mean_t) ** 2 for t, _ in points)
+    if var < _MIN_SPREAD_S2:
+        return 0.0
+    return sum((t - mean_t) * (y - mean_y) for t, y in points) / var
+
+
+def busy_rate_mbit(ordered: list[Sample], queued_s: float) -> float | None:
+    """Delivery rate while the link was busy.
+
+    A frame that waited in the queue arrived as soon as the one before it had, so its size over
+    that gap is the link's rate (packet pairs).
+    """
+    size = gap = 0.0
+    for (t_prev, _, _), (t, queue, frame) in itertools.pairwise(ordered):
+        if queue > queued_s and t > t_prev:
+            size += frame
+            gap += t - t_prev
+    return bytes_per_s_to_mbit(size / gap) if gap > 0 else None
+
+
+def receive_rate_mbit(ordered: list[Sample], now_s: float, window_s: float) -> float:
+    """Mbit/s received over the window, or over the last few frames when they are sparse."""
+    start = now_s - window_s
+    inside = [r for r in ordered if r[0] > start]
+    if len(inside) < RATE_FRAMES and len(ordered) > len(inside):
+        keep = min(RATE_FRAMES, len(ordered) - 1)
+        inside = ordered[len(ordered) - keep :] if keep else []
+        start = ordered[len(ordered) - keep - 1][0]
+    span = now_s - start
+    return bytes_per_s_to_mbit(sum(size for *_, size in inside) / span) if span > 0 else 0.0
