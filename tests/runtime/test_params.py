@@ -13,9 +13,11 @@ import pytest
 
 from dbml.cli.commands import set_priority
 from dbml.core import DbmSettings, Strategy, TransportError
-from dbml.protocol import names
+from dbml.protocol import names, schema
+from dbml.protocol.schema import Parameter
 from dbml.runtime import ManagedPublisher, ManagedSubscriber, OptimizerNode
 from dbml.runtime.params import MAX_PROBLEMS, MAX_VALUES, DbmParams, ParamView, valid_values
+from dbml.runtime.priority import collision_priority_source
 from dbml.transports import MemoryNetwork, MemoryTransport
 from dbml.transports.base import Closer, Handle, ParamValue
 from tests.conftest import wait_for
@@ -310,3 +312,52 @@ def test_a_flood_of_bad_values_lists_a_bounded_number_and_logs_the_rest_once(
         "(told once until half of them are gone)",
         f"bad parameter values: room again; {2 * over} refused meanwhile",
     ]
+
+
+def test_a_priority_is_parsed_once_per_process_where_it_enters(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The view parses a name once; the optimizer and the publishers get it parsed."""
+    network = MemoryNetwork()
+    _camera, optimizer = managed_fleet(network)
+    optimizer.optimize()
+    parses: list[str] = []
+    split = schema.split_channel_name
+
+    def counted(name: str) -> tuple[str, str] | None:
+        parses.append(name)
+        return split(name)
+
+    monkeypatch.setattr(schema, "split_channel_name", counted)
+    monkeypatch.setattr(names, "topic_of", counted)
+    source = collision_priority_source(MemoryTransport(network, host="r1-events"), CAMERA)
+    source.set(0.5)
+    # One parse in each process whose view follows the store (the robot's and the optimizer's;
+    # the event source and the subscriber read no parameter): none by the optimizer's reaction,
+    # none again in the view (it parsed 5 times: twice in each view, once in the optimizer).
+    assert parses.count(names.priority(CAMERA)) == 2
+    parses.clear()
+    optimizer.optimize()
+    written = {n for n in parses if not n.endswith(("/current_value", "/managed"))}
+    assert written <= {names.ROUND, names.STATUS, names.STATUS_MESSAGE}, written
+
+
+def test_the_view_keeps_values_by_channel_and_parameter() -> None:
+    network = MemoryNetwork()
+    camera, optimizer = managed_fleet(network)
+    optimizer.optimize()
+    view = ParamView.of(MemoryTransport(network, host="viewer").params)
+    heard: list[tuple[Parameter, str | None, ParamValue]] = []
+    view.watch_params(lambda p, t, v: heard.append((p, t, v)))
+    assert view.topics() == [CAMERA]
+    channel = view.channels([CAMERA, "/r9/none"])
+    assert channel[CAMERA].size_bytes == 84_000
+    assert channel[CAMERA].current_rate_hz == pytest.approx(4e6 / 8 / 84_000)
+    assert channel["/r9/none"].bounded is False
+    MemoryTransport(network, host="op").params.set(names.priority(CAMERA), 0.25)
+    assert (schema.PRIORITY, CAMERA, 0.25) in heard
+    assert view.channel(CAMERA).priority == 0.25
+    MemoryTransport(network, host="op").params.set(names.priority(CAMERA), None)
+    assert view.channel(CAMERA).priority == 0.0
+    assert view.dbm().bandwidth_mbit == 4.0
+    camera.close()

@@ -341,11 +341,11 @@ class LinkEstimator:
                         heard[topic] = mine if other is None else _least(mine, other)
         release: dict[str, float] = {}
         if now <= self._order_until:  # only around an outage: it reads every parameter
-            channels: dict[str, tuple[float, float]] = {}
-            for topic in {split[0] for n in self._view.values() if (split := names.topic_of(n))}:
-                params = self._view.channel(topic)
-                if params.size_bytes:
-                    channels[topic] = (params.priority, params.size_bytes)
+            channels = {
+                topic: (params.priority, params.size_bytes)
+                for topic, params in self._view.channels(self._view.topics()).items()
+                if params.size_bytes
+            }
             release = release_offsets(channels, mbit_to_bytes_per_s(estimate.estimate_mbit))
         self._beacon.put(LinkBeacon(not down, release, now, heard).encode())
 

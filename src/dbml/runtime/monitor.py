@@ -82,10 +82,11 @@ def monitor_view(transport: Transport, report: RoundReport | None = None) -> Mon
     dbm = dbm_params(values)
     status = values.get(names.STATUS)
     estimator_text = _estimator_text(values.get(names.ESTIMATOR_STATE))
+    channels = channel_params(values)
     rows = []
     for topic in sorted(published_topics(entries)):
-        channel = channel_params(values, topic)
-        if channel.max_rate_hz is None:
+        channel = channels.get(topic)
+        if channel is None or channel.max_rate_hz is None:
             continue  # not a dbml channel (ROS 1's graph lists every topic, /rosout too)
         managed = is_managed(entries, topic)
         reported = None if report is None else report.channel(topic)

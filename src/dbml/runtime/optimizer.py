@@ -28,21 +28,17 @@ import logging
 import threading
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, replace
+from typing import TypeAlias
 
 from dbml.core.allocation import Allocation, Status, Strategy, allocate
 from dbml.core.config import DbmSettings
 from dbml.core.errors import DbmlError
 from dbml.core.spec import LinkSpec, Problem, mbit_to_bytes_per_s, short_repr
-from dbml.protocol import keys, names
+from dbml.protocol import keys, names, schema
 from dbml.protocol.messages import MAX_REPORTED_CHANNELS, ROUND_TOPIC, ChannelRound, RoundReport
+from dbml.protocol.schema import Parameter
 from dbml.runtime.graph import summarize
-from dbml.runtime.params import (
-    ChannelParams,
-    DbmParams,
-    ParamView,
-    channel_params,
-    write_settings,
-)
+from dbml.runtime.params import ChannelParams, DbmParams, ParamView, write_settings
 from dbml.runtime.worker import PeriodicWorker
 from dbml.transports.base import (
     GraphEntry,
@@ -58,11 +54,20 @@ __all__ = ["MAX_CHANNELS", "ChannelState", "OptimizerNode", "Round"]
 
 log = logging.getLogger("dbml.optimizer")
 
-_TRIGGERS = frozenset({names.MIN_FIELD, names.MAX_FIELD, names.SIZE_FIELD, names.PRIORITY_FIELD})
-"""Channel parameters whose change re-allocates at once."""
-_GLOBAL_TRIGGERS = frozenset(
-    {names.BANDWIDTH, names.UTILIZATION, names.PERIOD, names.STRATEGY, names.FRAME_HEADROOM}
+_TRIGGERS = frozenset(
+    {
+        schema.MIN_RATE,
+        schema.MAX_RATE,
+        schema.SIZE,
+        schema.PRIORITY,
+        schema.BANDWIDTH,
+        schema.UTILIZATION,
+        schema.PERIOD,
+        schema.STRATEGY,
+        schema.FRAME_HEADROOM,
+    }
 )
+"""Parameters whose change re-allocates at once: a channel's inputs, the budget, the rules."""
 _DEFAULTS: dict[str, ParamValue] = {
     names.UTILIZATION: DbmParams().utilization,
     names.PERIOD: DbmParams().period_s,
@@ -80,6 +85,10 @@ MAX_CHANNELS = MAX_REPORTED_CHANNELS
 this the channels tracked already stay, the new ones are ignored (pushed nothing), logged once
 per flood with a count (an ``Overflow``: the flood is over once the channels fall to half the
 bound) and named by count in ``/dbm/status_message`` every round."""
+
+
+_Writes: TypeAlias = dict[str | None, dict[str, ParamValue]]
+"""Writes by the channel whose names they are (None: global ones): addressed with no parse."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -232,7 +241,7 @@ class OptimizerNode:
             clock=transport.now,
         )
         self._handles: list[Handle] = [
-            self._view.watch(self._on_param),
+            self._view.watch_params(self._on_param),
             params.watch(self._on_written),
             transport.graph.watch(self.poke),
         ]
@@ -246,17 +255,11 @@ class OptimizerNode:
         """Ask for a re-optimisation as soon as possible (bursts coalesce into one)."""
         self._worker.wake()
 
-    def _on_param(self, name: str, _value: ParamValue) -> None:
+    def _on_param(self, parameter: Parameter, _topic: str | None, _value: ParamValue) -> None:
         """A valid value arrived (the view has it already): react to what it changes."""
-        if name in _GLOBAL_TRIGGERS:
+        if parameter in _TRIGGERS:
             self.poke()
-            return
-        split = names.topic_of(name)
-        if split is None:
-            return
-        if split[1] in _TRIGGERS:
-            self.poke()
-        elif split[1] == names.APPLIED_FIELD:
+        elif parameter is schema.APPLIED:
             with self._acks:
                 self._acks.notify_all()
 
@@ -317,11 +320,10 @@ class OptimizerNode:
         """
         entries = self._transport.graph.entries()
         graph = summarize(entries)  # one pass, not one per channel
-        values = self._view.values()  # one copy for the round, not one per channel
+        tracked = self._view.channels(self._track(graph.publishers))  # one read for the round
         states = []
         incomplete: set[str] = set()
-        for topic in self._track(graph.publishers):
-            params = channel_params(values, topic)
+        for topic, params in tracked.items():
             if params.bounded:  # else a publisher that has not declared valid bounds yet
                 managed = topic in graph.managed
                 states.append(
@@ -407,15 +409,21 @@ class OptimizerNode:
         problems = self._view.problems()
         if problems:
             message = f"{message}; ignored: {'; '.join(problems)}"
-        owned: dict[str, ParamValue] = {names.managed(c.topic): c.managed for c in channels}
-        owned |= {names.STATUS: status.value, names.STATUS_MESSAGE: message}
+        owned: _Writes = {c.topic: {names.managed(c.topic): c.managed} for c in channels}
+        owned[None] = {names.STATUS: status.value, names.STATUS_MESSAGE: message}
         params = self._transport.params
-        updates = {name: value for name, value in owned.items() if params.get(name) != value}
-        if names.STATUS_MESSAGE in updates and status is Status.INFEASIBLE:
-            log.warning("infeasible: %s", message)
-        elif names.STATUS_MESSAGE in updates:
-            log.info("%s", message)
-        self._owned = owned | {names.current_value(t): r for t, r in rates.items()}
+        updates: _Writes = {}
+        for topic, values in owned.items():
+            changed = {name: value for name, value in values.items() if params.get(name) != value}
+            if changed:
+                updates[topic] = changed
+        if names.STATUS_MESSAGE in updates.get(None, {}):
+            if status is Status.INFEASIBLE:
+                log.warning("infeasible: %s", message)
+            else:
+                log.info("%s", message)
+        self._owned = {name: v for values in owned.values() for name, v in values.items()}
+        self._owned |= {names.current_value(t): r for t, r in rates.items()}
         self._push(rates, channels, updates)
         result = Round(
             channels,
@@ -436,7 +444,7 @@ class OptimizerNode:
         self,
         rates: dict[str, float],
         channels: tuple[ChannelState, ...],
-        updates: dict[str, ParamValue],
+        updates: _Writes,
     ) -> None:
         """Push what changed: decreases first (acknowledged), then the rest and the heartbeat."""
         params = self._transport.params
@@ -459,24 +467,24 @@ class OptimizerNode:
         decreases = {t: r for t, r in changed.items() if (b := before[t]) is not None and r < b}
         increases = {t: r for t, r in changed.items() if t not in decreases}
         if decreases and increases:
-            self._send({names.current_value(t): r for t, r in decreases.items()}, channels)
+            self._send({t: {names.current_value(t): r} for t, r in decreases.items()}, channels)
             self._pushed_at.update(dict.fromkeys(decreases, now))
             self._await_acks(decreases)
             decreases = {}
         self._rounds += 1
-        self._send(
-            {names.current_value(t): r for t, r in (decreases | increases).items()}
-            | updates
-            | {names.ROUND: self._rounds},
-            channels,
-        )
-        self._pushed_at.update(dict.fromkeys(decreases | increases, now))
+        pushed = decreases | increases
+        writes: _Writes = {t: {names.current_value(t): r} for t, r in pushed.items()}
+        for topic, values in updates.items():
+            writes[topic] = writes.get(topic, {}) | values
+        writes[None] = writes.get(None, {}) | {names.ROUND: self._rounds}
+        self._send(writes, channels)
+        self._pushed_at.update(dict.fromkeys(pushed, now))
         self._pushed = {t: (r, publishers.get(t, frozenset())) for t, r in rates.items()}
         for topic in set(self._pushed_at) - set(rates):
             del self._pushed_at[topic]
 
-    def _send(self, values: dict[str, ParamValue], channels: tuple[ChannelState, ...]) -> None:
-        """Write ``values`` in batches: a channel's to each host that publishes it, the rest to all.
+    def _send(self, writes: _Writes, channels: tuple[ChannelState, ...]) -> None:
+        """Write in batches: a channel's values to each host that publishes it, the rest to all.
 
         The rest: global values, channels without a known host. So what a robot hears per round
         is its own channels' share, whatever the fleet's size.
@@ -484,14 +492,13 @@ class OptimizerNode:
         hosts = {c.topic: c.hosts for c in channels}
         common: dict[str, ParamValue] = {}
         by_host: dict[str, dict[str, ParamValue]] = {}
-        for name, value in values.items():
-            split = names.topic_of(name)
-            addressed = hosts.get(split[0], frozenset()) if split is not None else frozenset()
+        for topic, values in writes.items():
+            addressed = () if topic is None else hosts.get(topic, ())
             valid = [h for h in addressed if keys.is_host_name(h)]
             if not valid:
-                common[name] = value
+                common |= values
             for host in valid:
-                by_host.setdefault(host, {})[name] = value
+                by_host.setdefault(host, {}).update(values)
         params = self._transport.params
         for host in sorted(by_host):
             params.set_many(by_host[host], host=host)

@@ -9,7 +9,9 @@ thread and never takes a channel out of the allocation.
 
 ``DbmParams`` and ``ChannelParams`` are what the optimizer, the publishers, the estimator and
 the monitor read; ``DbmParams.budget_mbit`` is the one budget rule: an estimate, when one runs,
-else bandwidth times utilization (an estimate never above that).
+else bandwidth times utilization (an estimate never above that). A name is read once, where a
+value enters (``ParamView`` parses it into its parameter and topic), and kept by parameter per
+channel: reading a channel builds no name, and watchers that want the parameter get it parsed.
 
 What a view keeps is bounded as its store is (``MAX_VALUES`` names, ``MAX_PROBLEMS`` problems):
 past a bound a new name is refused and the flood logged once, with a count.
@@ -20,15 +22,15 @@ from __future__ import annotations
 import logging
 import threading
 import weakref
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import ClassVar, TypeAlias
 
 from dbml.core.allocation import Strategy
 from dbml.core.config import DbmSettings
 from dbml.core.spec import ChannelSpec
-from dbml.protocol import names
-from dbml.protocol.schema import ParamError, check_param
+from dbml.protocol import names, schema
+from dbml.protocol.schema import ParamError, Parameter, lookup
 from dbml.transports.base import Closer, Handle, ParamStore, ParamValue
 from dbml.transports.callbacks import CallbackList
 from dbml.transports.overflow import Overflow
@@ -37,6 +39,7 @@ from dbml.transports.paramstore import MAX_PARAMS
 __all__ = [
     "MAX_PROBLEMS",
     "MAX_VALUES",
+    "ByParameter",
     "ChannelParams",
     "DbmParams",
     "ParamView",
@@ -47,6 +50,9 @@ __all__ = [
 ]
 
 log = logging.getLogger("dbml.params")
+
+ByParameter: TypeAlias = Mapping[Parameter, ParamValue]
+"""Valid values of one channel's parameters, or of the global ones, keyed by the parameter."""
 
 MAX_VALUES = 2 * MAX_PARAMS
 """The most names whose last good value a view keeps. A view holds what its store holds: the
@@ -154,11 +160,13 @@ class ParamView:
 
     One view per store and process (``ParamView.of``), so every value is checked, and a bad one
     logged, once. ``watch(callback)`` is called with ``(name, value)`` after a valid value is
-    taken in (on the store's thread); a bad value calls nothing. ``watch_channel(topic, ...)``
-    and ``watch_dbm(...)`` hear only one channel's names or only the names of no channel: a
-    write's topic is parsed once and goes to its channel's watchers alone, so a process with
-    many publishers does not have each of them filter every write. Reading never touches the
-    middleware, and ``dbm()``/``channel()`` read only the names they need.
+    taken in (on the store's thread); a bad value calls nothing. ``watch_params(callback)`` is
+    called with ``(parameter, topic, value)`` for dbml's own names, already parsed.
+    ``watch_channel(topic, ...)`` and ``watch_dbm(...)`` hear only one channel's parameters or
+    only the global ones: a write's name is parsed once, when it enters, and goes to its
+    channel's watchers alone, so a process with many publishers does not have each of them
+    filter every write. Reading never touches the middleware, and ``dbm()``, ``channel()``
+    and ``channels()`` read the values kept by parameter, building no name.
     """
 
     _shared: ClassVar[weakref.WeakKeyDictionary[ParamStore, ParamView]] = (
@@ -179,11 +187,15 @@ class ParamView:
         self._lock = threading.Lock()
         self._values: dict[str, ParamValue] = {}
         """The last good value per name (``MAX_VALUES`` names at most)."""
+        self._globals: dict[Parameter, ParamValue] = {}
+        self._channels: dict[str, dict[Parameter, ParamValue]] = {}
+        """The same values of dbml's own names, by parameter: the globals, and per channel."""
         self._values_full = Overflow("parameter names viewed", MAX_VALUES, log=log)
         self._problems: dict[str, str] = {}
         """The bad value standing per name, as its error says it (``MAX_PROBLEMS`` at most)."""
         self._problems_full = Overflow("bad parameter values", MAX_PROBLEMS, log=log)
         self._listeners: CallbackList[[str, ParamValue]] = CallbackList()
+        self._param_listeners: CallbackList[[Parameter, str | None, ParamValue]] = CallbackList()
         self._dbm_listeners: CallbackList[[str, ParamValue]] = CallbackList()
         self._channel_listeners: dict[str, CallbackList[[str, ParamValue]]] = {}
         """Per topic, its watchers; a topic's entry goes when its last watcher does."""
@@ -202,12 +214,12 @@ class ParamView:
                 if from_snapshot and name in self._notified:
                     return
                 self._notified.add(name)
+        found = lookup(name)  # the one parse of the name
         try:
-            good = check_param(name, value)
+            good = value if found is None or value is None else found[0].check(value, name=name)
         except ParamError as err:
             self._problem(name, str(err))
             return
-        split = None if from_snapshot else names.topic_of(name)
         with self._lock:
             if self._problems.pop(name, None) is not None:
                 self._problems_full.room(len(self._problems))
@@ -219,14 +231,41 @@ class ParamView:
             else:
                 self._values_full.refuse()
                 return
-            channel = None if split is None else self._channel_listeners.get(split[0])
+            channel = None
+            if found is not None:
+                parameter, topic = found
+                self._keep_locked(parameter, topic, good)
+                if topic is not None:
+                    channel = self._channel_listeners.get(topic)
         if from_snapshot:
             return
         self._listeners.fire(name, good)
-        if split is None:
+        if found is None:
+            return
+        parameter, topic = found
+        self._param_listeners.fire(parameter, topic, good)
+        if topic is None:
             self._dbm_listeners.fire(name, good)
         elif channel is not None:
-            channel.fire(split[1], good)
+            channel.fire(parameter.field, good)
+
+    def _keep_locked(self, parameter: Parameter, topic: str | None, value: ParamValue) -> None:
+        """The value by parameter too (lock held): what ``dbm()`` and ``channel()`` read."""
+        if topic is None:
+            if value is None:
+                self._globals.pop(parameter, None)
+            else:
+                self._globals[parameter] = value
+            return
+        kept = self._channels.get(topic)
+        if value is not None:
+            if kept is None:
+                kept = self._channels[topic] = {}
+            kept[parameter] = value
+        elif kept is not None:
+            kept.pop(parameter, None)
+            if not kept:
+                del self._channels[topic]
 
     def _problem(self, name: str, problem: str) -> None:
         """A bad value of ``name``: listed and logged once, unless ``MAX_PROBLEMS`` stand."""
@@ -244,18 +283,26 @@ class ParamView:
         """Call ``callback(name, value)`` for every valid value taken in from now on."""
         return self._listeners.add(callback)
 
-    def watch_dbm(self, callback: Callable[[str, ParamValue], object]) -> Handle:
-        """Call ``callback(name, value)`` for every valid value of a name of no channel.
+    def watch_params(
+        self, callback: Callable[[Parameter, str | None, ParamValue], object]
+    ) -> Handle:
+        """Call ``callback(parameter, topic, value)`` for every valid value of dbml's names.
 
-        dbml's own ``/dbm/...`` names (the period, the optimizer's heartbeat, the budget), and
-        any other name that is not ``[topic]/dbm/...``.
+        ``topic`` is the channel's, None for a global parameter: parsed once, when it entered.
+        """
+        return self._param_listeners.add(callback)
+
+    def watch_dbm(self, callback: Callable[[str, ParamValue], object]) -> Handle:
+        """Call ``callback(name, value)`` for every valid value of a global parameter.
+
+        dbml's own ``/dbm/...`` names: the period, the optimizer's heartbeat, the budget.
         """
         return self._dbm_listeners.add(callback)
 
     def watch_channel(self, topic: str, callback: Callable[[str, ParamValue], object]) -> Handle:
-        """Call ``callback(field, value)`` for every valid value of one of ``topic``'s names.
+        """Call ``callback(field, value)`` for every valid value of one of ``topic``'s parameters.
 
-        ``field`` is the name's part after ``[topic]/dbm/`` (``names.CURRENT_FIELD``, ...).
+        ``field`` is the parameter's name after ``[topic]/dbm/`` (``names.CURRENT_FIELD``, ...).
         """
         with self._lock:  # so a closing watcher cannot drop the list this one joins
             listeners = self._channel_listeners.get(topic)
@@ -294,46 +341,87 @@ class ParamView:
 
     def dbm(self) -> DbmParams:
         """The ``/dbm/...`` parameters, with their defaults where unset."""
-        with self._lock:  # dbm_params reads only its own names: no copy of every value
-            return dbm_params(self._values)
+        with self._lock:
+            return _dbm(self._globals)
 
     def channel(self, topic: str) -> ChannelParams:
         """One channel's parameters."""
-        with self._lock:  # channel_params reads only the channel's names
-            return channel_params(self._values, topic)
+        with self._lock:
+            return _channel(topic, self._channels.get(topic, _NONE))
+
+    def channels(self, topics: Iterable[str]) -> dict[str, ChannelParams]:
+        """Several channels' parameters, read at once (an optimizer's round)."""
+        with self._lock:
+            return {t: _channel(t, self._channels.get(t, _NONE)) for t in topics}
+
+    def topics(self) -> list[str]:
+        """The channels some parameter is known of, sorted."""
+        with self._lock:
+            return sorted(self._channels)
 
 
-def _float(values: Mapping[str, ParamValue], name: str) -> float | None:
-    value = values.get(name)
+_NONE: ByParameter = {}
+
+
+def _float(value: ParamValue) -> float | None:
     return float(value) if isinstance(value, int | float) and not isinstance(value, bool) else None
 
 
-def dbm_params(values: Mapping[str, ParamValue]) -> DbmParams:
-    """``DbmParams`` from valid values (as ``ParamView`` keeps them)."""
-    strategy = values.get(names.STRATEGY)
+def _dbm(values: ByParameter) -> DbmParams:
+    strategy = values.get(schema.STRATEGY)
     return DbmParams(
-        bandwidth_mbit=_float(values, names.BANDWIDTH),
-        utilization=_float(values, names.UTILIZATION) or 1.0,
-        period_s=_float(values, names.PERIOD) or 1.0,
+        bandwidth_mbit=_float(values.get(schema.BANDWIDTH)),
+        utilization=_float(values.get(schema.UTILIZATION)) or 1.0,
+        period_s=_float(values.get(schema.PERIOD)) or 1.0,
         strategy=Strategy(strategy) if isinstance(strategy, str) else Strategy.PAPER,
-        frame_headroom=values.get(names.FRAME_HEADROOM) is True,
-        estimate_mbit=_float(values, names.ESTIMATE),
+        frame_headroom=values.get(schema.FRAME_HEADROOM) is True,
+        estimate_mbit=_float(values.get(schema.ESTIMATE)),
     )
 
 
-def channel_params(values: Mapping[str, ParamValue], topic: str) -> ChannelParams:
-    """``ChannelParams`` of ``topic`` from valid values."""
-    managed = values.get(names.managed(topic))
+def _channel(topic: str, values: ByParameter) -> ChannelParams:
+    managed = values.get(schema.MANAGED)
     return ChannelParams(
         topic=topic,
-        min_rate_hz=_float(values, names.min_rate(topic)),
-        max_rate_hz=_float(values, names.max_rate(topic)),
-        size_bytes=_float(values, names.size(topic)),
-        priority=_float(values, names.priority(topic)) or 0.0,
-        current_rate_hz=_float(values, names.current_value(topic)),
-        applied_rate_hz=_float(values, names.applied(topic)),
+        min_rate_hz=_float(values.get(schema.MIN_RATE)),
+        max_rate_hz=_float(values.get(schema.MAX_RATE)),
+        size_bytes=_float(values.get(schema.SIZE)),
+        priority=_float(values.get(schema.PRIORITY)) or 0.0,
+        current_rate_hz=_float(values.get(schema.CURRENT)),
+        applied_rate_hz=_float(values.get(schema.APPLIED)),
         managed=managed if isinstance(managed, bool) else None,
     )
+
+
+def _by_parameter(
+    values: Mapping[str, ParamValue],
+) -> tuple[dict[Parameter, ParamValue], dict[str, dict[Parameter, ParamValue]]]:
+    """Valid values by name as the globals and each channel's, by parameter (one parse each)."""
+    globals_: dict[Parameter, ParamValue] = {}
+    channels: dict[str, dict[Parameter, ParamValue]] = {}
+    for name, value in values.items():
+        found = lookup(name)
+        if found is None or value is None:
+            continue
+        parameter, topic = found
+        if topic is None:
+            globals_[parameter] = value
+        else:
+            channels.setdefault(topic, {})[parameter] = value
+    return globals_, channels
+
+
+def dbm_params(values: Mapping[str, ParamValue]) -> DbmParams:
+    """``DbmParams`` from valid values by name (as ``ParamView.values`` gives them)."""
+    return _dbm(_by_parameter(values)[0])
+
+
+def channel_params(values: Mapping[str, ParamValue]) -> dict[str, ChannelParams]:
+    """Every channel's ``ChannelParams`` from valid values by name, by topic.
+
+    For a reader that holds a one-off snapshot (``dbml monitor``): each name is parsed once.
+    """
+    return {topic: _channel(topic, kept) for topic, kept in _by_parameter(values)[1].items()}
 
 
 def valid_values(snapshot: Mapping[str, ParamValue]) -> dict[str, ParamValue]:
@@ -343,8 +431,9 @@ def valid_values(snapshot: Mapping[str, ParamValue]) -> dict[str, ParamValue]:
     """
     good: dict[str, ParamValue] = {}
     for name, value in snapshot.items():
+        found = lookup(name)
         try:
-            checked = check_param(name, value)
+            checked = value if found is None or value is None else found[0].check(value, name=name)
         except ParamError:
             continue
         if checked is not None:

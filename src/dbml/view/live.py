@@ -33,7 +33,7 @@ from dbml.protocol import names
 from dbml.protocol.messages import EstimatorState, RoundReport
 from dbml.protocol.schema import ParamValue, Writer
 from dbml.runtime.graph import published_topics
-from dbml.runtime.params import ParamView, channel_params
+from dbml.runtime.params import ParamView
 from dbml.runtime.rounds import RoundFollower
 from dbml.transports.base import Handle, Transport
 from dbml.transports.overflow import Overflow
@@ -93,11 +93,10 @@ class ViewSettings:
         self._view = view
         self.writers = writers
 
-    def topics(self, values: Mapping[str, ParamValue] | None = None) -> list[str]:
-        """The live channels: published, with declared bounds (in ``values`` if given)."""
-        values = self._view.values() if values is None else values
-        topics = published_topics(self._transport.graph.entries())
-        return sorted(t for t in topics if channel_params(values, t).bounded)
+    def topics(self) -> list[str]:
+        """The live channels: published, with declared bounds."""
+        published = published_topics(self._transport.graph.entries())
+        return sorted(t for t, c in self._view.channels(published).items() if c.bounded)
 
     def current(
         self,
@@ -282,7 +281,7 @@ class LiveView:
         self._budget(values, now, tick)
         self._log_changes(values, now)
         self._delivered(now, tick)
-        self._parameters(values, self.settings.topics(values))
+        self._parameters(values, self.settings.topics())
         spent = time.perf_counter() - started
         self._looks += 1
         self._look_s += spent
