@@ -27,6 +27,7 @@ PACKAGES = [
     "dbml.scenarios",
     "dbml.secure",
     "dbml.testbed",
+    "dbml.testing",
     "dbml.transports",
 ]
 
@@ -92,8 +93,10 @@ def test_readme_python_examples_run(capsys: pytest.CaptureFixture[str]) -> None:
     readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
     blocks = re.findall(r"```python\n(.*?)```", readme, re.S)
     blocks = [b for b in blocks if "import rospy" not in b]  # tests/ros1 runs that one as a node
-    assert len(blocks) == 2
+    assert len(blocks) == 3
     exec(compile(blocks[0], "README.md", "exec"), {})
     assert capsys.readouterr().out.startswith("optimal {'/r1/camera': 12.369")
     exec(compile(blocks[1], "README.md", "exec"), {})
     assert capsys.readouterr().out == "5.95\n"
+    exec(compile(blocks[2], "README.md", "exec"), {})
+    assert capsys.readouterr().out == "12.37 16.0\n"

@@ -14,6 +14,7 @@ from dbml.protocol.messages import ROUND_TOPIC
 from dbml.runtime import ManagedPublisher, ManagedSubscriber, OptimizerNode, Round
 from dbml.runtime.optimizer import MAX_CHANNELS
 from dbml.runtime.rounds import RoundFollower
+from dbml.testing import Fleet
 from dbml.transports import ManualClock, MemoryNetwork, MemoryTransport, ParamValue, Role, Variant
 from tests.conftest import wait_for
 
@@ -21,48 +22,32 @@ R1, R2 = "/r1/camera", "/r2/camera"
 SIZES = {R1: 84_000, R2: 21_000}
 
 
-class Fleet:
-    """Two robots, an operator host and an optimizer, as in the paper's section 4."""
+def two_robots(
+    *, mbit: float = 11.0, strategy: Strategy = Strategy.PAPER, links: tuple[LinkSpec, ...] = ()
+) -> Fleet:
+    """The paper's section 4: two robots (their sizes known), an operator and an optimizer."""
+    fleet = Fleet(settings=DbmSettings(mbit, 1.0, 1.0, strategy), links=links)
+    for topic, size in SIZES.items():
+        fleet.publisher(topic, size_bytes=size)
+    return fleet
 
-    def __init__(
-        self, *, mbit: float = 11.0, strategy: Strategy = Strategy.PAPER, **kw: object
-    ) -> None:
-        self.network = MemoryNetwork()
-        self.robots = {
-            topic: ManagedPublisher(
-                MemoryTransport(self.network, host=host), topic, min_rate_hz=1, max_rate_hz=16
-            )
-            for topic, host in ((R1, "r1"), (R2, "r2"))
-        }
-        for topic, publisher in self.robots.items():
-            publisher.publish(b"\0" * SIZES[topic])  # the first frame makes the size known
-        self.operator = MemoryTransport(self.network, host="operator")
-        self.optimizer = OptimizerNode(
-            MemoryTransport(self.network, host="operator"),
-            settings=DbmSettings(mbit, 1.0, 1.0, strategy),
-            **kw,  # type: ignore[arg-type]
-        )
-        self.writes: list[tuple[str, float]] = []
-        self.operator.params.watch(self._record)
 
-    def _record(self, name: str, value: object) -> None:
+def rate_writes(fleet: Fleet) -> list[tuple[str, float]]:
+    """Every rate the optimizer writes from now on, in order: (topic, Hz)."""
+    writes: list[tuple[str, float]] = []
+
+    def record(name: str, value: object) -> None:
         if name.endswith("/dbm/frequency/current_value") and isinstance(value, float):
-            self.writes.append((name.removesuffix("/dbm/frequency/current_value"), value))
+            writes.append((name.removesuffix("/dbm/frequency/current_value"), value))
 
-    def watch_remotely(self, topic: str) -> ManagedSubscriber:
-        return ManagedSubscriber(self.operator, topic, lambda s: None)
-
-    def priority(self, topic: str, value: float) -> None:
-        self.operator.params.set(names.priority(topic), value)
-
-    def rates(self) -> dict[str, float]:
-        return {t: p.current_rate_hz() for t, p in self.robots.items()}
+    fleet.operator.params.watch(record)
+    return writes
 
 
 def test_remote_subscribers_make_channels_managed_and_get_table2_rates() -> None:
-    fleet = Fleet()
-    fleet.watch_remotely(R1)
-    fleet.watch_remotely(R2)
+    fleet = two_robots()
+    fleet.watch(R1)
+    fleet.watch(R2)
     fleet.priority(R2, 10 / 17)  # step 1: R1 tc 20 s, R2 tc 10 s
     result = fleet.optimizer.optimize()
     assert result.status is Status.OPTIMAL
@@ -75,7 +60,7 @@ def test_remote_subscribers_make_channels_managed_and_get_table2_rates() -> None
 
 
 def test_unmanaged_channels_run_at_maximum() -> None:
-    fleet = Fleet()
+    fleet = two_robots()
     ManagedSubscriber(MemoryTransport(fleet.network, host="r1"), R1, lambda s: None)  # local only
     fleet.optimizer.optimize()
     assert fleet.rates() == {R1: 16.0, R2: 16.0}
@@ -83,9 +68,9 @@ def test_unmanaged_channels_run_at_maximum() -> None:
 
 
 def test_a_channel_returns_to_maximum_when_its_last_remote_subscriber_leaves() -> None:
-    fleet = Fleet(mbit=5)
-    first, second = fleet.watch_remotely(R1), fleet.watch_remotely(R1)
-    fleet.watch_remotely(R2)
+    fleet = two_robots(mbit=5)
+    first, second = fleet.watch(R1), fleet.watch(R1)
+    fleet.watch(R2)
     fleet.optimizer.optimize()
     assert fleet.rates()[R1] < 16
     first.close()
@@ -97,18 +82,18 @@ def test_a_channel_returns_to_maximum_when_its_last_remote_subscriber_leaves() -
 
 
 def test_decreases_are_applied_before_increases_and_the_budget_holds_throughout() -> None:
-    fleet = Fleet()
-    fleet.watch_remotely(R1)
-    fleet.watch_remotely(R2)
+    fleet = two_robots()
+    fleet.watch(R1)
+    fleet.watch(R2)
     fleet.priority(R1, 1.0)  # step 7: R1 16 Hz, R2 1.48 Hz
     fleet.optimizer.optimize()
-    fleet.writes.clear()
+    writes = rate_writes(fleet)
     fleet.priority(R1, 0.0)
     fleet.priority(R2, 1.0)  # step 10: R1 12.37 Hz, R2 16 Hz
     fleet.optimizer.optimize()
-    assert [topic for topic, _ in fleet.writes] == [R1, R2]  # R1 goes down first
+    assert [topic for topic, _ in writes] == [R1, R2]  # R1 goes down first
     applied = {R1: 16.0, R2: 31_000 / 21_000}
-    for topic, rate in fleet.writes:
+    for topic, rate in writes:
         applied[topic] = rate
         assert sum(applied[t] * SIZES[t] for t in applied) <= 1_375_000 * (1 + 1e-9)
 
@@ -116,9 +101,9 @@ def test_decreases_are_applied_before_increases_and_the_budget_holds_throughout(
 def test_infeasible_budget_is_reported_and_rates_still_fit(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
-    fleet = Fleet(mbit=0.5)
-    fleet.watch_remotely(R1)
-    fleet.watch_remotely(R2)
+    fleet = two_robots(mbit=0.5)
+    fleet.watch(R1)
+    fleet.watch(R2)
     with caplog.at_level(logging.WARNING, logger="dbml.optimizer"):
         result = fleet.optimizer.optimize()
     assert result.status is Status.INFEASIBLE
@@ -132,9 +117,9 @@ def test_infeasible_budget_is_reported_and_rates_still_fit(
 
 
 def test_budget_changes_at_runtime() -> None:
-    fleet = Fleet()
-    fleet.watch_remotely(R1)
-    fleet.watch_remotely(R2)
+    fleet = two_robots()
+    fleet.watch(R1)
+    fleet.watch(R2)
     fleet.operator.params.set(names.BANDWIDTH, 5.0)
     fleet.optimizer.optimize()
     rates = fleet.rates()
@@ -142,19 +127,19 @@ def test_budget_changes_at_runtime() -> None:
 
 
 def test_a_channel_without_a_size_yet_stays_at_minimum() -> None:
-    fleet = Fleet()
+    fleet = two_robots()
     silent = ManagedPublisher(
         MemoryTransport(fleet.network, host="r3"), "/r3/lidar", min_rate_hz=2, max_rate_hz=10
     )
-    fleet.watch_remotely("/r3/lidar")
+    fleet.watch("/r3/lidar")
     fleet.optimizer.optimize()
     assert silent.current_rate_hz() == 2.0
 
 
 def test_lp_honours_a_configured_uplink() -> None:
-    fleet = Fleet(strategy=Strategy.LP, links=[LinkSpec("r1-uplink", 4, (R1,))])
-    fleet.watch_remotely(R1)
-    fleet.watch_remotely(R2)
+    fleet = two_robots(strategy=Strategy.LP, links=(LinkSpec("r1-uplink", 4, (R1,)),))
+    fleet.watch(R1)
+    fleet.watch(R2)
     fleet.optimizer.optimize()
     rates = fleet.rates()
     assert rates[R1] * 84_000 <= 500_000 * (1 + 1e-9)
@@ -163,27 +148,27 @@ def test_lp_honours_a_configured_uplink() -> None:
 
 
 def test_a_links_capacity_shares_the_utilization() -> None:
-    fleet = Fleet(strategy=Strategy.LP, links=[LinkSpec("r1-uplink", 4, (R1,))])
+    fleet = two_robots(strategy=Strategy.LP, links=(LinkSpec("r1-uplink", 4, (R1,)),))
     fleet.operator.params.set(names.UTILIZATION, 0.92)  # headers take the rest of every link
-    fleet.watch_remotely(R1)
-    fleet.watch_remotely(R2)
+    fleet.watch(R1)
+    fleet.watch(R2)
     fleet.optimizer.optimize()
     assert fleet.rates()[R1] == pytest.approx(0.92 * 500_000 / 84_000)
 
 
 def test_a_dead_publisher_is_forgotten() -> None:
-    fleet = Fleet()
-    fleet.watch_remotely(R1)
-    fleet.robots[R1].close()
+    fleet = two_robots()
+    fleet.watch(R1)
+    fleet.publishers[R1].close()
     result = fleet.optimizer.optimize()
     assert [c.topic for c in result.channels] == [R2]
 
 
 def test_reacts_at_once_to_a_priority_change_and_coalesces_bursts() -> None:
-    fleet = Fleet()
+    fleet = two_robots()
     fleet.operator.params.set(names.PERIOD, 60.0)  # the period alone would never react in time
-    fleet.watch_remotely(R1)
-    fleet.watch_remotely(R2)
+    fleet.watch(R1)
+    fleet.watch(R2)
     rounds: list[int] = []
     original = fleet.optimizer.optimize
 
@@ -213,19 +198,19 @@ def test_reacts_at_once_to_a_priority_change_and_coalesces_bursts() -> None:
 
 
 def test_a_restarted_optimizer_orders_changes_by_what_publishers_run() -> None:
-    fleet = Fleet()
-    fleet.watch_remotely(R1)
-    fleet.watch_remotely(R2)
+    fleet = two_robots()
+    fleet.watch(R1)
+    fleet.watch(R2)
     fleet.priority(R2, 1.0)  # R1 12.37 Hz, R2 16 Hz
     fleet.optimizer.optimize()
     fleet.optimizer.stop()
     successor = OptimizerNode(MemoryTransport(fleet.network, host="base2"))
     fleet.priority(R2, 0.0)
     fleet.priority(R1, 1.0)  # R1 16 Hz, R2 1.48 Hz
-    fleet.writes.clear()
+    writes = rate_writes(fleet)
     successor.optimize()
     # It has pushed nothing yet, but the publishers' acknowledgements say R2 must go down first.
-    assert [topic for topic, _ in fleet.writes] == [R2, R1]
+    assert [topic for topic, _ in writes] == [R2, R1]
 
 
 def test_a_round_pushes_each_host_its_channels_and_everyone_the_heartbeat() -> None:
@@ -233,9 +218,9 @@ def test_a_round_pushes_each_host_its_channels_and_everyone_the_heartbeat() -> N
 
     Status and heartbeat go to everyone.
     """
-    fleet = Fleet()
-    fleet.watch_remotely(R1)
-    fleet.watch_remotely(R2)
+    fleet = two_robots()
+    fleet.watch(R1)
+    fleet.watch(R2)
     batches: list[tuple[str | None, dict[str, object]]] = []
     store = fleet.optimizer._transport.params
     set_many = store.set_many
@@ -257,21 +242,21 @@ def test_a_round_pushes_each_host_its_channels_and_everyone_the_heartbeat() -> N
         names.managed(R2): True,
     }
     assert set(by_host[None]) == {names.STATUS, names.STATUS_MESSAGE, names.ROUND}
-    fleet.writes.clear()
+    writes = rate_writes(fleet)
     for _ in range(3):  # nothing changes: only the heartbeat goes out
         fleet.optimizer.optimize()
     assert batches[3:] == [(None, {names.ROUND: k}) for k in (2, 3, 4)]
-    assert fleet.writes == []
+    assert writes == []
 
 
 def test_a_restarted_publisher_hears_its_unchanged_rate_again() -> None:
-    fleet = Fleet()
-    fleet.watch_remotely(R1)
-    fleet.watch_remotely(R2)
+    fleet = two_robots()
+    fleet.watch(R1)
+    fleet.watch(R2)
     fleet.optimizer.optimize()
     allocated = fleet.rates()[R1]
     assert allocated < 16
-    fleet.robots[R1].close()
+    fleet.publishers[R1].close()
     restarted = ManagedPublisher(
         MemoryTransport(fleet.network, host="r1"), R1, min_rate_hz=1, max_rate_hz=16
     )
@@ -286,9 +271,9 @@ def test_a_forged_publisher_on_the_operators_host_changes_nothing() -> None:
 
     It once switched the operator to the full-rate stream and unmanaged the channel (1.59 x B).
     """
-    fleet = Fleet(mbit=5)
-    subscriber = fleet.watch_remotely(R1)
-    fleet.watch_remotely(R2)
+    fleet = two_robots(mbit=5)
+    subscriber = fleet.watch(R1)
+    fleet.watch(R2)
     fleet.optimizer.optimize()
     allocated = fleet.rates()
     forger = MemoryTransport(fleet.network, host="operator")
@@ -328,8 +313,8 @@ def test_the_channels_tracked_are_bounded_the_known_ones_stay_and_a_flood_is_sai
     caplog: pytest.LogCaptureFixture,
 ) -> None:
     """Publishers announced by any peer cannot make the optimizer track (remember) more."""
-    fleet = Fleet()
-    fleet.watch_remotely(R1)
+    fleet = two_robots()
+    fleet.watch(R1)
     optimizer = fleet.optimizer
     assert R1 in optimizer.optimize().rates_hz  # tracked before the flood
     peer = MemoryTransport(fleet.network, host="peer")
@@ -377,9 +362,9 @@ def test_the_channels_tracked_are_bounded_the_known_ones_stay_and_a_flood_is_sai
 
 
 def test_a_round_reports_table2_with_the_paper_s_floors() -> None:
-    fleet = Fleet()
-    fleet.watch_remotely(R1)
-    fleet.watch_remotely(R2)
+    fleet = two_robots()
+    fleet.watch(R1)
+    fleet.watch(R2)
     fleet.priority(R2, 10 / 17)  # Table 2's step 1: tc 20 s and 10 s
     report = fleet.optimizer.optimize().report()
     assert report.status is Status.OPTIMAL
@@ -398,8 +383,8 @@ def test_a_round_reports_table2_with_the_paper_s_floors() -> None:
 
 
 def test_a_round_reports_an_unmanaged_channel_at_its_maximum_without_floor_or_share() -> None:
-    fleet = Fleet()
-    fleet.watch_remotely(R2)
+    fleet = two_robots()
+    fleet.watch(R2)
     report = fleet.optimizer.optimize().report()
     r1 = report.channel(R1)
     assert r1 is not None
@@ -409,8 +394,8 @@ def test_a_round_reports_an_unmanaged_channel_at_its_maximum_without_floor_or_sh
 
 
 def test_a_round_without_a_budget_reports_no_floors_and_no_shares() -> None:
-    fleet = Fleet()
-    fleet.watch_remotely(R1)
+    fleet = two_robots()
+    fleet.watch(R1)
     fleet.operator.params.set(names.BANDWIDTH, None)
     report = fleet.optimizer.optimize().report()
     assert report.status is Status.INFEASIBLE
@@ -420,9 +405,9 @@ def test_a_round_without_a_budget_reports_no_floors_and_no_shares() -> None:
 
 def test_a_round_reports_what_its_links_allowed() -> None:
     """A rate an uplink held down: no allocation of the parameter values alone would show it."""
-    fleet = Fleet(strategy=Strategy.LP, links=[LinkSpec("uplink-r1", 2.0, (R1,))])
-    fleet.watch_remotely(R1)
-    fleet.watch_remotely(R2)
+    fleet = two_robots(strategy=Strategy.LP, links=(LinkSpec("uplink-r1", 2.0, (R1,)),))
+    fleet.watch(R1)
+    fleet.watch(R2)
     fleet.priority(R1, 1.0)
     report = fleet.optimizer.optimize().report()
     r1 = report.channel(R1)
@@ -434,8 +419,8 @@ def test_a_round_reports_what_its_links_allowed() -> None:
 
 
 def test_rounds_are_published_to_whoever_follows_them() -> None:
-    fleet = Fleet()
-    fleet.watch_remotely(R1)
+    fleet = two_robots()
+    fleet.watch(R1)
     viewer = MemoryTransport(fleet.network, host="viewer")
     rounds = RoundFollower(viewer)
     assert rounds.latest() is None

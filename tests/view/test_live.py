@@ -4,24 +4,18 @@ from __future__ import annotations
 
 import functools
 import threading
+import time
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 import pytest
 
-from dbml import (
-    DbmSettings,
-    ManagedPublisher,
-    ManagedSubscriber,
-    MemoryNetwork,
-    OptimizerNode,
-    open_transport,
-)
+from dbml import DbmSettings, open_transport
 from dbml.protocol import names
 from dbml.protocol.schema import ParamError, ParamValue, Writer
 from dbml.runtime.params import ParamView
-from dbml.transports.base import Transport
+from dbml.testing import Fleet
 from dbml.view import frames
 from dbml.view.frames import LogLevel
 from dbml.view.live import MAX_QUEUED_FRAMES, LiveView, ViewSettings
@@ -76,41 +70,26 @@ class MemorySink:
             return [message for t, message, _ in self.json if t == topic]
 
 
-@dataclass
-class Fleet:
-    network: MemoryNetwork
-    publisher: ManagedPublisher
-    optimizer: OptimizerNode
-    operator: Transport
-    sink: MemorySink
+class Viewed(Fleet):
+    """R1's camera on robot1, managed by the operator's subscriber, 4 Mbit/s, and a sink."""
+
+    def __init__(self) -> None:
+        super().__init__(settings=DbmSettings(max_bandwidth_mbit=4), clock=time.monotonic)
+        self.publisher(R1, host="robot1", size_bytes=84_000)
+        self.watch(R1)
+        self.sink = MemorySink()
 
 
 @pytest.fixture
-def fleet() -> Iterator[Fleet]:
-    network = MemoryNetwork()
-    publisher = ManagedPublisher(
-        open_transport("memory", network=network, host="robot1"),
-        R1,
-        min_rate_hz=1,
-        max_rate_hz=16,
-    )
-    operator = open_transport("memory", network=network, host="operator")
-    subscriber = ManagedSubscriber(operator, R1, lambda _s: None)  # remote: R1 is managed
-    optimizer = OptimizerNode(
-        open_transport("memory", network=network, host="base"),
-        settings=DbmSettings(max_bandwidth_mbit=4),
-    )
-    publisher.publish(bytes(84_000))
-    yield Fleet(network, publisher, optimizer, operator, MemorySink())
-    optimizer.stop()
-    subscriber.close()
-    publisher.close()
+def fleet() -> Iterator[Viewed]:
+    with Viewed() as viewed:
+        yield viewed
 
 
 OPERATOR = frozenset({Writer.OPERATOR})
 
 
-def live_view(fleet: Fleet, writers: frozenset[Writer] = OPERATOR, **options: Any) -> LiveView:
+def live_view(fleet: Viewed, writers: frozenset[Writer] = OPERATOR, **options: Any) -> LiveView:
     """The operator's view of the fleet, into the fleet's memory sink."""
     settings = ViewSettings(fleet.operator, ParamView.of(fleet.operator.params), writers=writers)
     return LiveView(fleet.operator, fleet.sink, settings=settings, **options)
@@ -120,7 +99,7 @@ def allocations_are(sink: MemorySink, count: int) -> bool:
     return len(sink.on(frames.ALLOCATION_TOPIC)) == count
 
 
-def test_one_allocation_and_one_rate_sample_per_round(fleet: Fleet) -> None:
+def test_one_allocation_and_one_rate_sample_per_round(fleet: Viewed) -> None:
     view = live_view(fleet, interval_s=0.05).start()
     try:
         wait_for(lambda: bool(fleet.sink.on(frames.BUDGET_TOPIC)), what="the first look")
@@ -140,7 +119,7 @@ def test_one_allocation_and_one_rate_sample_per_round(fleet: Fleet) -> None:
     assert fleet.sink.closed
 
 
-def test_the_allocation_is_the_optimizer_s_not_one_made_again(fleet: Fleet) -> None:
+def test_the_allocation_is_the_optimizer_s_not_one_made_again(fleet: Viewed) -> None:
     """The view shows the round as reported: a floor the optimizer's links pulled back too."""
     view = live_view(fleet, interval_s=0.05).start()
     try:
@@ -156,7 +135,7 @@ def test_the_allocation_is_the_optimizer_s_not_one_made_again(fleet: Fleet) -> N
     )
 
 
-def test_status_changes_and_refused_values_are_logged_once(fleet: Fleet) -> None:
+def test_status_changes_and_refused_values_are_logged_once(fleet: Viewed) -> None:
     view = live_view(fleet, interval_s=0.05).start()
     try:
         fleet.optimizer.optimize()
@@ -181,7 +160,7 @@ def test_status_changes_and_refused_values_are_logged_once(fleet: Fleet) -> None
     assert "ignored: /r1/camera/dbm/priority=5.0" in statuses[1]
 
 
-def test_frames_become_images_and_the_delivered_rate(fleet: Fleet) -> None:
+def test_frames_become_images_and_the_delivered_rate(fleet: Viewed) -> None:
     now = [10 * 10**9]
     view = live_view(fleet, interval_s=60, clock=lambda: now[0], monotonic=lambda: now[0])
     for k in range(5):  # 5 frames 0.1 s apart, then the view looks 0.5 s after the first
@@ -202,7 +181,7 @@ def test_frames_become_images_and_the_delivered_rate(fleet: Fleet) -> None:
     assert fleet.sink.on(frames.delivered_topic(R1)) == [{"data": 5.0}]
 
 
-def test_frames_past_the_queue_drop_the_oldest(fleet: Fleet) -> None:
+def test_frames_past_the_queue_drop_the_oldest(fleet: Viewed) -> None:
     now = [0]
     view = live_view(fleet, clock=lambda: now[0])  # not started: no drain
     for k in range(MAX_QUEUED_FRAMES + 10):
@@ -213,7 +192,7 @@ def test_frames_past_the_queue_drop_the_oldest(fleet: Fleet) -> None:
     assert stamps == list(range(10, MAX_QUEUED_FRAMES + 10))
 
 
-def test_settings_write_as_dbml_budget_does_and_refuse_what_it_refuses(fleet: Fleet) -> None:
+def test_settings_write_as_dbml_budget_does_and_refuse_what_it_refuses(fleet: Viewed) -> None:
     view = live_view(fleet, interval_s=0.05).start()
     try:
         settings = view.settings
@@ -237,7 +216,7 @@ def test_settings_write_as_dbml_budget_does_and_refuse_what_it_refuses(fleet: Fl
     assert fleet.optimizer.optimize().rates_hz[R1] == pytest.approx(8e6 / 8 / 84_000)
 
 
-def test_a_process_sets_only_what_its_role_writes(fleet: Fleet) -> None:
+def test_a_process_sets_only_what_its_role_writes(fleet: Viewed) -> None:
     """An optimizer's process serving the view does not write the budget.
 
     Its own store would take the value, whatever a secure fleet's rules let through to others.
