@@ -8,6 +8,7 @@ from dbml import DbmSettings
 from dbml.core import TransportError
 from dbml.protocol import names
 from dbml.testing import BASE, FIRST_TIME_S, Fleet
+from dbml.transports import MemoryTransport
 
 
 def test_a_fleet_runs_table2_s_first_step_and_delivers_to_the_operator() -> None:
@@ -28,8 +29,10 @@ def test_a_fleet_runs_table2_s_first_step_and_delivers_to_the_operator() -> None
         fleet.advance(0.1)  # more than a period at 12.37 Hz
         assert r1.publish(bytes(84_000))
         assert [len(s.payload) for s in fleet.received["/r1/camera"]] == [84_000]
+    # Closed with the fleet: every declaration withdrawn, as the processes' exits would.
+    assert MemoryTransport(fleet.network, host="after").graph.entries() == frozenset()
     with pytest.raises(TransportError, match="closed"):
-        r1.publish(bytes(84_000))  # closed with the fleet
+        fleet.operator.declare_publisher("/r1/camera")
 
 
 def test_the_clock_is_the_fleet_s_and_moves_only_when_told() -> None:
