@@ -4,7 +4,7 @@
 and ``_apply_locked`` the one place the limiter's rate changes. Checked state by state, then
 over random runs of allocations, heartbeats, beacons, outages and messages: the steady path
 never finds the limiter at another rate, and what goes out in any window stays within the
-integral of the rate in force plus the banked frames.
+integral of the rate in force, capped as a hold caps it, plus the banked frames.
 """
 
 from __future__ import annotations
@@ -27,8 +27,6 @@ from tests.runtime.test_publisher_outage import MIN_RATE_HZ, PERIOD_S, RATE_HZ, 
 
 TOPIC = "/r1/camera"
 OTHER = "/r2/camera"
-MAX_RATE_HZ = 16.0
-"""``Fleet.publisher``'s declared maximum."""
 
 
 @pytest.fixture
