@@ -1,13 +1,16 @@
-"""The outage gate alone: beacons, a rate limiter and plain numbers for the clock.
+"""The outage gate alone: beacons and plain numbers for the clock, then a rate limiter.
 
 What ``test_publisher_outage.py`` shows through a fleet on memory transports is checked here
 one rule at a time, with the facts the publisher would pass in (the rate in force, whether a
-first allocation is awaited, how many messages went) set by hand.
+first allocation is awaited, how many messages went) set by hand: first the gate's word alone
+(what it caps, what a release owes), then with a limiter applied as the publisher applies it.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
+from typing import Final
 
 import pytest
 
@@ -23,18 +26,27 @@ from dbml.runtime.outage import (
     STALE_RESET_S,
     Admission,
     OutageGate,
+    Release,
 )
 from dbml.runtime.rate import RateLimiter
 
 TOPIC = "/r1/camera"
 OTHER = "/r2/camera"
 RATE_HZ = 10.0
+MIN_RATE_HZ = 1.0
 PERIOD_S = 1 / RATE_HZ
 START_S = 100.0
+SENT: Final = "sent"
+"""``Channel.admit``: the gate let the message through and the limiter had a frame for it."""
 
 
 class Channel:
-    """A gate, its limiter and the publisher's side of the bargain, on a hand-moved clock."""
+    """A gate, a rate limiter and the publisher's side of the bargain, on a hand-moved clock.
+
+    As ``ManagedPublisher`` does: the limiter runs at the rate in force capped by the gate
+    (``cap_hz``), a release restarts it owing what the gate says, and what the gate lets
+    through goes if the limiter has a frame.
+    """
 
     def __init__(self, topic: str = TOPIC, *, rate_hz: float = RATE_HZ) -> None:
         self.now = START_S
@@ -42,7 +54,15 @@ class Channel:
         self.waiting = False
         self.sent = 0
         self.limiter = RateLimiter(rate_hz)
-        self.gate = OutageGate(topic, self.limiter)
+        self.gate = OutageGate(topic, min_rate_hz=MIN_RATE_HZ)
+
+    def _limit(self, release: Release | None = None, *, probe: bool = False) -> RateLimiter:
+        limit_hz = min(self.rate_hz, self.gate.cap_hz(self.now, probe=probe))
+        if release is None:
+            self.limiter.set_rate(limit_hz, self.now)
+        else:
+            self.limiter.restart(limit_hz, self.now, owed_frames=release.owed_frames)
+        return self.limiter
 
     def advance(self, seconds: float) -> None:
         self.now += seconds
@@ -57,18 +77,30 @@ class Channel:
         """Hear a beacon stamped now (in line with the others); what it releases, counted."""
         beacon = LinkBeacon(up, dict(release_s or {}), sent_s=self.now, heard=heard)
         assert self.gate.in_line(self.now, beacon.sent_s)
-        released = self.gate.on_beacon(
+        release = self.gate.on_beacon(
             self.now, beacon, rate_hz=self.rate_hz, waiting=self.waiting, sent_seq=self.sent
         )
-        self.sent += released is not None
-        return released
+        limiter = self._limit(release)
+        held = None if release is None else release.message
+        went = held is not None and limiter.allow(self.now)
+        self.sent += went
+        return held if went else None
 
-    def admit(self, payload: bytes = b"frame") -> Admission:
-        admission = self.gate.admit(
+    def admit(self, payload: bytes = b"frame") -> Admission | str:
+        """The gate's word on ``payload``, or ``SENT`` if it went (a probe or the release)."""
+        verdict = self.gate.admit(
             self.now, payload, rate_hz=self.rate_hz, waiting=self.waiting, sent_seq=self.sent
         )
-        self.sent += admission is Admission.SEND
-        return admission
+        if isinstance(verdict, Release):
+            went = self._limit(verdict).allow(self.now)
+        elif verdict is Admission.PROBE:
+            went = self._limit(probe=True).allow(self.now)
+            if went:
+                self.gate.probed(self.now)
+        else:
+            return verdict
+        self.sent += went
+        return SENT if went else Admission.HOLD
 
     def steady(self) -> bool:
         """A message at the allocation, as ``publish`` sends it while the link is up."""
@@ -82,6 +114,121 @@ def silent(channel: Channel) -> Channel:
     channel.beacon(up=True)
     channel.advance(LINK_SILENCE_S + 0.01)
     return channel
+
+
+# -- the gate's word alone, no limiter ---------------------------------------------------------
+
+
+def hear(
+    gate: OutageGate,
+    now: float,
+    *,
+    up: bool,
+    release_s: Mapping[str, float] | None = None,
+    heard: Mapping[str, Heard] | None = None,
+    sent_seq: int = 0,
+    waiting: bool = False,
+) -> Release | None:
+    """``gate`` hears a beacon stamped ``now``, at ``RATE_HZ`` in force."""
+    beacon = LinkBeacon(up, dict(release_s or {}), sent_s=now, heard=heard)
+    assert gate.in_line(now, beacon.sent_s)
+    return gate.on_beacon(now, beacon, rate_hz=RATE_HZ, waiting=waiting, sent_seq=sent_seq)
+
+
+def offer(gate: OutageGate, now: float, payload: bytes, *, sent_seq: int = 0) -> object:
+    return gate.admit(now, payload, rate_hz=RATE_HZ, waiting=False, sent_seq=sent_seq)
+
+
+def test_the_gate_caps_the_limiter_for_a_probe_and_past_the_holds_bound_only() -> None:
+    gate = OutageGate(TOPIC, min_rate_hz=MIN_RATE_HZ)
+    now = START_S
+    assert gate.cap_hz(now) == math.inf  # no beacon heard: nothing to cap
+    assert gate.cap_hz(now, probe=True) == PROBE_RATE_HZ
+    hear(gate, now, up=True)
+    assert gate.cap_hz(now) == math.inf
+    now += LINK_SILENCE_S + 0.01
+    assert gate.holding(now)
+    assert gate.cap_hz(now) == math.inf  # held: only probes go, each capped
+    now += HOLD_MAX_S
+    assert not gate.holding(now)
+    assert gate.cap_hz(now) == MIN_RATE_HZ  # outlasted: the fail-safe minimum
+    assert hear(gate, now, up=True, release_s={TOPIC: 0.0}) == Release(0.0, None)
+    assert gate.cap_hz(now) == math.inf  # released: the rate in force again
+
+
+def test_a_probe_is_offered_at_its_turn_until_it_goes() -> None:
+    gate = OutageGate(TOPIC, min_rate_hz=MIN_RATE_HZ)
+    now = START_S
+    hear(gate, now, up=True)
+    hear(gate, now, up=False, release_s={TOPIC: 0.0, OTHER: 0.1})
+    assert offer(gate, now, b"a") is Admission.PROBE
+    assert offer(gate, now, b"b") is Admission.PROBE  # the limiter refused "a": offered again
+    assert gate.held == b"b"  # and kept as the newest until it goes
+    gate.probed(now)
+    assert gate.held is None
+    now += PROBE_INTERVAL_S  # the other channel's turn
+    assert offer(gate, now, b"c") is Admission.HOLD
+    now += PROBE_INTERVAL_S  # ours again
+    assert offer(gate, now, b"d") is Admission.PROBE
+
+
+def test_a_release_at_a_publish_sends_the_newer_message() -> None:
+    gate = OutageGate(TOPIC, min_rate_hz=MIN_RATE_HZ)
+    now = START_S
+    hear(gate, now, up=True)
+    now += LINK_SILENCE_S + 0.01
+    assert offer(gate, now, b"held", sent_seq=2) is Admission.HOLD
+    assert hear(gate, now, up=True, release_s={TOPIC: 0.25}, sent_seq=2) is None  # not its place
+    now += 0.25
+    assert offer(gate, now, b"newer", sent_seq=2) == Release(2.0, b"newer")
+    assert not gate.holding(now)
+
+
+def test_a_release_awaiting_a_first_allocation_sends_nothing() -> None:
+    gate = OutageGate(TOPIC, min_rate_hz=MIN_RATE_HZ)
+    now = START_S
+    hear(gate, now, up=True)
+    now += LINK_SILENCE_S + 0.01
+    assert gate.admit(now, b"x", rate_hz=RATE_HZ, waiting=True, sent_seq=0) is Admission.HOLD
+    release = hear(gate, now, up=True, release_s={TOPIC: 0.0}, waiting=True)
+    assert release == Release(0.0, None)
+
+
+@pytest.mark.parametrize(
+    ("heard", "owed"),
+    [
+        (Heard(newest_seq=8, recent_frames=2), 2.0),  # two arrived in the last second
+        (Heard(newest_seq=7, recent_frames=2), 3.0),  # and one still in the link
+        (None, 8.0),  # no word: all of them
+        (Heard(newest_seq=0, recent_frames=1000), 8.0),  # never more than all of them
+        (Heard(newest_seq=8, recent_frames=0), 0.0),  # a forged count: at most nothing
+        (Heard(newest_seq=10**9, recent_frames=0), 8.0),  # another run's count: no word
+    ],
+)
+def test_a_release_says_what_it_owes(heard: Heard | None, owed: float) -> None:
+    """The numbers behind ``_after_a_long_outage``: eight frames went into the dead link."""
+    gate = OutageGate(TOPIC, min_rate_hz=MIN_RATE_HZ)
+    now = START_S
+    hear(gate, now, up=True)
+    now += LINK_SILENCE_S + 0.01
+    offer(gate, now, b"held", sent_seq=8)
+    word = None if heard is None else {TOPIC: heard}
+    release = hear(gate, now, up=True, release_s={TOPIC: 0.0}, heard=word, sent_seq=8)
+    assert release == Release(owed, b"held")
+
+
+def test_a_release_owes_at_most_one_window_of_the_rate_in_force() -> None:
+    gate = OutageGate(TOPIC, min_rate_hz=MIN_RATE_HZ)
+    now = START_S
+    hear(gate, now, up=True)
+    now += LINK_SILENCE_S + 0.01
+    beacon = LinkBeacon(True, {TOPIC: 0.0}, sent_s=now)
+    assert gate.in_line(now, now)
+    release = gate.on_beacon(now, beacon, rate_hz=1.0, waiting=False, sent_seq=100)
+    assert release == Release(1.0 * OWED_WINDOW_S, None)
+
+
+# -- with a limiter, as the publisher applies the gate's word ---------------------------------
 
 
 def test_without_a_beacon_nothing_is_ever_held() -> None:
@@ -122,7 +269,7 @@ def test_the_release_waits_for_its_place_in_the_order() -> None:
     channel.advance(PERIOD_S)
     assert channel.admit(b"newer") is Admission.HOLD  # not yet its place
     channel.advance(0.25 - PERIOD_S)
-    assert channel.admit(b"newest of all") is Admission.SEND  # a publish at its place
+    assert channel.admit(b"newest of all") == SENT  # a publish at its place
     assert not channel.gate.holding(channel.now)
 
 
@@ -316,7 +463,7 @@ def test_the_release_order_takes_turns_to_probe(topic: str, turns: list[int]) ->
     start = channel.now
     probed = []
     for _ in range(round(4 * PROBE_INTERVAL_S / PERIOD_S)):
-        if channel.admit() is Admission.SEND:
+        if channel.admit() == SENT:
             probed.append(int((channel.now - start) / PROBE_INTERVAL_S))
         channel.advance(PERIOD_S)
     assert probed == turns
@@ -340,14 +487,14 @@ def test_a_probe_never_exceeds_the_channels_own_rate() -> None:
     hold_s = HOLD_MAX_S - 0.5
     probes = 0
     for _ in range(round(hold_s / PERIOD_S)):
-        probes += channel.admit() is Admission.SEND
+        probes += channel.admit() == SENT
         channel.advance(PERIOD_S)
     assert 1 <= probes <= RateLimiter.BANKED_FRAMES + hold_s * slow_hz
     assert channel.limiter.rate_hz == slow_hz
 
 
 def test_a_beacon_buffered_through_the_outage_is_out_of_line() -> None:
-    gate = OutageGate(TOPIC, RateLimiter(RATE_HZ))
+    gate = OutageGate(TOPIC, min_rate_hz=MIN_RATE_HZ)
     now = START_S
     for _ in range(BEACON_WINDOW):
         assert gate.in_line(now, now - 0.01)
@@ -358,7 +505,7 @@ def test_a_beacon_buffered_through_the_outage_is_out_of_line() -> None:
 
 
 def test_beacons_out_of_line_for_long_are_a_new_clock_offset() -> None:
-    gate = OutageGate(TOPIC, RateLimiter(RATE_HZ))
+    gate = OutageGate(TOPIC, min_rate_hz=MIN_RATE_HZ)
     now = START_S
     assert gate.in_line(now, now)
     lines = []

@@ -22,8 +22,12 @@ can raise a rate: probes and releases spend the same credit as every other messa
 
 ``OutageGate`` is that state machine alone: every call takes ``now`` and the facts it needs
 (the rate in force, whether a first allocation is awaited, how many messages were sent), it
-starts no thread and sends nothing. The publisher serialises calls under its lock and puts
-what the gate lets through outside it.
+holds no rate limiter, starts no thread and sends nothing. It says what to do: go on as if no
+outage happened (``Admission.OPEN``), hold, send a probe, release with what is owed
+(``Release``); and it caps the rate the channel's limiter runs at (``cap_hz``: the probe rate
+for a probe, the minimum once a hold outlasted its bound). The publisher serialises calls
+under its lock, applies the cap and the releases to its limiter, and puts what goes outside
+the lock.
 """
 
 from __future__ import annotations
@@ -32,10 +36,10 @@ import enum
 import math
 from collections import deque
 from collections.abc import Mapping
+from dataclasses import dataclass
 
 from dbml.protocol.messages import Heard, LinkBeacon
 from dbml.runtime.estimator import OWED_WINDOW_S
-from dbml.runtime.rate import RateLimiter
 
 __all__ = [
     "BEACON_WINDOW",
@@ -48,6 +52,7 @@ __all__ = [
     "STALE_RESET_S",
     "Admission",
     "OutageGate",
+    "Release",
 ]
 
 LINK_SILENCE_S = 0.3
@@ -72,12 +77,14 @@ it, so the backlog buffered through an outage is still judged against the time b
 
 
 class Admission(enum.Enum):
-    """What the gate says of a message offered outside the steady state."""
+    """What the gate says of a message offered outside the steady state (else a ``Release``)."""
 
     OPEN = "open"
     """No hold: the allocation's and the fail-safe's rules decide."""
-    SEND = "send"
-    """A probe or the release: it goes now (the limiter has already counted it)."""
+    PROBE = "probe"
+    """This channel's turn to probe: the message goes if the limiter, capped at
+    ``cap_hz(now, probe=True)``, has a frame (then say so: ``probed``); else it is held as the
+    newest."""
     HOLD = "hold"
     """Held (the newest is kept for the release) or, awaiting a first allocation, dropped."""
     EXPIRED = "expired"
@@ -86,18 +93,33 @@ class Admission(enum.Enum):
     """The hold outlasted ``HOLD_MAX_S`` before: the fail-safe minimum."""
 
 
+@dataclass(frozen=True, slots=True)
+class Release:
+    """The hold is over: restart the limiter with ``owed_frames`` owed, then send ``message``.
+
+    The limiter keeps at most one frame of what it earned (the outage's time is not banked
+    into a burst), less ``owed_frames``: what went into the dead link and lands in the
+    release's window. ``message`` (None: nothing to send) goes if a frame is left.
+    """
+
+    owed_frames: float
+    message: bytes | None
+
+
 class OutageGate:
     """One channel's hold, probe and release around a link outage (see the module docstring).
 
-    ``limiter`` is the channel's own rate limiter, shared with the publisher: probes and the
-    release spend the same credit as every other message. ``sent_seq`` arguments are the
-    number of messages sent on ``[topic]/optimized`` so far; what was sent after the last
-    beacon that said the link was up may sit in a dead link's buffer.
+    Probes and the release spend the same credit as every other message: the publisher runs the
+    channel's limiter at the rate in force capped by ``cap_hz``, and restarts it on a
+    ``Release``. ``min_rate_hz`` is the channel's declared minimum, the most it sends once a
+    hold outlasted ``HOLD_MAX_S``. ``sent_seq`` arguments are the number of messages sent on
+    ``[topic]/optimized`` so far; what was sent after the last beacon that said the link was up
+    may sit in a dead link's buffer.
     """
 
-    def __init__(self, topic: str, limiter: RateLimiter) -> None:
+    def __init__(self, topic: str, *, min_rate_hz: float) -> None:
         self.topic = topic
-        self._limiter = limiter
+        self.min_rate_hz = min_rate_hz
         self.link_deadline = math.inf
         """Hold after this: beacon silence or an outage (inf: no beacon heard yet)."""
         self._hold_from: float | None = None
@@ -131,6 +153,17 @@ class OutageGate:
         start = self.hold_start(now)
         return start is not None and now - start <= HOLD_MAX_S
 
+    def cap_hz(self, now: float, *, probe: bool = False) -> float:
+        """The most the channel's limiter runs at now, whatever the rate in force.
+
+        ``PROBE_RATE_HZ`` for a ``probe``; the channel's minimum once a hold outlasted
+        ``HOLD_MAX_S``, as in the fail-safe, until a beacon says the link is back; else no cap.
+        """
+        if probe:
+            return PROBE_RATE_HZ
+        start = self.hold_start(now)
+        return self.min_rate_hz if start is not None and now - start > HOLD_MAX_S else math.inf
+
     def in_line(self, now: float, sent_s: float) -> bool:
         """Whether a beacon stamped ``sent_s`` speaks of now.
 
@@ -153,12 +186,11 @@ class OutageGate:
 
     def on_beacon(
         self, now: float, beacon: LinkBeacon, *, rate_hz: float, waiting: bool, sent_seq: int
-    ) -> bytes | None:
-        """Take in a beacon that is in line (``in_line``): the held message to send now, if any.
+    ) -> Release | None:
+        """Take in a beacon that is in line (``in_line``): a release after an outage, if now.
 
         ``rate_hz`` is the rate in force and ``waiting`` whether a first allocation is still
-        awaited. Keeps holding off, holds, or releases after an outage; a returned message has
-        already been counted by the limiter.
+        awaited. Keeps holding off, holds, or releases; the release sends the held message.
         """
         start = self.hold_start(now)
         if not beacon.up:
@@ -183,18 +215,17 @@ class OutageGate:
             return None
         # A slow source may not publish again soon: its held message goes now, unless the
         # channel still waits for a first allocation.
-        held = None if waiting else self.held
-        went = self._release(now, rate_hz, sent_seq, send=held is not None)
-        return held if went else None
+        return self._release(now, rate_hz, sent_seq, None if waiting else self.held)
 
     def admit(
         self, now: float, payload: bytes, *, rate_hz: float, waiting: bool, sent_seq: int
-    ) -> Admission:
-        """Whether ``payload``, offered outside the steady state, goes; the limiter counts it.
+    ) -> Admission | Release:
+        """What to do with ``payload``, offered outside the steady state.
 
-        Not held: ``OPEN``, the first-allocation and fail-safe rules decide. Held: probe at our
-        turn, release at our place, else keep the newest message (``HOLD``); past
-        ``HOLD_MAX_S``, the fail-safe minimum (``EXPIRED`` once, then ``OUTLASTED``).
+        Not held: ``OPEN``, the first-allocation and fail-safe rules decide. Held: ``PROBE`` at
+        our turn, a ``Release`` of ``payload`` at our place, else keep the newest message
+        (``HOLD``); past ``HOLD_MAX_S``, the fail-safe minimum (``EXPIRED`` once, then
+        ``OUTLASTED``).
         """
         start = self.hold_start(now)
         if start is None:
@@ -208,25 +239,22 @@ class OutageGate:
             return Admission.HOLD
         if self._release_at is not None:
             if now >= self._release_at:  # this newer message replaces the held one
-                sent = self._release(now, rate_hz, sent_seq, send=True)
-                return Admission.SEND if sent else Admission.HOLD
+                return self._release(now, rate_hz, sent_seq, payload)
         elif now >= self._probe_at and self._my_turn(now, start):
-            probe_hz = min(rate_hz, PROBE_RATE_HZ)
-            if probe_hz != self._limiter.rate_hz:
-                self._limiter.set_rate(probe_hz, now)
-            if self._limiter.allow(now):
-                self._probe_at, self.held = now + PROBE_INTERVAL_S, None
-                return Admission.SEND
+            self.held = payload  # until the probe goes (``probed``)
+            return Admission.PROBE
         self.held = payload
         return Admission.HOLD
 
-    def _release(self, now: float, rate_hz: float, sent_seq: int, *, send: bool) -> bool:
-        """Leave the hold: True if a message is to ``send`` now and the limiter has a frame.
+    def probed(self, now: float) -> None:
+        """The probe ``admit`` offered went: the next one at the next turn, nothing held."""
+        self._probe_at, self.held = now + PROBE_INTERVAL_S, None
 
-        The credit left is at most one frame (the message that goes now, or the next one), so
-        the outage's time is never banked into a burst; a probe that just went leaves less.
-        What was sent since the last beacon is owed as far as it lands in the release's window
-        (``OWED_WINDOW_S``, see ``_owed``).
+    def _release(self, now: float, rate_hz: float, sent_seq: int, message: bytes | None) -> Release:
+        """Leave the hold, sending ``message``; what was sent since the last beacon is owed.
+
+        As far as it lands in the release's window (``OWED_WINDOW_S``, see ``_owed``): never
+        more than one window of the rate in force.
         """
         owed = min(self._owed(sent_seq), rate_hz * OWED_WINDOW_S)
         self._hold_from, self._release_at, self._probe_turn, self.held = None, None, None, None
@@ -234,8 +262,7 @@ class OutageGate:
         self.link_deadline = now + LINK_SILENCE_S
         self._expiry_noted = False
         self._confirmed_seq = sent_seq
-        self._limiter.restart(rate_hz, now, owed_frames=owed)
-        return send and self._limiter.allow(now)
+        return Release(owed_frames=owed, message=message)
 
     def _owed(self, sent_seq: int) -> float:
         """The frames sent since the last beacon that said the link was up that a release owes.

@@ -44,6 +44,7 @@ from dbml.runtime.outage import (
     PROBE_INTERVAL_S,
     Admission,
     OutageGate,
+    Release,
 )
 from dbml.runtime.params import ParamView
 from dbml.runtime.qos import QosSwitch, TransportQos, channel_qos
@@ -84,12 +85,18 @@ class ManagedPublisher:
     ``publish(payload)`` drops what exceeds the rate; ``rate.sleep()`` paces a sensor loop so it
     does not even capture what would be dropped. Call ``publish`` from one thread; allocations
     arrive on the transport's thread. The rate in force is derived in one place,
-    ``FailSafe.rate_hz`` (``current_rate_hz()``): the last allocation while it is fresh, else
-    the minimum (before the first allocation, and in fail-safe once ``failsafe_periods``
-    periods pass without one). A pushed rate above the declared maximum is clamped to it, and
-    a size written by anyone else is overwritten by the real one: the publisher is the
-    authority on its own bounds and size. ``republish_full=False`` (a bridge, whose ``[topic]``
-    has its own publisher) sends only ``[topic]/optimized``.
+    ``FailSafe.rate_hz`` (``current_rate_hz()``; the loop's pace and each message's stamped
+    rate): the last allocation while it is fresh, else the minimum (before the first
+    allocation, and in fail-safe once ``failsafe_periods`` periods pass without one). The rate
+    ``[topic]/optimized``'s limiter runs at is that rate capped by the outage gate
+    (``OutageGate.cap_hz``: the probe rate for a probe, the minimum once a hold outlasted its
+    bound), derived in ``_limit_hz`` alone and applied in ``_apply_locked`` alone, from the
+    instant of each event that may change it and before the limiter is asked outside the
+    steady state; the steady path asks it only while that rate is the allocation. A pushed
+    rate above the declared maximum is clamped to it, and a size written by anyone else is
+    overwritten by the real one: the publisher is the authority on its own bounds and size.
+    ``republish_full=False`` (a bridge, whose ``[topic]`` has its own publisher) sends only
+    ``[topic]/optimized``.
     """
 
     def __init__(
@@ -128,8 +135,8 @@ class ManagedPublisher:
             failsafe_periods=failsafe_periods,
             period_s=self._view.dbm().period_s,
         )
-        self._limiter = RateLimiter(self.min_rate_hz)
-        self._gate = OutageGate(topic, self._limiter)
+        self._gate = OutageGate(topic, min_rate_hz=self.min_rate_hz)
+        self._limiter = RateLimiter(self._limit_hz(transport.now()))
         self._sizes = SizeTracker()
         self._steady = _UNSTEADY
         """(rate, until): while the clock is not past ``until`` an allocation of ``rate`` is
@@ -200,8 +207,7 @@ class ManagedPublisher:
             recovered = allocation.lapse_noted
             now = self._now()
             rate = allocation.allocate(value, now)
-            self._limiter.set_rate(rate, now)  # from now, exactly: credit is the rate's integral
-            self._refresh_locked()
+            self._apply_locked(now)
         if recovered:
             self._log_recovery(rate)
         # A non-blocking write: this may be the middleware's callback thread.
@@ -212,7 +218,7 @@ class ManagedPublisher:
         if name == names.PERIOD and isinstance(value, float):
             with self._lock:
                 self._allocation.set_period(value)
-                self._refresh_locked()
+                self._apply_locked(self._now())
         elif name == names.ROUND:
             # The optimizer's heartbeat: an unchanged allocation is not pushed again, and stands.
             allocation = self._allocation
@@ -220,17 +226,43 @@ class ManagedPublisher:
                 recovered = allocation.lapse_noted
                 now = self._now()
                 rate = allocation.heartbeat(now)
-                if rate is not None:
-                    self._limiter.set_rate(rate, now)
-                    self._refresh_locked()
+                self._apply_locked(now)
             if recovered and rate is not None:
                 self._log_recovery(rate)
 
     def _log_recovery(self, rate: float) -> None:
         log.warning("%s: allocation heard again; running at %.3f Hz", self.topic, rate)
 
-    def _refresh_locked(self) -> None:
-        """Derive ``_steady`` after the allocation or the link changed; lock held."""
+    def _limit_hz(self, now: float, *, probe: bool = False) -> float:
+        """The rate the limiter runs at: the one derivation (lock held, or no thread yet).
+
+        The rate in force (``FailSafe.rate_hz``: the fresh allocation, else the minimum, while
+        awaiting a first allocation and in fail-safe alike) capped by the outage gate
+        (``OutageGate.cap_hz``: ``PROBE_RATE_HZ`` for a ``probe``, the only message a hold lets
+        through; the minimum once a hold outlasted ``HOLD_MAX_S``; else no cap). A released
+        channel runs at the rate in force again.
+        """
+        return min(self._allocation.rate_hz(now), self._gate.cap_hz(now, probe=probe))
+
+    def _apply_locked(
+        self, now: float, release: Release | None = None, *, probe: bool = False
+    ) -> None:
+        """Run the limiter at ``_limit_hz(now)`` and derive ``_steady``; lock held.
+
+        The one place the limiter's rate changes: after each event that may change the limit
+        (an allocation, a heartbeat, a new period, a known size, a beacon) and before the
+        limiter is asked outside the steady state. The rate applies from ``now``, so credit is
+        the integral of the rates in force (a change seen late, at a look, earns at the lower
+        of the two since the last look). A ``release`` restarts the limiter: at most one frame
+        kept, less what it owes.
+        """
+        limit_hz = self._limit_hz(now, probe=probe)
+        if release is None:
+            self._limiter.set_rate(limit_hz, now)
+        else:
+            self._limiter.restart(limit_hz, now, owed_frames=release.owed_frames)
+        # While the allocation is fresh and the link up the limit is the allocation: ``publish``
+        # asks nothing else until the first of the two deadlines.
         fresh = self._allocation.in_force()
         if fresh is None:
             self._steady = _UNSTEADY
@@ -296,20 +328,21 @@ class ManagedPublisher:
             self._warn_beacon(err)
             return
         now = self._now()
-        allocation, gate = self._allocation, self._gate
+        allocation = self._allocation
         with self._lock:
-            if self._closed or not gate.in_line(now, beacon.sent_s):
+            if self._closed or not self._gate.in_line(now, beacon.sent_s):
                 return
             rate = allocation.rate_hz(now)
-            held = gate.on_beacon(
+            release = self._gate.on_beacon(
                 now,
                 beacon,
                 rate_hz=rate,
                 waiting=allocation.waiting(now),
                 sent_seq=self._optimized_seq,
             )
-            self._refresh_locked()
-            if held is None:
+            self._apply_locked(now, release)
+            held = None if release is None else release.message
+            if held is None or not self._limiter.allow(now):
                 return
             self._optimized_seq += 1
             seq = self._optimized_seq
@@ -319,36 +352,29 @@ class ManagedPublisher:
     def _admit_locked(self, now: float, rate: float, payload: bytes) -> tuple[bool, bool]:
         """Whether ``payload`` goes without a fresh allocation or a link known up; lock held.
 
-        The second value says a hold just outlasted ``HOLD_MAX_S``.
-        """
-        admission = self._gate.admit(
-            now,
-            payload,
-            rate_hz=rate,
-            waiting=self._allocation.waiting(now),
-            sent_seq=self._optimized_seq,
-        )
-        if admission is Admission.SEND:
-            allowed = True
-        elif admission is Admission.HOLD:
-            allowed = False
-        elif admission is Admission.OPEN:
-            allowed = self._allow_unallocated(rate, now)
-        else:  # the hold is over its bound: the fail-safe minimum at most
-            allowed = self._allow_unallocated(min(rate, self.min_rate_hz), now)
-        self._refresh_locked()
-        return allowed, admission is Admission.EXPIRED
-
-    def _allow_unallocated(self, rate: float, now: float) -> bool:
-        """Before the first allocation, or without a fresh one (fail-safe); lock held.
-
-        A new channel waits for its first allocation (bounded by the fail-safe deadline). Its
-        credit is spent meanwhile, so the first allocation does not open with a burst.
+        The gate says what to do, the limiter (at ``_limit_hz``) whether a frame is left. A
+        new channel waits for its first allocation (bounded by the fail-safe deadline), its
+        credit spent meanwhile, so the first allocation does not open with a burst. The second
+        value says a hold just outlasted ``HOLD_MAX_S``.
         """
         waiting = self._allocation.waiting(now)
-        if rate != self._limiter.rate_hz:  # fail-safe (an allocation applies on arrival)
-            self._limiter.set_rate(rate, now)
-        return self._limiter.allow(now) and not waiting
+        verdict = self._gate.admit(
+            now, payload, rate_hz=rate, waiting=waiting, sent_seq=self._optimized_seq
+        )
+        if isinstance(verdict, Release):  # this newer message is the one released
+            self._apply_locked(now, verdict)
+            return self._limiter.allow(now), False
+        if verdict is Admission.HOLD:
+            return False, False
+        probe = verdict is Admission.PROBE
+        self._apply_locked(now, probe=probe)
+        allowed = self._limiter.allow(now)
+        if probe:
+            if allowed:
+                self._gate.probed(now)
+            return allowed, False
+        # Open, or past the hold's bound: the allocation's and the fail-safe's rules.
+        return allowed and not waiting, verdict is Admission.EXPIRED
 
     # -- transport class ----------------------------------------------------------------------
 
@@ -397,8 +423,9 @@ class ManagedPublisher:
             return
         self._transport.params.set(names.size(self.topic), size)
         with self._lock:
-            self._allocation.size_known(self._now())
-            self._refresh_locked()
+            now = self._now()
+            self._allocation.size_known(now)
+            self._apply_locked(now)
 
     def publish(self, payload: bytes) -> bool:
         """Send ``payload``; True if it went to ``[topic]/optimized`` (within the rate).
