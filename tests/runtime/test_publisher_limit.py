@@ -10,6 +10,7 @@ integral of the rate in force, capped as a hold caps it, plus the banked frames.
 from __future__ import annotations
 
 import itertools
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import pytest
@@ -22,56 +23,58 @@ from dbml.runtime import ManagedPublisher
 from dbml.runtime.failsafe import FAILSAFE_PERIODS
 from dbml.runtime.outage import HOLD_MAX_S, LINK_SILENCE_S, PROBE_INTERVAL_S, PROBE_RATE_HZ
 from dbml.runtime.rate import RateLimiter
+from dbml.testing import BASE
 from dbml.transports import Variant
-from tests.runtime.test_publisher_outage import MIN_RATE_HZ, PERIOD_S, RATE_HZ, Fleet
+from tests.runtime.test_publisher_outage import MIN_RATE_HZ, PERIOD_S, RATE_HZ, Outage
 
 TOPIC = "/r1/camera"
 OTHER = "/r2/camera"
 
 
 @pytest.fixture
-def fleet() -> Fleet:
-    return Fleet()
+def fleet() -> Iterator[Outage]:
+    with Outage() as outage:
+        yield outage
 
 
-def limit_hz(camera: ManagedPublisher, fleet: Fleet) -> float:
+def limit_hz(camera: ManagedPublisher, fleet: Outage) -> float:
     """What the limiter runs at, checked against the one derivation at this instant."""
     assert camera._limiter.rate_hz == camera._limit_hz(fleet.clock())
     return camera._limiter.rate_hz
 
 
-def test_the_limiter_runs_at_the_one_derived_rate_in_each_state(fleet: Fleet) -> None:
-    camera = fleet.publisher(TOPIC, 0.9, rate_hz=None)
+def test_the_limiter_runs_at_the_one_derived_rate_in_each_state(fleet: Outage) -> None:
+    camera = fleet.camera(TOPIC, 0.9, rate_hz=None)
     assert not camera.publish(b"waiting")  # awaiting a first allocation: credit spent, none sent
     assert limit_hz(camera, fleet) == MIN_RATE_HZ
-    fleet.base.params.set(names.current_value(TOPIC), RATE_HZ)
+    fleet.host(BASE).params.set(names.current_value(TOPIC), RATE_HZ)
     assert limit_hz(camera, fleet) == RATE_HZ  # allocated: applied on arrival, not at a publish
     fleet.say(LinkBeacon(up=True))
     fleet.say(LinkBeacon(up=False, release_s={TOPIC: 0.0}))
     assert limit_hz(camera, fleet) == RATE_HZ  # held: nothing but probes goes
-    fleet.clock.advance(PROBE_INTERVAL_S)
+    fleet.advance(PROBE_INTERVAL_S)
     assert camera.publish(b"probe")
     assert camera._limiter.rate_hz == PROBE_RATE_HZ  # its turn: a probe, capped
     assert camera._limit_hz(fleet.clock(), probe=True) == PROBE_RATE_HZ
     fleet.say(LinkBeacon(up=True, release_s={TOPIC: 0.0}))
     assert not camera.holding
     assert limit_hz(camera, fleet) == RATE_HZ  # released: the allocation again
-    fleet.clock.advance(FAILSAFE_PERIODS + 0.1)  # no allocation, no heartbeat: fail-safe
+    fleet.advance(FAILSAFE_PERIODS + 0.1)  # no allocation, no heartbeat: fail-safe
     fleet.say(LinkBeacon(up=True))
     camera.publish(b"fail-safe")
     assert limit_hz(camera, fleet) == MIN_RATE_HZ
-    fleet.base.params.set(names.ROUND, 1)  # the heartbeat: the allocation stands again
+    fleet.host(BASE).params.set(names.ROUND, 1)  # the heartbeat: the allocation stands again
     assert limit_hz(camera, fleet) == RATE_HZ
 
 
-def test_past_the_holds_bound_the_limiter_runs_at_the_minimum(fleet: Fleet) -> None:
-    camera = fleet.publisher(TOPIC, 0.9)
+def test_past_the_holds_bound_the_limiter_runs_at_the_minimum(fleet: Outage) -> None:
+    camera = fleet.camera(TOPIC, 0.9)
     fleet.say(LinkBeacon(up=True))
     round_ = 0
     while fleet.clock() < 100.0 + LINK_SILENCE_S + HOLD_MAX_S + PERIOD_S:
         round_ += 1
-        fleet.base.params.set(names.ROUND, round_)  # the allocation stays fresh throughout
-        fleet.clock.advance(PERIOD_S)
+        fleet.host(BASE).params.set(names.ROUND, round_)  # the allocation stays fresh throughout
+        fleet.advance(PERIOD_S)
     assert not camera.holding
     camera.publish(b"outlasted")
     assert limit_hz(camera, fleet) == MIN_RATE_HZ  # not the allocation of 10 Hz
@@ -79,9 +82,9 @@ def test_past_the_holds_bound_the_limiter_runs_at_the_minimum(fleet: Fleet) -> N
     assert limit_hz(camera, fleet) == RATE_HZ
 
 
-def test_a_slower_allocation_below_the_probe_rate_caps_its_probes_itself(fleet: Fleet) -> None:
+def test_a_slower_allocation_below_the_probe_rate_caps_its_probes_itself(fleet: Outage) -> None:
     slow_hz = PROBE_RATE_HZ / 4
-    camera = fleet.publisher(TOPIC, 0.9, rate_hz=slow_hz)
+    camera = fleet.camera(TOPIC, 0.9, rate_hz=slow_hz)
     fleet.say(LinkBeacon(up=True))
     fleet.say(LinkBeacon(up=False, release_s={TOPIC: 0.0}))
     camera.publish(b"probe")
@@ -178,7 +181,7 @@ class Snapshot:
         return [self.deadline_s, self.link_deadline_s, start_s + HOLD_MAX_S]
 
 
-def run(fleet: Fleet, camera: ManagedPublisher, steps: list[Step]) -> list[Snapshot]:
+def run(fleet: Outage, camera: ManagedPublisher, steps: list[Step]) -> list[Snapshot]:
     """Take ``steps``; after each, the steady path's promise holds. What the limit hung on when."""
     allocation, gate = camera._allocation, camera._gate
     schedule: list[Snapshot] = []
@@ -202,24 +205,24 @@ def run(fleet: Fleet, camera: ManagedPublisher, steps: list[Step]) -> list[Snaps
     for step in steps:
         match step:
             case Advance(seconds):
-                fleet.clock.advance(seconds)
+                fleet.advance(seconds)
             case Source(rate_hz, seconds, beacons):
                 beacon_at = fleet.clock()
                 for _ in range(max(1, round(rate_hz * seconds))):
                     camera.publish(b"frame")
                     note()
-                    fleet.clock.advance(1 / rate_hz)
+                    fleet.advance(1 / rate_hz)
                     if beacons and fleet.clock() >= beacon_at:
                         fleet.say(LinkBeacon(up=True))
                         beacon_at += 0.1
                         note()
             case Allocate(rate_hz):
-                fleet.base.params.set(names.current_value(TOPIC), rate_hz)
+                fleet.host(BASE).params.set(names.current_value(TOPIC), rate_hz)
             case Heartbeat():
                 heartbeats += 1
-                fleet.base.params.set(names.ROUND, heartbeats)
+                fleet.host(BASE).params.set(names.ROUND, heartbeats)
             case Period(period_s):
-                fleet.base.params.set(names.PERIOD, period_s)
+                fleet.host(BASE).params.set(names.PERIOD, period_s)
             case Beacon(up, release_s, heard):
                 word = None if heard is None else {TOPIC: heard}
                 fleet.say(LinkBeacon(up, {TOPIC: release_s, OTHER: 0.1}, heard=word))
@@ -268,8 +271,8 @@ def test_what_goes_out_never_exceeds_the_integral_of_the_derived_rate(steps: lis
     hold caps it, plus the banked frames; and whenever ``publish`` would take the steady path,
     the limiter runs at the allocation it assumes.
     """
-    fleet = Fleet()
-    camera = fleet.publisher(TOPIC, 0.9, rate_hz=None)
+    fleet = Outage()
+    camera = fleet.camera(TOPIC, 0.9, rate_hz=None)
     sent: list[float] = []
     fleet.operator.subscribe(TOPIC, lambda _s: sent.append(fleet.clock()), Variant.OPTIMIZED)
     fleet.say(LinkBeacon(up=True))
