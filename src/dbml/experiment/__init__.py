@@ -6,8 +6,8 @@ testbed differ only in the network the roles run on and in how they judge the re
 """
 
 from dbml.experiment.analysis import Analysis, Arrival, StepResult, Tick, Window, analyse
-from dbml.experiment.roles import ROLES, RoleSpec
 from dbml.experiment.runner import Recording, Snapshot, run_experiment
+from dbml.experiment.spec import ROLES, RoleSpec
 
 __all__ = [
     "ROLES",
