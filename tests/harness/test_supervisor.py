@@ -13,7 +13,8 @@ import pytest
 
 from dbml.core.errors import DbmlError
 from dbml.harness.child import Control, stop_on_signals
-from dbml.harness.supervisor import ChildExitedError, ChildIO, Line, ProcessChild, Supervisor
+from dbml.harness.mailbox import Line
+from dbml.harness.supervisor import ChildExitedError, ChildIO, ProcessChild, Supervisor
 from dbml.transports.worker import death_count
 from tests.conftest import wait_for
 
@@ -184,6 +185,8 @@ def test_a_name_is_started_once_and_argv_is_a_list() -> None:
             children.start("one", [sys.executable, "-c", "pass"])
         with pytest.raises(DbmlError, match="must be a list of arguments"):
             children.start("two", "python -c pass")
+        with pytest.raises(DbmlError, match="child name '/r1/camera' must be a file name"):
+            children.start("/r1/camera", [sys.executable, "-c", "pass"])
 
 
 def test_a_child_in_a_namespace_runs_through_ip_netns_exec(

@@ -46,7 +46,8 @@ class Proc:
         self.args = args
         self._own = children is None
         self.children = Supervisor() if children is None else children
-        name = f"{args[0] if args else module}-{next(self._names)}"
+        command = args[0] if args and "/" not in args[0] else module.rpartition(".")[2]
+        name = f"{command}-{next(self._names)}"
         self.child: ProcessChild = self.children.start(
             name, [sys.executable, "-m", module, *args], env=env, cwd=ROOT, stdin=False
         )

@@ -17,7 +17,7 @@ from collections.abc import Callable, Sequence
 from dbml.core.errors import DbmlError
 from dbml.core.priority import collision_priority, time_to_collision_s
 from dbml.experiment.analysis import Arrival
-from dbml.experiment.roles import operator_tick
+from dbml.experiment.operator import operator_tick
 from dbml.experiment.spec import TAIL_S, TICK_S, RoleSpec, wait_until
 from dbml.harness.child import Emit, emit_json
 from dbml.runtime.params import ParamView

@@ -6,10 +6,7 @@
   priority follows Table 2's replayed events (eq. 6-7); unmanaged (the testbed's baseline), a
   plain publisher at the camera's maximum rate, as without dbml.
 - ``operator``: receives both cameras (managed subscribers, or plain ones when unmanaged) and
-  reports, every ``TICK_S``, the frames that arrived (robot, sequence number, send and arrival
-  time, size, the rate the publisher applied) and the parameters in force (allocation, budget,
-  estimate, the variant each subscriber takes): an ``OperatorReport``. The runner analyses
-  them.
+  reports what arrived and the parameters in force (``operator``); the runner analyses them.
 
 :func:`serve` is a role's whole life: open its transport, wait for its peers, speak the
 supervisor's protocol (``harness.child.serve_role``: ``ready``, ``start <t0>``, reports, the end
@@ -25,23 +22,18 @@ exits 1, so the runner fails the run naming it.
 from __future__ import annotations
 
 import logging
-import math
 import threading
 import time
-from collections.abc import Callable, Iterable, Sequence
-from typing import Any
+from collections.abc import Iterable
 
 from dbml.core.config import DbmSettings
-from dbml.core.errors import SpecError, TransportError
-from dbml.core.estimator import EstimatorState
+from dbml.core.errors import SpecError
 from dbml.core.spec import LinkSpec
-from dbml.experiment.analysis import Arrival, Tick
-from dbml.experiment.report import OperatorReport
+from dbml.experiment.operator import run_operator
 from dbml.experiment.spec import (
     PERIOD_S,
     ROLES,
     TAIL_S,
-    TICK_S,
     URGENT_PRIORITY,
     URGENT_RATE_HZ,
     URGENT_SIZE_BYTES,
@@ -52,26 +44,22 @@ from dbml.experiment.spec import (
     wait_until,
 )
 from dbml.harness.child import Emit, RoleError, emit_json, serve_role
-from dbml.protocol import names
-from dbml.protocol.metadata import MessageMeta, pack_meta
+from dbml.protocol.metadata import pack_meta
 from dbml.protocol.schema import Writer
-from dbml.runtime.params import ParamView
 from dbml.runtime.priority import collision_priority_source
 from dbml.runtime.publisher import ManagedPublisher
 from dbml.runtime.rate import Rate
-from dbml.runtime.reception import ReceptionReporter
 from dbml.runtime.serve import Lifetime, run_optimizer
-from dbml.runtime.subscriber import ManagedSubscriber
 from dbml.scenarios.fleet import fleet_cameras, fleet_steps
-from dbml.scenarios.teleop import MAX_RATE_HZ, MIN_RATE_HZ, ROBOTS, RobotCamera
-from dbml.transports.base import Handle, Sample, Transport, Variant
+from dbml.scenarios.teleop import MAX_RATE_HZ, MIN_RATE_HZ
+from dbml.transports.base import Transport, Variant
 from dbml.transports.memory import MemoryNetwork
 from dbml.transports.registry import open_transport
 from dbml.transports.worker import BackgroundThread
-from dbml.view.live import LiveView, open_view
+from dbml.view.live import open_view
 from dbml.view.target import ViewTarget
 
-__all__ = ["fleet_roles", "operator_tick", "run_role", "serve"]
+__all__ = ["fleet_roles", "run_role", "serve"]
 
 log = logging.getLogger("dbml.experiment")
 
@@ -200,115 +188,6 @@ def _urgent_streams(
             publisher.close()
 
 
-def operator_tick(
-    view: ParamView,
-    frames: Sequence[Arrival],
-    variants: Sequence[str],
-    *,
-    cameras: Sequence[RobotCamera] = ROBOTS,
-) -> OperatorReport:
-    """The operator's report: ``frames`` that arrived and the parameters in force now.
-
-    One function for every operator (dbml's own and the plain ROS 2 one of ``ros2peers``), so
-    the runner and the analysis read one format; ``cameras`` are the fleet's, in robot order.
-    """
-    dbm = view.dbm()
-    tick = Tick(
-        t_s=time.time(),
-        allocated_hz=tuple(view.channel(c.topic).current_rate_hz for c in cameras),
-        budget_mbit=dbm.budget_mbit,
-        estimate_mbit=dbm.estimate_mbit,
-        estimator=_estimator_state(view.get(names.ESTIMATOR_STATE)),
-        variants=tuple(variants),
-    )
-    return OperatorReport(tick, tuple(frames))
-
-
-def _estimator_state(value: object) -> EstimatorState | None:
-    """The estimator's state in force; None when none runs or a peer wrote a malformed one."""
-    if not isinstance(value, str):
-        return None
-    try:
-        return EstimatorState.decode(value)
-    except SpecError as err:
-        log.debug("%s", err)
-        return None
-
-
-def _operator(
-    transport: Transport,
-    t0: float,
-    spec: RoleSpec,
-    stop: threading.Event,
-    *,
-    life: Lifetime,
-    emit: Emit,
-    live: LiveView | None = None,
-) -> None:
-    lock = threading.Lock()
-    rows: list[Arrival] = []
-    cameras = fleet_cameras(spec.robots)
-
-    def receiver(index: int) -> Callable[[Sample], None]:
-        shown = cameras[index].topic if live is not None and index < len(cameras) else None
-
-        def on_sample(sample: Sample) -> None:
-            arrival_s = time.time()
-            if shown is not None and live is not None:
-                live.frame(shown, sample.payload)
-            try:
-                meta: MessageMeta | None = MessageMeta.decode(sample.attachment)
-            except TransportError:
-                meta = None  # no metadata (ROS 1 messages carry none)
-            row = Arrival(
-                robot=index,
-                seq=None if meta is None else meta.seq,
-                sent_s=None if meta is None else meta.sent_ns / 1e9,
-                arrival_s=arrival_s,
-                size_bytes=len(sample.payload),
-                rate_hz=None if meta is None or math.isnan(meta.rate_hz) else meta.rate_hz,
-            )
-            with lock:
-                rows.append(row)
-
-        return on_sample
-
-    view = ParamView.of(transport.params)
-    reporter = ReceptionReporter(transport).start() if spec.estimate else None
-    handles: list[Handle] = []
-    subscribers: list[ManagedSubscriber] = []
-    for i, camera in enumerate(cameras):
-        if spec.managed:
-            subscriber = ManagedSubscriber(transport, camera.topic, receiver(i), reporter=reporter)
-            subscribers.append(subscriber)
-            handles.append(subscriber)
-        else:
-            handles.append(transport.subscribe(camera.topic, receiver(i), Variant.FULL))
-
-    if spec.urgent_stream:
-        for k, stream in enumerate(URGENT_STREAMS):
-            handles.append(ManagedSubscriber(transport, stream.topic, receiver(len(cameras) + k)))
-    unmanaged = [Variant.FULL.value for _ in cameras]
-
-    def tick() -> dict[str, Any]:
-        with lock:
-            batch, rows[:] = list(rows), []
-        variants = [s.variant.value for s in subscribers] or unmanaged
-        return operator_tick(view, batch, variants, cameras=cameras).encode()
-
-    try:
-        while not life.over() and time.time() < t0 + spec.duration_s + TAIL_S:
-            stop.wait(TICK_S)
-            emit(tick())
-        if not life.failed:  # a run that lost a thread is not done: the runner fails it
-            emit({"type": "done"})
-    finally:
-        for handle in handles:
-            handle.close()
-        if reporter is not None:
-            reporter.close()
-
-
 def run_role(
     role: str, transport: Transport, spec: RoleSpec, *, t0: float, stop: threading.Event, emit: Emit
 ) -> None:
@@ -347,7 +226,7 @@ def _run_role(
         target = ViewTarget.from_flags(spec.foxglove, spec.record)
         live = None if target is None else open_view(transport, target, writers=_OPERATOR)
         try:
-            _operator(transport, t0, spec, stop, life=life, emit=emit, live=live)
+            run_operator(transport, t0, spec, stop, life=life, emit=emit, live=live)
         finally:
             if live is not None:
                 live.close()

@@ -21,7 +21,6 @@ child writing what is not UTF-8), the death is said and counted, and its child's
 
 from __future__ import annotations
 
-import collections
 import contextlib
 import json
 import logging
@@ -42,6 +41,7 @@ from typing import IO, Any, Protocol
 
 from dbml.core.errors import DbmlError
 from dbml.harness.child import Emit
+from dbml.harness.mailbox import Line, Mailbox, read_line
 from dbml.transports.worker import BackgroundThread
 
 __all__ = [
@@ -50,7 +50,6 @@ __all__ = [
     "Child",
     "ChildExitedError",
     "ChildIO",
-    "Line",
     "ProcessChild",
     "Supervisor",
     "ThreadChild",
@@ -70,34 +69,6 @@ _POLL_S = 0.05
 """How often ``wait_until`` looks at its condition."""
 _JOIN_S = 2.0
 """How long closing waits for a reader once its process ended (EOF follows the exit)."""
-
-
-@dataclass(frozen=True, slots=True)
-class Line:
-    """One line a child wrote on stdout, or the end of its output (``ended``)."""
-
-    child: str
-    text: str
-    """The line without its newline (empty at the end)."""
-    report: dict[str, Any] | None = None
-    """The JSON object the line holds; None for any other line."""
-    ended: bool = False
-    """The child's output ended: it exited, or its output can no longer be read."""
-
-    @property
-    def kind(self) -> str | None:
-        """The report's ``type`` (``ready``, ``done``, ...), if the line is a report."""
-        kind = None if self.report is None else self.report.get("type")
-        return kind if isinstance(kind, str) else None
-
-
-def _line(child: str, text: str) -> Line:
-    """A line as read: its report if it holds a JSON object."""
-    text = text.rstrip("\n")
-    report: Any = None
-    with contextlib.suppress(ValueError):
-        report = json.loads(text)
-    return Line(child, text, report if isinstance(report, dict) else None)
 
 
 class ChildExitedError(DbmlError):
@@ -140,63 +111,6 @@ class Child(Protocol):
         ...
 
 
-class _Mailbox:
-    """Every child's lines, in arrival order, bounded per child; read selectively."""
-
-    def __init__(self, per_child: int) -> None:
-        self._per_child = per_child
-        self._cond = threading.Condition()
-        self._lines: dict[str, collections.deque[tuple[int, Line]]] = {}
-        self._seq = 0
-        self._overflowed: set[str] = set()
-
-    def put(self, line: Line) -> None:
-        with self._cond:
-            lines = self._lines.setdefault(line.child, collections.deque(maxlen=self._per_child))
-            if len(lines) == self._per_child and line.child not in self._overflowed:
-                self._overflowed.add(line.child)
-                log.warning(
-                    "%s: more than %d unread lines, dropping the oldest",
-                    line.child,
-                    self._per_child,
-                )
-            self._seq += 1
-            lines.append((self._seq, line))
-            self._cond.notify_all()
-
-    def _first_locked(self, where: Callable[[Line], bool]) -> tuple[str, int] | None:
-        """The child and index of the oldest line that matches ``where``."""
-        best: tuple[int, str, int] | None = None
-        for child, lines in self._lines.items():
-            for index, (seq, line) in enumerate(lines):
-                if best is not None and seq > best[0]:
-                    break
-                if where(line):
-                    best = (seq, child, index)
-                    break
-        return None if best is None else (best[1], best[2])
-
-    def take(self, where: Callable[[Line], bool], timeout_s: float) -> Line | None:
-        deadline = time.monotonic() + timeout_s
-        with self._cond:
-            while True:
-                found = self._first_locked(where)
-                if found is not None:
-                    child, index = found
-                    lines = self._lines[child]
-                    _, line = lines[index]
-                    del lines[index]
-                    return line
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return None
-                self._cond.wait(left)
-
-    def clear(self, child: str) -> None:
-        with self._cond:
-            self._lines.pop(child, None)
-
-
 class _LogFile:
     """A child's stderr: a file opened for appending (shared with the child, read by path)."""
 
@@ -227,7 +141,7 @@ class ProcessChild:
         name: str,
         popen: subprocess.Popen[str],
         logfile: _LogFile,
-        mailbox: _Mailbox,
+        mailbox: Mailbox,
         *,
         stop_signal: int | None,
     ) -> None:
@@ -362,7 +276,7 @@ class _ThreadIO:
 class ThreadChild:
     """A child run as a thread of this process: ``body(io)`` returns its exit code."""
 
-    def __init__(self, name: str, body: Callable[[ChildIO], int | None], mailbox: _Mailbox):
+    def __init__(self, name: str, body: Callable[[ChildIO], int | None], mailbox: Mailbox):
         self._name = name
         self._lines = _Lines()
         self._code: int | None = None
@@ -422,7 +336,7 @@ class Supervisor:
     """The children of one run, their output in one mailbox; a context manager."""
 
     def __init__(self, *, logs: Path | None = None, lines_per_child: int = LINES_PER_CHILD):
-        self._mailbox = _Mailbox(lines_per_child)
+        self._mailbox = Mailbox(lines_per_child)
         self._children: dict[str, ProcessChild | ThreadChild] = {}
         self._keep_logs = logs is not None
         self._scratch: str | None = None
@@ -449,6 +363,8 @@ class Supervisor:
     # -- starting -------------------------------------------------------------------------------
 
     def _claim(self, name: str) -> None:
+        if not name or "/" in name or name in {".", ".."}:
+            raise DbmlError(f"child name {name!r} must be a file name (its log's)")
         if self._closed:
             raise DbmlError(f"child {name!r}: the supervisor is closed")
         if name in self._children:
@@ -509,7 +425,7 @@ class Supervisor:
         assert stdout is not None
         try:
             for text in stdout:
-                self._mailbox.put(_line(child.name, text))
+                self._mailbox.put(read_line(child.name, text))
         finally:  # EOF, or its output cannot be read: either way it is gone for us
             self._mailbox.put(Line(child.name, "", ended=True))
 
