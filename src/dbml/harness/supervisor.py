@@ -47,7 +47,6 @@ from dbml.transports.worker import BackgroundThread
 __all__ = [
     "ASK_S",
     "TERMINATE_S",
-    "Child",
     "ChildExitedError",
     "ChildIO",
     "ProcessChild",
@@ -69,6 +68,8 @@ _POLL_S = 0.05
 """How often ``wait_until`` looks at its condition."""
 _JOIN_S = 2.0
 """How long closing waits for a reader once its process ended (EOF follows the exit)."""
+_KEPT_CHARS = 1_000_000
+"""How much of a child's stderr stays readable after ``close`` removed its log file."""
 
 
 class ChildExitedError(DbmlError):
@@ -80,35 +81,6 @@ class ChildExitedError(DbmlError):
         self.name = name
         self.code = code
         self.tail = tail
-
-
-class Child(Protocol):
-    """What a supervisor's child offers, whether a process or a thread."""
-
-    @property
-    def name(self) -> str:
-        """Its name in the supervisor (the role, the helper)."""
-        ...
-
-    def poll(self) -> int | None:
-        """Its exit code, None while it runs."""
-        ...
-
-    def wait(self, timeout_s: float) -> int | None:
-        """Its exit code, waiting up to ``timeout_s`` for its end; None while it runs."""
-        ...
-
-    def send(self, line: str) -> None:
-        """One line to its stdin (nothing if it ended)."""
-        ...
-
-    def log(self) -> str:
-        """What it wrote on stderr (a thread: the traceback it ended with)."""
-        ...
-
-    def log_tail(self, chars: int = TAIL_CHARS) -> str:
-        """The end of ``log()``."""
-        ...
 
 
 class _LogFile:
@@ -129,7 +101,7 @@ class _LogFile:
 
     def close(self, *, keep_text: bool) -> None:
         if keep_text:
-            self._kept = self.read()
+            self._kept = self.read()[-_KEPT_CHARS:]
         self.file.close()
 
 
@@ -412,12 +384,10 @@ class Supervisor:
         )
         child = ProcessChild(name, popen, logfile, self._mailbox, stop_signal=stop_signal)
         self._children[name] = child
-        if read_stdout:
+        if read_stdout:  # else it writes no line: only its exit code tells its end
             child.reader = BackgroundThread(
                 lambda: self._read(child), name=f"read-{name}", log=log
             ).start()
-        else:
-            self._mailbox.put(Line(name, "", ended=True))  # nothing to read: only its exit
         return child
 
     def _read(self, child: ProcessChild) -> None:

@@ -253,7 +253,7 @@ class TestbedOptions:
             raise TestbedError(f"--robots={robots!r} must be an integer")
         if not MIN_ROBOTS <= robots <= MAX_ROBOTS:
             raise TestbedError(f"--robots={robots!r} must be in {MIN_ROBOTS}..{MAX_ROBOTS}")
-        if urgent_stream and topology != Topology.PEER.value:
+        if urgent_stream and Topology(topology) is not Topology.PEER:
             # A router forwards every class on its one link: the measurement needs peers' links.
             raise TestbedError(f"--urgent-stream needs --topology {TOPOLOGIES[0]}, not {topology}")
         if not link_mbit > 0:
