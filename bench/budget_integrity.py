@@ -54,7 +54,6 @@ import os
 import queue
 import random
 import signal
-import subprocess
 import sys
 import tempfile
 import threading
@@ -63,14 +62,15 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
-from typing import IO, TYPE_CHECKING, Any, NamedTuple, Protocol
+from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
 import zenoh
 from rich.console import Console
 from rich.table import Table
 
 from dbml.core.errors import TransportError
-from dbml.harness.processes import end_process, free_port
+from dbml.harness.child import Control
+from dbml.harness.processes import free_port
 from dbml.harness.ros2env import (
     claim_domain,
     fastdds_shm_files,
@@ -78,11 +78,13 @@ from dbml.harness.ros2env import (
     ros2_child_env,
 )
 from dbml.harness.sniffer import WireSniffer, window_stats
+from dbml.harness.supervisor import Supervisor
 from dbml.protocol import names
 from dbml.protocol.metadata import MessageMeta
 from dbml.runtime.graph import is_managed, published_topics
 from dbml.transports.base import Handle, ParamValue, Transport
 from dbml.transports.zenoh import ZenohTransport
+from nodes import Nodes
 
 if TYPE_CHECKING:
     from rclpy.subscription import MessageInfo
@@ -186,29 +188,8 @@ class BenchError(Exception):
     """A run that could not be measured: a process exited, or the fleet never settled."""
 
 
-class Fleet:
-    """The ``python -m dbml`` processes of one run, each ended by its PID."""
-
-    def __init__(self, env: dict[str, str], transport_args: list[str], workdir: Path) -> None:
-        self._env = env
-        self._transport_args = transport_args
-        self._workdir = workdir
-        self._procs: dict[str, subprocess.Popen[bytes]] = {}
-        self._ended: set[str] = set()
-
-    def live_pids(self) -> list[int]:
-        return [popen.pid for popen in self._procs.values() if popen.poll() is None]
-
-    def start(self, name: str, command: str, *args: str) -> None:
-        log = self._workdir / f"{name}.log"
-        with log.open("wb") as err:
-            self._procs[name] = subprocess.Popen(
-                [sys.executable, "-m", "dbml", command, *self._transport_args, *args],
-                stdin=subprocess.DEVNULL,
-                stdout=subprocess.DEVNULL,
-                stderr=err,
-                env=self._env,
-            )
+class Fleet(Nodes):
+    """The run's nodes; a failed one fails the run."""
 
     def start_publisher(self, channel: Channel) -> None:
         self.start(
@@ -225,50 +206,9 @@ class Fleet:
             channel.host,
         )
 
-    def end(self, name: str) -> None:
-        """End one process on purpose (a leave)."""
-        self._ended.add(name)
-        end_process(self._procs[name], timeout_s=STOP_S)
-
-    def exited(self) -> list[str]:
-        """Processes that exited without being asked to."""
-        return [
-            f"{name} (exit {popen.returncode})"
-            for name, popen in self._procs.items()
-            if name not in self._ended and popen.poll() is not None
-        ]
-
-    def logged(self, text: str) -> list[str]:
-        """The processes whose log holds ``text``."""
-        return [
-            name
-            for name in self._procs
-            if text in (self._workdir / f"{name}.log").read_text(errors="replace")
-        ]
-
-    def count(self, name: str, text: str) -> int:
-        """Lines of process ``name``'s log that hold ``text``."""
-        log = (self._workdir / f"{name}.log").read_text(errors="replace")
-        return sum(text in line for line in log.splitlines())
-
     def check(self) -> None:
         if exited := self.exited():
             raise BenchError(f"exited: {', '.join(exited)}\n{self.logs()}")
-
-    def logs(self, lines: int = 12) -> str:
-        parts = []
-        for name in self._procs:
-            tail = (self._workdir / f"{name}.log").read_text(errors="replace").splitlines()
-            parts.append(f"--- {name} ---\n" + "\n".join(tail[-lines:]))
-        return "\n".join(parts)
-
-    def stop(self) -> None:
-        """SIGTERM every process started here (the nodes close their session), then reap."""
-        for popen in self._procs.values():
-            if popen.poll() is None:
-                popen.terminate()
-        for popen in self._procs.values():
-            end_process(popen, timeout_s=STOP_S)
 
 
 def sniffer_session(port: int) -> zenoh.Session:
@@ -527,17 +467,12 @@ def run_hostile_peer(topics: list[str]) -> None:
                     refusals.setdefault(kind, result.reason)
 
     stop = threading.Event()
-    started = threading.Event()
+    control = Control(stop).start()  # ``start`` arrives as a command; ``stop`` or EOF ends it
 
-    def control() -> None:
-        for line in sys.stdin:
-            if line.startswith("start"):
-                started.set()
-            elif line.startswith("stop"):
-                break
-        stop.set()
-
-    threading.Thread(target=control, name="control", daemon=True).start()
+    def started() -> bool:
+        with contextlib.suppress(queue.Empty):
+            return control.commands.get(timeout=0.05) == "start"
+        return False
 
     print(json.dumps({"ready": True}), flush=True)
     rng = random.Random(SEED)
@@ -545,9 +480,8 @@ def run_hostile_peer(topics: list[str]) -> None:
     image = image_cdr(HOSTILE_FRAME.size_bytes)
     forged_values: dict[str, ParamValue] = {names.current_value(t): FORGED_HZ for t in topics}
     forged_values |= {names.managed(t): True for t in topics}
-    while not started.wait(0.05):
-        if stop.is_set():
-            break
+    while not started() and not stop.is_set():
+        pass
     # The endpoints exist from the start on only: the steady pass before it sees no stranger.
     reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
     frame = node.create_publisher(Image, f"{HOSTILE_FRAME.topic}/optimized", reliable)
@@ -626,59 +560,39 @@ def run_hostile_peer(topics: list[str]) -> None:
 
 
 class HostilePeer:
-    """The ``--hostile-peer`` process of one run, driven over stdin; ended by its PID."""
+    """The ``--hostile-peer`` process of one run, driven over stdin; ended by its PID.
+
+    Its stderr is ``workdir/hostile.log``.
+    """
 
     def __init__(self, env: dict[str, str], topics: list[str], workdir: Path) -> None:
-        with (workdir / "hostile.log").open("wb") as err:
-            self.popen = subprocess.Popen(
-                [sys.executable, __file__, "--hostile-peer", ",".join(topics)],
-                stdin=subprocess.PIPE,
-                stdout=subprocess.PIPE,
-                stderr=err,
-                text=True,
-                env=env,
-            )
-        self._lines: queue.Queue[dict[str, Any]] = queue.Queue()
-        assert self.popen.stdout is not None
-        self._reader = threading.Thread(target=self._read, args=(self.popen.stdout,), daemon=True)
-        self._reader.start()
+        self._children = Supervisor(logs=workdir)
+        self.process = self._children.start(
+            "hostile", [sys.executable, __file__, "--hostile-peer", ",".join(topics)], env=env
+        )
         self.report: dict[str, Any] | None = None
 
-    def _read(self, stream: IO[str]) -> None:
-        for line in stream:
-            with contextlib.suppress(ValueError):
-                self._lines.put(json.loads(line))
-
     def _line(self) -> dict[str, Any]:
-        try:
-            return self._lines.get(timeout=HOSTILE_S)
-        except queue.Empty:
-            raise BenchError(f"the hostile peer did not answer within {HOSTILE_S:g} s") from None
+        report = next(self._children.reports("hostile", timeout_s=HOSTILE_S), None)
+        if report is None:
+            raise BenchError(f"the hostile peer did not answer within {HOSTILE_S:g} s")
+        return report
 
     def wait_ready(self) -> None:
         if self._line().get("ready") is not True:
             raise BenchError("the hostile peer did not start")
 
-    def _send(self, line: str) -> None:
-        assert self.popen.stdin is not None
-        self.popen.stdin.write(line + "\n")
-        self.popen.stdin.flush()
-
     def start(self) -> None:
-        self._send("start")
+        self.process.send("start")
 
     def finish(self) -> dict[str, Any]:
         """Stop attacking; what it sent and what it was answered."""
-        self._send("stop")
+        self.process.send("stop")
         self.report = self._line()
         return self.report
 
     def stop(self) -> None:
-        if self.popen.stdin is not None:
-            with contextlib.suppress(OSError):
-                self.popen.stdin.close()
-        end_process(self.popen, timeout_s=STOP_S)
-        self._reader.join(timeout=STOP_S)
+        self._children.close()
 
 
 @dataclass
@@ -765,7 +679,7 @@ class Rig:
         if self.ros2_sniffer is not None:
             pids = self.fleet.live_pids()
             if self.hostile is not None:
-                pids.append(self.hostile.popen.pid)
+                pids.append(self.hostile.process.pid)
             self.shm.update(fastdds_shm_files(pids))
 
 

@@ -37,7 +37,7 @@ parameters. Per size:
   per robot per priority change over the reactions, ``..._net`` less the heartbeats meanwhile.
   What a change costs a robot it does not concern should not grow with the fleet.
 
-The processes are ``dbml.harness``'s: started, read and ended by PID by ``RoleProcesses`` (also
+The processes are ``dbml.harness``'s: started, read and ended by PID by a ``Supervisor`` (also
 on Ctrl-C and SIGTERM), the workers report JSON lines and read their commands as roles do.
 
     python bench/fleet.py [--robots R] [--channels C] [--seconds S] [--topology T] [--json]
@@ -74,15 +74,10 @@ from rich.table import Table
 from dbml import ChannelSpec, Problem, allocate
 from dbml.core.allocation import Status
 from dbml.experiment.runner import sigterm_as_interrupt
-from dbml.harness.processes import (
-    Emit,
-    RoleProcesses,
-    emit_json,
-    free_port,
-    read_commands,
-    stop_on_signals,
-)
+from dbml.harness.child import Control, Emit, emit_json, stop_on_signals
+from dbml.harness.processes import free_port
 from dbml.harness.sniffer import WireSniffer, window_stats
+from dbml.harness.supervisor import Supervisor
 from dbml.protocol import names
 from dbml.runtime.publisher import ManagedPublisher
 from dbml.runtime.subscriber import ManagedSubscriber
@@ -447,7 +442,7 @@ def worker_main(spec_text: str) -> int:
     )
     logging.getLogger().addHandler(FailsafeCounter())
     with stop_on_signals() as stop:
-        commands = read_commands(stop)
+        commands = Control(stop, name="commands").start().commands
         if spec["role"] == "operator":
             return run_operator(spec, report, commands, stop)
         return run_robots(spec, report, commands, stop)
@@ -461,8 +456,7 @@ class Fleet:
 
     def __init__(self, port: int, *, logs: Path | None = None) -> None:
         self._env = dict(os.environ, DBML_ZENOH_PORT=str(port))
-        self._logs = logs
-        self.roles = RoleProcesses()
+        self.children = Supervisor(logs=logs)
         self._cond = threading.Condition()
         self.ready: dict[str, dict[str, Any]] = {}
         self.ended: set[str] = set()
@@ -476,13 +470,15 @@ class Fleet:
 
     def _pump(self) -> None:
         while not self._closing.is_set():
-            try:
-                role, message = self.roles.messages.get(timeout=POLL_S * 4)
-            except queue.Empty:
+            line = self.children.next(timeout_s=POLL_S * 4)
+            if line is None:
                 continue
+            role, message = line.child, line.report
             with self._cond:
-                if message is None:
+                if line.ended:
                     self.ended.add(role)
+                elif message is None:
+                    pass  # not a report
                 elif message.get("type") == "ready":
                     self.ready[role] = message
                 elif message.get("type") == "failsafe" and self._counting:
@@ -497,24 +493,24 @@ class Fleet:
 
     def start_router(self, endpoint: str) -> None:
         argv = [sys.executable, "-m", "dbml", "router", "--listen", endpoint]
-        self.roles.spawn("router", argv, env=self._env, stop_signal=signal.SIGTERM)
+        self.children.start("router", argv, env=self._env, stop_signal=signal.SIGTERM)
 
     def start_optimizer(self, config: Path, net: dict[str, Any]) -> None:
         argv = [sys.executable, "-m", "dbml", "optimizer", "--config", str(config)]
         if net.get("router") is not None:
             argv += ["--connect", net["router"], "--zenoh-config", net["client_config"]]
             argv.append("--priority-links")
-        self.roles.spawn(
+        self.children.start(
             "optimizer", [*argv, "--host", "base"], env=self._env, stop_signal=signal.SIGTERM
         )
 
     @property
     def optimizer_pid(self) -> int:
-        return self.roles.children["optimizer"].pid
+        return self.children.process("optimizer").pid
 
     def spawn(self, role: str, spec: dict[str, Any]) -> None:
         argv = [sys.executable, str(Path(__file__).resolve()), "--worker", json.dumps(spec)]
-        self.roles.spawn(role, argv, env=self._env)
+        self.children.start(role, argv, env=self._env)
 
     def wait_ready(self, roles: list[str], timeout_s: float) -> bool:
         with self._cond:
@@ -526,9 +522,9 @@ class Fleet:
         """The processes that ended (none should before teardown)."""
         with self._cond:
             gone = sorted(self.ended - {"optimizer"})
-        optimizer = self.roles.children.get("optimizer")
-        if optimizer is not None and optimizer.poll() is not None:
-            gone.append(f"optimizer (exit {optimizer.returncode})")
+        optimizer = self.children.children.get("optimizer")
+        if optimizer is not None and (code := optimizer.poll()) is not None:
+            gone.append(f"optimizer (exit {code})")
         return gone
 
     def watch_window(self, seconds: float) -> None:
@@ -548,10 +544,10 @@ class Fleet:
         with contextlib.suppress(queue.Empty):
             while True:
                 self.stats.get_nowait()  # a late answer to an earlier question
-        child = self.roles.children.get("operator")
+        child = self.children.children.get("operator")
         if child is None or child.poll() is not None:
             return None
-        self.roles.send(f"stats {since_s!r} {until_s!r} {limit!r}", to="operator")
+        self.children.send(f"stats {since_s!r} {until_s!r} {limit!r}", to="operator")
         deadline = time.monotonic() + STOP_S
         while child.poll() is None and time.monotonic() < deadline:
             with contextlib.suppress(queue.Empty):
@@ -564,7 +560,7 @@ class Fleet:
             while True:
                 self.counts.get_nowait()  # a late answer to an earlier question
         for worker in workers:
-            self.roles.send("count", to=worker)
+            self.children.send("count", to=worker)
         answered: dict[str, int] = {}
         deadline = time.monotonic() + STOP_S
         while len(answered) < len(workers) and time.monotonic() < deadline:
@@ -575,7 +571,7 @@ class Fleet:
 
     def pids(self) -> list[int]:
         """This process and every process started here."""
-        return [os.getpid(), *(c.pid for c in self.roles.children.values())]
+        return [os.getpid(), *self.children.pids()]
 
     def robot_failures(self, workers: list[str], robots: int) -> int:
         """Robots whose session or publishers were not set up (all of a silent worker's)."""
@@ -586,8 +582,8 @@ class Fleet:
 
     def close(self) -> None:
         try:
-            # Stop (the optimizer: SIGTERM), then SIGTERM, then SIGKILL: by PID.
-            self.roles.close(save_logs=self._logs)
+            # Stop (the optimizer and router: SIGTERM), then SIGTERM, then SIGKILL: by PID.
+            self.children.close()
         finally:
             self._closing.set()
             self._inbox.join(timeout=STOP_S)
@@ -805,8 +801,8 @@ def measure_size(
             finally:
                 row["failsafe_events"] = fleet.failsafe_events(freeze=True)
                 if row["error"] is not None:
-                    for role in sorted(fleet.roles.children):
-                        tail = fleet.roles.log_tail(role).strip().splitlines()[-5:]
+                    for role, child in sorted(fleet.children.children.items()):
+                        tail = child.log_tail().strip().splitlines()[-5:]
                         if tail:
                             note(f"--- {role} ---\n" + "\n".join(tail))
                 note(f"{robots}x{per_robot}: stopping")

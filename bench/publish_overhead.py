@@ -20,20 +20,20 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
-import queue
 import socket
-import subprocess
 import sys
 import threading
 import time
 from collections.abc import Callable
-from typing import IO, Any
+from typing import Any
 
 import zenoh
 from rich.console import Console
 from rich.table import Table
 
 from dbml.core.spec import MAX_RATE_HZ
+from dbml.harness.child import Control
+from dbml.harness.supervisor import Supervisor
 from dbml.protocol import names
 from dbml.runtime import ManagedPublisher
 from dbml.transports.zenoh import ZenohTransport
@@ -101,43 +101,27 @@ def run_sink(port: int, keys: list[str]) -> None:
 
         declared.append(transport.session.declare_subscriber(FLUSH_KEY, on_flush))
         print(json.dumps({"ready": True}), flush=True)
-        sys.stdin.read()  # until the parent closes our stdin
+        stop = threading.Event()
+        Control(stop).start()
+        stop.wait()  # until the parent says stop, or closes our stdin
     finally:
         transport.close()
 
 
 class Sink:
-    """The sink process, its stdout lines read by a thread; ended by its PID."""
+    """The sink process (a ``Supervisor``'s child), its stdout read line by line; ended by PID."""
 
     def __init__(self, port: int, keys: list[str]) -> None:
-        self.popen = subprocess.Popen(
-            [sys.executable, __file__, "--sink", str(port), "--sink-keys", ",".join(keys)],
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            text=True,
+        self._children = Supervisor()
+        self._children.start(
+            "sink", [sys.executable, __file__, "--sink", str(port), "--sink-keys", ",".join(keys)]
         )
-        self._lines: queue.Queue[dict[str, Any]] = queue.Queue()
-        assert self.popen.stdout is not None
-        self._reader = threading.Thread(target=self._read, args=(self.popen.stdout,), daemon=True)
-        self._reader.start()
         self._ids = itertools.count()
 
-    def _read(self, stream: IO[str]) -> None:
-        for line in stream:
-            try:
-                self._lines.put(json.loads(line))
-            except ValueError:
-                continue
-
     def next_line(self, timeout_s: float, accept: Callable[[dict[str, Any]], bool]) -> Any:
-        deadline = time.monotonic() + timeout_s
-        while (left := deadline - time.monotonic()) > 0:
-            try:
-                line = self._lines.get(timeout=left)
-            except queue.Empty:
-                break
-            if accept(line):
-                return line
+        for report in self._children.reports("sink", timeout_s=timeout_s):
+            if accept(report):
+                return report
         raise SystemExit(f"the sink process did not answer within {timeout_s:g} s")
 
     def flush(self, session: Any) -> dict[str, int]:
@@ -148,18 +132,8 @@ class Sink:
         return {str(k): int(v) for k, v in line["counts"].items()}
 
     def stop(self) -> None:
-        if self.popen.stdin is not None and not self.popen.stdin.closed:
-            self.popen.stdin.close()  # the sink's cue to close its session and exit
-        try:
-            self.popen.wait(timeout=STOP_S)
-        except subprocess.TimeoutExpired:
-            self.popen.terminate()
-            try:
-                self.popen.wait(timeout=STOP_S)
-            except subprocess.TimeoutExpired:
-                self.popen.kill()
-                self.popen.wait(timeout=STOP_S)
-        self._reader.join(timeout=STOP_S)
+        """``stop`` and EOF on its stdin (its cue to close its session), then SIGTERM, SIGKILL."""
+        self._children.close()
 
 
 def wait_matching(session: Any, key: str, publisher: Any | None = None) -> None:

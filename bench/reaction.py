@@ -40,8 +40,6 @@ import math
 import os
 import re
 import socket
-import subprocess
-import sys
 import tempfile
 import threading
 import time
@@ -55,10 +53,6 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-from tests.foxglove_client import FoxgloveClient
-
 from dbml import ChannelSpec, Problem, allocate
 from dbml.harness.ros2env import (
     claim_domain,
@@ -69,6 +63,8 @@ from dbml.harness.ros2env import (
 from dbml.protocol import names
 from dbml.transports.base import ParamValue, Transport
 from dbml.transports.zenoh import ZenohTransport
+from dbml.view.client import FoxgloveClient
+from nodes import Nodes
 
 R1, R2 = "/r1/camera", "/r2/camera"
 CAMERAS = ((R1, 84_000, "robot1"), (R2, 21_000, "robot2"))
@@ -114,57 +110,6 @@ def same_rate(value: ParamValue, rate: float) -> bool:
     if isinstance(value, bool) or not isinstance(value, int | float):
         return False
     return math.isclose(value, rate, rel_tol=1e-9, abs_tol=1e-12)
-
-
-class Fleet:
-    """The ``python -m dbml`` processes of this run, each ended by its PID."""
-
-    def __init__(self, env: dict[str, str], transport_args: list[str], workdir: Path) -> None:
-        self._env = env
-        self._transport_args = transport_args
-        self._workdir = workdir
-        self._procs: list[tuple[str, subprocess.Popen[bytes], Path]] = []
-
-    @property
-    def pids(self) -> list[int]:
-        return [popen.pid for _, popen, _ in self._procs]
-
-    def start(self, name: str, command: str, *args: str) -> None:
-        log = self._workdir / f"{name}.log"
-        with log.open("wb") as err:
-            popen = subprocess.Popen(
-                [sys.executable, "-m", "dbml", command, *self._transport_args, *args],
-                stdin=subprocess.DEVNULL,
-                stdout=subprocess.DEVNULL,
-                stderr=err,
-                env=self._env,
-            )
-        self._procs.append((name, popen, log))
-
-    def exited(self) -> list[str]:
-        return [
-            f"{name} (exit {popen.returncode})"
-            for name, popen, _ in self._procs
-            if popen.poll() is not None
-        ]
-
-    def logs(self, lines: int = 15) -> str:
-        parts = []
-        for name, _, log in self._procs:
-            tail = log.read_text(errors="replace").splitlines()[-lines:]
-            parts.append(f"--- {name} ---\n" + "\n".join(tail))
-        return "\n".join(parts)
-
-    def stop(self) -> None:
-        for _, popen, _ in self._procs:
-            if popen.poll() is None:
-                popen.terminate()  # SIGTERM to this PID: the dbml nodes close their session
-        for _, popen, _ in self._procs:
-            try:
-                popen.wait(timeout=STOP_S)
-            except subprocess.TimeoutExpired:
-                popen.kill()
-                popen.wait(timeout=STOP_S)
 
 
 class Probe:
@@ -217,7 +162,7 @@ class Probe:
         self._handle.close()
 
 
-def start_fleet(fleet: Fleet, config: Path, view: tuple[str, ...] = ()) -> None:
+def start_fleet(fleet: Nodes, config: Path, view: tuple[str, ...] = ()) -> None:
     fleet.start("optimizer", "optimizer", "--config", str(config), "--host", "base", *view)
     for topic, size, host in CAMERAS:
         fleet.start(
@@ -363,7 +308,7 @@ class Viewer:
         self._url = url
         self._stop = threading.Event()
         self.client: Any = None
-        """The ``tests.foxglove_client.FoxgloveClient`` once connected."""
+        """The ``FoxgloveClient`` once connected."""
         self.error: str | None = None
         self._thread = threading.Thread(target=self._run, name="viewer", daemon=True)
         self._thread.start()
@@ -417,7 +362,7 @@ def measure(
             f"  optimization_rate_in_seconds: {PERIOD_S:g}\n"
         )
         transport = network.transport
-        fleet = Fleet(network.env, network.transport_args, workdir)
+        fleet = Nodes(network.env, network.transport_args, workdir)
         view: tuple[str, ...] = ()
         viewer: Viewer | None = None
         if foxglove:

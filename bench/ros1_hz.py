@@ -27,43 +27,48 @@ from typing import Any
 from rich.console import Console
 from rich.table import Table
 
-from dbml.harness.processes import end_process, foreign_interpreter_env
+from dbml.harness.processes import foreign_interpreter_env
 from dbml.harness.rosmaster import RosMaster
+from dbml.harness.supervisor import Supervisor
 from dbml.protocol import names
 from dbml.scenarios.teleop import ROBOTS
 from dbml.transports.rosapi import MasterClient
 
 SETTLE_S = 1.0
 TOLERANCE = 0.05
+READ_S = 1.0
+"""How long one read of ``rostopic hz``'s output waits before looking again."""
 
 
 class HzReader:
-    """``rostopic hz -w window topic``, its averages stamped with the wall clock."""
+    """``rostopic hz -w window topic`` (a ``Supervisor``'s child), its averages time-stamped."""
 
     def __init__(self, topic: str, window: int, env: dict[str, str]) -> None:
         self.topic = topic
         self.readings: list[tuple[float, float, int]] = []  # (time, Hz, messages in window)
-        self.process = subprocess.Popen(
+        self._children = Supervisor()
+        self._hz = self._children.start(
+            "rostopic-hz",
             ["rostopic", "hz", "-w", str(window), topic],
             env=foreign_interpreter_env(env),  # Debian's /usr/bin/python3, not ours
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
+            stdin=False,
+            stop_signal=signal.SIGINT,  # as rostopic expects
         )
         self._thread = threading.Thread(target=self._read, daemon=True)
         self._thread.start()
 
     def _read(self) -> None:
-        assert self.process.stdout is not None
         rate: float | None = None
-        for line in self.process.stdout:
-            if match := re.search(r"average rate: ([0-9.]+)", line):
+        while (line := self._hz.next(timeout_s=READ_S)) is None or not line.ended:
+            if line is None:
+                continue
+            if match := re.search(r"average rate: ([0-9.]+)", line.text):
                 rate = float(match.group(1))
-            elif (match := re.search(r"window: (\d+)", line)) and rate is not None:
+            elif (match := re.search(r"window: (\d+)", line.text)) and rate is not None:
                 self.readings.append((time.time(), rate, int(match.group(1))))
 
     def stop(self) -> None:
-        end_process(self.process, sig=signal.SIGINT)
+        self._children.close()
         self._thread.join(timeout=5)
 
 

@@ -38,7 +38,6 @@ import json
 import os
 import pstats
 import queue
-import subprocess
 import sys
 import tempfile
 import threading
@@ -46,20 +45,21 @@ import time
 from collections.abc import Callable, Iterator
 from functools import partial
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 import numpy as np
 from rich.console import Console
 from rich.table import Table
 
 from dbml.core.spec import MAX_RATE_HZ
-from dbml.harness.processes import end_process
+from dbml.harness.child import Control
 from dbml.harness.ros2env import (
     claim_domain,
     fastdds_shm_files,
     remove_fastdds_shm,
     ros2_child_env,
 )
+from dbml.harness.supervisor import Supervisor
 from dbml.protocol import names
 from dbml.protocol.metadata import pack_meta
 from dbml.runtime import ManagedPublisher
@@ -131,8 +131,13 @@ def run_sink(topics: list[str]) -> None:
     ros.start()
     try:
         print(json.dumps({"ready": True}), flush=True)
-        for line in sys.stdin:
-            command, _, ident = line.strip().partition(" ")
+        stop = threading.Event()
+        control = Control(stop).start()  # ``flush <id>`` commands until ``stop`` or EOF
+        while not stop.is_set():
+            try:
+                command, _, ident = control.commands.get(timeout=0.1).partition(" ")
+            except queue.Empty:
+                continue
             if command != "flush":
                 continue
             while True:
@@ -151,56 +156,35 @@ def run_sink(topics: list[str]) -> None:
 
 
 class Sink:
-    """The sink process, its stdout lines read by a thread; ended by its PID."""
+    """The sink process (a ``Supervisor``'s child), its stdout read line by line; ended by PID."""
 
     def __init__(self, topics: list[str], env: dict[str, str]) -> None:
-        self.popen = subprocess.Popen(
-            [sys.executable, __file__, "--sink", ",".join(topics)],
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            text=True,
-            env=env,
+        self._children = Supervisor()
+        self._sink = self._children.start(
+            "sink", [sys.executable, __file__, "--sink", ",".join(topics)], env=env
         )
-        self._lines: queue.Queue[dict[str, Any]] = queue.Queue()
-        assert self.popen.stdout is not None
-        self._reader = threading.Thread(target=self._read, args=(self.popen.stdout,), daemon=True)
-        self._reader.start()
         self._ids = itertools.count()
 
-    def _read(self, stream: IO[str]) -> None:
-        for line in stream:
-            with contextlib.suppress(ValueError):
-                self._lines.put(json.loads(line))
+    @property
+    def pid(self) -> int:
+        return self._sink.pid
 
     def next_line(self, timeout_s: float, accept: Callable[[dict[str, Any]], bool]) -> Any:
-        deadline = time.monotonic() + timeout_s
-        while (left := deadline - time.monotonic()) > 0:
-            try:
-                line = self._lines.get(timeout=left)
-            except queue.Empty:
-                break
-            if accept(line):
-                return line
+        for report in self._children.reports("sink", timeout_s=timeout_s):
+            if accept(report):
+                return report
         raise SystemExit(f"the sink process did not answer within {timeout_s:g} s")
 
     def flush(self) -> dict[str, int]:
         """What reached the sink since the last flush, per topic (once the sink went quiet)."""
         ident = str(next(self._ids))
-        assert self.popen.stdin is not None
-        self.popen.stdin.write(f"flush {ident}\n")
-        self.popen.stdin.flush()
+        self._sink.send(f"flush {ident}")
         line = self.next_line(FLUSH_S, lambda doc: doc.get("id") == ident)
         return {str(k): int(v) for k, v in line["counts"].items()}
 
     def stop(self) -> None:
-        if self.popen.stdin is not None and not self.popen.stdin.closed:
-            with contextlib.suppress(OSError):
-                self.popen.stdin.close()  # the sink's cue to close its context and exit
-        try:
-            self.popen.wait(timeout=STOP_S)
-        except subprocess.TimeoutExpired:
-            end_process(self.popen, timeout_s=STOP_S)
-        self._reader.join(timeout=STOP_S)
+        """``stop`` and EOF (its cue to close its context), then SIGTERM and SIGKILL."""
+        self._children.close()
 
 
 # -- the publishers -------------------------------------------------------------------------------
@@ -409,7 +393,7 @@ def measure(seconds: float, repeat: int, *, profile: bool) -> dict[str, Any]:
         try:
             sink = Sink(topics, env)
             sink.next_line(READY_S, lambda doc: doc.get("ready") is True)
-            shm = fastdds_shm_files([sink.popen.pid])
+            shm = fastdds_shm_files([sink.pid])
             cases = Cases(transport)
             cases.wait_matched()
             best: dict[tuple[int, str], float] = {}

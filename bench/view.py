@@ -16,16 +16,11 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import sys
 import tempfile
 import threading
 import time
 from pathlib import Path
 from typing import Any
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-from tests.foxglove_client import FoxgloveClient
 
 from dbml import (
     DbmSettings,
@@ -36,6 +31,7 @@ from dbml import (
     open_transport,
 )
 from dbml.protocol.schema import Writer
+from dbml.view.client import FoxgloveClient
 from dbml.view.live import LiveView, open_view
 from dbml.view.target import ViewTarget
 

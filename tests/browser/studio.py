@@ -19,7 +19,6 @@ import os
 import re
 import shutil
 import signal
-import subprocess
 import tempfile
 import threading
 import time
@@ -34,6 +33,7 @@ from urllib.parse import unquote, urlencode, urlsplit
 
 from websockets.sync.client import ClientConnection, connect
 
+from dbml.harness.supervisor import ProcessChild, Supervisor
 from tests.conftest import require
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -350,13 +350,13 @@ class DevTools:
         ]
 
 
-def _devtools_port(profile: Path, process: subprocess.Popen[bytes], timeout_s: float) -> int:
+def _devtools_port(profile: Path, process: ProcessChild, timeout_s: float) -> int:
     """The port Chromium picked for ``--remote-debugging-port=0``: it writes it in the profile."""
     marker = profile / "DevToolsActivePort"
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
-        if process.poll() is not None:
-            raise RuntimeError(f"chromium exited with {process.returncode} before it listened")
+        if (code := process.poll()) is not None:
+            raise RuntimeError(f"chromium exited with {code} before it listened")
         with contextlib.suppress(FileNotFoundError, ValueError, IndexError):
             return int(marker.read_text().splitlines()[0])
         time.sleep(0.05)
@@ -376,20 +376,6 @@ def _page_socket_url(port: int, timeout_s: float) -> str:
     raise PageTimeoutError(f"chromium showed no page target in {timeout_s} s")
 
 
-def _end(process: subprocess.Popen[bytes]) -> None:
-    """End the browser we started, by its id, then whatever it left in its process group."""
-    if process.poll() is None:
-        process.terminate()
-        try:
-            process.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait(timeout=10)
-    # Its helpers (zygote, renderers) share the group it leads, whose id is its own.
-    with contextlib.suppress(ProcessLookupError, PermissionError):
-        os.killpg(process.pid, signal.SIGKILL)
-
-
 @contextlib.contextmanager
 def chromium(executable: str, *, start_timeout_s: float = 30.0) -> Iterator[DevTools]:
     """Headless Chromium in a fresh profile, with a DevTools session on its page.
@@ -397,7 +383,6 @@ def chromium(executable: str, *, start_timeout_s: float = 30.0) -> Iterator[DevT
     The browser, its helpers and its profile are gone when the block ends, however it ends.
     """
     profile = Path(tempfile.mkdtemp(prefix="dbml-chromium-"))
-    log = (profile.parent / f"{profile.name}.log").open("wb")
     command = [
         executable,
         *CHROMIUM_FLAGS,
@@ -407,17 +392,14 @@ def chromium(executable: str, *, start_timeout_s: float = 30.0) -> Iterator[DevT
         "--remote-debugging-port=0",
         "about:blank",
     ]
-    process = subprocess.Popen(
-        command, stdin=subprocess.DEVNULL, stdout=log, stderr=log, start_new_session=True
-    )
+    children = Supervisor()
+    process = children.start("chromium", command, stdin=False, read_stdout=False, new_session=True)
     try:
         try:
             port = _devtools_port(profile, process, start_timeout_s)
             url = _page_socket_url(port, start_timeout_s)
         except (RuntimeError, PageTimeoutError) as err:
-            log.flush()
-            tail = Path(log.name).read_text(errors="replace")[-2000:]
-            raise RuntimeError(f"{err}; chromium said:\n{tail}") from err
+            raise RuntimeError(f"{err}; chromium said:\n{process.log_tail()}") from err
         with connect(url, max_size=None, open_timeout=start_timeout_s) as socket:
             tools = DevTools(socket)
             tools.call("Page.enable")
@@ -432,9 +414,10 @@ def chromium(executable: str, *, start_timeout_s: float = 30.0) -> Iterator[DevT
             )
             yield tools
     finally:
-        _end(process)
-        log.close()
-        Path(log.name).unlink(missing_ok=True)
+        children.close()  # SIGTERM, then SIGKILL, by its PID
+        # Its helpers (zygote, renderers) share the group it leads, whose id is its own.
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.killpg(process.pid, signal.SIGKILL)
         shutil.rmtree(profile, ignore_errors=True)
 
 

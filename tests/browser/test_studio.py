@@ -110,7 +110,7 @@ def demo(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Demo]:
     try:
         deadline = time.monotonic() + DEMO_START_S
         while not _accepts(port):
-            assert proc.popen.poll() is None, proc.stderr()
+            assert proc.poll() is None, proc.stderr()
             assert time.monotonic() < deadline, f"no view on port {port}: {proc.stderr()}"
             time.sleep(0.1)
         yield Demo(proc, f"ws://127.0.0.1:{port}", record)
@@ -134,7 +134,7 @@ def live_url(demo: Demo) -> str:
 def recording(demo: Demo) -> Path:
     """The demo's recording, once the demo ended (it held Table 2)."""
     try:
-        code = demo.proc.popen.wait(timeout=DEMO_END_S)
+        code = demo.proc.wait(DEMO_END_S)
     except subprocess.TimeoutExpired:
         pytest.fail(f"the demo did not end within {DEMO_END_S:g} s")
     lines = list(demo.proc.json_lines(timeout_s=1))

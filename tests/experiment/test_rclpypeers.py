@@ -6,13 +6,8 @@ domain claimed for the test; every peer process gets that domain and logs under 
 
 from __future__ import annotations
 
-import contextlib
-import json
 import os
-import queue
-import subprocess
 import sys
-import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -23,26 +18,20 @@ import pytest
 
 from dbml.cli.main import main
 from dbml.core.errors import DbmlError
-from dbml.demo import runner as demo_runner
-from dbml.experiment import rclpypeers
+from dbml.experiment import entry
 from dbml.experiment.analysis import Arrival
-from dbml.experiment.rclpypeers import (
-    OPTIMIZED_SUFFIX,
-    PRIORITY_SUFFIX,
-    RCLPY_MISSING,
-    image_message,
-    image_stamp_ns,
-)
+from dbml.experiment.entry import Kind
+from dbml.experiment.peers import OPTIMIZED_SUFFIX, PRIORITY_SUFFIX, step_priority
+from dbml.experiment.rclpypeers import RCLPY_MISSING, image_message, image_stamp_ns
 from dbml.experiment.report import OperatorReport
-from dbml.experiment.roles import HOSTS, TICK_S, RoleSpec
-from dbml.experiment.ros2peers import step_priority
-from dbml.harness.processes import end_process
+from dbml.experiment.spec import TICK_S, RoleSpec
 from dbml.harness.ros2env import claim_domain, fastdds_shm_files, ros2_child_env
 from dbml.protocol import names
 from dbml.scenarios.teleop import MAX_RATE_HZ, ROBOTS, STEPS
-from dbml.transports.registry import open_transport
+from dbml.transports.registry import TRANSPORTS, open_transport
 from dbml.transports.ros2msg import image_cdr
 from tests.conftest import wait_for
+from tests.experiment.peer_process import Peer
 
 rclpy = pytest.importorskip("rclpy")
 
@@ -105,7 +94,8 @@ def test_a_missing_rclpy_names_the_extra(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
     monkeypatch.setitem(sys.modules, "rclpy", None)  # as if not installed
-    assert rclpypeers.main(["r1", RoleSpec(step_s=1.0, transport="rclpy").to_json()]) == 2
+    spec = RoleSpec(step_s=1.0, transport=TRANSPORTS["rclpy"])
+    assert entry.main(["rclpy-peer", "r1", spec.to_json()]) == 2
     captured = capsys.readouterr()
     assert captured.out == ""
     assert captured.err == f"r1: {RCLPY_MISSING}\n"
@@ -119,63 +109,6 @@ def test_a_missing_rclpy_names_the_extra(
 def domain_id() -> Iterator[int]:
     with claim_domain() as claimed:
         yield claimed
-
-
-class Peer:
-    """A peer process: its JSON lines in a queue, its stdin for ``start``/``stop``."""
-
-    def __init__(self, role: str, spec: RoleSpec, env: dict[str, str]) -> None:
-        self.role = role
-        self.log = tempfile.TemporaryFile("w+")  # noqa: SIM115 - closed in close()
-        self.process = subprocess.Popen(
-            [sys.executable, "-m", "dbml.experiment.rclpypeers", role, spec.to_json()],
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            stderr=self.log,
-            text=True,
-            env=env,
-        )
-        self.lines: queue.Queue[dict[str, Any]] = queue.Queue()
-        self.reader = threading.Thread(target=self._read, daemon=True)
-        self.reader.start()
-
-    def _read(self) -> None:
-        assert self.process.stdout is not None
-        for line in self.process.stdout:
-            self.lines.put(json.loads(line))
-
-    def tail(self) -> str:
-        self.log.seek(0)
-        return self.log.read()[-2000:]
-
-    def next(self, timeout_s: float) -> dict[str, Any]:
-        try:
-            return self.lines.get(timeout=timeout_s)
-        except queue.Empty:
-            rc = self.process.poll()
-            pytest.fail(f"{self.role}: no report within {timeout_s} s; rc={rc}: {self.tail()}")
-
-    def send(self, line: str) -> None:
-        """One control line; nothing if the process already ended (its stdin is closed)."""
-        assert self.process.stdin is not None
-        with contextlib.suppress(BrokenPipeError):
-            self.process.stdin.write(line + "\n")
-            self.process.stdin.flush()
-
-    def stop(self) -> int:
-        """Ask it to stop (an operator that reported ``done`` ends by itself); its exit code."""
-        self.send("stop")
-        return self.process.wait(timeout=REPORT_TIMEOUT_S)
-
-    def close(self) -> None:
-        """End the process by PID, then close its pipes and log."""
-        end_process(self.process)
-        self.reader.join(timeout=5)
-        for stream in (self.process.stdin, self.process.stdout):
-            if stream is not None:
-                with contextlib.suppress(BrokenPipeError):  # unread input to a process gone
-                    stream.close()
-        self.log.close()
 
 
 class Probe:
@@ -251,10 +184,11 @@ def test_a_camera_publishes_images_at_its_maximum_and_table2s_priorities(
     probe.subscribe(camera.topic, Image, on_frame, reliable=True)
     probe.subscribe(camera.topic + PRIORITY_SUFFIX, Float64, on_priority, reliable=False)
     env = peer_env(domain_id, tmp_path)
-    peer = Peer("r1", RoleSpec(step_s=STEP_S, transport="rclpy", domain_id=domain_id), env)
+    spec = RoleSpec(step_s=STEP_S, transport=TRANSPORTS["rclpy"], domain_id=domain_id)
+    peer = Peer(Kind.RCLPY_PEER, "r1", spec, env=env)
     try:
         assert peer.next(READY_TIMEOUT_S) == {"type": "ready", "role": "r1"}
-        owned = fastdds_shm_files([peer.process.pid])
+        owned = fastdds_shm_files([peer.child.pid])
 
         def frames_in() -> int:
             with lock:
@@ -288,7 +222,7 @@ def test_a_camera_publishes_images_at_its_maximum_and_table2s_priorities(
         publishers = probe.node.get_publishers_info_by_topic(camera.topic)
         assert [p.qos_profile.reliability for p in publishers] == [ReliabilityPolicy.RELIABLE]
         assert [p.node_name for p in publishers] == ["r1_camera"]
-        assert peer.stop() == 0
+        assert peer.stop(REPORT_TIMEOUT_S) == 0
     finally:
         peer.close()
     assert owned, "the peer's Fast DDS shared memory, while it ran"
@@ -352,13 +286,17 @@ def test_the_operator_reports_each_frame_and_the_parameters_in_force(
         probe.subscribe(camera.topic, Image, forward(i), reliable=True)
     transport = open_transport("rclpy", host="base-station", domain_id=domain_id)
     spec = RoleSpec(
-        step_s=1.0, transport="rclpy", host="operator", domain_id=domain_id, peer_wait_s=5.0
+        step_s=1.0,
+        transport=TRANSPORTS["rclpy"],
+        host="operator",
+        domain_id=domain_id,
+        peer_wait_s=5.0,
     )
     peers: list[Peer] = []
     try:
         transport.params.set(names.BANDWIDTH, BUDGET_MBIT)  # anyone may write it
-        peers += [Peer(c.robot.lower(), spec, env) for c in ROBOTS]
-        operator = Peer("operator", spec, env)
+        peers += [Peer(Kind.RCLPY_PEER, c.robot.lower(), spec, env=env) for c in ROBOTS]
+        operator = Peer(Kind.RCLPY_PEER, "operator", spec, env=env)
         peers.append(operator)
         for peer in peers:
             assert peer.next(READY_TIMEOUT_S)["type"] == "ready", peer.role
@@ -381,7 +319,7 @@ def test_the_operator_reports_each_frame_and_the_parameters_in_force(
                 break
         else:
             pytest.fail("the operator never reported done")
-        assert [peer.stop() for peer in peers] == [0, 0, 0]
+        assert [peer.stop(REPORT_TIMEOUT_S) for peer in peers] == [0, 0, 0]
     finally:
         for peer in peers:
             peer.close()
@@ -406,35 +344,7 @@ def _near(sent_s: float, stamps_ns: set[int]) -> bool:
     return min(abs(sent_s * 1e9 - s) for s in stamps_ns) < 1_000
 
 
-# -- the demo's wiring ---------------------------------------------------------------------------
-
-
-def test_the_demo_runs_rclpy_peers_dbml_bridges_and_optimizer_in_one_domain(
-    tmp_path: Path,
-) -> None:
-    specs = {
-        role: RoleSpec(step_s=1.0, transport="rclpy", host=host) for role, host in HOSTS.items()
-    }
-    log_dir = tmp_path / "ros-log"
-    specs, command, helpers = demo_runner._rclpy_processes(specs, domain_id=42, log_dir=log_dir)
-    assert {spec.domain_id for spec in specs.values()} == {42}
-    assert {spec.connect + spec.listen for spec in specs.values()} == {()}, "DDS finds its peers"
-    for role in specs:
-        argv, env = command(role, [sys.executable, "-m", "dbml.experiment.roles", role, "{}"])
-        module = "dbml.experiment.roles" if role == "optimizer" else "dbml.experiment.rclpypeers"
-        assert argv == [sys.executable, "-m", module, role, "{}"]
-        assert env is not None
-        assert (env["ROS_DOMAIN_ID"], env["ROS_LOG_DIR"]) == ("42", str(log_dir))
-    assert [h.name for h in helpers] == ["bridge-r1", "bridge-r2"]
-    for helper, camera in zip(helpers, ROBOTS, strict=True):
-        argv = list(helper.argv)
-        assert argv[argv.index("bridge") + 1] == camera.topic
-        assert argv[argv.index("--transport") + 1] == "rclpy"
-        assert argv[argv.index("--domain-id") + 1] == "42"
-        assert argv[argv.index("--host") + 1] == HOSTS[camera.robot.lower()]
-        assert helper.before == "r1", "bridges before the robots they bridge"
-        assert helper.env is not None
-        assert helper.env["ROS_DOMAIN_ID"] == "42"
+# -- the demo without rclpy ------------------------------------------------------------------
 
 
 def test_the_rclpy_demo_without_rclpy_says_what_to_install(

@@ -1,4 +1,4 @@
-"""The operator's report between processes: named keys both ways, malformed ones named."""
+"""The reports between processes (the operator's, a bridge's): named keys, malformed ones named."""
 
 from __future__ import annotations
 
@@ -10,7 +10,13 @@ import pytest
 from dbml.core.errors import SpecError
 from dbml.core.estimator import EstimatorState, Phase
 from dbml.experiment.analysis import Arrival, Tick
-from dbml.experiment.report import TICK, OperatorReport
+from dbml.experiment.report import (
+    PUBLISH_REPORT,
+    TICK,
+    OperatorReport,
+    PublishReport,
+    PublishTiming,
+)
 
 FRAMES = (
     Arrival(robot=0, seq=12, sent_s=100.25, arrival_s=100.3, size_bytes=84_000, rate_hz=5.95),
@@ -83,3 +89,47 @@ def test_a_malformed_report_names_the_field_and_the_value(
 ) -> None:
     with pytest.raises(SpecError, match=match):
         OperatorReport.decode(_broken(path, value))
+
+
+PUBLISHES = PublishReport(
+    (
+        PublishTiming("/r1/camera/optimized", 9, 1, 2.5, 0.4),
+        PublishTiming("/r2/camera/optimized", 0, 0, None, None),
+    )
+)
+
+
+def test_a_bridges_report_survives_a_json_line_unchanged() -> None:
+    message = json.loads(json.dumps(PUBLISHES.encode()))
+    assert message["type"] == PUBLISH_REPORT
+    assert message["publishers"][0] == {
+        "topic": "/r1/camera/optimized",
+        "published": 9,
+        "dropped": 1,
+        "max_ms": 2.5,
+        "p99_ms": 0.4,
+    }
+    assert PublishReport.decode(message) == PUBLISHES
+
+
+@pytest.mark.parametrize(
+    ("path", "value", "match"),
+    [
+        (("type",), "tick", "publish report: type='tick' is not 'publish_stats'"),
+        (("publishers",), {}, "publish report: publishers={} is not a list"),
+        (("publishers", 0), "r1", r"publishers\[0\]='r1' is not a JSON object"),
+        (("publishers", 0, "topic"), 1, r"publishers\[0\]\.topic=1 is not a string"),
+        (("publishers", 1, "dropped"), -2, r"publishers\[1\]\.dropped=-2 is not a count"),
+        (("publishers", 0, "max_ms"), "long", r"publishers\[0\]\.max_ms='long' is not a number"),
+    ],
+)
+def test_a_malformed_publish_report_names_the_field_and_the_value(
+    path: tuple[str | int, ...], value: object, match: str
+) -> None:
+    message: Any = json.loads(json.dumps(PUBLISHES.encode()))
+    target: Any = message
+    for step in path[:-1]:
+        target = target[step]
+    target[path[-1]] = value
+    with pytest.raises(SpecError, match=match):
+        PublishReport.decode(message)

@@ -9,11 +9,8 @@ from __future__ import annotations
 import json
 import logging
 import os
-import queue
 import struct
-import subprocess
 import sys
-import tempfile
 import threading
 import time
 import uuid
@@ -25,30 +22,34 @@ import zenoh
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from dbml.core.errors import DbmlError
-from dbml.experiment import ros2peers
+from dbml.experiment import entry, ros2peers
 from dbml.experiment.analysis import Arrival
-from dbml.experiment.report import OperatorReport
-from dbml.experiment.roles import TICK_S, RoleSpec
-from dbml.experiment.ros2peers import (
-    DEFINITIONS,
+from dbml.experiment.entry import Kind
+from dbml.experiment.peers import (
     FLOAT64_TYPE,
     IMAGE_TYPE,
     OPTIMIZED_SUFFIX,
     PRIORITY_SUFFIX,
+    step_priority,
+)
+from dbml.experiment.report import OperatorReport
+from dbml.experiment.ros2peers import (
+    DEFINITIONS,
     image_fields,
     router_address,
-    step_priority,
     type_hash,
 )
-from dbml.harness.processes import end_process, free_port
+from dbml.experiment.spec import TICK_S, RoleSpec
+from dbml.harness.processes import free_port
 from dbml.protocol import names
 from dbml.runtime.priority import collision_priority_source
 from dbml.scenarios.teleop import MAX_RATE_HZ, PAPER_TABLE2, ROBOTS, STEPS
 from dbml.transports.base import Variant
 from dbml.transports.memory import MemoryTransport
-from dbml.transports.registry import open_transport
+from dbml.transports.registry import TRANSPORTS, open_transport
 from dbml.transports.zenoh import open_router
 from tests.conftest import wait_for
+from tests.experiment.peer_process import Peer
 
 JAZZY = get_typestore(Stores.ROS2_JAZZY)
 READY_TIMEOUT_S = 30.0
@@ -158,53 +159,10 @@ def session_config(endpoint: str) -> zenoh.Config:
     return config
 
 
-class Peer:
-    """A peer process: its JSON lines in a queue, its stdin for ``start``/``stop``."""
-
-    def __init__(self, role: str, spec: RoleSpec) -> None:
-        self.log = tempfile.TemporaryFile("w+")  # noqa: SIM115 - closed in close()
-        self.process = subprocess.Popen(
-            [sys.executable, "-m", "dbml.experiment.ros2peers", role, spec.to_json()],
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            stderr=self.log,
-            text=True,
-            env={**_environ(), "ROS_DOMAIN_ID": "0"},
-        )
-        self.lines: queue.Queue[dict[str, Any]] = queue.Queue()
-        self.reader = threading.Thread(target=self._read, daemon=True)
-        self.reader.start()
-
-    def _read(self) -> None:
-        assert self.process.stdout is not None
-        for line in self.process.stdout:
-            self.lines.put(json.loads(line))
-
-    def next(self, timeout_s: float) -> dict[str, Any]:
-        try:
-            return self.lines.get(timeout=timeout_s)
-        except queue.Empty:
-            self.log.seek(0)
-            tail = self.log.read()[-2000:]
-            pytest.fail(f"no report within {timeout_s} s; rc={self.process.poll()}: {tail}")
-
-    def close(self) -> None:
-        """End the process by PID, then close its pipes and log."""
-        end_process(self.process)
-        self.reader.join(timeout=5)
-        for stream in (self.process.stdin, self.process.stdout):
-            if stream is not None:
-                stream.close()
-        self.log.close()
-
-    def send(self, line: str) -> None:
-        assert self.process.stdin is not None
-        self.process.stdin.write(line + "\n")
-        self.process.stdin.flush()
-
-
-def _environ() -> dict[str, str]:
-    return {k: v for k, v in os.environ.items() if k != "ZENOH_CONFIG_OVERRIDE"}
+def _peer_env() -> dict[str, str]:
+    """A peer's environment: this one's, without a zenoh override, in ROS 2 domain 0."""
+    env = {k: v for k, v in os.environ.items() if k != "ZENOH_CONFIG_OVERRIDE"}
+    return {**env, "ROS_DOMAIN_ID": "0"}
 
 
 @pytest.fixture
@@ -237,7 +195,8 @@ def test_a_camera_publishes_images_at_its_maximum_and_table2s_priorities(router:
             priorities.append((time.time(), value))
 
     session = zenoh.open(session_config(router))
-    peer = Peer("r2", RoleSpec(step_s=step_s, transport="ros2", connect=(router,)))
+    spec = RoleSpec(step_s=step_s, transport=TRANSPORTS["ros2"], connect=(router,))
+    peer = Peer(Kind.ROS2_PEER, "r2", spec, env=_peer_env())
     try:
         session.declare_subscriber(rmw_key(camera.topic, IMAGE_TYPE), on_frame)
         session.declare_subscriber(
@@ -279,7 +238,7 @@ def test_a_camera_publishes_images_at_its_maximum_and_table2s_priorities(router:
             what="a priority published in the second step",
         )
         peer.send("stop")
-        assert peer.process.wait(timeout=REPORT_TIMEOUT_S) == 0
+        assert peer.wait(REPORT_TIMEOUT_S) == 0
     finally:
         peer.close()
         session.close()  # type: ignore[no-untyped-call]  # unannotated in the stubs
@@ -322,14 +281,16 @@ def test_the_operator_reports_each_frame_and_the_parameters_in_force(router: str
 
     thread = threading.Thread(target=cameras, daemon=True)
     peer = Peer(
+        Kind.ROS2_PEER,
         "operator",
         RoleSpec(
             step_s=1.0,
-            transport="ros2",
+            transport=TRANSPORTS["ros2"],
             host="operator",
             connect=(router,),
             listen=("tcp/127.0.0.1:0",),
         ),
+        env=_peer_env(),
     )
     try:
         transport.params.set(names.current_value(ROBOTS[0].topic), 7.5)
@@ -339,7 +300,11 @@ def test_the_operator_reports_each_frame_and_the_parameters_in_force(router: str
         rows: list[Arrival] = []
         allocated: list[tuple[float | None, ...]] = []
         deadline = time.monotonic() + REPORT_TIMEOUT_S
-        while len(rows) < 20 * len(ROBOTS) and time.monotonic() < deadline:
+
+        def fewest() -> int:
+            return min(sum(r.robot == i for r in rows) for i in range(len(ROBOTS)))
+
+        while fewest() < 20 and time.monotonic() < deadline:
             message = peer.next(REPORT_TIMEOUT_S)
             assert message["type"] == "tick"
             report = OperatorReport.decode(message)
@@ -352,7 +317,7 @@ def test_the_operator_reports_each_frame_and_the_parameters_in_force(router: str
                 break
         else:
             pytest.fail("the operator never reported done")
-        assert peer.process.wait(timeout=REPORT_TIMEOUT_S) == 0
+        assert peer.wait(REPORT_TIMEOUT_S) == 0
     finally:
         stop.set()
         thread.join(timeout=5)
@@ -418,11 +383,11 @@ def test_a_camera_whose_driver_dies_ends_early_and_exits_1(
     stdin = _StdinUntil(f"start {time.time()!r}\n")
     monkeypatch.setattr(sys, "stdin", stdin)
     monkeypatch.setattr(ros2peers, "SdkSession", _DeadCameraSdk)
-    spec = RoleSpec(step_s=step_s, transport="zenoh", connect=("tcp/127.0.0.1:7447",))
+    spec = RoleSpec(step_s=step_s, connect=("tcp/127.0.0.1:7447",))
     started = time.monotonic()
     try:
         with caplog.at_level(logging.CRITICAL, logger="dbml"):
-            code = ros2peers.main(["r1", spec.to_json()])
+            code = entry.main(["ros2-peer", "r1", spec.to_json()])
     finally:
         stdin.eof.set()
     assert code == 1

@@ -2,23 +2,22 @@
 
 from __future__ import annotations
 
-import json
+import itertools
 import os
-import queue
 import signal
-import subprocess
 import sys
-import threading
-import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from dbml.harness.processes import end_process, free_port
+from dbml.harness.processes import free_port
+from dbml.harness.supervisor import ProcessChild, Supervisor
 from dbml.transports.zenoh import ZenohTransport
 
 ROOT = Path(__file__).resolve().parents[2]
+STOP_S = 10.0
+"""How long a process told to end may take before it is killed."""
 
 
 def publish_argv(topic: str, size_bytes: int, *more: str) -> list[str]:
@@ -28,70 +27,75 @@ def publish_argv(topic: str, size_bytes: int, *more: str) -> list[str]:
 
 
 class Proc:
-    """One ``python -m dbml ...`` process (or ``-m module``) with its output lines collected."""
+    """One ``python -m dbml ...`` process (or ``-m module``), a child of a ``Supervisor``.
 
-    def __init__(self, args: list[str], env: dict[str, str], *, module: str = "dbml") -> None:
+    Its stdin is /dev/null (as a command's in a shell), its stdout read line by line, its
+    stderr logged; ended by its PID.
+    """
+
+    _names = itertools.count()
+
+    def __init__(
+        self,
+        args: list[str],
+        env: Mapping[str, str],
+        *,
+        module: str = "dbml",
+        children: Supervisor | None = None,
+    ) -> None:
         self.args = args
-        self.popen = subprocess.Popen(
-            [sys.executable, "-m", module, *args],
-            cwd=ROOT,
-            stdin=subprocess.DEVNULL,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            env=env,
+        self._own = children is None
+        self.children = Supervisor() if children is None else children
+        command = args[0] if args and "/" not in args[0] else module.rpartition(".")[2]
+        name = f"{command}-{next(self._names)}"
+        self.child: ProcessChild = self.children.start(
+            name, [sys.executable, "-m", module, *args], env=env, cwd=ROOT, stdin=False
         )
-        self.stdout: queue.Queue[str] = queue.Queue()
-        self.stderr_lines: list[str] = []
-        self._pumps = [
-            threading.Thread(target=self._pump_out, daemon=True),
-            threading.Thread(target=self._pump_err, daemon=True),
-        ]
-        for pump in self._pumps:
-            pump.start()
 
-    def _pump_out(self) -> None:
-        assert self.popen.stdout is not None
-        for line in self.popen.stdout:
-            self.stdout.put(line)
+    @property
+    def pid(self) -> int:
+        return self.child.pid
 
-    def _pump_err(self) -> None:
-        assert self.popen.stderr is not None
-        for line in self.popen.stderr:
-            self.stderr_lines.append(line)
+    def poll(self) -> int | None:
+        """Its exit code, None while it runs."""
+        return self.child.poll()
+
+    def wait(self, timeout_s: float) -> int | None:
+        """Its exit code, waiting up to ``timeout_s`` (None: it still runs)."""
+        return self.child.wait(timeout_s)
+
+    def next_line(self, *, timeout_s: float) -> str | None:
+        """Its next line on stdout, None if none came within ``timeout_s`` (or it ended)."""
+        line = self.child.next(timeout_s=timeout_s)
+        return None if line is None or line.ended else line.text
 
     def json_lines(self, *, timeout_s: float) -> Iterator[dict[str, Any]]:
-        """Parsed stdout lines as they come, until ``timeout_s`` passes."""
-        deadline = time.monotonic() + timeout_s
-        while (left := deadline - time.monotonic()) > 0:
-            try:
-                line = self.stdout.get(timeout=left)
-            except queue.Empty:
-                return
-            try:
-                yield json.loads(line)
-            except ValueError:
-                continue
+        """Its JSON lines (other lines skipped) as they come, until ``timeout_s`` passes."""
+        return self.children.reports(self.child.name, timeout_s=timeout_s)
 
     def drain(self) -> None:
         """Forget the stdout lines printed so far: what is read next is printed from now on."""
-        while True:
-            try:
-                self.stdout.get_nowait()
-            except queue.Empty:
-                return
+        self.children.drop(self.child.name)
 
     def stderr(self) -> str:
-        return "".join(self.stderr_lines)
+        """What it wrote on stderr so far."""
+        return self.child.log()
 
-    def stop(self, sig: int = signal.SIGTERM, timeout_s: float = 10.0) -> int:
-        end_process(self.popen, sig=sig, timeout_s=timeout_s)
-        for pump in self._pumps:
-            pump.join(timeout=5)  # EOF once the process is gone
-        for pipe in (self.popen.stdout, self.popen.stderr):
-            if pipe is not None:
-                pipe.close()
-        return self.popen.returncode
+    @property
+    def stderr_lines(self) -> list[str]:
+        """``stderr()`` line by line, each with its newline."""
+        return self.stderr().splitlines(keepends=True)
+
+    def stop(self, sig: int = signal.SIGTERM, timeout_s: float = STOP_S) -> int:
+        """``sig``, then SIGKILL after ``timeout_s``: its exit code."""
+        self.child.send_signal(sig)
+        if self.child.wait(timeout_s) is None:
+            self.child.force(timeout_s=timeout_s)
+        code = self.child.poll()
+        assert code is not None
+        if self._own:
+            self.children.close()
+        return code
 
 
 class Fleet:
@@ -100,13 +104,11 @@ class Fleet:
     def __init__(self) -> None:
         self.port = free_port()
         self.env = dict(os.environ, DBML_ZENOH_PORT=str(self.port))
-        self.procs: list[Proc] = []
+        self.children = Supervisor()
         self._probe: ZenohTransport | None = None
 
     def start(self, *args: str) -> Proc:
-        proc = Proc(list(args), self.env)
-        self.procs.append(proc)
-        return proc
+        return Proc(list(args), self.env, children=self.children)
 
     @property
     def probe(self) -> ZenohTransport:
@@ -118,10 +120,11 @@ class Fleet:
         return self.probe.params.get(name)
 
     def close(self) -> None:
-        for proc in self.procs:
-            proc.stop()
-        if self._probe is not None:
-            self._probe.close()
+        try:
+            self.children.close()
+        finally:
+            if self._probe is not None:
+                self._probe.close()
 
 
 @contextmanager

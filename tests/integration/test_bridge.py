@@ -115,7 +115,7 @@ def test_bridge_forwards_at_the_allocated_rate(tmp_path: Path) -> None:
                 timeout_s=3 * MEASURED_WINDOWS * WINDOW_S,
                 what="frames over the whole measured span",
             )
-            assert bridge.popen.poll() is None, bridge.stderr()
+            assert bridge.poll() is None, bridge.stderr()
         finally:
             listener.close()  # type: ignore[no-untyped-call]
     with lock:
@@ -132,7 +132,7 @@ def test_bridge_forwards_at_the_allocated_rate(tmp_path: Path) -> None:
 def test_bridge_of_a_silent_topic_exits_2_with_one_line() -> None:
     with fleet() as f:
         proc = f.start("bridge", "/nobody", "--min-hz", "1", "--max-hz", "5", "--wait", "0.5")
-        assert proc.popen.wait(timeout=30) == 2
+        assert proc.wait(30) == 2
         proc.stop()
         assert proc.stderr_lines == [
             "dbml: error: topic='/nobody': no message within 0.5 s "
@@ -148,7 +148,7 @@ def test_bridge_over_ros2_of_an_untyped_topic_exits_2_with_one_line() -> None:
             "bridge", "/nobody", "--min-hz", "1", "--max-hz", "5", "--wait", "0.5",
             "--transport", "ros2", "--listen", listen,
         )  # fmt: skip
-        assert proc.popen.wait(timeout=30) == 2
+        assert proc.wait(30) == 2
         proc.stop()
         assert proc.stderr_lines == [
             "dbml: error: topic='/nobody': its type cannot be resolved (no publisher seen "
@@ -159,7 +159,7 @@ def test_bridge_over_ros2_of_an_untyped_topic_exits_2_with_one_line() -> None:
 def test_bridge_bad_bounds_exit_2_with_one_line() -> None:
     with fleet() as f:
         proc = f.start("bridge", CAMERA, "--min-hz", "9", "--max-hz", "3")
-        assert proc.popen.wait(timeout=30) == 2
+        assert proc.wait(30) == 2
         proc.stop()
         assert proc.stderr().count("\n") == 1
         assert "frequency.min=9.0 exceeds frequency.max=3.0" in proc.stderr()
@@ -169,8 +169,8 @@ def test_router_routes_between_two_clients() -> None:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     with fleet() as f:
         router = f.start("router", "--listen", endpoint)
-        line = router.stdout.get(timeout=20)
-        assert line.strip() == f"zenoh router listening on {endpoint}"
+        line = router.next_line(timeout_s=20)
+        assert line == f"zenoh router listening on {endpoint}"
         received: list[bytes] = []
         first = _session(connect=[endpoint], mode="client")
         second = _session(connect=[endpoint], mode="client")
@@ -191,7 +191,7 @@ def test_router_routes_between_two_clients() -> None:
 def test_router_bad_endpoint_exits_2_with_one_line() -> None:
     with fleet() as f:
         proc = f.start("router", "--listen", "tcp/127.0.0.1:99999")
-        assert proc.popen.wait(timeout=30) == 2
+        assert proc.wait(30) == 2
         proc.stop()
         assert proc.stderr().count("\n") == 1
         assert "endpoint='tcp/127.0.0.1:99999'" in proc.stderr()

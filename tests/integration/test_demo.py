@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -12,6 +11,7 @@ from typing import Any
 
 import pytest
 
+from dbml.harness.supervisor import ProcessChild, Supervisor
 from dbml.transports.zenoh import ZenohTransport
 from tests.conftest import wait_for
 
@@ -61,6 +61,14 @@ def children_of(pid: int) -> set[int]:
         children = (task / "children").read_text().split()
         found.update(int(c) for c in children)
     return found
+
+
+def stdout_of(child: ProcessChild, *, timeout_s: float) -> str:
+    """What ``child`` wrote on stdout until its output ended (or ``timeout_s`` passed)."""
+    texts = []
+    while (line := child.next(timeout_s=timeout_s)) is not None and not line.ended:
+        texts.append(line.text + "\n")
+    return "".join(texts)
 
 
 def alive(pid: int) -> bool:
@@ -150,14 +158,13 @@ def demo_port(pids: set[int]) -> int | None:
 
 @pytest.mark.parametrize("when", ["starting", "running"])
 def test_ctrl_c_ends_the_demo_cleanly_and_leaves_no_process(when: str) -> None:
-    demo = subprocess.Popen(
-        [sys.executable, "-m", "dbml", "demo", "teleop", "--step-seconds", "3", "--json"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,  # its own process group, as a terminal's foreground job
-    )
-    try:
+    with Supervisor() as children:
+        demo = children.start(
+            "demo",
+            [sys.executable, "-m", "dbml", "demo", "teleop", "--step-seconds", "3", "--json"],
+            stdin=False,
+            new_session=True,  # its own process group, as a terminal's foreground job
+        )
         wait_for(lambda: len(children_of(demo.pid)) == 4, timeout_s=30, what="the 4 role processes")
         roles = children_of(demo.pid)
         if when == "running":
@@ -171,12 +178,8 @@ def test_ctrl_c_ends_the_demo_cleanly_and_leaves_no_process(when: str) -> None:
                 )
             finally:
                 probe.close()
-        os.killpg(demo.pid, signal.SIGINT)  # what Ctrl-C in a terminal sends
-        out, err = demo.communicate(timeout=30)
-        assert demo.returncode == 0, err[-3000:]
+        demo.send_signal(signal.SIGINT, group=True)  # what Ctrl-C in a terminal sends
+        out = stdout_of(demo, timeout_s=30)
+        assert demo.wait(30) == 0, demo.log_tail(3000)
         assert json.loads(out)["interrupted"] is True
         wait_for(lambda: not any(alive(pid) for pid in roles), timeout_s=10, what="no role left")
-    finally:
-        if demo.poll() is None:
-            demo.kill()
-            demo.communicate(timeout=10)

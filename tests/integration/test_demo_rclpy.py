@@ -11,7 +11,6 @@ from __future__ import annotations
 import json
 import os
 import signal
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -19,7 +18,8 @@ from pathlib import Path
 import pytest
 
 from dbml.harness.ros2env import fastdds_shm_files
-from tests.integration.test_demo import alive, assert_matches_table2, children_of
+from dbml.harness.supervisor import Supervisor
+from tests.integration.test_demo import alive, assert_matches_table2, children_of, stdout_of
 
 pytestmark = pytest.mark.integration
 
@@ -34,37 +34,27 @@ def test_demo_over_rclpy_matches_table2_and_leaves_nothing(tmp_path: Path) -> No
     home.mkdir()
     env = dict(os.environ, HOME=str(home))  # where rclpy would log without ROS_LOG_DIR
     env.pop("ROS_LOG_DIR", None)
-    out, err = tmp_path / "demo.out", tmp_path / "demo.err"
-    with out.open("w") as stdout_file, err.open("w") as stderr_file:  # never a full pipe
-        demo = subprocess.Popen(
-            [*DEMO, "--step-seconds", "1.5", "--json"],
-            stdout=stdout_file,
-            stderr=stderr_file,
-            text=True,
-            env=env,
-        )
     started: set[int] = set()
     shm: set[Path] = set()
     deadline = time.monotonic() + DEMO_TIMEOUT_S
-    try:
-        while demo.poll() is None and time.monotonic() < deadline:
-            started |= children_of(demo.pid)  # bridges, optimizer and the ROS 2 peers
-            shm |= set(fastdds_shm_files(started))
-            time.sleep(0.1)
-        demo.wait(timeout=max(1.0, deadline - time.monotonic()))
-    finally:
-        if demo.poll() is None:  # as Ctrl-C would: the demo ends its children, then itself
-            demo.send_signal(signal.SIGINT)
-            try:
-                demo.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                demo.kill()
-                demo.wait(timeout=10)
-            for pid in started:
-                if alive(pid):
-                    os.kill(pid, signal.SIGKILL)
-    stdout, stderr = out.read_text(), err.read_text()
-    assert demo.returncode == 0, stderr[-3000:]
+    with Supervisor() as children:
+        demo = children.start("demo", [*DEMO, "--step-seconds", "1.5", "--json"], env=env)
+        try:
+            while demo.poll() is None and time.monotonic() < deadline:
+                started |= children_of(demo.pid)  # bridges, optimizer and the ROS 2 peers
+                shm |= set(fastdds_shm_files(started))
+                time.sleep(0.1)
+        finally:
+            if demo.poll() is None:  # as Ctrl-C would: the demo ends its children, then itself
+                demo.send_signal(signal.SIGINT)
+                if demo.wait(20) is None:
+                    demo.kill()
+                for pid in started:
+                    if alive(pid):
+                        os.kill(pid, signal.SIGKILL)
+        stdout = stdout_of(demo, timeout_s=10)
+        code, stderr = demo.wait(10), demo.log_tail(3000)
+    assert code == 0, stderr
     assert len(started) >= 6, "2 bridges, optimizer, operator and 2 robots"
     assert not [pid for pid in started if alive(pid)], "every process ended by the demo"
     assert shm, "the processes' Fast DDS shared memory was seen while they ran"

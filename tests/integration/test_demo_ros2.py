@@ -7,14 +7,14 @@ the optimizer and a ``dbml router`` are dbml's. Every process is a real one on l
 from __future__ import annotations
 
 import json
-import subprocess
 import sys
 import time
 
 import pytest
 
 from dbml.cli.main import main
-from tests.integration.test_demo import alive, assert_matches_table2, children_of
+from dbml.harness.supervisor import Supervisor
+from tests.integration.test_demo import alive, assert_matches_table2, children_of, stdout_of
 
 pytestmark = pytest.mark.integration
 
@@ -23,35 +23,17 @@ DEMO_TIMEOUT_S = 240.0
 
 
 def test_demo_over_ros2_matches_table2_and_ends_every_process() -> None:
-    demo = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "dbml",
-            "demo",
-            "teleop",
-            "--transport",
-            "ros2",
-            "--step-seconds",
-            "1.5",
-            "--json",
-        ],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    argv = [sys.executable, "-m", "dbml", "demo", "teleop", "--transport", "ros2"]
     started: set[int] = set()
     deadline = time.monotonic() + DEMO_TIMEOUT_S
-    try:
+    with Supervisor() as children:
+        demo = children.start("demo", [*argv, "--step-seconds", "1.5", "--json"], stdin=False)
         while demo.poll() is None and time.monotonic() < deadline:
             started |= children_of(demo.pid)  # router, bridges, optimizer and the ROS 2 peers
             time.sleep(0.1)
-        stdout, stderr = demo.communicate(timeout=max(1.0, deadline - time.monotonic()))
-    finally:
-        if demo.poll() is None:
-            demo.kill()
-            demo.communicate(timeout=10)
-    assert demo.returncode == 0, stderr[-3000:]
+        stdout = stdout_of(demo, timeout_s=max(1.0, deadline - time.monotonic()))
+        code, stderr = demo.wait(1.0), demo.log_tail(3000)
+    assert code == 0, stderr
     assert len(started) >= 7, "router, 2 bridges, optimizer, operator and 2 robots"
     assert not [pid for pid in started if alive(pid)], "every process ended by the demo"
     assert_matches_table2(json.loads(stdout))

@@ -18,7 +18,7 @@ from typing import Any
 import pytest
 
 from dbml.harness.processes import free_port
-from tests.foxglove_client import FoxgloveClient
+from dbml.view.client import FoxgloveClient
 from tests.integration.procs import ROOT, Proc, fleet, publish_argv
 
 pytestmark = pytest.mark.integration
@@ -180,9 +180,9 @@ def test_the_demo_view_live_and_recorded(demo: Any) -> None:
         assert client.pump(lambda: client.answer("back") is not None, timeout_s=5)
 
         # Until the demo ends and closes the server.
-        client.pump(lambda: proc.popen.poll() is not None, timeout_s=60)
+        client.pump(lambda: proc.poll() is not None, timeout_s=60)
         live = {topic: list(messages) for topic, messages in client.messages.items()}
-    assert proc.popen.wait(timeout=30) in {0, 1}  # 1: the halved budget broke Table 2's step
+    assert proc.wait(30) in {0, 1}  # 1: the halved budget broke Table 2's step
     assert not any("Traceback" in line for line in proc.stderr_lines), proc.stderr_lines
 
     recording = read_mcap(record)

@@ -241,7 +241,7 @@ def test_a_type_whose_package_is_missing_names_what_to_install(ros2: Ros2Run) ->
         "--max-hz",
         "5",
     )
-    assert bridge.popen.wait(timeout=START_S) == 2
+    assert bridge.wait(START_S) == 2
     bridge.stop()
     assert bridge.stderr() == (
         "dbml: error: type='nav2_msgs/msg/Costmap': Python package 'nav2_msgs' is missing: "

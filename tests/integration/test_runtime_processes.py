@@ -95,7 +95,7 @@ def test_priority_change_reacts_at_once_not_at_the_period(tmp_path: Path) -> Non
         # priorities 0/0: Table 2 step 2, R1 12.37 Hz
         wait_for(lambda: round(allocated(f) or 0, 2) == 12.37, timeout_s=20, what="12.37 Hz")
         setter = f.start("priority", "/r1/camera", "0.8", "--host", "cli")
-        assert setter.popen.wait(timeout=30) == 0, setter.stderr()
+        assert setter.wait(30) == 0, setter.stderr()
         # R1 at priority 0.8 (R2 0): floor 16 Hz. The period is 60 s: only an event explains it.
         wait_for(lambda: allocated(f) == 16.0, timeout_s=5, what="the immediate reaction")
 
@@ -144,7 +144,7 @@ def test_monitor_json_lists_every_channel(tmp_path: Path) -> None:
         assert row["allocated_hz"] == 16.0
         assert row["share"] == pytest.approx(16 * 21_000 / 1_375_000)
         assert row["status"] == "optimal"
-        assert monitor.popen.wait(timeout=15) == 0
+        assert monitor.wait(15) == 0
 
 
 def test_an_estimating_optimizer_shows_its_estimate_in_the_monitor(tmp_path: Path) -> None:
@@ -215,7 +215,7 @@ def test_bad_values_from_a_peer_are_ignored_and_the_wire_keeps_the_budget(
         assert min(rates) >= 0.75 * budget  # still sending: nothing dropped out
         assert f.param(names.current_value(CAMERA)) == pytest.approx(budget / 84_000)
         for proc in (optimizer, camera, viewer):
-            assert proc.popen.poll() is None, proc.stderr()
+            assert proc.poll() is None, proc.stderr()
         assert "Traceback" not in optimizer.stderr() + camera.stderr()
         # Good values again: the reports go, and a change is followed as ever.
         for name, good in [
@@ -345,5 +345,5 @@ def test_forged_link_beacons_never_widen_the_wire(tmp_path: Path) -> None:
         assert len(rates) == 5
         assert max(rates) <= 1.1 * budget  # whole frames per 1-s window: at most one extra
         assert min(rates) >= FRAME_BYTES  # held and owed, never silenced: the minimum, 1 Hz
-        assert camera.popen.poll() is None, camera.stderr()
+        assert camera.poll() is None, camera.stderr()
         assert "Traceback" not in camera.stderr()

@@ -13,7 +13,6 @@ import shutil
 import signal
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -21,8 +20,9 @@ from pathlib import Path
 
 import pytest
 
-from dbml.harness.processes import end_process, foreign_interpreter_env
+from dbml.harness.processes import foreign_interpreter_env
 from dbml.harness.rosmaster import RosMaster
+from dbml.harness.supervisor import Supervisor
 from dbml.transports.rosapi import MasterClient
 from tests.conftest import require
 from tests.integration.procs import Proc
@@ -104,33 +104,28 @@ class RosNet:
 
     def rostopic_hz(self, topic: str, *, window: int, timeout_s: float) -> float:
         """``rostopic hz -w window``'s first average over a full window of messages."""
-        process = subprocess.Popen(
-            ["rostopic", "hz", "-w", str(window), topic],
-            env=foreign_interpreter_env(self.env),
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-        )
         rate: float | None = None
-        # Ends the read below at the deadline even if rostopic prints nothing more.
-        timer = threading.Timer(timeout_s, process.send_signal, [signal.SIGINT])
-        timer.start()
-        try:
-            assert process.stdout is not None
-            for line in process.stdout:
-                if match := re.search(r"average rate: ([0-9.]+)", line):
+        deadline = time.monotonic() + timeout_s
+        with Supervisor() as children:  # ended by SIGINT, as rostopic expects, by its PID
+            hz = children.start(
+                "rostopic-hz",
+                ["rostopic", "hz", "-w", str(window), topic],
+                env=foreign_interpreter_env(self.env),
+                stdin=False,
+                stop_signal=signal.SIGINT,
+            )
+            while (left := deadline - time.monotonic()) > 0:
+                line = hz.next(timeout_s=left)
+                if line is None or line.ended:
+                    break
+                if match := re.search(r"average rate: ([0-9.]+)", line.text):
                     rate = float(match.group(1))
                 elif (
-                    (match := re.search(r"window: (\d+)", line))
+                    (match := re.search(r"window: (\d+)", line.text))
                     and rate is not None
                     and int(match.group(1)) >= window
                 ):
                     return rate
-        finally:
-            timer.cancel()
-            end_process(process, sig=signal.SIGINT)
-            if process.stdout is not None:
-                process.stdout.close()
         pytest.fail(f"rostopic hz {topic}: no full window of {window} in {timeout_s} s")
 
     def close(self) -> None:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import io
-import subprocess
 from pathlib import Path
 
 import pytest
@@ -72,9 +71,8 @@ def test_a_start_thread_that_dies_ends_the_spinning_node_with_exit_code_1(ros: R
     """A node whose camera thread died must not look alive: a supervisor restarts it."""
     ros.rosparam("set", "/dbm/max_bandwidth_in_mbit", "4")
     node = ros.node("/r1/camera", host="127.0.0.2", module="tests.ros1.dying_nodes")
-    try:
-        code = node.popen.wait(timeout=60)
-    except subprocess.TimeoutExpired:
+    code = node.wait(60)
+    if code is None:
         pytest.fail(f"the node still runs after its thread died:\n{node.stderr()}")
     assert code == 1, node.stderr()
     assert lines(node, 1) == [{"alive": False}]
@@ -92,9 +90,8 @@ def test_a_start_thread_stopped_by_ros_shutdown_is_no_death_and_the_node_exits_0
     """Ctrl-C shuts ROS down between the thread's check and its call: rospy raises, no death."""
     ros.rosparam("set", "/dbm/max_bandwidth_in_mbit", "4")
     node = ros.node("/r1/camera", "stopping", host="127.0.0.2", module="tests.ros1.dying_nodes")
-    try:
-        code = node.popen.wait(timeout=60)
-    except subprocess.TimeoutExpired:
+    code = node.wait(60)
+    if code is None:
         pytest.fail(f"the node still runs after ROS shut down:\n{node.stderr()}")
     assert code == 0, node.stderr()
     assert lines(node, 1) == [{"alive": False, "deaths": 0}]

@@ -173,14 +173,14 @@ def test_rosparam_set_of_a_priority_moves_the_bandwidth(ros: RosNet) -> None:
 
 def test_bad_input_is_one_line_and_exit_2(ros: RosNet) -> None:
     proc = ros.node("optimizer", "--transport", "ros1", "--estimate", host=OPTIMIZER)
-    assert proc.popen.wait(timeout=30) == 2
+    assert proc.wait(30) == 2
     lines = [line for line in proc.stderr().splitlines() if line.strip()]
     assert len(lines) == 1
     assert "--estimate" in lines[0]
     proc = ros.node(
         "subscribe", CAMERA, "--transport", "ros1", "--connect", "tcp/127.0.0.1:1", host=OPERATOR
     )
-    assert proc.popen.wait(timeout=30) == 2
+    assert proc.wait(30) == 2
     assert "transport='ros1' takes no endpoints" in proc.stderr()
 
 
@@ -188,5 +188,5 @@ def test_no_master_is_a_clear_error(ros: RosNet) -> None:
     dead = dict(ros.env, ROS_MASTER_URI="http://127.0.0.1:9/")
     broken = Proc(["monitor", "--transport", "ros1", "--duration", "1"], dead)
     ros.procs.append(broken)
-    assert broken.popen.wait(timeout=30) == 2
+    assert broken.wait(30) == 2
     assert "no ROS master at ROS_MASTER_URI=http://127.0.0.1:9/" in broken.stderr()

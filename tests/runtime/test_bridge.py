@@ -5,13 +5,13 @@ import threading
 
 import pytest
 
-from dbml.cli.commands import run_bridge
 from dbml.core.config import BridgeChannel
 from dbml.core.errors import TransportError
 from dbml.protocol import names
 from dbml.runtime import bridge as bridge_module
 from dbml.runtime.bridge import Bridge
 from dbml.runtime.publisher import ManagedPublisher
+from dbml.runtime.serve import run_bridge
 from dbml.transports import ManualClock, MemoryNetwork, MemoryTransport, Sample, Variant
 from dbml.transports.worker import death_count
 from tests.conftest import wait_for

@@ -15,7 +15,9 @@ from dbml.cli import documents
 from dbml.experiment.analysis import MAX_P95_MS
 from dbml.scenarios.fleet import fleet_allocation, fleet_cameras, fleet_steps, urgent_robot
 from dbml.testbed import leftover_namespaces
-from dbml.testbed.runner import TestbedOptions, TestbedResult, run_teleop_testbed
+from dbml.testbed.options import TestbedOptions
+from dbml.testbed.result import TestbedResult
+from dbml.testbed.runner import run_teleop_testbed
 
 pytestmark = pytest.mark.integration
 

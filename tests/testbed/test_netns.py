@@ -2,19 +2,16 @@
 
 from __future__ import annotations
 
-import json
 import math
-import os
 import re
-import signal
 import subprocess
 import sys
 from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
 from typing import Any
 
 import pytest
 
+from dbml.harness.supervisor import Supervisor
 from dbml.testbed import Network, TestbedError, leftover_namespaces
 from dbml.testbed import netns as netns_module
 
@@ -69,36 +66,29 @@ else:
 """
 
 
-@contextmanager
-def started(argv: Sequence[str]) -> Iterator[subprocess.Popen[str]]:
-    """A process that is ended by PID when the block leaves, however it leaves."""
-    proc = subprocess.Popen(
-        list(argv),
-        stdin=subprocess.DEVNULL,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    try:
-        yield proc
-    finally:
-        if proc.poll() is None:
-            os.kill(proc.pid, signal.SIGKILL)
-        proc.communicate(timeout=5)
-
-
 def transfer(network: Network, src: str, dst: str, nbytes: int, timeout_s: float) -> dict[str, Any]:
     """Send ``nbytes`` over TCP from ``src`` to ``dst``; what the receiver saw."""
     address = network.hosts[dst].address
     args = [address, str(PORT), str(timeout_s)]
-    serve = network.exec_argv(dst, [sys.executable, "-c", PEER, "serve", *args])
-    send = network.exec_argv(src, [sys.executable, "-c", PEER, "send", *args, str(nbytes)])
-    with started(serve) as server, started(send) as client:
-        _, client_err = client.communicate(timeout=timeout_s + 2)
-        assert client.returncode == 0, f"{src}->{dst} sender failed: {client_err}"
-        out, server_err = server.communicate(timeout=timeout_s + 2)
-        assert server.returncode == 0, f"{src}->{dst} receiver failed: {server_err}"
-    result: dict[str, Any] = json.loads(out)
+    with Supervisor() as children:  # ended by PID when the block leaves, however it leaves
+        server = children.start(
+            "serve",
+            [sys.executable, "-c", PEER, "serve", *args],
+            netns=network.hosts[dst].netns,
+            stdin=False,
+        )
+        client = children.start(
+            "send",
+            [sys.executable, "-c", PEER, "send", *args, str(nbytes)],
+            netns=network.hosts[src].netns,
+            stdin=False,
+        )
+        assert client.wait(timeout_s + 2) == 0, f"{src}->{dst} sender failed: {client.log()}"
+        assert server.wait(timeout_s + 2) == 0, f"{src}->{dst} receiver failed: {server.log()}"
+        out = server.next(timeout_s=5)
+    assert out is not None
+    assert out.report is not None, out.text
+    result: dict[str, Any] = out.report
     assert result["bytes"] == nbytes
     return result
 

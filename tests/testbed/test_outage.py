@@ -13,7 +13,8 @@ import sys
 import pytest
 
 from dbml.testbed import Network, TestbedError, leftover_namespaces
-from dbml.testbed.runner import TestbedOptions, run_teleop_testbed
+from dbml.testbed.options import TestbedOptions
+from dbml.testbed.runner import run_teleop_testbed
 
 pytestmark = pytest.mark.integration
 

@@ -8,31 +8,26 @@ the options and the wiring without root.
 
 from __future__ import annotations
 
+import contextlib
 import json
-import logging
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
 from dbml.cli.main import main
 from dbml.experiment import rclpypeers
-from dbml.experiment.ros2peers import FrameRecorder
+from dbml.experiment.entry import ENTRY_MODULE, Kind
+from dbml.experiment.peers import FrameRecorder
 from dbml.protocol.messages import ReceptionReport
 from dbml.runtime.reception import RECEPTION_TOPIC, ReceptionReporter
 from dbml.scenarios.teleop import MAX_RATE_HZ, ROBOTS
-from dbml.testbed import Network, TestbedError, leftover_namespaces
-from dbml.testbed.bridge import STATS_LOGGER, PublishStatsHandler, read_stats
-from dbml.testbed.runner import (
-    BRIDGE_MODULE,
-    RCLPY_PEERS_MODULE,
-    ROLES_MODULE,
-    TestbedOptions,
-    TestbedResult,
-    _rclpy_run,
-    ros_env,
-    run_teleop_testbed,
-)
+from dbml.testbed import Network, TestbedError, leftover_namespaces, rclpy_layout
+from dbml.testbed.options import TestbedOptions
+from dbml.testbed.rclpy_layout import RclpyLayout, ros_env
+from dbml.testbed.result import TestbedResult
+from dbml.testbed.runner import run_teleop_testbed
 from dbml.transports.base import Sample
 from dbml.transports.memory import MemoryNetwork
 from dbml.transports.registry import open_transport
@@ -63,12 +58,13 @@ def test_zenoh_only_options_are_refused_over_rclpy(flags: dict[str, object], nam
 
 def test_rclpy_takes_every_policy_fleets_and_estimation() -> None:
     for policy in ("dbml", "static", "unmanaged"):
-        assert TestbedOptions.from_flags(policy=policy, transport="rclpy").transport == "rclpy"
+        options = TestbedOptions.from_flags(policy=policy, transport="rclpy")
+        assert options.transport.name == "rclpy"
     options = TestbedOptions.from_flags(
         transport="rclpy", robots=4, estimate=True, link_schedule="0:11,10:5,20:11"
     )
     assert (options.robots, options.estimate) == (4, True)
-    assert TestbedOptions.from_flags().transport == "zenoh", "the default"
+    assert TestbedOptions.from_flags().transport.name == "zenoh", "the default"
 
 
 @pytest.mark.parametrize(
@@ -113,40 +109,47 @@ def test_robots_announce_themselves_to_the_operator_and_shared_memory_is_off(
 
 @pytest.mark.parametrize("policy", ["dbml", "unmanaged"])
 def test_the_roles_run_as_the_rclpy_demos_do_each_in_its_namespace(
-    policy: str, tmp_path: Path
+    policy: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    @contextlib.contextmanager
+    def domain() -> Iterator[int]:
+        yield 42
+
+    monkeypatch.setattr(rclpy_layout, "claim_domain", domain)
     network = Network(link_mbit=11.0)
     options = TestbedOptions.from_flags(policy=policy, transport="rclpy", estimate=False)
-    run = _rclpy_run(network, options, domain_id=42, run_dir=tmp_path)
+    with contextlib.ExitStack() as run:
+        plan = RclpyLayout().plan(network, options, run=run, folder=tmp_path)
     managed = policy == "dbml"
-    assert list(run.specs) == ["operator", *(["optimizer"] if managed else []), "r1", "r2"]
-    assert {(s.transport, s.domain_id, s.managed) for s in run.specs.values()} == {
+    assert list(plan.specs) == ["operator", *(["optimizer"] if managed else []), "r1", "r2"]
+    assert {(s.transport.name, s.domain_id, s.managed) for s in plan.specs.values()} == {
         ("rclpy", 42, managed)
     }
-    for role in run.specs:
-        argv, env = run.command(role, [sys.executable, "-m", ROLES_MODULE, role, "{}"])
+    assert plan.launches is not None
+    for role, launch in plan.launches.items():
         netns = network.hosts["op" if role in ("operator", "optimizer") else role].netns
-        assert argv[:4] == ["ip", "netns", "exec", netns]
-        module = ROLES_MODULE if role == "optimizer" else RCLPY_PEERS_MODULE
+        assert launch.netns == netns
+        kind = Kind.ROLE if role == "optimizer" else Kind.RCLPY_PEER
         tail = ["--sample-info"] if role == "operator" else []
-        assert argv[4:] == [sys.executable, "-m", module, role, "{}", *tail]
-        assert env is not None
-        assert env["ROS_DOMAIN_ID"] == "42"
+        spec = plan.specs[role].to_json()
+        assert list(launch.argv) == [sys.executable, "-m", ENTRY_MODULE, kind, role, spec, *tail]
+        assert launch.env is not None
+        assert launch.env["ROS_DOMAIN_ID"] == "42"
+        assert launch.env["ROS_LOG_DIR"] == str(tmp_path / "ros")
     if not managed:
-        assert run.helpers == ()
+        assert plan.helpers == ()
         return
-    assert [h.name for h in run.helpers] == ["bridge-r1", "bridge-r2"]
-    for helper, camera in zip(run.helpers, ROBOTS, strict=True):
-        argv = list(helper.argv)
-        assert argv[:4] == ["ip", "netns", "exec", network.hosts[camera.robot.lower()].netns]
-        assert argv[argv.index("-m") + 1] == BRIDGE_MODULE
-        assert argv[argv.index("-m") + 2] == str(run.stats[camera.robot])
-        assert argv[argv.index("-m") + 3] == camera.topic
-        assert argv[argv.index("--transport") + 1] == "rclpy"
-        assert argv[argv.index("--domain-id") + 1] == "42"
+    assert [h.name for h in plan.helpers] == ["bridge-r1", "bridge-r2"]
+    for helper, camera in zip(plan.helpers, ROBOTS, strict=True):
+        assert helper.launch.netns == network.hosts[camera.robot.lower()].netns
+        argv = list(helper.launch.argv)
+        assert argv[:5] == [sys.executable, "-m", ENTRY_MODULE, Kind.BRIDGE, argv[4]]
+        document = json.loads(argv[4])
+        assert document["topic"] == camera.topic
+        assert (document["transport"], document["domain_id"]) == ("rclpy", 42)
         assert helper.before == "r1", "bridges before the robots they bridge"
-        assert helper.env is not None
-        assert helper.env["ROS_STATIC_PEERS"] == network.hosts["op"].address
+        assert helper.launch.env is not None
+        assert helper.launch.env["ROS_STATIC_PEERS"] == network.hosts["op"].address
 
 
 def test_the_plain_operator_reports_what_arrived_with_dds_sequence_and_send_time() -> None:
@@ -182,34 +185,27 @@ def test_the_plain_operator_reports_what_arrived_with_dds_sequence_and_send_time
     assert frame.sent_ns == 1_795_000_000_250_000_000
 
 
-def test_the_bridge_helper_keeps_the_publish_statistics_logged_at_close(tmp_path: Path) -> None:
+def test_the_bridge_reports_the_publish_statistics_its_publisher_keeps() -> None:
     pytest.importorskip("rclpy")  # the statistics are the rclpy transport's
+    from dbml.experiment.bridge import timing_of
+    from dbml.experiment.report import PublishTiming
     from dbml.transports.rclpy import PublishStats
 
-    stats = PublishStats("/r1/camera/optimized", 9, 1, 2.5, 0.4)
-    handler = PublishStatsHandler()
-    logger = logging.getLogger(STATS_LOGGER)
-    logger.addHandler(handler)
-    try:
-        logger.warning("no statistics here")
-        logger.warning("closing", extra={"publish_stats": stats})
-    finally:
-        logger.removeHandler(handler)
-    assert handler.stats == [
-        {
-            "topic": "/r1/camera/optimized",
-            "published": 9,
-            "dropped": 1,
-            "max_ms": 2.5,
-            "p99_ms": 0.4,
-        }
-    ]
-    path = tmp_path / "bridge-r1.json"
-    path.write_text(json.dumps(handler.stats))
-    assert read_stats(path) == handler.stats
-    path.write_text("{not json")
-    assert read_stats(path) == [], "a bridge killed while writing: nothing known"
-    assert read_stats(tmp_path / "missing.json") == []
+    class Timed:
+        def stats(self) -> PublishStats:
+            return PublishStats("/r1/camera/optimized", 9, 1, 2.5, 0.4)
+
+    class Managed:
+        optimized_publisher = Timed()
+
+    class Bridged:
+        publisher = Managed()
+
+    assert timing_of(Bridged()) == PublishTiming(  # type: ignore[arg-type]
+        "/r1/camera/optimized", 9, 1, 2.5, 0.4
+    )
+    Managed.optimized_publisher = object()  # type: ignore[assignment]
+    assert timing_of(Bridged()) is None, "a publisher that keeps none: nothing known"  # type: ignore[arg-type]
 
 
 # -- one real run, as root ------------------------------------------------------------------------

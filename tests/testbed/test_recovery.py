@@ -16,7 +16,8 @@ import pytest
 from dbml.experiment.analysis import OUTAGE_RECOVERY_S
 from dbml.experiment.analysis.outage import LINK_SCOPE
 from dbml.testbed import leftover_namespaces
-from dbml.testbed.runner import TestbedOptions, run_teleop_testbed
+from dbml.testbed.options import TestbedOptions
+from dbml.testbed.runner import run_teleop_testbed
 
 pytestmark = pytest.mark.integration
 

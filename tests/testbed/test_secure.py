@@ -18,14 +18,13 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-import threading
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
 
-from dbml.harness.processes import end_process
+from dbml.harness.supervisor import Supervisor
 from dbml.testbed import Network, leftover_namespaces
 from tests.conftest import wait_for
 
@@ -68,29 +67,28 @@ reached a peer and whether a peer holds the last write."""
 
 @dataclass
 class Reader:
-    """The optimizer node's session: what it accepted, in order."""
+    """The optimizer node's session (a child of ``children``): what it accepted, in order."""
 
-    process: subprocess.Popen[str]
+    children: Supervisor
+    name: str
     changes: list[tuple[str, object]] = field(default_factory=list)
-    lock: threading.Lock = field(default_factory=threading.Lock)
-    ready: threading.Event = field(default_factory=threading.Event)
 
-    def pump(self) -> None:
-        assert self.process.stdout is not None
-        for line in self.process.stdout:
-            try:
-                document = json.loads(line)
-            except ValueError:
-                continue
-            if document.get("ready"):
-                self.ready.set()
-            elif "name" in document:
-                with self.lock:
-                    self.changes.append((document["name"], document["value"]))
+    def _take(self) -> None:
+        """What it reported since the last look."""
+        for line in self.children.take_all(lambda ln: ln.child == self.name):
+            if line.report is not None and "name" in line.report:
+                self.changes.append((line.report["name"], line.report["value"]))
+
+    def wait_ready(self, timeout_s: float) -> bool:
+        line = self.children.take(
+            lambda ln: ln.child == self.name and (ln.ended or bool((ln.report or {}).get("ready"))),
+            timeout_s=timeout_s,
+        )
+        return line is not None and not line.ended
 
     def values(self, name: str) -> list[object]:
-        with self.lock:
-            return [value for changed, value in self.changes if changed == name]
+        self._take()
+        return [value for changed, value in self.changes if changed == name]
 
     def current(self, name: str) -> object:
         values = self.values(name)
@@ -153,27 +151,11 @@ def fleet(netns_privilege: None, tmp_path_factory: pytest.TempPathFactory) -> It
         )
         assert done.returncode == 0, done.stderr
         argv = [sys.executable, "-c", READER, str(directory / "opt.json5"), "opt"]
-        process = subprocess.Popen(
-            network.exec_argv("op", argv),
-            cwd=ROOT,
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.DEVNULL,
-            text=True,
-        )
-        reader = Reader(process)
-        pump = threading.Thread(target=reader.pump, daemon=True)
-        pump.start()
-        try:
-            assert reader.ready.wait(30), "the optimizer's session did not start"
+        with Supervisor() as children:  # stdin closed, then SIGTERM and SIGKILL, by its PID
+            children.start("reader", argv, netns=network.hosts["op"].netns, cwd=ROOT)
+            reader = Reader(children, "reader")
+            assert reader.wait_ready(30), "the optimizer's session did not start"
             yield Fleet(network, directory, reader)
-        finally:
-            assert process.stdin is not None
-            process.stdin.close()
-            end_process(process, timeout_s=10)
-            pump.join(timeout=5)
-            if process.stdout is not None:
-                process.stdout.close()
     assert leftover_namespaces(f"dbml-{network.run_id}-") == []
 
 

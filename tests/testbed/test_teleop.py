@@ -15,8 +15,11 @@ from typing import Any
 
 import pytest
 
+from dbml.harness.supervisor import ProcessChild, Supervisor
 from dbml.testbed import leftover_namespaces
-from dbml.testbed.runner import TestbedOptions, TestbedResult, run_teleop_testbed
+from dbml.testbed.options import TestbedOptions
+from dbml.testbed.result import TestbedResult
+from dbml.testbed.runner import run_teleop_testbed
 from tests.conftest import wait_for
 
 pytestmark = pytest.mark.integration
@@ -118,16 +121,16 @@ def test_an_uplink_limit_is_kept(netns_privilege: None) -> None:
 
 
 @pytest.fixture
-def testbed_cli(netns_privilege: None) -> Iterator[tuple[subprocess.Popen[str], str]]:
+def testbed_cli(netns_privilege: None) -> Iterator[tuple[ProcessChild, str]]:
     """A running ``dbml testbed teleop`` and its run id, once its roles are up."""
     before = set(leftover_namespaces())
-    process = subprocess.Popen(
-        [sys.executable, "-m", "dbml", "testbed", "teleop", "--step-seconds", "3", "--json"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    try:
+    with Supervisor() as children:  # killed by its PID if a test leaves it running
+        process = children.start(
+            "testbed",
+            [sys.executable, "-m", "dbml", "testbed", "teleop", "--step-seconds", "3", "--json"],
+            stdin=False,
+            stop_signal=signal.SIGKILL,
+        )
         wait_for(
             lambda: len(set(leftover_namespaces()) - before) >= 4,
             timeout_s=20,
@@ -140,10 +143,6 @@ def testbed_cli(netns_privilege: None) -> Iterator[tuple[subprocess.Popen[str], 
             what="the operator and optimizer processes",
         )
         yield process, run_id
-    finally:
-        if process.poll() is None:
-            process.kill()
-        process.communicate(timeout=30)
 
 
 def _pids(netns: str) -> list[int]:
@@ -162,26 +161,26 @@ def _alive(pid: int) -> bool:
 
 
 def test_ctrl_c_removes_every_namespace_and_process(
-    testbed_cli: tuple[subprocess.Popen[str], str],
+    testbed_cli: tuple[ProcessChild, str],
 ) -> None:
     process, run_id = testbed_cli
     roles = [pid for role in ("op", "r1", "r2") for pid in _pids(f"dbml-{run_id}-{role}")]
     process.send_signal(signal.SIGINT)
-    assert process.wait(timeout=30) == 130
+    assert process.wait(30) == 130
     assert leftover_namespaces(f"dbml-{run_id}-") == []
     wait_for(lambda: not any(_alive(pid) for pid in roles), timeout_s=5, what="roles gone")
 
 
 def test_a_failing_role_removes_every_namespace_and_process(
-    testbed_cli: tuple[subprocess.Popen[str], str],
+    testbed_cli: tuple[ProcessChild, str],
 ) -> None:
     process, run_id = testbed_cli
     robots = _pids(f"dbml-{run_id}-r1") + _pids(f"dbml-{run_id}-r2")
     for pid in _pids(f"dbml-{run_id}-op"):  # the operator's side dies
         os.kill(pid, signal.SIGKILL)
     started = time.monotonic()
-    code = process.wait(timeout=60)
-    _, stderr = process.communicate(timeout=5)
+    code = process.wait(60)
+    stderr = process.log()
     assert code == 2
     assert "exited early" in stderr
     assert stderr.count("\n") == 1  # one line, no traceback

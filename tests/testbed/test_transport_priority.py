@@ -10,7 +10,9 @@ from __future__ import annotations
 import pytest
 
 from dbml.testbed import leftover_namespaces
-from dbml.testbed.runner import URGENT_P95_MS, TestbedOptions, run_teleop_testbed
+from dbml.testbed.options import TestbedOptions
+from dbml.testbed.result import URGENT_P95_MS
+from dbml.testbed.runner import run_teleop_testbed
 
 pytestmark = pytest.mark.integration
 

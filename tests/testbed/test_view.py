@@ -13,9 +13,11 @@ import pytest
 
 from dbml.harness.processes import free_port
 from dbml.testbed import leftover_namespaces
-from dbml.testbed.runner import TestbedOptions, TestbedResult, run_teleop_testbed
+from dbml.testbed.options import TestbedOptions
+from dbml.testbed.result import TestbedResult
+from dbml.testbed.runner import run_teleop_testbed
+from dbml.view.client import FoxgloveClient
 from dbml.view.target import ViewTarget
-from tests.foxglove_client import FoxgloveClient
 from tests.integration.test_foxglove import EXPECTED, read_mcap
 
 pytestmark = pytest.mark.integration

@@ -16,7 +16,6 @@ import itertools
 import os
 import queue
 import socket
-import subprocess
 import sys
 import tempfile
 import threading
@@ -26,8 +25,8 @@ from pathlib import Path
 from typing import Any
 
 from dbml.core.errors import TransportError
-from dbml.harness.processes import end_process
 from dbml.harness.rosmaster import RosMaster
+from dbml.harness.supervisor import Supervisor
 from dbml.transports import (
     GraphEntry,
     Handle,
@@ -72,16 +71,16 @@ class _Peer:
     def __init__(self, address: str, env: dict[str, str], log: Path) -> None:
         ours, theirs = socket.socketpair()
         self._log = log
-        with log.open("wb") as err:
-            self.process = subprocess.Popen(
-                [sys.executable, "-m", "tests.transports.ros1_peer", str(theirs.fileno()), address],
-                cwd=ROOT,
-                env=env,
-                stdin=subprocess.DEVNULL,
-                stdout=subprocess.DEVNULL,
-                stderr=err,
-                pass_fds=[theirs.fileno()],
-            )
+        self._children = Supervisor(logs=log.parent)
+        self.process = self._children.start(
+            log.stem,
+            [sys.executable, "-m", "tests.transports.ros1_peer", str(theirs.fileno()), address],
+            cwd=ROOT,
+            env=env,
+            stdin=False,
+            read_stdout=False,
+            pass_fds=[theirs.fileno()],
+        )
         theirs.close()
         self.connection = Connection(ours.detach())
         self._calls = threading.Lock()
@@ -162,7 +161,7 @@ class _Peer:
             with contextlib.suppress(TransportError, RuntimeError, OSError):
                 self.call("shutdown")
         self.connection.close()
-        end_process(self.process)
+        self._children.close()  # SIGTERM, then SIGKILL, by its PID
 
 
 class _PeerPublisher:

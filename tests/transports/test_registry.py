@@ -9,6 +9,7 @@ import pytest
 from dbml import MemoryNetwork, open_transport
 from dbml.core.errors import TransportError
 from dbml.transports import DEFAULT_TRANSPORT, TRANSPORTS, MemoryTransport, Transport
+from dbml.transports.registry import Discovery
 
 
 def test_names_are_in_one_order_with_the_default_first() -> None:
@@ -35,6 +36,21 @@ def test_entries_say_what_a_caller_must_know() -> None:
     for entry in TRANSPORTS.values():
         assert entry.summary
         assert "\n" not in entry.summary
+
+
+def test_entries_name_themselves_and_how_their_processes_meet() -> None:
+    assert all(name == entry.name for name, entry in TRANSPORTS.items())
+    assert {name: entry.discovery for name, entry in TRANSPORTS.items()} == {
+        "zenoh": Discovery.ZENOH,
+        "ros1": Discovery.ROS_MASTER,
+        "rclpy": Discovery.DDS,
+        "ros2": Discovery.ZENOH_ROUTER,
+        "memory": Discovery.IN_PROCESS,
+    }
+    assert all(
+        (entry.discovery is Discovery.IN_PROCESS) != entry.spans_processes
+        for entry in TRANSPORTS.values()
+    )
 
 
 def test_an_unknown_name_lists_the_known_ones() -> None:

@@ -9,10 +9,10 @@ import pytest
 
 from dbml.protocol.schema import ParamError, ParamValue
 from dbml.view import frames
+from dbml.view.client import FoxgloveClient
 from dbml.view.frames import LogLevel
 from dbml.view.sink import MAX_REFUSALS_PER_S, Sink
 from dbml.view.target import ViewEndpoint
-from tests.foxglove_client import FoxgloveClient
 
 BUDGET = "/dbm/max_bandwidth_in_mbit"
 

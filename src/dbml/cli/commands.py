@@ -5,7 +5,7 @@ Each runs on a transport ``dbml.cli.main`` opened, until its duration ends or ``
 sessions must be closed for the process to exit). They live beside the parser, not in the
 runtime: they are what a command does with the runtime's nodes. ``dbml optimizer``'s body is the
 runtime's ``run_optimizer`` (``dbml.runtime.serve``), which the experiment's optimizer role runs
-too.
+too, and so is ``dbml bridge``'s (``run_bridge``), which the experiment's bridges run.
 """
 
 from __future__ import annotations
@@ -16,21 +16,18 @@ import sys
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import TextIO
 
-from dbml.core.config import BridgeChannel
-from dbml.core.errors import TransportError
 from dbml.core.spec import MAX_SIZE_BYTES, check_number, check_priority
 from dbml.protocol import names
 from dbml.protocol.schema import check_param
-from dbml.runtime.bridge import FIRST_MESSAGE_TIMEOUT_S, Bridge
 from dbml.runtime.monitor import MonitorView, monitor_view
 from dbml.runtime.publisher import ManagedPublisher
 from dbml.runtime.reception import ReceptionReporter
 from dbml.runtime.rounds import RoundFollower
-from dbml.runtime.serve import PEER_WAIT_S, Lifetime, run_optimizer
+from dbml.runtime.serve import PEER_WAIT_S, Lifetime, run_bridge, run_optimizer
 from dbml.runtime.subscriber import ManagedSubscriber
 from dbml.transports.base import ParamValue, Sample, Transport, TransportPriority
 
@@ -89,61 +86,6 @@ def run_publisher(
                 log.info("%s: publishing %d B at %.3f Hz", topic, size_bytes, rate)
     finally:
         publisher.close()
-    return life.exit_code()
-
-
-def run_bridge(
-    transport: Transport,
-    channels: Sequence[BridgeChannel],
-    *,
-    stop: threading.Event,
-    duration_s: float | None = None,
-    wait_s: float = FIRST_MESSAGE_TIMEOUT_S,
-    typed_topics: bool = False,
-) -> int:
-    """``dbml bridge``: put existing topics under management, one ``Bridge`` each.
-
-    A channel without a type takes the one the graph shows. Where topics are typed
-    (``typed_topics``: ROS 1, ROS 2) and the graph shows none, ``TransportError`` names the
-    topic: republishing under a guessed type would deliver what no subscriber can read. Every
-    topic must deliver a first message within ``wait_s``, else ``TransportError`` names it.
-    """
-    transport.wait_for_peers(PEER_WAIT_S)
-    deadline = time.monotonic() + wait_s
-    bridges: list[Bridge] = []
-    try:
-        for given in channels:
-            channel = given
-            if given.msg_type is None:
-                left_s = max(0.0, deadline - time.monotonic())
-                found = transport.topic_type(given.topic, timeout_s=left_s)
-                if found is not None:
-                    channel = replace(given, msg_type=found)
-                elif typed_topics:
-                    raise TransportError(
-                        f"topic={given.topic!r}: its type cannot be resolved (no publisher "
-                        f"seen within {wait_s:g} s); name it with --type pkg/msg/Name"
-                    )
-            bridges.append(Bridge(transport, channel))
-        for bridge in bridges:
-            if not bridge.wait_first(max(0.0, deadline - time.monotonic())):
-                raise TransportError(
-                    f"topic={bridge.topic!r}: no message within {wait_s:g} s "
-                    "(is its publisher running on this host?)"
-                )
-            bridge.start(timeout_s=0)
-            log.info(
-                "%s: bridged to %s/optimized (%s)",
-                bridge.topic,
-                bridge.topic,
-                bridge.channel.msg_type or "bytes",
-            )
-        life = Lifetime(stop, duration_s, watching=bridges)
-        while not life.over():
-            stop.wait(0.1)
-    finally:
-        for bridge in bridges:
-            bridge.close()
     return life.exit_code()
 
 

@@ -12,7 +12,7 @@ from typing import Any
 from dbml.demo.runner import DemoResult
 from dbml.experiment.analysis import LinkChange, SeriesPoint, StepResult, Window
 from dbml.scenarios.teleop import LINK_MBIT
-from dbml.testbed.runner import TestbedResult
+from dbml.testbed.result import TestbedResult
 
 __all__ = ["demo_document", "testbed_document"]
 
@@ -44,7 +44,7 @@ def demo_document(result: DemoResult) -> dict[str, Any]:
     ]
     return {
         "scenario": "teleop",
-        "transport": result.options.transport,
+        "transport": result.options.transport.name,
         "step_seconds": result.options.step_seconds,
         "budget_mbit": LINK_MBIT,
         "steps": steps,
@@ -167,7 +167,7 @@ def testbed_document(result: TestbedResult) -> dict[str, Any]:
     summary_document["targets"] = dict(summary.targets)
     return {
         "policy": options.policy,
-        "transport": options.transport,
+        "transport": options.transport.name,
         "strategy": options.strategy,
         "link_mbit": options.link_mbit,
         "link_schedule": [list(entry) for entry in options.link_schedule],

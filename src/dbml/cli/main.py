@@ -29,7 +29,8 @@ from dbml.core.errors import DbmlError
 from dbml.core.extras import require
 from dbml.core.spec import LinkSpec
 from dbml.experiment.analysis import SeriesPoint
-from dbml.harness.processes import free_port, stop_on_signals
+from dbml.harness.child import stop_on_signals
+from dbml.harness.processes import free_port
 from dbml.protocol.schema import Writer
 from dbml.runtime.monitor import MonitorView
 from dbml.scenarios.reproduce import RobotRow, reproduce_table2
@@ -403,7 +404,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from dbml.cli.documents import demo_document
     from dbml.demo.runner import DemoOptions, run_teleop_demo
 
-    options = DemoOptions(
+    options = DemoOptions.from_flags(
         step_seconds=args.step_seconds,
         transport=args.transport,
         view=_view_target(args, pick_port=True),
@@ -421,7 +422,9 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         demo_document(result),
         lambda: console.print(render.demo_table(result)),
         ExperimentPlot(
-            result.series, options.step_seconds, f"dbml teleoperation demo over {options.transport}"
+            result.series,
+            options.step_seconds,
+            f"dbml teleoperation demo over {options.transport.name}",
         ),
     )
     if result.interrupted:
@@ -455,7 +458,7 @@ def _cmd_testbed(args: argparse.Namespace) -> int:
     console = Console(stderr=args.json)
     with render.ExperimentView(
         Console(stderr=True),
-        title=f"dbml testbed teleop — {options.policy} over {options.transport}, live",
+        title=f"dbml testbed teleop — {options.policy} over {options.transport.name}, live",
         step_s=options.step_seconds,
         robots=[camera.robot for camera in fleet_cameras(options.robots)],
         link_mbit=options.link_mbit,
@@ -471,7 +474,7 @@ def _cmd_testbed(args: argparse.Namespace) -> int:
         ExperimentPlot(
             result.series,
             options.step_seconds,
-            f"dbml testbed teleop: policy {options.policy} over {options.transport} "
+            f"dbml testbed teleop: policy {options.policy} over {options.transport.name} "
             "on a tc-shaped link",
             budget_label="budget (estimate)" if options.estimate else "budget",
         ),

@@ -11,8 +11,8 @@ from dbml.core.errors import SpecError
 from dbml.core.spec import check_number
 from dbml.runtime.qos import parse_transport_priority
 from dbml.secure import DEFAULT_BASE_PORT, DEFAULT_DAYS
-from dbml.testbed.netns import TOPOLOGIES
-from dbml.testbed.netns import TRANSPORTS as TESTBED_TRANSPORTS
+from dbml.testbed.options import POLICIES, TOPOLOGIES
+from dbml.testbed.options import TRANSPORTS as TESTBED_TRANSPORTS
 from dbml.transports.base import DEFAULT_ROUTER_ENDPOINT, TransportPriority
 from dbml.transports.registry import DEFAULT_TRANSPORT, TRANSPORTS
 
@@ -238,9 +238,7 @@ def build_parser() -> argparse.ArgumentParser:
         "testbed", help="experiments over real tc-shaped links in network namespaces (root)"
     )
     testbed_cmd.add_argument("scenario", choices=["teleop"], help="the paper's section 4")
-    testbed_cmd.add_argument(
-        "--policy", choices=["dbml", "static", "unmanaged"], default="dbml", help="default dbml"
-    )
+    testbed_cmd.add_argument("--policy", choices=POLICIES, default=POLICIES[0], help="default dbml")
     testbed_cmd.add_argument("--link-mbit", type=_positive, default=11.0, help="default 11")
     testbed_cmd.add_argument("--step-seconds", type=_positive, default=6.0, help="default 6")
     testbed_cmd.add_argument(

@@ -26,15 +26,16 @@ from dbml.experiment.analysis import (
     latest,
     link_at,
 )
-from dbml.experiment.roles import URGENT_RATE_HZ, URGENT_SIZE_BYTES
+from dbml.experiment.spec import URGENT_RATE_HZ, URGENT_SIZE_BYTES
 from dbml.runtime.monitor import MONITOR_PARAMETERS, MonitorView
 from dbml.scenarios.reproduce import RobotRow
 from dbml.scenarios.teleop import LINK_MBIT, ROBOTS, STEPS
+from dbml.testbed.options import Policy, Topology
 
 if TYPE_CHECKING:
     from dbml.demo.runner import DemoResult
     from dbml.experiment.runner import Snapshot
-    from dbml.testbed.runner import TestbedResult
+    from dbml.testbed.result import TestbedResult
 
 __all__ = [
     "ExperimentView",
@@ -218,7 +219,7 @@ class ExperimentView:
 def demo_table(result: DemoResult) -> Table:
     """``dbml demo teleop``: per step and robot, allocated beside Table 2 and measured."""
     table = Table(
-        title=f"Teleoperation, live over {result.options.transport} "
+        title=f"Teleoperation, live over {result.options.transport.name} "
         f"({result.options.step_seconds:g} s per step)"
     )
     for name in ("step", "robot", "tc s", "p", "alloc Hz", "Table 2", "measured", "Mbit/s"):
@@ -249,9 +250,9 @@ def testbed_table(result: TestbedResult) -> Table:
     """``dbml testbed teleop``: per step and robot, the summary and targets in the caption."""
     options = result.options
     title = f"Teleoperation over a shaped link — policy {options.policy}"
-    if options.strategy and options.policy == "dbml":
+    if options.strategy and options.policy is Policy.DBML:
         title += f" ({options.strategy}{', estimating' if options.estimate else ''})"
-    if options.fleet or options.topology != "peer":
+    if options.fleet or options.topology is not Topology.PEER:
         title += f", {options.robots} robots, topology {options.topology}"
     table = Table(title=title)
     expected = result.expected_hz

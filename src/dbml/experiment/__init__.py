@@ -2,12 +2,21 @@
 
 ``roles`` (optimizer, robots, operator), ``runner`` (start them, collect the operator's
 reports) and ``analysis`` (pure: per step, over time, after each link change). The demo and the
-testbed differ only in the network the roles run on and in how they judge the result.
+testbed differ only in the network the roles run on and in how they judge the result. The
+runner's names load on first use, so a run's child (``python -m dbml.experiment KIND``) imports
+only what its kind needs.
 """
 
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING
+
 from dbml.experiment.analysis import Analysis, Arrival, StepResult, Tick, Window, analyse
-from dbml.experiment.roles import ROLES, RoleSpec
-from dbml.experiment.runner import Recording, Snapshot, run_experiment
+from dbml.experiment.spec import ROLES, RoleSpec
+
+if TYPE_CHECKING:
+    from dbml.experiment.runner import Recording, Snapshot, run_experiment
 
 __all__ = [
     "ROLES",
@@ -22,3 +31,19 @@ __all__ = [
     "analyse",
     "run_experiment",
 ]
+
+_LAZY = {
+    "Recording": "dbml.experiment.runner",
+    "Snapshot": "dbml.experiment.runner",
+    "run_experiment": "dbml.experiment.runner",
+}
+
+
+def __getattr__(name: str) -> object:
+    """Load a runner's name on first use (PEP 562)."""
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'dbml.experiment' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value

@@ -27,8 +27,8 @@ twins of ``ros2peers`` (which does the same job over rmw_zenoh's wire format):
 Robots ``r3``..``rN`` of a fleet (``spec.robots``, ``dbml.scenarios.fleet``) are cameras too,
 with the fleet's sizes and rotating events.
 
-As a process (``python -m dbml.experiment.rclpypeers ROLE SPEC_JSON [--sample-info]``) a peer
-speaks the roles' protocol (``harness.processes.serve_role``) in ROS 2 domain
+As a process (``python -m dbml.experiment rclpy-peer ROLE SPEC_JSON [--sample-info]``) a peer
+speaks the roles' protocol (``harness.child.serve_role``) in ROS 2 domain
 ``spec.domain_id`` (else ``ROS_DOMAIN_ID``). Each peer has a private context (signals stay
 the program's: ``harness.ros2node.PrivateRos``), an executor spinning on a thread that reports
 its death, and shuts both down at its end (no ``/dev/shm/fastdds_*`` left). A peer that loses a
@@ -38,34 +38,26 @@ demo can name this module without it.
 
 from __future__ import annotations
 
-import argparse
 import logging
 import struct
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import TYPE_CHECKING, Any
 
 from dbml.core.errors import DbmlError, TransportError
-from dbml.experiment.roles import (
-    RoleSpec,
-    robot_index,
-)
-from dbml.experiment.ros2peers import (
-    FLOAT64_TYPE,
-    IMAGE_TYPE,
+from dbml.experiment.peers import (
     OPTIMIZED_SUFFIX,
-    PRIORITY_REPEAT_S,
     PRIORITY_SUFFIX,
-    ROLES,
     FrameRecorder,
     replay_priorities,
     report_ticks,
     run_paced,
     wait_first_frames,
 )
-from dbml.harness.processes import serve_role, stop_on_signals
+from dbml.experiment.spec import RoleSpec, robot_index
+from dbml.harness.child import Emit, emit_json, serve_role
 from dbml.protocol.metadata import MessageMeta
 from dbml.runtime.params import ParamView
 from dbml.runtime.reception import ReceptionReporter
@@ -81,17 +73,12 @@ if TYPE_CHECKING:
 
 __all__ = [
     "DRIVER_DEPTH",
-    "FLOAT64_TYPE",
-    "IMAGE_TYPE",
-    "OPTIMIZED_SUFFIX",
-    "PRIORITY_REPEAT_S",
-    "PRIORITY_SUFFIX",
     "RCLPY_MISSING",
-    "ROLES",
     "SUBSCRIPTION_DEPTH",
     "image_message",
     "image_stamp_ns",
-    "main",
+    "require_rclpy",
+    "serve",
 ]
 
 log = logging.getLogger("dbml.experiment.rclpypeers")
@@ -115,7 +102,7 @@ _STAMP = {True: struct.Struct("<iI"), False: struct.Struct(">iI")}
 _ENCAPSULATION_BYTES = 4
 
 
-def _rclpy() -> Any:
+def require_rclpy() -> Any:
     """rclpy, or ``DbmlError(RCLPY_MISSING)`` naming what to install."""
     try:
         import rclpy
@@ -130,7 +117,7 @@ def image_message(size_bytes: int) -> Any:
     One row of zero pixels; its size is measured with rclpy's own serialisation, not assumed,
     so the size the bridge reports to the optimizer is the camera's.
     """
-    _rclpy()
+    require_rclpy()
     from rclpy.serialization import serialize_message
     from sensor_msgs.msg import Image
 
@@ -170,7 +157,7 @@ def image_stamp_ns(payload: bytes) -> int | None:
 
 def _private_ros(*, domain_id: int | None, name: str) -> PrivateRos:
     """A ``PrivateRos`` (``DbmlError(RCLPY_MISSING)`` without rclpy)."""
-    _rclpy()
+    require_rclpy()
     from dbml.harness.ros2node import PrivateRos
 
     return PrivateRos(domain_id=domain_id, name=name)
@@ -199,7 +186,9 @@ def _frame_sender(publisher: Any, size_bytes: int) -> Callable[[], None]:
     return send
 
 
-def _serve_camera(role: str, spec: RoleSpec, stop: threading.Event) -> int:
+def _serve_camera(
+    role: str, spec: RoleSpec, stop: threading.Event, *, lines: Iterable[str] | None
+) -> int:
     """A camera peer's run; 1 when a thread (its driver's, its executor's) died meanwhile."""
     from std_msgs.msg import Float64
 
@@ -238,6 +227,7 @@ def _serve_camera(role: str, spec: RoleSpec, stop: threading.Event) -> int:
                 life=life,
                 steps=fleet_steps(spec.robots),
             ),
+            lines=lines,
         )
     finally:
         camera_stop.set()
@@ -303,14 +293,21 @@ def _frame_callback(
     return record
 
 
-def _serve_operator(spec: RoleSpec, stop: threading.Event, *, sample_info: bool) -> int:
+def _serve_operator(
+    spec: RoleSpec,
+    stop: threading.Event,
+    *,
+    sample_info: bool,
+    lines: Iterable[str] | None,
+    emit: Emit,
+) -> int:
     """The operator peer's run; 1 when a thread (its executor's, its transport's) died."""
     life = Lifetime(stop, None)
     cameras = fleet_cameras(spec.robots)
     recorder = FrameRecorder(len(cameras))
     suffix = OPTIMIZED_SUFFIX if spec.managed else ""
     topics = [camera.topic + suffix for camera in cameras]
-    transport = open_transport(spec.transport, host=spec.host, domain_id=spec.domain_id)
+    transport = open_transport(spec.transport.name, host=spec.host, domain_id=spec.domain_id)
     reporter: ReceptionReporter | None = None
     ros: PrivateRos | None = None
     try:
@@ -342,8 +339,18 @@ def _serve_operator(spec: RoleSpec, stop: threading.Event, *, sample_info: bool)
             "operator",
             stop,
             lambda t0: report_ticks(
-                view, recorder, t0, spec, stop, life=life, cameras=cameras, variant=variant
+                view,
+                recorder,
+                t0,
+                spec,
+                stop,
+                life=life,
+                cameras=cameras,
+                variant=variant,
+                emit=emit,
             ),
+            lines=lines,
+            emit=emit,
         )
     finally:
         try:
@@ -356,33 +363,24 @@ def _serve_operator(spec: RoleSpec, stop: threading.Event, *, sample_info: bool)
     return life.exit_code()
 
 
-def main(argv: list[str] | None = None) -> int:
-    """One plain rclpy peer as an OS process, driven over stdin and stdout by the runner."""
-    parser = argparse.ArgumentParser(prog="python -m dbml.experiment.rclpypeers")
-    parser.add_argument("role", help=f"one of {', '.join(ROLES)} or a fleet's r3..rN")
-    parser.add_argument("spec", help="the RoleSpec as JSON (domain_id: the ROS 2 domain)")
-    parser.add_argument(
-        "--sample-info",
-        action="store_true",
-        help="the operator takes each frame's sequence number and send time from DDS's sample "
-        "info (writer sequence number, source timestamp), not a count and header.stamp",
-    )
-    args = parser.parse_args(argv)
-    role, spec = args.role, RoleSpec.from_json(args.spec)
+def serve(
+    role: str,
+    spec: RoleSpec,
+    stop: threading.Event,
+    *,
+    sample_info: bool = False,
+    lines: Iterable[str] | None = None,
+    emit: Emit = emit_json,
+) -> int:
+    """One plain rclpy peer, from its nodes' start to its end: its exit code.
+
+    ``sample_info``: the operator takes each frame's sequence number and send time from DDS's
+    sample info (writer sequence number, source timestamp), not a count and ``header.stamp``.
+    """
     peers = {"operator", *(camera.robot.lower() for camera in fleet_cameras(spec.robots))}
     if role not in peers:
-        parser.error(f"role={role!r} is not one of {', '.join(sorted(peers))}")
-    logging.basicConfig(level=logging.WARNING, format=f"{role}: %(name)s: %(message)s")
-    try:
-        _rclpy()
-        with stop_on_signals() as stop:
-            if role == "operator":
-                return _serve_operator(spec, stop, sample_info=args.sample_info)
-            return _serve_camera(role, spec, stop)
-    except DbmlError as err:
-        sys.stderr.write(f"{role}: {err}\n")
-        return 2
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+        raise DbmlError(f"role={role!r} is not one of {', '.join(sorted(peers))}")
+    require_rclpy()
+    if role == "operator":
+        return _serve_operator(spec, stop, sample_info=sample_info, lines=lines, emit=emit)
+    return _serve_camera(role, spec, stop, lines=lines)

@@ -1,10 +1,13 @@
-"""The operator's report, as it travels from the operator's process to the runner.
+"""The reports that travel from a run's processes to the runner: the operator's, a bridge's.
 
 Every ``TICK_S`` the operator reports the frames that arrived since its last report and the
 parameters in force: one JSON object per line, with named keys (a frame is
 ``{"robot": 0, "seq": 12, "sent_s": ..., "arrival_s": ..., "size_bytes": ..., "rate_hz": ...}``).
 Both sides go through :class:`OperatorReport`, so the writer and the reader cannot drift apart;
 a malformed report raises ``SpecError`` naming the field and the value.
+
+At its end a bridge reports how its publishes went (:class:`PublishReport`), where the
+middleware's publisher times them (rclpy's): the runner keeps it with the run's recording.
 """
 
 from __future__ import annotations
@@ -18,11 +21,14 @@ from dbml.core.spec import check_number, short_repr
 from dbml.experiment.analysis import Arrival, Tick
 from dbml.protocol.messages import EstimatorState
 
-__all__ = ["TICK", "OperatorReport"]
+__all__ = ["PUBLISH_REPORT", "TICK", "OperatorReport", "PublishReport", "PublishTiming"]
 
 TICK = "tick"
-"""The report's ``type``, beside the roles' ``ready`` and ``done``."""
+"""The operator's report's ``type``, beside the roles' ``ready`` and ``done``."""
+PUBLISH_REPORT = "publish_stats"
+"""The ``type`` of a bridge's report of its publishes."""
 _OWNER = "operator report"
+_PUBLISH_OWNER = "publish report"
 
 
 @dataclass(frozen=True, slots=True)
@@ -33,7 +39,7 @@ class OperatorReport:
     frames: tuple[Arrival, ...] = ()
 
     def encode(self) -> dict[str, Any]:
-        """The report as one JSON-able message (``harness.processes.emit_json``)."""
+        """The report as one JSON-able message (``harness.child.emit_json``)."""
         tick = self.tick
         return {
             "type": TICK,
@@ -72,6 +78,68 @@ class OperatorReport:
         )
 
 
+@dataclass(frozen=True, slots=True)
+class PublishTiming:
+    """How one publisher's ``publish()`` calls went (the middleware's own statistics)."""
+
+    topic: str
+    """The middleware's topic (``[topic]/optimized``)."""
+    published: int
+    dropped: int
+    """Calls the middleware refused (counted, never passed on)."""
+    max_ms: float | None
+    p99_ms: float | None
+
+
+@dataclass(frozen=True, slots=True)
+class PublishReport:
+    """A bridge's report at its end: each publisher's timing (none where none is kept)."""
+
+    publishers: tuple[PublishTiming, ...] = ()
+
+    def encode(self) -> dict[str, Any]:
+        """The report as one JSON-able message."""
+        return {
+            "type": PUBLISH_REPORT,
+            "publishers": [
+                {
+                    "topic": p.topic,
+                    "published": p.published,
+                    "dropped": p.dropped,
+                    "max_ms": p.max_ms,
+                    "p99_ms": p.p99_ms,
+                }
+                for p in self.publishers
+            ],
+        }
+
+    @classmethod
+    def decode(cls, message: Mapping[str, Any]) -> PublishReport:
+        """The report ``encode`` made; ``SpecError`` naming the field and the value if not."""
+        kind = message.get("type")
+        if kind != PUBLISH_REPORT:
+            raise SpecError(f"{_PUBLISH_OWNER}: type={short_repr(kind)} is not {PUBLISH_REPORT!r}")
+        return cls(
+            tuple(
+                _decode_timing(row, f"publishers[{k}]")
+                for k, row in enumerate(_items(message, "publishers", _PUBLISH_OWNER))
+            )
+        )
+
+
+def _decode_timing(document: object, field: str) -> PublishTiming:
+    owner = _PUBLISH_OWNER
+    if not isinstance(document, Mapping):
+        raise SpecError(f"{owner}: {field}={short_repr(document)} is not a JSON object")
+    return PublishTiming(
+        topic=_text(document.get("topic"), f"{field}.topic", owner),
+        published=_count(document.get("published"), f"{field}.published", owner),
+        dropped=_count(document.get("dropped"), f"{field}.dropped", owner),
+        max_ms=_optional_number(document.get("max_ms"), f"{field}.max_ms", owner),
+        p99_ms=_optional_number(document.get("p99_ms"), f"{field}.p99_ms", owner),
+    )
+
+
 def _encode_frame(frame: Arrival) -> dict[str, Any]:
     return {
         "robot": frame.robot,
@@ -97,28 +165,28 @@ def _decode_frame(document: object, field: str) -> Arrival:
     )
 
 
-def _items(message: Mapping[str, Any], field: str) -> list[object]:
+def _items(message: Mapping[str, Any], field: str, owner: str = _OWNER) -> list[object]:
     value = message.get(field)
     if not isinstance(value, list):
-        raise SpecError(f"{_OWNER}: {field}={short_repr(value)} is not a list")
+        raise SpecError(f"{owner}: {field}={short_repr(value)} is not a list")
     return value
 
 
-def _number(value: object, field: str) -> float:
-    return check_number(value, field=field, owner=_OWNER)
+def _number(value: object, field: str, owner: str = _OWNER) -> float:
+    return check_number(value, field=field, owner=owner)
 
 
-def _optional_number(value: object, field: str) -> float | None:
-    return None if value is None else _number(value, field)
+def _optional_number(value: object, field: str, owner: str = _OWNER) -> float | None:
+    return None if value is None else _number(value, field, owner)
 
 
-def _count(value: object, field: str) -> int:
+def _count(value: object, field: str, owner: str = _OWNER) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-        raise SpecError(f"{_OWNER}: {field}={short_repr(value)} is not a count")
+        raise SpecError(f"{owner}: {field}={short_repr(value)} is not a count")
     return value
 
 
-def _text(value: object, field: str) -> str:
+def _text(value: object, field: str, owner: str = _OWNER) -> str:
     if not isinstance(value, str):
-        raise SpecError(f"{_OWNER}: {field}={short_repr(value)} is not a string")
+        raise SpecError(f"{owner}: {field}={short_repr(value)} is not a string")
     return value

@@ -17,8 +17,8 @@ the evidence of interoperability.
   through a dbml session, the parameters in force, reported each tick in the format of
   ``roles``' operator, so the same runner and analysis judge the run.
 
-As a process (``python -m dbml.experiment.ros2peers ROLE SPEC_JSON``) a peer speaks the roles'
-protocol (``harness.processes.serve_role``) and meets the others at the zenoh router at
+As a process (``python -m dbml.experiment ros2-peer ROLE SPEC_JSON``) a peer speaks the roles'
+protocol (``harness.child.serve_role``) and meets the others at the zenoh router at
 ``spec.connect[0]``, as ROS 2 nodes do. The SDK keeps one session per process: one peer each.
 As ``roles``' processes, a peer that loses a dbml thread (the camera driver, its transport's)
 ends early, without ``done``, and exits 1.
@@ -26,13 +26,12 @@ ends early, without ``done``, and exits 1.
 
 from __future__ import annotations
 
-import argparse
 import logging
 import os
 import sys
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable
 from functools import cache
 from typing import Any
 
@@ -40,51 +39,43 @@ import numpy as np
 
 from dbml.core.errors import DbmlError
 from dbml.core.extras import require
-from dbml.core.priority import collision_priority, time_to_collision_s
-from dbml.experiment.analysis import Arrival
-from dbml.experiment.roles import TAIL_S, TICK_S, RoleSpec, operator_tick, robot_index, wait_until
-from dbml.harness.processes import emit_json, serve_role, stop_on_signals
+from dbml.experiment.peers import (
+    FLOAT64_TYPE,
+    IMAGE_TYPE,
+    OPTIMIZED_SUFFIX,
+    PRIORITY_SUFFIX,
+    FrameRecorder,
+    peer_roles,
+    replay_priorities,
+    report_ticks,
+    run_paced,
+    wait_first_frames,
+)
+from dbml.experiment.spec import RoleSpec, robot_index
+from dbml.harness.child import Emit, emit_json, serve_role
 from dbml.runtime.params import ParamView
 from dbml.runtime.serve import Lifetime
-from dbml.scenarios.teleop import MAX_RATE_HZ, ROBOTS, STEPS, RobotCamera, Step
-from dbml.transports.base import PRIORITY_SUFFIX, Variant
+from dbml.scenarios.teleop import MAX_RATE_HZ, ROBOTS
 from dbml.transports.registry import open_transport
 from dbml.transports.worker import BackgroundThread
 
 __all__ = [
     "DEFINITIONS",
-    "FIRST_FRAMES_TIMEOUT_S",
-    "FLOAT64_TYPE",
     "IMAGE_OVERHEAD_BYTES",
-    "IMAGE_TYPE",
-    "OPTIMIZED_SUFFIX",
-    "PRIORITY_REPEAT_S",
-    "PRIORITY_SUFFIX",
-    "ROLES",
     "SDK_MISSING",
-    "FrameRecorder",
     "SdkSession",
     "image_fields",
-    "main",
-    "replay_priorities",
-    "report_ticks",
     "router_address",
-    "run_paced",
-    "step_priority",
+    "serve",
     "type_hash",
-    "wait_first_frames",
 ]
 
 log = logging.getLogger("dbml.experiment.ros2peers")
 
-ROLES = ("operator", *(camera.robot.lower() for camera in ROBOTS))
-"""The roles played by plain ROS 2 peers (the optimizer stays ``roles``' own)."""
 SDK_MISSING = (
     "--transport ros2 runs its robots and operator as plain ROS 2 nodes with zenoh-ros2-sdk, "
     f"which {sys.executable} cannot import: pip install 'dbml[ros2]'"
 )
-IMAGE_TYPE = "sensor_msgs/msg/Image"
-FLOAT64_TYPE = "std_msgs/msg/Float64"
 DEFINITIONS: tuple[tuple[str, str], ...] = (
     ("builtin_interfaces/msg/Time", "int32 sec\nuint32 nanosec\n"),
     ("std_msgs/msg/Header", "builtin_interfaces/Time stamp\nstring frame_id\n"),
@@ -98,19 +89,11 @@ DEFINITIONS: tuple[tuple[str, str], ...] = (
 """Each type's ``.msg`` text, dependencies first: offline, the SDK cannot fetch them itself."""
 HASH_STORE = "ros2_jazzy"
 """Where the RIHS01 hashes come from (the SDK computes wrong ones for nested types offline)."""
-OPTIMIZED_SUFFIX = Variant.OPTIMIZED.key("")
-"""A managed topic's copy at the allocated rate: what a ROS 2 operator subscribes to."""
 FRAME_ID = "camera"
 ENCODING = "mono8"
 IMAGE_OVERHEAD_BYTES = 52
 """Serialised ``Image`` bytes besides its data (frame_id "camera", mono8, CDR header)."""
-PRIORITY_REPEAT_S = 1.0
-"""Each priority is published again this often: a ROS 2 topic keeps no value for latecomers."""
-FIRST_FRAMES_TIMEOUT_S = 50.0
-"""How long the operator waits for a frame of every managed camera before it reports ready
-(the runner waits 60 s for every role)."""
 _NS_PER_S = 1_000_000_000
-_FIRST_FRAMES_POLL_S = 0.05
 _SHM_OFF = "transport/shared_memory/enabled=false"
 _OVERRIDE_ENV = "ZENOH_CONFIG_OVERRIDE"
 _DRIVER_JOIN_S = 5.0
@@ -137,16 +120,6 @@ def type_hash(msg_type: str) -> str:
 
     value: str = get_typestore(Stores(HASH_STORE)).hash_rihs01(msg_type)
     return value
-
-
-def step_priority(step: Step, index: int) -> float:
-    """Robot ``index``'s camera priority in ``step``: eq. 6-7 of its distance and speed.
-
-    The same pure functions as the managed robot's ``collision_priority_source``, published on
-    a ROS 2 topic instead of written as a parameter.
-    """
-    event = step.events[index]
-    return collision_priority(time_to_collision_s(event.distance_m, event.speed_m_per_s))
 
 
 def image_fields(types: Any, size_bytes: int, stamp_ns: int, data: Any = None) -> dict[str, Any]:
@@ -228,21 +201,6 @@ class SdkSession:
         self._session.close()
 
 
-def run_paced(send: Callable[[], None], *, rate_hz: float, stop: threading.Event) -> None:
-    """``send()`` every ``1 / rate_hz`` s until ``stop``, as a camera driver: never a burst.
-
-    Paced on an absolute schedule (no drift); a send late by more than a period is not caught up.
-    """
-    period_s = 1.0 / rate_hz
-    next_s = time.monotonic()
-    while not stop.is_set():
-        send()
-        next_s += period_s
-        now = time.monotonic()
-        next_s = max(next_s, now - period_s)  # late by more than a frame: do not catch up
-        stop.wait(max(0.0, next_s - now))
-
-
 def _publish_frames(publisher: Any, types: Any, size_bytes: int, stop: threading.Event) -> None:
     """A camera driver: one frame every ``1 / MAX_RATE_HZ`` s until ``stop``."""
     data = np.zeros(size_bytes - IMAGE_OVERHEAD_BYTES, dtype=np.uint8)
@@ -253,34 +211,9 @@ def _publish_frames(publisher: Any, types: Any, size_bytes: int, stop: threading
     )
 
 
-def replay_priorities(
-    send: Callable[[float], None],
-    index: int,
-    t0: float,
-    spec: RoleSpec,
-    stop: threading.Event,
-    *,
-    life: Lifetime,
-    steps: Sequence[Step] = STEPS,
-) -> None:
-    """``send`` the priority of each step from its start, again every ``PRIORITY_REPEAT_S``.
-
-    Robot ``index``'s of ``steps`` (Table 2's, or a fleet's: ``fleet_steps``), until the last
-    step, ``stop``, or a dbml thread's death (``life``).
-    """
-    if not wait_until(t0, stop):
-        return
-    while not life.over():
-        now = time.time()
-        k = int((now - t0) // spec.step_s)
-        if k >= len(steps):
-            return
-        send(step_priority(steps[k], index))
-        if not wait_until(min(t0 + (k + 1) * spec.step_s, now + PRIORITY_REPEAT_S), stop):
-            return
-
-
-def _serve_camera(role: str, spec: RoleSpec, stop: threading.Event) -> int:
+def _serve_camera(
+    role: str, spec: RoleSpec, stop: threading.Event, *, lines: Iterable[str] | None
+) -> int:
     """A camera peer's run; 1 when a dbml thread (its driver's) died meanwhile, else 0."""
     index = robot_index(role)
     camera = ROBOTS[index]
@@ -309,6 +242,7 @@ def _serve_camera(role: str, spec: RoleSpec, stop: threading.Event) -> int:
             lambda t0: replay_priorities(
                 lambda value: priority.publish(data=value), index, t0, spec, stop, life=life
             ),
+            lines=lines,
         )
     finally:
         camera_stop.set()
@@ -318,97 +252,6 @@ def _serve_camera(role: str, spec: RoleSpec, stop: threading.Event) -> int:
             publisher.close()
         sdk.close()
     return life.exit_code()
-
-
-class FrameRecorder:
-    """An operator's record of each frame: robot, count, send and arrival time, size.
-
-    Fed from subscription callbacks (any thread), read by the tick loop.
-    """
-
-    def __init__(self, robots: int = len(ROBOTS)) -> None:
-        self._lock = threading.Lock()
-        self._rows: list[Arrival] = []
-        self._counts = [0 for _ in range(robots)]
-
-    def record(
-        self,
-        index: int,
-        *,
-        arrival_s: float,
-        sent_s: float | None,
-        size_bytes: int,
-        seq: int | None = None,
-        rate_hz: float | None = None,
-    ) -> None:
-        """One frame of robot ``index``.
-
-        ``seq`` None: the per-topic count from 0. ``rate_hz``: the rate the frame says it was
-        sent at, None for a plain ROS 2 message of a managed channel (it carries none).
-        """
-        with self._lock:
-            count = self._counts[index]
-            self._counts[index] += 1
-            self._rows.append(
-                Arrival(
-                    robot=index,
-                    seq=count if seq is None else seq,
-                    sent_s=sent_s,
-                    arrival_s=arrival_s,
-                    size_bytes=size_bytes,
-                    rate_hz=rate_hz,
-                )
-            )
-
-    def counts(self) -> list[int]:
-        """Frames received so far, per robot."""
-        with self._lock:
-            return list(self._counts)
-
-    def take(self) -> list[Arrival]:
-        """The frames since the last call."""
-        with self._lock:
-            rows, self._rows = self._rows, []
-        return rows
-
-
-def wait_first_frames(
-    recorder: FrameRecorder, topics: Sequence[str], stop: threading.Event
-) -> None:
-    """Return once every topic delivered a frame; raise naming those that did not."""
-    deadline = time.monotonic() + FIRST_FRAMES_TIMEOUT_S
-    while not all(recorder.counts()) and time.monotonic() < deadline and not stop.is_set():
-        stop.wait(_FIRST_FRAMES_POLL_S)
-    missing = [t for t, n in zip(topics, recorder.counts(), strict=True) if n == 0]
-    if missing and not stop.is_set():
-        raise DbmlError(
-            f"operator: no frame on {', '.join(missing)} within {FIRST_FRAMES_TIMEOUT_S:g} s "
-            "(are the bridges and the robots running?)"
-        )
-
-
-def report_ticks(
-    view: ParamView,
-    recorder: FrameRecorder,
-    t0: float,
-    spec: RoleSpec,
-    stop: threading.Event,
-    *,
-    life: Lifetime,
-    cameras: Sequence[RobotCamera] = ROBOTS,
-    variant: Variant = Variant.OPTIMIZED,
-) -> None:
-    """The operator's run: a report every ``TICK_S`` in ``roles``' format, then ``done``.
-
-    Every subscription is of ``variant`` of each of ``cameras`` (by default the optimized copy
-    of Table 2's); a run that lost a thread is not done (the runner fails it).
-    """
-    variants = [variant.value for _ in cameras]
-    while not life.over() and time.time() < t0 + spec.duration_s + TAIL_S:
-        stop.wait(TICK_S)
-        emit_json(operator_tick(view, recorder.take(), variants, cameras=cameras).encode())
-    if not life.failed:
-        emit_json({"type": "done"})
 
 
 def _sdk_image_callback(recorder: FrameRecorder, store: Any, index: int) -> Callable[[Any], None]:
@@ -427,7 +270,9 @@ def _sdk_image_callback(recorder: FrameRecorder, store: Any, index: int) -> Call
     return record
 
 
-def _serve_operator(spec: RoleSpec, stop: threading.Event) -> int:
+def _serve_operator(
+    spec: RoleSpec, stop: threading.Event, *, lines: Iterable[str] | None, emit: Emit
+) -> int:
     """The operator peer's run; 1 when a dbml thread (its transport's) died meanwhile, else 0."""
     life = Lifetime(stop, None)
     sdk = SdkSession(spec.connect[0])
@@ -436,7 +281,7 @@ def _serve_operator(spec: RoleSpec, stop: threading.Event) -> int:
     subscribers: list[Any] = []
     try:
         transport = open_transport(
-            spec.transport,
+            spec.transport.name,
             host=spec.host,
             listen=spec.listen,
             connect=spec.connect,
@@ -459,7 +304,11 @@ def _serve_operator(spec: RoleSpec, stop: threading.Event) -> int:
         transport.wait_for_peers(spec.peer_wait_s)
         wait_first_frames(recorder, topics, stop)
         serve_role(
-            "operator", stop, lambda t0: report_ticks(view, recorder, t0, spec, stop, life=life)
+            "operator",
+            stop,
+            lambda t0: report_ticks(view, recorder, t0, spec, stop, life=life, emit=emit),
+            lines=lines,
+            emit=emit,
         )
     finally:
         for subscriber in subscribers:
@@ -469,26 +318,19 @@ def _serve_operator(spec: RoleSpec, stop: threading.Event) -> int:
     return life.exit_code()
 
 
-def main(argv: list[str] | None = None) -> int:
-    """One plain ROS 2 peer as an OS process, driven over stdin and stdout by the runner."""
-    parser = argparse.ArgumentParser(prog="python -m dbml.experiment.ros2peers")
-    parser.add_argument("role", choices=ROLES)
-    parser.add_argument("spec", help="the RoleSpec as JSON (connect[0]: the zenoh router)")
-    args = parser.parse_args(argv)
-    role, spec = args.role, RoleSpec.from_json(args.spec)
-    logging.basicConfig(level=logging.WARNING, format=f"{role}: %(name)s: %(message)s")
+def serve(
+    role: str,
+    spec: RoleSpec,
+    stop: threading.Event,
+    *,
+    lines: Iterable[str] | None = None,
+    emit: Emit = emit_json,
+) -> int:
+    """One plain ROS 2 peer, from its session's opening to its end: its exit code."""
+    if role not in peer_roles():
+        raise DbmlError(f"role={role!r} is not one of {', '.join(peer_roles())}")
     if not spec.connect:
-        sys.stderr.write(f"{role}: spec.connect=(): the ROS 2 peers need the router's endpoint\n")
-        return 2
-    try:
-        with stop_on_signals() as stop:
-            if role == "operator":
-                return _serve_operator(spec, stop)
-            return _serve_camera(role, spec, stop)
-    except DbmlError as err:
-        sys.stderr.write(f"{role}: {err}\n")
-        return 2
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+        raise DbmlError("spec.connect=(): the ROS 2 peers need the router's endpoint")
+    if role == "operator":
+        return _serve_operator(spec, stop, lines=lines, emit=emit)
+    return _serve_camera(role, spec, stop, lines=lines)

@@ -1,10 +1,11 @@
 """One experiment runner: start the roles, give them one start time, collect what they report.
 
-The demo and the testbed differ only in where the roles run: OS processes on loopback (zenoh,
-ROS 1), OS processes inside network namespaces (the caller's ``command`` wraps the argv), or
-threads over one in-process memory network. The runner starts them, waits until every one is
-ready, sends step 1's wall-clock time, pumps the operator's reports until it is done (or a
-deadline passes), hands a :class:`Snapshot` to the observer after each report (progress, live
+The demo and the testbed differ only in where the roles run, which their layout says in a
+:class:`Plan`: OS processes on loopback (zenoh, ROS 1, ROS 2), OS processes inside network
+namespaces, or threads over one in-process memory network. The runner starts them (and the
+helpers among them: a router, the bridges) through one ``harness.Supervisor``, waits until every
+role is ready, sends step 1's wall-clock time, pumps the operator's reports until it is done (or
+a deadline passes), hands a :class:`Snapshot` to the observer after each report (progress, live
 view) and returns a :class:`Recording`. Every process it started is ended by PID on the way
 out, also on error, Ctrl-C and SIGTERM (raised here as ``KeyboardInterrupt``).
 
@@ -19,36 +20,39 @@ from __future__ import annotations
 import contextlib
 import functools
 import logging
-import queue
 import signal
 import socket
-import sys
 import threading
 import time
-import traceback
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from pathlib import Path
 from types import FrameType
 
 from dbml.core.errors import DbmlError
+from dbml.experiment import roles
 from dbml.experiment.analysis import Analysis, Arrival, Tick, analyse
-from dbml.experiment.report import TICK, OperatorReport
-from dbml.experiment.roles import RoleSpec, run_role
-from dbml.harness.processes import Message, RoleProcesses, wait_ready
+from dbml.experiment.plan import Plan
+from dbml.experiment.report import (
+    PUBLISH_REPORT,
+    TICK,
+    OperatorReport,
+    PublishReport,
+    PublishTiming,
+)
+from dbml.experiment.spec import RoleSpec
+from dbml.harness.supervisor import ChildExitedError, ChildIO, Supervisor
 from dbml.runtime.serve import Lifetime
 from dbml.scenarios.teleop import ROBOTS, STEPS
-from dbml.transports.memory import MemoryNetwork, MemoryTransport
+from dbml.transports.memory import MemoryNetwork
 from dbml.transports.worker import BackgroundThread
 
 __all__ = [
     "HELPER_LISTEN_TIMEOUT_S",
     "READY_TIMEOUT_S",
     "START_MARGIN_S",
-    "Command",
-    "Helper",
     "Observer",
     "Recording",
-    "RoleThreads",
     "Snapshot",
     "run_experiment",
     "sigterm_as_interrupt",
@@ -62,45 +66,13 @@ robot's first frame (sent at once, at the 1 Hz minimum, to make its size known) 
 period old, so the rate limiter lets step 1's frames through at the allocated rate."""
 REPORT_DEADLINE_S = 30.0
 """The operator's last report may come this long after the last step, then the run fails."""
-
-_CLOSE_WAIT_S = 5.0
-"""How long closing waits for each role run as a thread."""
-
-log = logging.getLogger("dbml.experiment")
-
-Command = Callable[[str, list[str]], tuple[list[str], Mapping[str, str] | None]]
-"""A role and the argv that runs it -> the argv and environment to start (netns exec, env)."""
 HELPER_LISTEN_TIMEOUT_S = 15.0
 """How long a helper with a ``port`` (a zenoh router) may take to accept connections."""
+_PUMP_S = 0.5
+"""How often the runner looks at the time and its own threads while it waits for reports."""
+_CONNECT_S = 1.0
 
-
-@dataclass(frozen=True, slots=True, kw_only=True)
-class Helper:
-    """A process the roles need that speaks no role protocol: a zenoh router, a bridge.
-
-    It starts just before role ``before`` (None: before every role), once ``port`` on
-    127.0.0.1 accepts connections when given; it counts as a role that exits early if it ends
-    before the last step, and is ended by PID with the roles.
-    """
-
-    name: str
-    argv: tuple[str, ...]
-    env: Mapping[str, str] | None = None
-    before: str | None = None
-    port: int | None = None
-
-
-def _wait_listening(what: str, helper: Helper, roles: RoleProcesses) -> None:
-    """Wait until ``helper.port`` accepts a connection; fail naming it if it ended or timed out."""
-    assert helper.port is not None
-    deadline = time.monotonic() + HELPER_LISTEN_TIMEOUT_S
-    while time.monotonic() < deadline:
-        if roles.children[helper.name].poll() is not None:
-            raise _exited_early(what, helper.name, roles.log_tail(helper.name))
-        with contextlib.suppress(OSError), socket.create_connection(("127.0.0.1", helper.port), 1):
-            return
-        time.sleep(0.05)
-    raise DbmlError(f"{what} {helper.name} did not listen on port {helper.port} in time")
+log = logging.getLogger("dbml.experiment")
 
 
 @dataclass(frozen=True, slots=True)
@@ -125,6 +97,8 @@ class Recording:
     arrivals: tuple[Arrival, ...]
     ticks: tuple[Tick, ...]
     interrupted: bool
+    publishes: Mapping[str, tuple[PublishTiming, ...]] = field(default_factory=dict)
+    """What each helper that reported its publishes (a bridge) said of them, by its name."""
 
     def steps_done(self, step_s: float) -> int:
         """The steps the operator saw to their end."""
@@ -161,68 +135,6 @@ class Recording:
         )
 
 
-class RoleThreads:
-    """The roles as threads sharing one in-process memory network."""
-
-    def __init__(self) -> None:
-        self.messages: queue.Queue[Message] = queue.Queue()
-        self._network = MemoryNetwork()
-        self._stop = threading.Event()
-        self._started = threading.Event()
-        self._t0 = 0.0
-        self._threads: dict[str, BackgroundThread] = {}
-        self._ended: set[str] = set()
-        self._errors: dict[str, str] = {}
-
-    def spawn(self, role: str, spec: RoleSpec) -> None:
-        """Start ``role`` on its own host of the memory network."""
-        transport = MemoryTransport(self._network, host=spec.host)
-
-        def emit(message: dict[str, object]) -> None:
-            self.messages.put((role, message))
-
-        def body() -> None:
-            try:
-                emit({"type": "ready", "role": role})
-                self._started.wait()
-                if not self._stop.is_set():
-                    run_role(role, transport, spec, t0=self._t0, stop=self._stop, emit=emit)
-            except Exception:
-                self._errors[role] = traceback.format_exc()
-            finally:
-                transport.close()
-                self._ended.add(role)
-                self.messages.put((role, None))
-
-        self._threads[role] = BackgroundThread(body, name=f"role-{role}", log=log).start()
-
-    def start(self, t0: float) -> None:
-        """Every role starts step 1 at ``t0``."""
-        self._t0 = t0
-        self._started.set()
-
-    def log_tail(self, role: str) -> str:
-        """The traceback of a role that failed."""
-        return self._errors.get(role, "")
-
-    def exit_code(self, role: str, *, timeout_s: float = 0.0) -> int | None:
-        """1 for a role that raised, 0 for one that returned; None while it runs."""
-        self._threads[role].join(timeout_s)
-        if role not in self._ended:
-            return None
-        return 1 if role in self._errors else 0
-
-    def close(self) -> dict[str, int]:
-        """Stop every role and wait for it; each one's ``exit_code`` (-1: it still runs)."""
-        self._stop.set()
-        self._started.set()
-        codes: dict[str, int] = {}
-        for role in self._threads:
-            code = self.exit_code(role, timeout_s=_CLOSE_WAIT_S)
-            codes[role] = -1 if code is None else code
-        return codes
-
-
 @contextlib.contextmanager
 def sigterm_as_interrupt() -> Iterator[None]:
     """SIGTERM unwinds like Ctrl-C, so every process and namespace is removed either way."""
@@ -240,17 +152,6 @@ def sigterm_as_interrupt() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
-def _start_helpers(
-    what: str, helpers: Sequence[Helper], roles: RoleThreads | RoleProcesses, *, before: str | None
-) -> None:
-    """Start the helpers that go just before role ``before``, in their order."""
-    for helper in helpers:
-        if helper.before == before and isinstance(roles, RoleProcesses):
-            roles.spawn(helper.name, helper.argv, env=helper.env)
-            if helper.port is not None:
-                _wait_listening(what, helper, roles)
-
-
 def _exited_early(what: str, role: str, tail: str, *, code: int | None = None) -> DbmlError:
     """One line: the role, how it ended (early, or failed with ``code``) and its log's end."""
     lines = " | ".join(tail.strip().splitlines()[-3:])
@@ -258,75 +159,139 @@ def _exited_early(what: str, role: str, tail: str, *, code: int | None = None) -
     return DbmlError(f"{what} role {role} {how}{': ' + lines if lines else ''}")
 
 
+def _listening(port: int) -> bool:
+    """Whether something on 127.0.0.1 accepts connections on ``port``."""
+    with contextlib.suppress(OSError), socket.create_connection(("127.0.0.1", port), _CONNECT_S):
+        return True
+    return False
+
+
+class _Run:
+    """The children of one run, started in the plan's order through one supervisor."""
+
+    def __init__(self, what: str, plan: Plan, children: Supervisor) -> None:
+        self._what = what
+        self._plan = plan
+        self.children = children
+        self._network = MemoryNetwork() if plan.launches is None else None
+
+    def start_helpers(self, *, before: str | None) -> None:
+        """Start the helpers that go just before role ``before``, in their order."""
+        for helper in self._plan.helpers:
+            if helper.before != before:
+                continue
+            launch = helper.launch
+            self.children.start(helper.name, launch.argv, env=launch.env, netns=launch.netns)
+            port = helper.port
+            if port is None:
+                continue
+            try:
+                self.children.wait_until(
+                    functools.partial(_listening, port),
+                    timeout_s=HELPER_LISTEN_TIMEOUT_S,
+                    watch=[helper.name],
+                    what=f"{helper.name} on port {port}",
+                )
+            except ChildExitedError as ended:
+                raise _exited_early(self._what, helper.name, ended.tail) from None
+            except TimeoutError:
+                raise DbmlError(
+                    f"{self._what} {helper.name} did not listen on port {port} in time"
+                ) from None
+
+    def start_role(self, role: str, spec: RoleSpec) -> None:
+        """Start ``role``: its process, or its thread on the run's memory network."""
+        if self._plan.launches is not None:
+            launch = self._plan.launches[role]
+            self.children.start(role, launch.argv, env=launch.env, netns=launch.netns)
+            return
+        network = self._network
+
+        def body(io: ChildIO) -> int:
+            return roles.serve(
+                role, spec, threading.Event(), lines=io.lines, emit=io.emit, network=network
+            )
+
+        self.children.start_thread(role, body)
+
+    def tail(self, name: str) -> str:
+        return self.children[name].log_tail()
+
+    def publishes(self) -> dict[str, tuple[PublishTiming, ...]]:
+        """What the helpers reported of their publishes (read once they ended)."""
+        found: dict[str, tuple[PublishTiming, ...]] = {}
+        for line in self.children.take_all(lambda line: line.kind == PUBLISH_REPORT):
+            if line.report is not None:
+                found[line.child] = PublishReport.decode(line.report).publishers
+        return found
+
+
 def run_experiment(
-    specs: Mapping[str, RoleSpec],
+    plan: Plan,
     *,
     what: str,
-    command: Command | None,
     observe: Observer | None = None,
     on_start: Callable[[float, threading.Event], None] | None = None,
-    helpers: Sequence[Helper] = (),
+    logs: Path | None = None,
 ) -> Recording:
-    """Run the roles of ``specs`` (processes through ``command``, or threads when it is None).
+    """Run the roles of ``plan``: their processes (or threads), and its helpers among them.
 
     ``what`` names the experiment in errors; ``on_start(t0, stop)`` runs in a thread from step
-    1's start until the run ends (the testbed's link changes); ``helpers`` are processes started
-    among the roles (each just before its ``before`` role), which need ``command``.
+    1's start until the run ends (the testbed's link changes); ``logs``: a folder where each
+    child's stderr is kept as ``NAME.log`` (None: kept only until the run ends).
     """
-    if helpers and command is None:
-        raise DbmlError(f"{what}: helper processes need role processes, not threads")
+    specs = plan.specs
     step_s = next(iter(specs.values())).step_s
     total_s = len(STEPS) * step_s
-    roles = RoleThreads() if command is None else RoleProcesses()
     arrivals: list[Arrival] = []
     ticks: list[Tick] = []
     t0: float | None = None
     stop = threading.Event()
     life = Lifetime(stop, None)
+    children = Supervisor(logs=logs)
+    run = _Run(what, plan, children)
     codes: dict[str, int] = {}
+    publishes: dict[str, tuple[PublishTiming, ...]] = {}
+    interrupted = False
     with sigterm_as_interrupt():
         try:
-            _start_helpers(what, helpers, roles, before=None)
+            run.start_helpers(before=None)
             for role, spec in specs.items():
-                _start_helpers(what, helpers, roles, before=role)
-                if isinstance(roles, RoleThreads):
-                    roles.spawn(role, spec)
-                else:
-                    assert command is not None
-                    argv = [sys.executable, "-m", "dbml.experiment.roles", role, spec.to_json()]
-                    argv, env = command(role, argv)
-                    roles.spawn(role, argv, env=env)
+                run.start_helpers(before=role)
+                run.start_role(role, spec)
             try:
-                ended = wait_ready(roles.messages, set(specs), timeout_s=READY_TIMEOUT_S)
-            except queue.Empty:
+                ended = children.wait_ready(specs, timeout_s=READY_TIMEOUT_S)
+            except TimeoutError:
                 raise DbmlError(f"{what} roles did not get ready in time") from None
             if ended is not None:
-                raise _exited_early(what, ended, roles.log_tail(ended))
+                raise _exited_early(what, ended, run.tail(ended))
             t0 = time.time() + START_MARGIN_S
-            roles.start(t0)
+            children.send(f"start {t0!r}")
             if on_start is not None:
                 start = functools.partial(on_start, t0, stop)
                 BackgroundThread(start, name="on-start", log=log).start()
             while True:
                 if life.failed:
                     raise DbmlError(f"{what}: a thread of the runner died (see above)")
-                try:
-                    role, message = roles.messages.get(timeout=0.5)
-                except queue.Empty:
+                line = children.take(
+                    lambda line: line.ended or line.kind in (TICK, "done"), timeout_s=_PUMP_S
+                )
+                if line is None:
                     if time.time() > t0 + total_s + REPORT_DEADLINE_S:
-                        raise DbmlError(f"{what} timed out waiting for the operator") from None
+                        raise DbmlError(f"{what} timed out waiting for the operator")
                     continue
-                if message is None:
-                    code = roles.exit_code(role)  # None if not yet: ``close`` has it then
+                role = line.child
+                if line.ended:
+                    code = children[role].poll()  # None if not yet: ``close`` has it then
                     if (code is not None and code > 0) or time.time() < t0 + total_s:
-                        raise _exited_early(what, role, roles.log_tail(role), code=code)
+                        raise _exited_early(what, role, run.tail(role), code=code)
                     if role == "operator":
                         break
                     continue
-                if message.get("type") == "done":
+                if line.kind == "done":
                     break
-                if message.get("type") == TICK:
-                    report = OperatorReport.decode(message)
+                if line.report is not None:
+                    report = OperatorReport.decode(line.report)
                     arrivals.extend(report.frames)
                     ticks.append(report.tick)
                     if observe is not None:
@@ -334,14 +299,17 @@ def run_experiment(
                         step = min(len(STEPS), int(elapsed // step_s) + 1)
                         observe(Snapshot(t0, elapsed, step, arrivals, ticks))
         except KeyboardInterrupt:
-            return Recording(t0, tuple(arrivals), tuple(ticks), interrupted=True)
+            interrupted = True
         finally:
             stop.set()
-            codes = roles.close()
-    # The first role, in start order, that exited non-zero on its own (not ended by a signal).
-    failed = next((role for role, code in codes.items() if code > 0), None)
+            codes = children.close()
+            publishes = run.publishes()
+    if interrupted:
+        return Recording(t0, tuple(arrivals), tuple(ticks), True, publishes)
+    # The first child, in start order, that exited non-zero on its own (not ended by a signal).
+    failed = next((name for name, code in codes.items() if code > 0), None)
     if failed is not None:
-        raise _exited_early(what, failed, roles.log_tail(failed), code=codes[failed])
+        raise _exited_early(what, failed, run.tail(failed), code=codes[failed])
     if life.failed:
         raise DbmlError(f"{what}: a thread of the runner died (see above)")
-    return Recording(t0, tuple(arrivals), tuple(ticks), interrupted=False)
+    return Recording(t0, tuple(arrivals), tuple(ticks), interrupted=False, publishes=publishes)

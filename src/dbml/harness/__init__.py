@@ -1,25 +1,25 @@
-"""Process plumbing shared by the demo, the testbed, the benchmarks and the tests."""
+"""Process plumbing shared by the demo, the testbed, the benchmarks and the tests.
 
-from dbml.harness.processes import (
-    RoleProcesses,
-    emit_json,
-    end_process,
-    free_port,
-    read_commands,
-    serve_role,
-    stop_on_signals,
-    wait_ready,
-)
+``supervisor`` (the parent's side: start children, read them through one ``mailbox``, end them
+by PID) and ``child`` (the child's side: its reports, its control lines, a role's protocol).
+"""
+
+from dbml.harness.child import Control, RoleError, emit_json, serve_role, stop_on_signals
+from dbml.harness.mailbox import Line
+from dbml.harness.processes import foreign_interpreter_env, free_port
 from dbml.harness.rosmaster import RosMaster
+from dbml.harness.supervisor import ChildExitedError, Supervisor
 
 __all__ = [
-    "RoleProcesses",
+    "ChildExitedError",
+    "Control",
+    "Line",
+    "RoleError",
     "RosMaster",
+    "Supervisor",
     "emit_json",
-    "end_process",
+    "foreign_interpreter_env",
     "free_port",
-    "read_commands",
     "serve_role",
     "stop_on_signals",
-    "wait_ready",
 ]

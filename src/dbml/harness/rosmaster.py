@@ -9,13 +9,11 @@ from __future__ import annotations
 
 import os
 import shutil
-import subprocess
-import tempfile
-import time
-from typing import IO
+import signal
 
 from dbml.core.errors import TransportError
-from dbml.harness.processes import end_process, foreign_interpreter_env, free_port
+from dbml.harness.processes import foreign_interpreter_env, free_port
+from dbml.harness.supervisor import ChildExitedError, ProcessChild, Supervisor
 from dbml.transports.rosapi import answers
 
 __all__ = ["RosMaster"]
@@ -31,9 +29,8 @@ class RosMaster:
         self.port = port or free_port()
         self.uri = f"http://127.0.0.1:{self.port}/"
         self._ready_timeout_s = ready_timeout_s
-        self.process: subprocess.Popen[bytes] | None = None
+        self._children: Supervisor | None = None
         self.reused = False
-        self._log: IO[bytes] | None = None
 
     @classmethod
     def reuse_or_start(cls) -> RosMaster:
@@ -52,35 +49,41 @@ class RosMaster:
             raise TransportError(
                 "rosmaster not found: install Debian's ROS 1 packages (scripts/install-ros1)"
             )
-        log = self._log = tempfile.TemporaryFile()  # noqa: SIM115 - closed in stop()
-        self.process = subprocess.Popen(
+        children = self._children = Supervisor()
+        child = children.start(
+            "rosmaster",
             [executable, "--core", "-p", str(self.port)],
-            stdin=subprocess.DEVNULL,
-            stdout=log,
-            stderr=subprocess.STDOUT,
             env=foreign_interpreter_env(),  # Debian's /usr/bin/python3, not ours
+            stdin=False,
+            read_stdout=False,
+            stop_signal=signal.SIGTERM,
         )
-        deadline = time.monotonic() + self._ready_timeout_s
-        while not answers(self.uri):
-            if self.process.poll() is not None or time.monotonic() > deadline:
-                log.seek(0)
-                output = log.read()[-500:].decode(errors="replace")
-                self.stop()
-                raise TransportError(f"rosmaster on port {self.port} did not start: {output}")
-            time.sleep(0.05)
+        try:
+            children.wait_until(
+                lambda: answers(self.uri),
+                timeout_s=self._ready_timeout_s,
+                watch=["rosmaster"],
+                what="rosmaster to answer",
+            )
+        except (ChildExitedError, TimeoutError):
+            output = child.log_tail(500)
+            self.stop()
+            raise TransportError(f"rosmaster on port {self.port} did not start: {output}") from None
         return self
+
+    @property
+    def process(self) -> ProcessChild | None:
+        """The master's process, while this object runs one."""
+        return None if self._children is None else self._children.process("rosmaster")
 
     def stop(self) -> None:
         """End the master this object started (by PID); a reused one is left running."""
-        process, self.process = self.process, None
-        if process is not None:
-            end_process(process)
-        log, self._log = self._log, None
-        if log is not None:
-            log.close()
+        children, self._children = self._children, None
+        if children is not None:
+            children.close()
 
     def __enter__(self) -> RosMaster:
-        return self if self.process is not None or self.reused else self.start()
+        return self if self._children is not None or self.reused else self.start()
 
     def __exit__(self, *_: object) -> None:
         self.stop()

@@ -379,6 +379,11 @@ class ManagedPublisher:
     # -- transport class ----------------------------------------------------------------------
 
     @property
+    def optimized_publisher(self) -> Publisher:
+        """The transport's publisher of ``[topic]/optimized`` in force (for its own statistics)."""
+        return self._switch.publisher
+
+    @property
     def transport_qos(self) -> TransportQos | None:
         """The class ``[topic]/optimized`` travels in now (None: the middleware's default)."""
         return self._switch.qos

@@ -1,8 +1,9 @@
-"""A node served until stopped: the optimizer as ``dbml optimizer`` and the experiment run it.
+"""A node served until stopped: the optimizer and the bridges, as commands and as the experiment's.
 
-It waits for its peers, runs the optimizer (and the estimator when asked), and exits 1 when a
-worker thread dies, so a supervisor restarts it. ``Lifetime`` is every command's run, and the
-one place that tells a dead thread's end of it.
+``run_optimizer`` waits for its peers, runs the optimizer (and the estimator when asked);
+``run_bridge`` puts existing topics under management. Each exits 1 when a worker thread dies,
+so a supervisor restarts it. ``Lifetime`` is every command's run, and the one place that tells
+a dead thread's end of it.
 """
 
 from __future__ import annotations
@@ -10,18 +11,21 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import replace
 from typing import Protocol
 
-from dbml.core.config import DbmSettings
+from dbml.core.config import BridgeChannel, DbmSettings
+from dbml.core.errors import TransportError
 from dbml.core.spec import LinkSpec
 from dbml.protocol import names
+from dbml.runtime.bridge import FIRST_MESSAGE_TIMEOUT_S, Bridge
 from dbml.runtime.estimator import LinkEstimator
 from dbml.runtime.optimizer import OptimizerNode
 from dbml.transports.base import Transport
 from dbml.transports.worker import death_count
 
-__all__ = ["PEER_WAIT_S", "Lifetime", "Running", "run_optimizer"]
+__all__ = ["PEER_WAIT_S", "Lifetime", "Running", "run_bridge", "run_optimizer"]
 
 log = logging.getLogger("dbml")
 
@@ -115,4 +119,63 @@ def run_optimizer(
         node.stop()
         if estimator is not None:
             estimator.close()
+    return life.exit_code()
+
+
+def run_bridge(
+    transport: Transport,
+    channels: Sequence[BridgeChannel],
+    *,
+    stop: threading.Event,
+    duration_s: float | None = None,
+    wait_s: float = FIRST_MESSAGE_TIMEOUT_S,
+    typed_topics: bool = False,
+    closed: Callable[[Bridge], None] | None = None,
+) -> int:
+    """``dbml bridge``: put existing topics under management, one ``Bridge`` each.
+
+    A channel without a type takes the one the graph shows. Where topics are typed
+    (``typed_topics``: ROS 1, ROS 2) and the graph shows none, ``TransportError`` names the
+    topic: republishing under a guessed type would deliver what no subscriber can read. Every
+    topic must deliver a first message within ``wait_s``, else ``TransportError`` names it.
+    ``closed`` sees each bridge once it is closed (what it sent is final then).
+    """
+    transport.wait_for_peers(PEER_WAIT_S)
+    deadline = time.monotonic() + wait_s
+    bridges: list[Bridge] = []
+    try:
+        for given in channels:
+            channel = given
+            if given.msg_type is None:
+                left_s = max(0.0, deadline - time.monotonic())
+                found = transport.topic_type(given.topic, timeout_s=left_s)
+                if found is not None:
+                    channel = replace(given, msg_type=found)
+                elif typed_topics:
+                    raise TransportError(
+                        f"topic={given.topic!r}: its type cannot be resolved (no publisher "
+                        f"seen within {wait_s:g} s); name it with --type pkg/msg/Name"
+                    )
+            bridges.append(Bridge(transport, channel))
+        for bridge in bridges:
+            if not bridge.wait_first(max(0.0, deadline - time.monotonic())):
+                raise TransportError(
+                    f"topic={bridge.topic!r}: no message within {wait_s:g} s "
+                    "(is its publisher running on this host?)"
+                )
+            bridge.start(timeout_s=0)
+            log.info(
+                "%s: bridged to %s/optimized (%s)",
+                bridge.topic,
+                bridge.topic,
+                bridge.channel.msg_type or "bytes",
+            )
+        life = Lifetime(stop, duration_s, watching=bridges)
+        while not life.over():
+            stop.wait(0.1)
+    finally:
+        for bridge in bridges:
+            bridge.close()
+            if closed is not None:
+                closed(bridge)
     return life.exit_code()

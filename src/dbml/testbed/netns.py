@@ -33,8 +33,6 @@ from dbml.core.errors import DbmlError
 __all__ = [
     "NETNS_DIR",
     "OPERATOR",
-    "TOPOLOGIES",
-    "TRANSPORTS",
     "Host",
     "Network",
     "TestbedError",
@@ -59,14 +57,6 @@ _DOWN_RULE_PRIORITY = 100
 it), the operator's first, then each robot's."""
 _CAP_NET_ADMIN = 12
 _CAP_SYS_ADMIN = 21
-
-
-TOPOLOGIES = ("peer", "router")
-"""How a testbed's zenoh sessions meet: as peers on explicit endpoints (the default), or through
-a zenoh router per host meshed across the shaped link, as ROS 2 fleets run rmw_zenoh's."""
-TRANSPORTS = ("zenoh", "rclpy")
-"""What a testbed's processes speak: zenoh (dbml's own roles, the default) or real ROS 2 through
-rclpy (plain rclpy cameras and operator, dbml's bridges and optimizer, over Fast DDS)."""
 
 
 class TestbedError(DbmlError):

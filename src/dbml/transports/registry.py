@@ -1,13 +1,14 @@
 """Transports by name; middleware is imported only when its transport is opened.
 
 ``TRANSPORTS`` maps each name to a ``TransportEntry``: the factory and what a caller must know
-before choosing it (whether it spans processes, whether its messages carry dbml's metadata,
-whether its parameter store is complete when a process starts). The command line's choices and
-help come from it, in its order, the default first.
+before choosing it (whether it spans processes, how its processes find each other, whether its
+messages carry dbml's metadata, whether its parameter store is complete when a process starts).
+The command line's choices and help come from it, in its order, the default first.
 """
 
 from __future__ import annotations
 
+import enum
 import importlib
 import types
 from collections.abc import Mapping, Sequence
@@ -22,6 +23,7 @@ from dbml.transports.memory import MemoryNetwork, MemoryTransport
 __all__ = [
     "DEFAULT_TRANSPORT",
     "TRANSPORTS",
+    "Discovery",
     "TransportEntry",
     "TransportFactory",
     "TransportOptions",
@@ -56,10 +58,27 @@ class TransportFactory(Protocol):
         ...
 
 
-@dataclass(frozen=True, slots=True)
+class Discovery(enum.StrEnum):
+    """How a transport's processes find each other: what a run of several must set up."""
+
+    IN_PROCESS = "in-process"
+    """One process only (``memory``): nothing to meet."""
+    ZENOH = "zenoh"
+    """Zenoh peers: a rendezvous on loopback, or explicit endpoints across hosts."""
+    ROS_MASTER = "ros-master"
+    """A ROS 1 master at ``ROS_MASTER_URI``."""
+    ZENOH_ROUTER = "zenoh-router"
+    """A zenoh router per host, as rmw_zenoh's ROS 2 nodes meet."""
+    DDS = "dds"
+    """DDS discovery in a ROS 2 domain (``ROS_DOMAIN_ID``)."""
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
 class TransportEntry:
     """One registered transport: how to open it and what it offers."""
 
+    name: str
+    """Its key in ``TRANSPORTS`` (the ``--transport`` value)."""
     factory: TransportFactory
     summary: str
     """One line for a command's help."""
@@ -67,6 +86,8 @@ class TransportEntry:
     """Whether processes (and machines) meet over it; ``memory`` lives in one process."""
     carries_metadata: bool
     """Whether messages carry dbml's attachment (send time, sequence), which estimation needs."""
+    discovery: Discovery
+    """How its processes find each other."""
     params_complete_at_start: bool
     """Whether a process reads the whole store when it starts (the ROS parameter server), so an
     optimizer must write the defaults of unset parameters where everyone reads them."""
@@ -185,6 +206,8 @@ def _open_memory(options: TransportOptions) -> Transport:
 TRANSPORTS: Mapping[str, TransportEntry] = types.MappingProxyType(
     {
         "zenoh": TransportEntry(
+            name="zenoh",
+            discovery=Discovery.ZENOH,
             factory=_open_zenoh,
             summary="eclipse-zenoh, peer to peer; loopback with no flags, endpoints across hosts",
             spans_processes=True,
@@ -193,6 +216,8 @@ TRANSPORTS: Mapping[str, TransportEntry] = types.MappingProxyType(
             send_times=True,
         ),
         "ros1": TransportEntry(
+            name="ros1",
+            discovery=Discovery.ROS_MASTER,
             factory=_open_ros1,
             summary="rospy topics and the parameter server of the master at ROS_MASTER_URI",
             spans_processes=True,
@@ -201,6 +226,8 @@ TRANSPORTS: Mapping[str, TransportEntry] = types.MappingProxyType(
             typed_topics=True,
         ),
         "rclpy": TransportEntry(
+            name="rclpy",
+            discovery=Discovery.DDS,
             factory=_open_rclpy,
             summary="real ROS 2 through rclpy on its RMW (Fast DDS by default): topics and "
             "parameters on /dbm and [topic]/dbm",
@@ -211,6 +238,8 @@ TRANSPORTS: Mapping[str, TransportEntry] = types.MappingProxyType(
             send_times=True,
         ),
         "ros2": TransportEntry(
+            name="ros2",
+            discovery=Discovery.ZENOH_ROUTER,
             factory=_open_ros2,
             summary="ROS 2 topics as rmw_zenoh carries them, via the zenoh router of this host",
             spans_processes=True,
@@ -219,6 +248,8 @@ TRANSPORTS: Mapping[str, TransportEntry] = types.MappingProxyType(
             typed_topics=True,
         ),
         "memory": TransportEntry(
+            name="memory",
+            discovery=Discovery.IN_PROCESS,
             factory=_open_memory,
             summary="in one process, synchronous and deterministic (tests, simulations)",
             spans_processes=False,

@@ -7,7 +7,7 @@ import pytest
 from dbml.core.estimator import EstimatorState, Phase
 from dbml.experiment.analysis import Arrival, Tick, analyse, link_at
 from dbml.testbed import TestbedError
-from dbml.testbed.runner import (
+from dbml.testbed.options import (
     TestbedOptions,
     parse_robot_schedules,
     parse_schedule,

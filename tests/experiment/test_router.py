@@ -1,4 +1,4 @@
-"""A testbed host's router: ended by ``stop`` on stdin, and exit code 1 when its reader dies."""
+"""A run's router: ended by ``stop`` on stdin, and exit code 1 when its reader dies."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from dbml.testbed import router
+from dbml.experiment import entry, router
 from dbml.transports.worker import death_count
 
 
@@ -37,7 +37,7 @@ class _Stdin:
 
 @pytest.fixture
 def session(monkeypatch: pytest.MonkeyPatch) -> _Session:
-    """No real router: what ``main`` does around it is under test."""
+    """No real router: what the entry does around it is under test."""
     opened = _Session()
     monkeypatch.setattr(router, "open_meshed_router", lambda **_: opened)
     monkeypatch.setattr(router, "POLL_S", 0.01)
@@ -48,7 +48,7 @@ def test_stop_on_stdin_ends_the_router_with_exit_code_0(
     monkeypatch: pytest.MonkeyPatch, session: _Session
 ) -> None:
     monkeypatch.setattr(sys, "stdin", _Stdin("hello\n", "stop\n"))
-    assert router.main(["--listen", "tcp/127.0.0.1:0"]) == 0
+    assert entry.main(["router", "--listen", "tcp/127.0.0.1:0"]) == 0
     assert session.closed == 1
 
 
@@ -59,7 +59,7 @@ def test_a_dead_stdin_thread_ends_the_router_with_exit_code_1(
     monkeypatch.setattr(sys, "stdin", _Stdin("hello\n", error=OSError("stdin is gone")))
     deaths = death_count()
     with caplog.at_level(logging.CRITICAL, logger="dbml"):
-        assert router.main(["--listen", "tcp/127.0.0.1:0"]) == 1
+        assert entry.main(["router", "--listen", "tcp/127.0.0.1:0"]) == 1
     assert death_count() == deaths + 1
     assert session.closed == 1
     assert "stdin: the thread died" in caplog.text

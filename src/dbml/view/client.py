@@ -1,8 +1,9 @@
-"""A Foxglove WebSocket client for tests, as an app speaks it (``foxglove.sdk.v1``).
+"""A Foxglove WebSocket client, as the app speaks it (``foxglove.sdk.v1``): the view, headless.
 
 It subscribes to every channel the server advertises and keeps every message with its log time;
 control messages (``status``, ``parameterValues``) are kept in order. Single-threaded: ``pump``
-reads until a condition holds or its time is up.
+reads until a condition holds or its time is up. The tests read dbml's live view with it, and
+the benchmarks load it as the app would; it needs ``websockets`` (the ``viz`` extra).
 """
 
 from __future__ import annotations
@@ -18,14 +19,28 @@ from websockets.exceptions import ConnectionClosed, WebSocketException
 from websockets.sync.client import ClientConnection, connect
 from websockets.typing import Subprotocol
 
+from dbml.core.errors import TransportError
+
+__all__ = ["MESSAGE_DATA", "SUBPROTOCOL", "FoxgloveClient"]
+
 SUBPROTOCOL = "foxglove.sdk.v1"
 MESSAGE_DATA = 0x01
+"""The opcode of a binary frame carrying a channel's message."""
 _HEADER = struct.Struct("<BIQ")
+"""A message frame's header: opcode, subscription id, log time (ns)."""
 _RECV_S = 0.2
+"""How long one read waits, so ``pump`` looks at its condition and its time often enough."""
+_OPEN_S = 2.0
+"""How long one connection attempt may take."""
+_RETRY_S = 0.1
+"""How long to wait before trying again to reach a server that is not up yet."""
 
 
 class FoxgloveClient:
-    """One connection, every channel subscribed."""
+    """One connection, every channel subscribed; a context manager.
+
+    ``TransportError`` naming the URL when no server answers within ``timeout_s``.
+    """
 
     def __init__(self, url: str, *, timeout_s: float) -> None:
         deadline = time.monotonic() + timeout_s
@@ -35,14 +50,14 @@ class FoxgloveClient:
         while time.monotonic() < deadline:
             try:
                 self.ws = self._stack.enter_context(
-                    connect(url, subprotocols=[Subprotocol(SUBPROTOCOL)], open_timeout=2)
+                    connect(url, subprotocols=[Subprotocol(SUBPROTOCOL)], open_timeout=_OPEN_S)
                 )
                 break
             except (OSError, TimeoutError, WebSocketException) as err:  # not up yet
                 last = err
-                time.sleep(0.1)
+                time.sleep(_RETRY_S)
         if self.ws is None:
-            raise AssertionError(f"no Foxglove server at {url} within {timeout_s} s: {last}")
+            raise TransportError(f"no Foxglove server at {url} within {timeout_s} s: {last}")
         self.server_info: dict[str, Any] | None = None
         self.channels: dict[int, dict[str, Any]] = {}
         """Advertised channels by id (each with ``topic``, ``encoding``, ``schemaName``)."""
@@ -52,6 +67,7 @@ class FoxgloveClient:
         self._subscriptions: dict[int, str] = {}
 
     def close(self) -> None:
+        """Close the connection."""
         self._stack.close()
 
     def __enter__(self) -> FoxgloveClient:
@@ -106,12 +122,15 @@ class FoxgloveClient:
         return True
 
     def topics(self) -> set[str]:
+        """The topics of the channels advertised now."""
         return {channel["topic"] for channel in self.channels.values()}
 
     def json_messages(self, topic: str) -> list[dict[str, Any]]:
+        """Every message of ``topic`` so far, parsed as JSON."""
         return [json.loads(payload) for _, payload in self.messages.get(topic, [])]
 
     def set_parameter(self, request_id: str, name: str, value: object) -> None:
+        """Ask the server to set parameter ``name``, as the app's Parameters panel does."""
         self.send(
             {
                 "op": "setParameters",
@@ -128,4 +147,5 @@ class FoxgloveClient:
         return None
 
     def statuses(self) -> list[str]:
+        """The texts of the server's status messages so far."""
         return [m["message"] for m in self.control if m.get("op") == "status"]

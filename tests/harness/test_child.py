@@ -10,14 +10,14 @@ from collections.abc import Iterator
 import pytest
 
 from dbml.core.errors import DbmlError
-from dbml.harness.processes import serve_role
+from dbml.harness.child import serve_role
 
 TIMEOUT_S = 30.0
 """How long a test waits for a role that should end at once."""
 
 ROLE = """
 import threading
-from dbml.harness.processes import serve_role
+from dbml.harness.child import serve_role
 serve_role("r1", threading.Event(), lambda t0: print("ran", t0))
 """
 """A role process that runs nothing but the control protocol."""

@@ -1,0 +1,152 @@
+"""The operator of the teleoperation experiment: what arrived, and the parameters in force.
+
+Every ``TICK_S`` it reports the frames that arrived (robot, sequence number, send and arrival
+time, size, the rate the publisher applied) and the parameters in force (allocation, budget,
+estimate, the estimator's state, the variant each subscriber takes): an ``OperatorReport``.
+``operator_tick`` builds that report for every operator, dbml's own (here) and the plain ROS 2
+ones (``peers``), so the runner and the analysis read one format.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from dbml.core.errors import SpecError, TransportError
+from dbml.core.estimator import EstimatorState
+from dbml.experiment.analysis import Arrival, Tick
+from dbml.experiment.report import OperatorReport
+from dbml.experiment.spec import TAIL_S, TICK_S, URGENT_STREAMS, RoleSpec
+from dbml.harness.child import Emit
+from dbml.protocol import names
+from dbml.protocol.metadata import MessageMeta
+from dbml.runtime.params import ParamView
+from dbml.runtime.reception import ReceptionReporter
+from dbml.runtime.serve import Lifetime
+from dbml.runtime.subscriber import ManagedSubscriber
+from dbml.scenarios.fleet import fleet_cameras
+from dbml.scenarios.teleop import ROBOTS, RobotCamera
+from dbml.transports.base import Handle, Sample, Transport, Variant
+from dbml.view.live import LiveView
+
+__all__ = ["operator_tick", "run_operator"]
+
+log = logging.getLogger("dbml.experiment")
+
+
+def operator_tick(
+    view: ParamView,
+    frames: Sequence[Arrival],
+    variants: Sequence[str],
+    *,
+    cameras: Sequence[RobotCamera] = ROBOTS,
+) -> OperatorReport:
+    """The operator's report: ``frames`` that arrived and the parameters in force now.
+
+    One function for every operator (dbml's own and the plain ROS 2 one of ``ros2peers``), so
+    the runner and the analysis read one format; ``cameras`` are the fleet's, in robot order.
+    """
+    dbm = view.dbm()
+    tick = Tick(
+        t_s=time.time(),
+        allocated_hz=tuple(view.channel(c.topic).current_rate_hz for c in cameras),
+        budget_mbit=dbm.budget_mbit,
+        estimate_mbit=dbm.estimate_mbit,
+        estimator=_estimator_state(view.get(names.ESTIMATOR_STATE)),
+        variants=tuple(variants),
+    )
+    return OperatorReport(tick, tuple(frames))
+
+
+def _estimator_state(value: object) -> EstimatorState | None:
+    """The estimator's state in force; None when none runs or a peer wrote a malformed one."""
+    if not isinstance(value, str):
+        return None
+    try:
+        return EstimatorState.decode(value)
+    except SpecError as err:
+        log.debug("%s", err)
+        return None
+
+
+def run_operator(
+    transport: Transport,
+    t0: float,
+    spec: RoleSpec,
+    stop: threading.Event,
+    *,
+    life: Lifetime,
+    emit: Emit,
+    live: LiveView | None = None,
+) -> None:
+    """The operator from ``t0`` to its end: a report every ``TICK_S``, then ``done``.
+
+    Its frames come through managed subscribers (plain ones when unmanaged), shown in ``live``
+    if given; a run that lost a thread (``life``) is not done, so the runner fails it.
+    """
+    lock = threading.Lock()
+    rows: list[Arrival] = []
+    cameras = fleet_cameras(spec.robots)
+
+    def receiver(index: int) -> Callable[[Sample], None]:
+        shown = cameras[index].topic if live is not None and index < len(cameras) else None
+
+        def on_sample(sample: Sample) -> None:
+            arrival_s = time.time()
+            if shown is not None and live is not None:
+                live.frame(shown, sample.payload)
+            try:
+                meta: MessageMeta | None = MessageMeta.decode(sample.attachment)
+            except TransportError:
+                meta = None  # no metadata (ROS 1 messages carry none)
+            row = Arrival(
+                robot=index,
+                seq=None if meta is None else meta.seq,
+                sent_s=None if meta is None else meta.sent_ns / 1e9,
+                arrival_s=arrival_s,
+                size_bytes=len(sample.payload),
+                rate_hz=None if meta is None or math.isnan(meta.rate_hz) else meta.rate_hz,
+            )
+            with lock:
+                rows.append(row)
+
+        return on_sample
+
+    view = ParamView.of(transport.params)
+    reporter = ReceptionReporter(transport).start() if spec.estimate else None
+    handles: list[Handle] = []
+    subscribers: list[ManagedSubscriber] = []
+    for i, camera in enumerate(cameras):
+        if spec.managed:
+            subscriber = ManagedSubscriber(transport, camera.topic, receiver(i), reporter=reporter)
+            subscribers.append(subscriber)
+            handles.append(subscriber)
+        else:
+            handles.append(transport.subscribe(camera.topic, receiver(i), Variant.FULL))
+
+    if spec.urgent_stream:
+        for k, stream in enumerate(URGENT_STREAMS):
+            handles.append(ManagedSubscriber(transport, stream.topic, receiver(len(cameras) + k)))
+    unmanaged = [Variant.FULL.value for _ in cameras]
+
+    def tick() -> dict[str, Any]:
+        with lock:
+            batch, rows[:] = list(rows), []
+        variants = [s.variant.value for s in subscribers] or unmanaged
+        return operator_tick(view, batch, variants, cameras=cameras).encode()
+
+    try:
+        while not life.over() and time.time() < t0 + spec.duration_s + TAIL_S:
+            stop.wait(TICK_S)
+            emit(tick())
+        if not life.failed:  # a run that lost a thread is not done: the runner fails it
+            emit({"type": "done"})
+    finally:
+        for handle in handles:
+            handle.close()
+        if reporter is not None:
+            reporter.close()
