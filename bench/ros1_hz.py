@@ -31,7 +31,7 @@ from dbml.harness.processes import end_process, foreign_interpreter_env
 from dbml.harness.rosmaster import RosMaster
 from dbml.protocol import names
 from dbml.scenarios.teleop import ROBOTS
-from dbml.transports.rosapi import MasterClient
+from dbml.transports.ros1.master import MasterClient
 
 SETTLE_S = 1.0
 TOLERANCE = 0.05

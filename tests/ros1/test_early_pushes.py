@@ -12,8 +12,8 @@ import pytest
 
 pytest.importorskip("rospy")
 
-from dbml.transports.ros1 import MAX_EARLY_PUSHES, _Ros1Params
-from dbml.transports.rosapi import MasterClient
+from dbml.transports.ros1.master import MasterClient
+from dbml.transports.ros1.transport import MAX_EARLY_PUSHES, _Ros1Params
 
 OVER = 10
 PUSHES = MAX_EARLY_PUSHES + OVER

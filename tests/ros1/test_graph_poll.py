@@ -47,7 +47,7 @@ def _ros1() -> None:
 def test_a_poll_that_raises_anything_is_logged_and_retried(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
-    from dbml.transports.ros1 import _Ros1Graph
+    from dbml.transports.ros1.transport import _Ros1Graph
 
     master = Master(TransportError("master away"), ValueError("a malformed answer"))
     graph = _Ros1Graph(master, POLL_S)  # type: ignore[arg-type]
@@ -62,7 +62,7 @@ def test_a_poll_that_raises_anything_is_logged_and_retried(
 
 
 def test_a_polling_thread_that_dies_says_so(caplog: pytest.LogCaptureFixture) -> None:
-    from dbml.transports.ros1 import _Ros1Graph
+    from dbml.transports.ros1.transport import _Ros1Graph
 
     master = Master(SystemExit("ends the thread"))
     graph = _Ros1Graph(master, POLL_S)  # type: ignore[arg-type]

@@ -15,10 +15,10 @@ import pytest
 
 pytest.importorskip("rospy")
 
-from dbml.transports import ros1
 from dbml.transports.base import ParamValue
-from dbml.transports.ros1 import ECHO_WAIT_S, _Ros1Params, _Write
-from dbml.transports.rosapi import MasterClient
+from dbml.transports.ros1 import transport as ros1
+from dbml.transports.ros1.master import MasterClient
+from dbml.transports.ros1.transport import ECHO_WAIT_S, _Ros1Params, _Write
 
 TIMEOUT_S = 10.0
 """How long a test waits for the sender thread, which acts within milliseconds."""

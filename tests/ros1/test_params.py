@@ -19,8 +19,8 @@ SET_BOUND_S = 0.5
 
 
 def test_rosparam_writes_namespaces_and_deletes_reach_the_mirror(ros: RosNet) -> None:
-    from dbml.transports.ros1 import _Ros1Params
-    from dbml.transports.rosapi import MasterClient
+    from dbml.transports.ros1.master import MasterClient
+    from dbml.transports.ros1.transport import _Ros1Params
 
     ros.rosparam("set", "/keep", "1")
     client = MasterClient(ros.master.uri, caller_id="/params_test")
@@ -72,8 +72,8 @@ def test_rosparam_writes_namespaces_and_deletes_reach_the_mirror(ros: RosNet) ->
 
 def test_writes_never_wait_for_a_stalled_master(ros: RosNet) -> None:
     """A write may come from inside the master's own push: it queues, and goes once it can."""
-    from dbml.transports.ros1 import _Ros1Params
-    from dbml.transports.rosapi import CALL_TIMEOUT_S, MasterClient
+    from dbml.transports.ros1.master import CALL_TIMEOUT_S, MasterClient
+    from dbml.transports.ros1.transport import _Ros1Params
 
     client = MasterClient(ros.master.uri, caller_id="/params_test")
     params = _Ros1Params(client, "/params_test", "127.0.0.1", "127.0.0.1")
@@ -109,8 +109,8 @@ def test_writes_never_wait_for_a_stalled_master(ros: RosNet) -> None:
 
 
 def test_a_snapshot_holds_the_writes_not_sent_yet(ros: RosNet) -> None:
-    from dbml.transports.ros1 import _Ros1Params
-    from dbml.transports.rosapi import MasterClient
+    from dbml.transports.ros1.master import MasterClient
+    from dbml.transports.ros1.transport import _Ros1Params
 
     client = MasterClient(ros.master.uri, caller_id="/params_test")
     params = _Ros1Params(client, "/params_test", "127.0.0.1", "127.0.0.1")

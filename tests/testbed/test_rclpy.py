@@ -183,7 +183,7 @@ def test_the_plain_operator_reports_what_arrived_with_dds_sequence_and_send_time
 
 def test_the_bridge_helper_keeps_the_publish_statistics_logged_at_close(tmp_path: Path) -> None:
     pytest.importorskip("rclpy")  # the statistics are the rclpy transport's
-    from dbml.transports.rclpy import PublishStats
+    from dbml.transports.rclpy.transport import PublishStats
 
     stats = PublishStats("/r1/camera/optimized", 9, 1, 2.5, 0.4)
     handler = PublishStatsHandler()

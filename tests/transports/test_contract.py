@@ -31,7 +31,7 @@ from dbml.transports import (
 )
 from dbml.transports.base import resolve_host
 from dbml.transports.paramstore import ReplicatedParams
-from dbml.transports.rosapi import CALL_TIMEOUT_S, MasterClient
+from dbml.transports.ros1.master import CALL_TIMEOUT_S, MasterClient
 from tests.conftest import wait_for
 from tests.transports.rclpy_network import rclpy_network, stalled_executor
 from tests.transports.ros1_network import PeerTransport, ros1_network

@@ -19,7 +19,7 @@ from dbml.core.errors import TransportError
 from dbml.protocol.keys import encode_batch
 from dbml.protocol.metadata import MessageMeta
 from dbml.transports.base import Role, Sample, Variant
-from dbml.transports.rclpyparams import UNATTRIBUTED_S
+from dbml.transports.rclpy.params import UNATTRIBUTED_S
 from tests.conftest import wait_for
 
 rclpy = pytest.importorskip("rclpy")  # before dbml's rclpy module: the ROS 1 environment lacks it
@@ -27,7 +27,7 @@ rclpy = pytest.importorskip("rclpy")  # before dbml's rclpy module: the ROS 1 en
 from std_msgs.msg import Float64, String  # noqa: E402
 
 from dbml.harness.ros2node import private_node  # noqa: E402
-from dbml.transports.rclpy import (  # noqa: E402
+from dbml.transports.rclpy.transport import (  # noqa: E402
     ALLOCATION_QOS,
     BYTES_TYPE,
     RclpyTransport,

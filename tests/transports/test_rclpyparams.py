@@ -8,7 +8,7 @@ from hypothesis import strategies as st
 
 from dbml.core.errors import TransportError
 from dbml.protocol import schema
-from dbml.transports.rclpyparams import _hosts_it, node_of, yields
+from dbml.transports.rclpy.params import _hosts_it, node_of, yields
 
 participants = st.binary(min_size=12, max_size=12)
 

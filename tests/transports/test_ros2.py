@@ -34,9 +34,9 @@ from dbml.transports import (
     Variant,
     open_transport,
 )
-from dbml.transports import ros2 as ros2_module
-from dbml.transports.ros2 import Ros2Transport, node_name_for, resolve_domain_id
-from dbml.transports.ros2msg import (
+from dbml.transports.ros2 import transport as ros2_module
+from dbml.transports.ros2.transport import Ros2Transport, node_name_for, resolve_domain_id
+from dbml.transports.ros2.wire import (
     FLOAT64_TYPE,
     IMAGE_TYPE,
     LivelinessToken,
@@ -47,7 +47,7 @@ from dbml.transports.ros2msg import (
     encode_float64,
     parse_token,
 )
-from dbml.transports.zenoh import open_router
+from dbml.transports.zenoh.transport import open_router
 from tests.conftest import wait_for
 
 sdk = pytest.importorskip("zenoh_ros2_sdk")
@@ -610,7 +610,7 @@ def test_a_failed_declaration_in_init_closes_dbmls_session(
     def refuse(self: Ros2Transport, *args: object) -> None:
         raise TransportError("refused")
 
-    monkeypatch.setattr("dbml.transports.ros2.ZenohTransport", recording)
+    monkeypatch.setattr("dbml.transports.ros2.transport.ZenohTransport", recording)
     monkeypatch.setattr(Ros2Transport, "_token", refuse)
     with pytest.raises(TransportError, match="refused"):
         Ros2Transport(

@@ -9,8 +9,9 @@ from typing import Any
 
 import pytest
 
-from dbml.transports import Publisher, Variant, ros2
+from dbml.transports import Publisher, Variant
 from dbml.transports.ros2 import Ros2Transport
+from dbml.transports.ros2 import transport as ros2
 from tests.transports.ros2_network import Factory, ros2_network
 
 TIMEOUT_S = 10.0

@@ -12,7 +12,7 @@ from typing import Any
 
 import pytest
 
-from dbml.transports.ros2msg import IMAGE_OVERHEAD_BYTES, MessageTypes, encode_float64, image_cdr
+from dbml.transports.ros2.wire import IMAGE_OVERHEAD_BYTES, MessageTypes, encode_float64, image_cdr
 
 pytest.importorskip("rclpy")
 pytest.importorskip("rosbags")

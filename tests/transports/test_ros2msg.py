@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from dbml.core.errors import TransportError
-from dbml.transports.ros2msg import (
+from dbml.transports.ros2.wire import (
     ATTACHMENT_SIZE_BYTES,
     DISTROS,
     FLOAT64_TYPE,

@@ -16,7 +16,7 @@ import zenoh
 from dbml.harness.processes import free_port
 from dbml.protocol import keys
 from dbml.transports import ParamValue, Role, Variant
-from dbml.transports.zenoh import (
+from dbml.transports.zenoh.transport import (
     LEASE_MS,
     MAX_GRAPH_ENTRIES,
     OPEN_TIMEOUT_MS,

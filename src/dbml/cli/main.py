@@ -291,7 +291,7 @@ def _cmd_bridge(args: argparse.Namespace) -> int:
 
 
 def _cmd_router(args: argparse.Namespace) -> int:
-    from dbml.transports.zenoh import open_router
+    from dbml.transports.zenoh.transport import open_router
 
     endpoints = args.listen or [DEFAULT_ROUTER_ENDPOINT]
     with stop_on_signals() as stop:

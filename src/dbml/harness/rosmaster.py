@@ -16,7 +16,7 @@ from typing import IO
 
 from dbml.core.errors import TransportError
 from dbml.harness.processes import end_process, foreign_interpreter_env, free_port
-from dbml.transports.rosapi import answers
+from dbml.transports.ros1.master import answers
 
 __all__ = ["RosMaster"]
 

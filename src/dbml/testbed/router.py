@@ -19,7 +19,7 @@ import zenoh
 from dbml.harness.processes import stop_on_signals
 from dbml.runtime.serve import Lifetime
 from dbml.transports.worker import BackgroundThread
-from dbml.transports.zenoh import RETRY_MAX_MS, prepare_runtime, put_link_timeouts
+from dbml.transports.zenoh.transport import RETRY_MAX_MS, prepare_runtime, put_link_timeouts
 
 __all__ = ["main", "open_meshed_router"]
 

@@ -123,7 +123,7 @@ def _open_ros2(options: TransportOptions) -> Transport:
 
 
 def _open_rclpy(options: TransportOptions) -> Transport:
-    from dbml.transports.ros2msg import check_domain_id  # pure: no middleware imported
+    from dbml.transports.ros2.wire import check_domain_id  # pure: no middleware imported
 
     _no_endpoints(
         "rclpy",
@@ -139,11 +139,11 @@ def _open_rclpy(options: TransportOptions) -> Transport:
                 f"transport='rclpy' takes no {option} ({value!r}): rclpy brings its own types"
             )
     try:
-        module = importlib.import_module("dbml.transports.rclpy")
+        cls = importlib.import_module("dbml.transports.rclpy").RclpyTransport
     except ImportError as err:
         raise TransportError(str(err)) from err
     domain_id = None if options.domain_id is None else check_domain_id(options.domain_id)
-    transport: Transport = module.RclpyTransport(host=options.host, domain_id=domain_id)
+    transport: Transport = cls(host=options.host, domain_id=domain_id)
     return transport
 
 
@@ -168,10 +168,10 @@ def _open_ros1(options: TransportOptions) -> Transport:
     _no_ros2_options("ros1", options)
     _no_priority_links("ros1", options)
     try:
-        module = importlib.import_module("dbml.transports.ros1")
+        cls = importlib.import_module("dbml.transports.ros1").Ros1Transport
     except ImportError as err:
         raise TransportError(str(err)) from err
-    transport: Transport = module.Ros1Transport(host=options.host)
+    transport: Transport = cls(host=options.host)
     return transport
 
 

@@ -12,7 +12,7 @@ Tested with Fast DDS (Kilted's ``ros-*`` wheels, ``pip install 'dbml[rclpy]'``);
   sample's writer sequence number and source timestamp (where the RMW fills them, as Fast DDS
   does) are its ``seq`` and send time, so estimation works; the rate in force does not travel.
 - **Parameters** are real ROS 2 parameters on ``/dbm`` and ``[topic]/dbm``
-  (``dbml.transports.rclpyparams``); a ``std_msgs/msg/Float64`` on ``[topic]/dbm/priority``
+  (``dbml.transports.rclpy.params``); a ``std_msgs/msg/Float64`` on ``[topic]/dbm/priority``
   sets the priority of a channel hosted here.
 - **Graph**: the DDS graph itself, read every ``GRAPH_POLL_S`` (ROS 1's rule: ``announce``
   declares nothing, the real endpoints are the graph). dbml's node names carry their host
@@ -61,9 +61,9 @@ from dbml.transports.base import (
     resolve_host,
 )
 from dbml.transports.callbacks import CallbackList
-from dbml.transports.fastdds import GID_BYTES, gid_host_id
 from dbml.transports.overflow import LogOnce, Overflow
-from dbml.transports.rclpyparams import (
+from dbml.transports.rclpy.fastdds import GID_BYTES, gid_host_id
+from dbml.transports.rclpy.params import (
     ALLOCATION_TOPIC,
     PARTICIPANT_BYTES,
     RclpyParams,
@@ -71,7 +71,7 @@ from dbml.transports.rclpyparams import (
     is_param_node,
     python_value,
 )
-from dbml.transports.ros2msg import IMAGE_TYPE, image_cdr
+from dbml.transports.ros2.wire import IMAGE_TYPE, image_cdr
 from dbml.transports.worker import FLUSH_TIMEOUT_S, BackgroundThread
 
 RCLPY_HINT = "or source your ROS 2: . /opt/ros/<distro>/setup.bash"

@@ -56,7 +56,7 @@ from dbml.transports.base import (
 )
 from dbml.transports.callbacks import CallbackList
 from dbml.transports.overflow import LogOnce
-from dbml.transports.ros2msg import (
+from dbml.transports.ros2.wire import (
     ADMIN_SPACE,
     FLOAT64_TYPE,
     IMAGE_TYPE,
@@ -72,7 +72,7 @@ from dbml.transports.ros2msg import (
     image_cdr,
     parse_token,
 )
-from dbml.transports.zenoh import ZENOH_PRIORITY, ZenohTransport
+from dbml.transports.zenoh.transport import ZENOH_PRIORITY, ZenohTransport
 
 __all__ = [
     "DEFAULT_LISTEN",

@@ -55,7 +55,7 @@ from dbml.transports.base import (
 from dbml.transports.callbacks import CallbackList
 from dbml.transports.overflow import Overflow
 from dbml.transports.paramstore import MAX_PARAMS
-from dbml.transports.rosapi import CALL_TIMEOUT_S, ROSPY_MISSING, MasterClient
+from dbml.transports.ros1.master import CALL_TIMEOUT_S, ROSPY_MISSING, MasterClient
 from dbml.transports.worker import (
     DEFAULT_SENDER_CAPACITY,
     FLUSH_TIMEOUT_S,
