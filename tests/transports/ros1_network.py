@@ -28,6 +28,7 @@ from typing import Any
 from dbml.core.errors import TransportError
 from dbml.harness.processes import end_process
 from dbml.harness.rosmaster import RosMaster
+from dbml.protocol.schema import ParamError
 from dbml.transports import (
     GraphEntry,
     Handle,
@@ -45,6 +46,8 @@ from tests.ros1.rosnet import ros1_problem
 ROOT = Path(__file__).resolve().parents[2]
 READY_S = 20.0
 CALL_S = 20.0
+RAISED: dict[str, type[Exception]] = {"TransportError": TransportError, "ParamError": ParamError}
+"""The peer's errors that the tests expect by type: raised here as the peer raised them."""
 
 Factory = Callable[[str], Transport]
 
@@ -112,7 +115,7 @@ class _Peer:
                 else:
                     self._replies.put((message[2], message[3]))
         except (EOFError, OSError):
-            self._replies.put((False, (False, "the peer process ended")))
+            self._replies.put((False, ("EOFError", "the peer process ended")))
         finally:
             self._events.put(None)
 
@@ -152,10 +155,10 @@ class _Peer:
                 raise TransportError(f"ros1 peer: {op} got no reply in {CALL_S} s") from None
         if ok:
             return value
-        is_transport_error, message = value
-        if is_transport_error:
-            raise TransportError(message)
-        raise RuntimeError(f"ros1 peer: {op}: {message}\n{self.stderr()}")
+        error, message = value
+        if error in RAISED:
+            raise RAISED[error](message)
+        raise RuntimeError(f"ros1 peer: {op}: {error}: {message}\n{self.stderr()}")
 
     def stop(self) -> None:
         if self.process.poll() is None:
@@ -190,8 +193,11 @@ class _PeerParams:
         self._peer.call("set", name, value)
 
     def set_many(self, values: Mapping[str, ParamValue], *, host: str | None = None) -> None:
-        for name, value in values.items():
-            self.set(name, value)
+        self._peer.call("set_many", dict(values), host)
+
+    def limit(self, more: int) -> None:
+        """The peer's store takes ``more`` new names of its own, and refuses the next."""
+        self._peer.call("limit_params", more)
 
     def get(self, name: str) -> ParamValue:
         value: ParamValue = self._peer.call("get", name)

@@ -304,7 +304,7 @@ def _hosts(transport: RclpyTransport, node: str) -> bool:
     done = threading.Event()
 
     def ask() -> None:
-        answer.append(transport.params.hosts(node))
+        answer.append(transport._sync.hosts(node))
         done.set()
 
     transport.call_soon(ask)

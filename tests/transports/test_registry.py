@@ -58,8 +58,8 @@ def test_memory_joins_a_given_network() -> None:
 
 def test_memory_alone_is_private() -> None:
     with open_transport("memory", host="a") as a, open_transport("memory", host="b") as b:
-        a.params.set("/x", 1)
-        assert b.params.get("/x") is None
+        a.params.set("/dbm/round", 1)
+        assert b.params.get("/dbm/round") is None
 
 
 def test_options_a_transport_cannot_use_are_refused() -> None:

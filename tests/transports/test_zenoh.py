@@ -14,7 +14,7 @@ import pytest
 import zenoh
 
 from dbml.harness.processes import free_port
-from dbml.protocol import keys
+from dbml.protocol import keys, names
 from dbml.transports import ParamValue, Role, Variant
 from dbml.transports.zenoh.transport import (
     LEASE_MS,
@@ -70,16 +70,18 @@ def test_writes_from_callbacks_under_a_flood_never_stall() -> None:
         acked = threading.Event()
 
         def ack(name: str, value: ParamValue) -> None:
-            if name.startswith("/flood/") and isinstance(value, int):
-                acker.params.set(f"/ack/{name.rsplit('/', 1)[-1]}", value)  # callback thread
+            if name.startswith("/flood") and name.endswith("/dbm/priority"):
+                channel = name.removesuffix("/dbm/priority")
+                acker.params.set(names.applied(channel), 1.0)  # on the callback thread
 
+        last = names.applied(f"/flood{writes - 1}/c")
         acker.params.watch(ack)
-        flooder.params.watch(lambda name, _v: acked.set() if name == f"/ack/{writes - 1}" else None)
+        flooder.params.watch(lambda name, _v: acked.set() if name == last else None)
         for i in range(writes):
-            flooder.params.set(f"/flood/{i}", i)
+            flooder.params.set(names.priority(f"/flood{i}/c"), 0.5)
         assert acked.wait(60), "the acknowledgements stalled"
         wait_for(
-            lambda: len(flooder.params.snapshot("/ack/")) == writes,
+            lambda: sum(n.endswith("/applied_value") for n in flooder.params.snapshot()) == writes,
             timeout_s=30,
             what="every acknowledgement",
         )
@@ -110,7 +112,7 @@ def test_a_newcomer_costs_each_session_answers_of_its_own_values_only() -> None:
         )
         answered: list[int] = []
         for transport in old:
-            owned = transport.params.owned
+            owned = transport._sync.keyed.owned
 
             def counting(
                 is_live: Callable[[str], bool],
@@ -120,7 +122,7 @@ def test_a_newcomer_costs_each_session_answers_of_its_own_values_only() -> None:
                 answered.append(len(answer))
                 return answer
 
-            transport.params.owned = counting  # type: ignore[method-assign]
+            transport._sync.keyed.owned = counting  # type: ignore[method-assign]
         with ZenohTransport(host="late", port=port) as late:
             assert late.wait_for_peers(10)
             wait_for(
@@ -152,13 +154,13 @@ def test_a_publishing_session_hears_its_own_channels_not_the_fleets_reports() ->
         assert robot.wait_for_peers(10)
         assert fleet.wait_for_peers(10)
         delivered: list[str] = []
-        on_write = robot.params.on_write
+        on_write = robot._sync.keyed.on_write
 
         def record(key: str, data: bytes) -> None:
             delivered.append(key)
             on_write(key, data)
 
-        robot.params.on_write = record  # type: ignore[method-assign]
+        robot._sync.keyed.on_write = record  # type: ignore[method-assign]
         robot.params.set("/r1/cam/dbm/frequency/max", 10.0)  # now it hears /r1/cam's parameters
         wait_for(lambda: fleet.params.get("/r1/cam/dbm/frequency/max") == 10.0, timeout_s=10)
         fleet.params.set("/r2/cam/dbm/frequency/applied_value", 3.0)  # another robot's report

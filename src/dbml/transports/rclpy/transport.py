@@ -12,8 +12,7 @@ Tested with Fast DDS (Kilted's ``ros-*`` wheels, ``pip install 'dbml[rclpy]'``);
   sample's writer sequence number and source timestamp (where the RMW fills them, as Fast DDS
   does) are its ``seq`` and send time, so estimation works; the rate in force does not travel.
 - **Parameters** are real ROS 2 parameters on ``/dbm`` and ``[topic]/dbm``
-  (``dbml.transports.rclpy.params``); a ``std_msgs/msg/Float64`` on ``[topic]/dbm/priority``
-  sets the priority of a channel hosted here.
+  (``dbml.transports.rclpy.params``).
 - **Graph**: the DDS graph itself, read every ``GRAPH_POLL_S`` (ROS 1's rule: ``announce``
   declares nothing, the real endpoints are the graph). dbml's node names carry their host
   (``dbml_<host>__<id>``); another node's host is read from its endpoint GID where the RMW is
@@ -46,13 +45,12 @@ from typing import Any
 from dbml.core.errors import TransportError
 from dbml.core.extras import require
 from dbml.protocol.metadata import pack_meta
-from dbml.protocol.names import OPTIMIZED, PRIORITY_SUFFIX, check_topic
-from dbml.protocol.schema import GLOBAL_PREFIX, PRIORITY, ParamError
+from dbml.protocol.names import OPTIMIZED, check_topic
+from dbml.protocol.schema import GLOBAL_PREFIX
 from dbml.transports.base import (
     Closer,
     GraphEntry,
     Handle,
-    ParamValue,
     Role,
     Sample,
     TransportBase,
@@ -68,9 +66,11 @@ from dbml.transports.rclpy.params import (
     PARTICIPANT_BYTES,
     RclpyParams,
     check_ros_topic,
+    claim_topic,
     is_param_node,
     python_value,
 )
+from dbml.transports.replica import Replica
 from dbml.transports.ros2.wire import IMAGE_TYPE, image_cdr
 from dbml.transports.worker import FLUSH_TIMEOUT_S, BackgroundThread
 
@@ -126,9 +126,6 @@ SUBSCRIPTION_DEPTH = 10
 """Messages a subscription queues for its callback (KEEP_LAST: the oldest go first)."""
 PUBLISH_TIMES = 4_096
 """Durations of ``publish()`` a publisher keeps for its p99: the newest (its max covers all)."""
-PRIORITY_INTERVAL_S = 0.05
-"""A channel's ``Float64`` priorities are applied at most this often; a flood's newest value
-waits for the next graph poll (every parameter change is an event to every process)."""
 MAX_TOPICS = 4_096
 """Topics of the graph read at most per poll (beyond: ignored, logged once per flood)."""
 MAX_SOON = 65_536
@@ -509,9 +506,6 @@ class RclpyTransport(TransportBase):
         self._dbml_peers = 0
         self._bad = LogOnce(log)
         self._poll_queued = False
-        self._held_priorities: dict[str, ParamValue] = {}
-        """Priorities heard in a flood, the newest per channel, for the next poll (executor
-        thread; one per channel hosted here)."""
         self._topics_overflow = Overflow("graph topics", MAX_TOPICS, log=log)
         self._graph = _Graph()
         self._polled = threading.Event()
@@ -520,7 +514,7 @@ class RclpyTransport(TransportBase):
             self._executor = SingleThreadedExecutor(context=self.context)
             self._executor.add_node(self.node)
             self._wake = self.node.create_guard_condition(self._run_soon)
-            self._params = RclpyParams(self)
+            self._sync = RclpyParams(self)
             self.node.create_subscription(
                 _parameter_event(),
                 "/parameter_events",
@@ -559,14 +553,43 @@ class RclpyTransport(TransportBase):
 
     def call_soon(self, task: Callable[[], None]) -> None:
         """Run ``task`` on the executor thread (where every rclpy call of dbml's runs)."""
+        self._queue(task)
+
+    def _queue(self, task: Callable[[], None]) -> bool:
+        """Queue ``task`` for the executor thread; False if closed or the queue is full."""
         with self._lock:
             if self._closed:
-                return
+                return False
             if len(self._soon) >= MAX_SOON:
                 self._soon_overflow.refuse()
-                return
+                return False
             self._soon.append(task)
         self._wake.trigger()
+        return True
+
+    def run(self, task: Callable[[], None]) -> bool:
+        """Run ``task`` on the executor thread and wait until it ran (the parameter sender's).
+
+        False, without waiting longer, once the transport closes or its executor thread dies.
+        """
+        if self._thread.is_current():
+            task()
+            return True
+        done = threading.Event()
+
+        def step() -> None:
+            try:
+                task()
+            finally:
+                done.set()
+
+        while not self._queue(step):  # the queue is full: it drains
+            if self._closed or not self._thread.alive or done.wait(SPIN_TIMEOUT_S):
+                return False
+        while not done.wait(SPIN_TIMEOUT_S):
+            if self._closed or not self._thread.alive:
+                return False
+        return True
 
     def _run_soon(self) -> None:
         while True:
@@ -602,40 +625,6 @@ class RclpyTransport(TransportBase):
         """``node``'s ``std_msgs/msg/String`` publisher of the newest whole allocation."""
         return node.create_publisher(_string(), topic, ALLOCATION_QOS)
 
-    def hear_priority(self, topic: str, node: Node) -> Handle:
-        """Take ``std_msgs/msg/Float64`` on ``[topic]/dbm/priority`` as the channel's priority.
-
-        Subscribed by the channel's parameter node ``node``: the endpoint tells every process
-        that this one hosts the channel for good.
-        """
-        from std_msgs.msg import Float64
-
-        name = PRIORITY.key(topic)
-        last_s = [-PRIORITY_INTERVAL_S]
-
-        def heard(message: Float64) -> None:
-            try:
-                value = PRIORITY.check(message.data, name=f"{topic}{PRIORITY_SUFFIX}")
-            except ParamError as err:
-                self._bad.warning(name, "ignoring a priority: %s", err)
-                return
-            now = time.monotonic()
-            if now - last_s[0] < PRIORITY_INTERVAL_S:
-                self._held_priorities[name] = value  # a flood: the next poll applies the newest
-                return
-            last_s[0] = now
-            self._held_priorities.pop(name, None)
-            if self._params.get(name) != value:
-                self._params.set(name, value)
-
-        subscription = node.create_subscription(
-            Float64,
-            f"{topic}{PRIORITY_SUFFIX}",
-            _guarded(f"priority of {topic}", heard),
-            QoSProfile(depth=SUBSCRIPTION_DEPTH, reliability=ReliabilityPolicy.BEST_EFFORT),
-        )
-        return Closer(lambda: _void(node.destroy_subscription(subscription)))
-
     def _on_parameter_event(self, event: Any, info: Any) -> None:
         """A parameter node's changes, with their sender (two arguments: the message info).
 
@@ -655,14 +644,14 @@ class RclpyTransport(TransportBase):
             changed = [(name, value) for name, value in changed if value is not None]
             changed += [(p.name, python_value(p.value)) for p in event.changed_parameters]
             changed += [(p.name, None) for p in event.deleted_parameters]
-            self._params.on_event(fqn, changed, sender=_sender(info))
+            self._sync.on_event(fqn, changed, sender=_sender(info))
         except Exception:
             log.exception("a parameter event could not be handled")
 
     def _on_allocation(self, message: Any, info: Any) -> None:
         """``/dbm/allocation`` with its sender (two arguments: rclpy passes the message info)."""
         try:
-            self._params.on_allocation(message.data, sender=_sender(info))
+            self._sync.on_allocation(message.data, sender=_sender(info))
         except Exception:
             log.exception("an allocation could not be handled")
 
@@ -714,9 +703,9 @@ class RclpyTransport(TransportBase):
                     fqn = is_param_node(info.node_namespace, info.node_name)
                     if fqn is not None:
                         param_hosts.setdefault(fqn, set()).add(gid[:PARTICIPANT_BYTES])
-                        # A host's claim: /dbm's allocation publisher, a channel's priority.
+                        # A host's claim: /dbm's allocation publisher, a channel's host topic.
                         if (fqn == GLOBAL_PREFIX and topic == ALLOCATION_TOPIC) or (
-                            topic == f"{fqn[: -len(GLOBAL_PREFIX)]}{PRIORITY_SUFFIX}"
+                            fqn != GLOBAL_PREFIX and topic == claim_topic(fqn)
                         ):
                             claimed.setdefault(fqn, set()).add(gid[:PARTICIPANT_BYTES])
                             if topic == ALLOCATION_TOPIC:
@@ -763,11 +752,7 @@ class RclpyTransport(TransportBase):
                 subscription.ensure(msg_type, reliable=subscription.ros_topic not in best_effort)
             except Exception as err:  # a type or name from the network: that one only
                 self._bad.warning(subscription.ros_topic, "cannot subscribe: %s", err)
-        held, self._held_priorities = self._held_priorities, {}
-        for name, value in held.items():
-            if self._params.get(name) != value:
-                self._params.set(name, value)
-        self._params.poll(
+        self._sync.poll(
             {n: frozenset(p) for n, p in param_hosts.items()},
             {n: frozenset(p) for n, p in claimed.items()},
             own,
@@ -801,9 +786,9 @@ class RclpyTransport(TransportBase):
         return self._host
 
     @property
-    def params(self) -> RclpyParams:
+    def params(self) -> Replica:
         """The parameters of every ``/dbm`` and ``[topic]/dbm`` node, as last heard."""
-        return self._params
+        return self._sync.replica
 
     @property
     def graph(self) -> _Graph:
@@ -866,7 +851,7 @@ class RclpyTransport(TransportBase):
         while True:
             with self._lock:
                 peers = self._dbml_peers > 0
-            if peers and self._params.settled():
+            if peers and self._sync.settled():
                 return True
             if time.monotonic() >= deadline:
                 return False
@@ -875,12 +860,12 @@ class RclpyTransport(TransportBase):
 
     def refresh(self, entry: GraphEntry) -> None:
         """Read the parameters of ``entry``'s channel again from its node."""
-        self._params.refresh(f"{entry.topic}{GLOBAL_PREFIX}")
+        self._sync.refresh(f"{entry.topic}{GLOBAL_PREFIX}")
 
     def confirm_param(self, name: str, *, timeout_s: float) -> bool:
         """Whether another process's node took this process's latest write of ``name``."""
         deadline = time.monotonic() + timeout_s
-        while not self._params.confirmed(name):
+        while not self._sync.confirmed(name):
             if time.monotonic() >= deadline:
                 return False
             self._polled.clear()
@@ -919,8 +904,8 @@ class RclpyTransport(TransportBase):
 
     @property
     def alive(self) -> bool:
-        """False once the executor thread died."""
-        return self._thread.alive
+        """False once the executor thread or the parameter sender died."""
+        return self._thread.alive and self._sync.replica.alive
 
     def close(self) -> None:
         """Send what is queued, stop the executor thread, destroy every node, shut down.
@@ -932,13 +917,13 @@ class RclpyTransport(TransportBase):
         with self._lock:
             if self._closed:
                 return
+        waits = self._thread.alive and not self._thread.is_current()
+        # The parameter writes first: their sender hands each to the executor and waits for it.
+        if not self._sync.replica.close(FLUSH_TIMEOUT_S if waits else 0.0):
+            log.warning("closing with parameter writes unsent (the executor was busy)")
         flushed = threading.Event()
         self.call_soon(flushed.set)
-        if (
-            self._thread.alive
-            and not self._thread.is_current()
-            and not flushed.wait(FLUSH_TIMEOUT_S)
-        ):
+        if waits and not flushed.wait(FLUSH_TIMEOUT_S):
             log.warning("closing with writes still queued (the executor was busy)")
         with self._lock:
             self._closed = True
@@ -948,7 +933,7 @@ class RclpyTransport(TransportBase):
             log.warning("the executor thread did not stop: its nodes are left to the exit")
             return
         try:
-            self._params.close()
+            self._sync.close()
             self._executor.shutdown(timeout_sec=1.0)
             self.node.destroy_node()
         finally:
