@@ -40,8 +40,8 @@ from dbml.harness.processes import end_process
 from dbml.harness.ros2env import claim_domain, fastdds_shm_files, ros2_child_env
 from dbml.protocol import names
 from dbml.scenarios.teleop import MAX_RATE_HZ, ROBOTS, STEPS
+from dbml.transports.codecs import image_cdr
 from dbml.transports.registry import open_transport
-from dbml.transports.ros2.wire import image_cdr
 from tests.conftest import wait_for
 
 rclpy = pytest.importorskip("rclpy")

@@ -40,6 +40,7 @@ from dbml.transports import (
     Variant,
 )
 from dbml.transports.base import Closer, TransportPriority
+from dbml.transports.codecs import ROS1_FLOAT64
 from tests.conftest import require
 from tests.ros1.rosnet import ros1_problem
 
@@ -232,6 +233,8 @@ class _PeerGraph:
 class PeerTransport(TransportBase):
     """A ``Transport`` whose every call runs in a ``ros1_peer`` process."""
 
+    float64 = ROS1_FLOAT64
+
     def __init__(self, peer: _Peer, name: str, hosts: _Hosts) -> None:
         self._peer = peer
         self.host = hosts.name(peer.host)
@@ -267,9 +270,8 @@ class PeerTransport(TransportBase):
     def confirm_param(self, name: str, *, timeout_s: float) -> bool:
         return bool(self._peer.call("confirm_param", name, timeout_s))
 
-    def camera_frame(self, topic: str, size_bytes: int) -> bytes:
-        frame: bytes = self._peer.call("camera_frame", topic, size_bytes)
-        return frame
+    def set_topic_type(self, topic: str, msg_type: str) -> None:
+        self._peer.call("set_topic_type", topic, msg_type)
 
     def close(self) -> None:
         if not self._closed:

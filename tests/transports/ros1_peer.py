@@ -52,7 +52,7 @@ class Peer:
             "confirm_param": lambda name, timeout_s: transport.confirm_param(
                 name, timeout_s=timeout_s
             ),
-            "camera_frame": transport.camera_frame,
+            "set_topic_type": transport.set_topic_type,
         }
 
     def limit_params(self, more: int) -> None:

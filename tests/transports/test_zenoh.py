@@ -6,6 +6,7 @@ import json
 import logging
 import os
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import cast
@@ -15,7 +16,9 @@ import zenoh
 
 from dbml.harness.processes import free_port
 from dbml.protocol import keys, names
+from dbml.runtime.priority import PRIORITY_INTERVAL_S, PriorityTopic
 from dbml.transports import ParamValue, Role, Variant
+from dbml.transports.codecs import encode_float64
 from dbml.transports.zenoh.transport import (
     LEASE_MS,
     MAX_GRAPH_ENTRIES,
@@ -292,3 +295,35 @@ def test_sessions_drop_a_lost_peer_soon_and_retry_a_returning_one_often() -> Non
     assert json.loads(config.get_json("transport/link/tx/lease")) == LEASE_MS < 10_000
     assert json.loads(config.get_json("transport/unicast/open_timeout")) == OPEN_TIMEOUT_MS
     assert json.loads(config.get_json("connect/retry"))["period_max_ms"] == RETRY_MAX_MS
+
+
+def test_a_cdr_float64_on_the_priority_topic_sets_the_priority_and_a_flood_keeps_the_rule(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Over zenoh a priority topic carries CDR, as rmw_zenoh's would: another session's."""
+    name = names.priority("/r1/camera")
+    robot, operator = sessions = mesh(free_port(), "r1", "op")
+    heard = PriorityTopic(robot, "/r1/camera")  # what the channel's managed publisher runs
+    writes: list[tuple[float, object]] = []
+    robot.params.watch(lambda n, v: writes.append((time.monotonic(), v)) if n == name else None)
+    try:
+        assert operator.wait_for_peers(10)
+        publisher = operator.declare_publisher("/r1/camera/dbm/priority")
+        wait_for(lambda: publisher.has_subscribers, timeout_s=10, what="the robot's subscription")
+        with caplog.at_level(logging.WARNING, logger="dbml.priority"):
+            publisher.put(encode_float64(1.5))
+            wait_for(lambda: f"{name}=1.5 must be within" in caplog.text, what="the refusal")
+        publisher.put(encode_float64(0.3))
+        wait_for(lambda: operator.params.get(name) == 0.3, timeout_s=10, what="0.3 everywhere")
+        started = time.monotonic()
+        flood = [round(0.001 * i, 3) for i in range(1, 1_000)]
+        for value in flood:
+            publisher.put(encode_float64(value))
+        wait_for(lambda: operator.params.get(name) == flood[-1], timeout_s=10, what="the newest")
+        during = [t for t, _v in writes if t >= started]
+        span_s = during[-1] - during[0]
+        assert len(during) <= span_s / PRIORITY_INTERVAL_S + 1, (len(during), span_s)
+        assert len(during) < len(flood) / 10
+    finally:
+        heard.close()
+        close_all(sessions)

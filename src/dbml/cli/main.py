@@ -233,6 +233,7 @@ def _cmd_publish(args: argparse.Namespace) -> int:
         lambda t, stop: commands.run_publisher(
             t,
             args.topic,
+            transport_name=args.transport,
             size_bytes=args.size_bytes,
             min_rate_hz=args.min_hz,
             max_rate_hz=args.max_hz,

@@ -56,7 +56,7 @@ from dbml.runtime.subscriber import ManagedSubscriber
 from dbml.scenarios.fleet import fleet_cameras, fleet_steps
 from dbml.scenarios.teleop import LINK_MBIT, MAX_RATE_HZ, MIN_RATE_HZ, ROBOTS, STEPS, RobotCamera
 from dbml.transports.base import Handle, Sample, Transport, Variant
-from dbml.transports.registry import open_transport
+from dbml.transports.registry import camera_frame, open_transport
 from dbml.transports.worker import BackgroundThread
 from dbml.view.live import LiveView, open_view
 from dbml.view.target import ViewTarget
@@ -225,7 +225,7 @@ def _managed_robot(
     life: Lifetime,
 ) -> None:
     camera = fleet_cameras(spec.robots)[index]
-    frame = transport.camera_frame(camera.topic, camera.size_bytes)  # first: it may set the type
+    frame = camera_frame(transport, spec.transport, camera.topic, camera.size_bytes)  # types it
     publisher = ManagedPublisher(
         transport, camera.topic, min_rate_hz=MIN_RATE_HZ, max_rate_hz=MAX_RATE_HZ
     )
@@ -267,7 +267,7 @@ def _unmanaged_robot(
 ) -> None:
     """What a robot does without dbml: publish every frame at the camera's maximum rate."""
     camera = fleet_cameras(spec.robots)[index]
-    frame = transport.camera_frame(camera.topic, camera.size_bytes)
+    frame = camera_frame(transport, spec.transport, camera.topic, camera.size_bytes)
     publisher = transport.declare_publisher(camera.topic, Variant.FULL)
     rate = Rate(lambda: MAX_RATE_HZ)
     seq = 0

@@ -2,13 +2,14 @@
 
 ``TRANSPORTS`` maps each name to a ``TransportEntry``: the factory and what a caller must know
 before choosing it (whether it spans processes, whether its messages carry dbml's metadata,
-whether its parameter store is complete when a process starts). The command line's choices and
-help come from it, in its order, the default first.
+whether its parameter store is complete when a process starts, how its camera frames are
+made). The command line's choices and help come from it, in its order, the default first.
 """
 
 from __future__ import annotations
 
 import importlib
+import time
 import types
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -17,6 +18,14 @@ from typing import Protocol
 
 from dbml.core.errors import TransportError
 from dbml.transports.base import Transport
+from dbml.transports.codecs import (
+    CDR_IMAGE,
+    IMAGE_TYPE,
+    RAW_FRAME,
+    ROS1_IMAGE,
+    FrameCodec,
+    image_cdr,
+)
 from dbml.transports.memory import MemoryNetwork, MemoryTransport
 
 __all__ = [
@@ -25,6 +34,7 @@ __all__ = [
     "TransportEntry",
     "TransportFactory",
     "TransportOptions",
+    "camera_frame",
     "open_transport",
 ]
 
@@ -76,6 +86,16 @@ class TransportEntry:
     send_times: bool = False
     """Whether a received message says when it was sent and its sequence number (dbml's
     attachment, or DDS's sample info over rclpy): what ``--estimate`` needs."""
+    frame: FrameCodec = RAW_FRAME
+    """A synthetic camera frame as this transport carries it (``camera_frame``)."""
+
+
+def _stamped_image(size_bytes: int) -> bytes:
+    """A CDR ``sensor_msgs/msg/Image`` stamped with the wall clock when made (``ros2``'s frame).
+
+    A ROS 2 viewer subscribed through rmw_zenoh shows when it was made.
+    """
+    return image_cdr(size_bytes, stamp_ns=time.time_ns())
 
 
 def _no_network(name: str, options: TransportOptions) -> None:
@@ -199,6 +219,7 @@ TRANSPORTS: Mapping[str, TransportEntry] = types.MappingProxyType(
             carries_metadata=False,
             params_complete_at_start=True,
             typed_topics=True,
+            frame=ROS1_IMAGE,
         ),
         "rclpy": TransportEntry(
             factory=_open_rclpy,
@@ -209,6 +230,7 @@ TRANSPORTS: Mapping[str, TransportEntry] = types.MappingProxyType(
             params_complete_at_start=False,
             typed_topics=True,
             send_times=True,
+            frame=CDR_IMAGE,
         ),
         "ros2": TransportEntry(
             factory=_open_ros2,
@@ -217,6 +239,7 @@ TRANSPORTS: Mapping[str, TransportEntry] = types.MappingProxyType(
             carries_metadata=False,
             params_complete_at_start=False,
             typed_topics=True,
+            frame=FrameCodec(IMAGE_TYPE, _stamped_image),
         ),
         "memory": TransportEntry(
             factory=_open_memory,
@@ -278,3 +301,20 @@ def open_transport(
             priority_links=priority_links,
         )
     )
+
+
+def camera_frame(transport: Transport, name: str, topic: str, size_bytes: int) -> bytes:
+    """A synthetic camera frame of exactly ``size_bytes`` as transport ``name`` carries it.
+
+    ``transport`` is an open transport of that name. Over a typed middleware (ROS 1, ROS 2) the
+    frame is a serialised ``sensor_msgs/Image`` and ``topic`` is declared of that type first,
+    so the size the optimizer sees is the size asked for; elsewhere raw bytes.
+    """
+    entry = TRANSPORTS.get(name)
+    if entry is None:
+        raise TransportError(f"transport={name!r} is not one of: {', '.join(TRANSPORTS)}")
+    codec = entry.frame
+    frame = codec.encode(size_bytes)  # first: a size too small is refused before anything
+    if codec.msg_type is not None:
+        transport.set_topic_type(topic, codec.msg_type)
+    return frame

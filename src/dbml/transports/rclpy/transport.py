@@ -71,7 +71,6 @@ from dbml.transports.rclpy.params import (
     python_value,
 )
 from dbml.transports.replica import Replica
-from dbml.transports.ros2.wire import IMAGE_TYPE, image_cdr
 from dbml.transports.worker import FLUSH_TIMEOUT_S, BackgroundThread
 
 RCLPY_HINT = "or source your ROS 2: . /opt/ros/<distro>/setup.bash"
@@ -871,12 +870,6 @@ class RclpyTransport(TransportBase):
             self._polled.clear()
             self._polled.wait(GRAPH_POLL_S)
         return True
-
-    def camera_frame(self, topic: str, size_bytes: int) -> bytes:
-        """A mono8 ``sensor_msgs/msg/Image`` of exactly ``size_bytes`` (the topic's type set)."""
-        if self.resolve_type(topic) is None:
-            self.set_topic_type(topic, IMAGE_TYPE)
-        return image_cdr(size_bytes)
 
     def topic_type(self, topic: str, *, timeout_s: float) -> str | None:
         """The type the graph shows for ``topic``'s publishers, waiting up to ``timeout_s``."""

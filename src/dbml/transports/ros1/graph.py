@@ -14,6 +14,7 @@ from collections.abc import Callable
 from urllib.parse import urlparse
 
 from dbml.core.errors import TransportError
+from dbml.protocol.schema import GLOBAL_PREFIX
 from dbml.transports.base import Closer, GraphEntry, Handle, Role, Variant, check_topic
 from dbml.transports.callbacks import CallbackList
 from dbml.transports.ros1.master import CALL_TIMEOUT_S, MasterClient
@@ -30,6 +31,8 @@ LIVENESS_S = 2.0
 NODE_PING_TIMEOUT_S = 0.5
 """How long a node has to answer ``getPid`` before it counts as gone."""
 _OPTIMIZED = "/" + Variant.OPTIMIZED.value
+_RESERVED = f"{GLOBAL_PREFIX}/"
+"""A ``dbm`` segment: the topic is dbml's own (``[topic]/dbm/priority``), not a channel."""
 
 
 def split(ros_topic: str) -> tuple[str, Variant]:
@@ -99,6 +102,8 @@ class Ros1Graph:
         for role, listing in ((Role.PUBLISHER, publishers), (Role.SUBSCRIBER, subscribers)):
             for ros_topic, nodes in listing:
                 topic, variant = split(ros_topic)
+                if _RESERVED in f"{topic}/":
+                    continue  # dbml's own (a channel's priority topic): not a channel
                 for node in nodes:
                     listed.add(node)
                     host = self._host(node)

@@ -20,6 +20,7 @@ started with ``rospy.init_node``.
 from __future__ import annotations
 
 import atexit
+import importlib
 import io
 import logging
 import struct
@@ -41,6 +42,7 @@ from dbml.transports.base import (
     check_topic,
     resolve_host,
 )
+from dbml.transports.codecs import ROS1_FLOAT64
 from dbml.transports.replica import Replica
 from dbml.transports.ros1.graph import GRAPH_POLL_S, Ros1Graph, split
 from dbml.transports.ros1.master import ROSPY_MISSING, MasterClient
@@ -173,6 +175,9 @@ class Ros1Transport(TransportBase):
     can only be chosen before the node starts.
     """
 
+    float64 = ROS1_FLOAT64
+    """ROS 1's serialisation of a ``std_msgs/Float64`` (a priority from a topic)."""
+
     def __init__(
         self,
         *,
@@ -286,23 +291,6 @@ class Ros1Transport(TransportBase):
             raise TransportError(f"data_class={data_class!r} is not a rospy message class")
         self._classes[topic] = data_class
 
-    def camera_frame(self, topic: str, size_bytes: int) -> bytes:
-        """A serialised ``sensor_msgs/Image`` of exactly ``size_bytes``, ``topic`` typed so.
-
-        One mono8 row after the header: the size the optimizer sees is the size asked for.
-        """
-        from sensor_msgs.msg import Image
-
-        self.use_message_class(topic, Image)
-        image = Image(height=1, encoding="mono8", data=b"")
-        pixels = size_bytes - len(serialize(image))
-        image.width = image.step = pixels
-        image.data = bytes(pixels)
-        serialized = serialize(image)
-        if len(serialized) != size_bytes:
-            raise TransportError(f"size_bytes={size_bytes!r} is smaller than an empty Image")
-        return serialized
-
     def declare_publisher(
         self,
         topic: str,
@@ -386,8 +374,8 @@ class Ros1Transport(TransportBase):
     def set_topic_type(self, topic: str, msg_type: str) -> None:
         """Carry ``topic`` (both copies) as raw bytes of ``msg_type`` (``pkg/Name``).
 
-        Its Python class is used when installed; else the md5 and definition come from the
-        connection header of the first message received on ``topic``.
+        Its Python class is used when installed (``pkg.msg.Name``); else the md5 and definition
+        come from the connection header of the first message received on ``topic``.
         """
         base, _variant = split(check_topic(topic))
         package, _, name = msg_type.rpartition("/")
@@ -395,6 +383,12 @@ class Ros1Transport(TransportBase):
         if not package or "/" in package or not name:
             raise TransportError(f"type={msg_type!r} must look like 'sensor_msgs/Image'")
         self._declared_types[base] = f"{package}/{name}"
+        try:
+            data_class = getattr(importlib.import_module(f"{package}.msg"), name, None)
+        except ImportError:
+            data_class = None
+        if data_class is not None and hasattr(data_class, "_md5sum"):
+            self.use_message_class(base, data_class)
 
     def now(self) -> float:
         """Monotonic seconds."""
