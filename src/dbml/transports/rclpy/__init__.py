@@ -1,7 +1,9 @@
 """The rclpy transport: real ROS 2 through rclpy, on whatever RMW it runs.
 
 ``transport`` holds topics and the DDS graph, ``params`` the parameters as ROS 2 nodes' own,
-``fastdds`` Fast DDS's discovery profile and GIDs (no rclpy).
+``nodes`` which node holds a name (pure), ``fastdds`` Fast DDS's discovery profile and GIDs (no
+rclpy).
+
 The transport class is imported on first use: importing the package, or a part of it that
 needs no middleware, never loads rclpy.
 """

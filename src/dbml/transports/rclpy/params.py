@@ -37,7 +37,6 @@ first.
 from __future__ import annotations
 
 import logging
-import re
 import threading
 import time
 from collections import OrderedDict, deque
@@ -48,7 +47,6 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 from dbml.core.errors import TransportError
 from dbml.protocol import keys
-from dbml.protocol.names import check_topic
 from dbml.protocol.schema import (
     GLOBAL_PREFIX,
     PARAMETERS,
@@ -62,6 +60,21 @@ from dbml.protocol.schema import (
 )
 from dbml.transports.base import ParamValue, check_param_value
 from dbml.transports.overflow import LogOnce, Overflow
+from dbml.transports.rclpy.nodes import (
+    ALLOCATION_TOPIC,
+    DBM_NODE,
+    PARTICIPANT_BYTES,
+    ROS_OWN,
+    allocated,
+    check_ros_name,
+    claim_topic,
+    full_name,
+    hosts_it,
+    node_of,
+    python_value,
+    scope_of,
+    yields,
+)
 from dbml.transports.replica import Replica, Write
 
 if TYPE_CHECKING:
@@ -69,39 +82,21 @@ if TYPE_CHECKING:
     from rclpy.publisher import Publisher as RosPublisher
 
 __all__ = [
-    "ALLOCATION_TOPIC",
-    "CLAIM_SUFFIX",
-    "HOSTING_WRITERS",
+    "FETCH_TIMEOUT_S",
+    "MAX_CLIENTS",
     "MAX_PARAM_NODES",
-    "PARTICIPANT_BYTES",
+    "MAX_UNATTRIBUTED",
+    "MAX_UNVERIFIED",
+    "MAX_UNVERIFIED_SENDERS",
+    "UNATTRIBUTED_S",
     "RclpyHost",
     "RclpyParams",
-    "check_ros_topic",
-    "claim_topic",
-    "is_param_node",
-    "node_of",
-    "python_value",
-    "yields",
 ]
 
 log = logging.getLogger("dbml.rclpy")
 
-ALLOCATION_TOPIC = f"{GLOBAL_PREFIX}/allocation"
-"""Where the optimizer's ``/dbm`` node sends a round's allocation (``std_msgs/msg/String``,
-``dbml.protocol.keys``' batch encoding); the publisher also says that the node is claimed."""
-CLAIM_SUFFIX = f"{GLOBAL_PREFIX}/host"
-"""A claimed channel node's ``std_msgs/msg/String`` topic, ``[topic]/dbm/host``: its publisher
-says in the graph that this process hosts ``[topic]/dbm`` for good, its message which host."""
-HOSTING_WRITERS: Mapping[Scope, frozenset[Writer]] = {
-    Scope.GLOBAL: frozenset({Writer.OPTIMIZER, Writer.ESTIMATOR}),
-    Scope.CHANNEL: frozenset({Writer.PUBLISHER}),
-}
-"""Whose writes make a process host a node: a parameter only these roles write is written by the
-process the paper puts it on (the optimizer's ``/dbm``, the publisher's ``[topic]/dbm``)."""
 MAX_PARAM_NODES = 8_192
 """The most parameter nodes remembered (met, fetched); beyond, new ones are ignored (logged)."""
-PARTICIPANT_BYTES = 12
-"""A GID's first bytes name its participant (Fast DDS: vendor, host, process, participant)."""
 MAX_UNVERIFIED = 1_024
 """Events of one sender waiting for the graph to name it a host (the oldest go first)."""
 MAX_UNVERIFIED_SENDERS = 64
@@ -114,129 +109,6 @@ FETCH_TIMEOUT_S = 2.0
 """A ``GetParameters`` unanswered this long is asked again (an answer takes milliseconds)."""
 MAX_CLIENTS = 256
 """Service clients kept open to other processes' nodes; the least recently used is closed."""
-_DBM_NODE = GLOBAL_PREFIX[1:]
-"""Every parameter node's own name: ``dbm``, in the namespace ``/`` or ``[topic]``."""
-_ROS_NAME = re.compile(r"^(/[A-Za-z_][A-Za-z0-9_]*)+$")
-"""A ROS 2 topic name as dbml uses one: ``check_topic``'s, without ``-``, ``.`` and ``~``."""
-_ROS_OWN = frozenset({"use_sim_time", "start_type_description_service"})
-"""Parameters every rclpy node declares: not dbml's, never reported."""
-
-
-def node_of(name: str) -> tuple[Parameter, str, str]:
-    """The parameter ``name`` is, its node (``/dbm``, ``/r1/camera/dbm``) and its name there.
-
-    ``TransportError`` for a name outside dbml's schema: ROS 2 parameters live on nodes, so a
-    name must say which.
-    """
-    found = lookup(name)
-    if found is None:
-        raise TransportError(
-            f"parameter name={name!r} is not one of dbml's: over rclpy a parameter lives on a "
-            "node, /dbm/<field> or [topic]/dbm/<field>"
-        )
-    parameter, topic = found
-    node = GLOBAL_PREFIX if topic is None else f"{topic}{GLOBAL_PREFIX}"
-    return parameter, node, parameter.ros2_name
-
-
-def check_ros_topic(topic: str) -> str:
-    """``topic`` if ROS 2 accepts it as a name too (no ``-``, ``.``, ``~``); else the error.
-
-    dbml's topic rule (``check_topic``) allows those for zenoh; a ROS 2 name, a node's
-    namespace included, does not.
-    """
-    check_topic(topic)
-    if not _ROS_NAME.match(topic):
-        raise TransportError(
-            f"topic={topic!r} is not a ROS 2 name: letters, digits and _ only between the /"
-        )
-    return topic
-
-
-def claim_topic(node: str) -> str:
-    """The topic a claimed channel node ``[topic]/dbm`` publishes its host on."""
-    return f"{node[: -len(GLOBAL_PREFIX)]}{CLAIM_SUFFIX}"
-
-
-def _check_ros_name(name: str) -> None:
-    """A parameter's node must be a ROS 2 name: ``set`` refuses one that is not, by name."""
-    _parameter, node, _ros2_name = node_of(name)
-    if node != GLOBAL_PREFIX:
-        check_ros_topic(node[: -len(GLOBAL_PREFIX)])
-
-
-def _full_name(node: str, ros2_name: str) -> str | None:
-    """The store's name of parameter ``ros2_name`` on node ``node``; None if not dbml's."""
-    if ros2_name in _ROS_OWN:
-        return None
-    name = f"{node}/{ros2_name.replace('.', '/')}"
-    found = lookup(name)
-    if found is None:
-        return None
-    expected = GLOBAL_PREFIX if found[1] is None else f"{found[1]}{GLOBAL_PREFIX}"
-    return name if expected == node else None
-
-
-def _scope_of(node: str) -> Scope:
-    return Scope.GLOBAL if node == GLOBAL_PREFIX else Scope.CHANNEL
-
-
-def is_param_node(namespace: str, name: str) -> str | None:
-    """The fully qualified name of a parameter node (``/dbm``, ``/r1/camera/dbm``), else None."""
-    if name != _DBM_NODE:
-        return None
-    if namespace == "/":
-        return GLOBAL_PREFIX
-    try:
-        check_topic(namespace)
-    except TransportError:
-        return None
-    return f"{namespace}{GLOBAL_PREFIX}"
-
-
-def yields(own: bytes, hosts: AbstractSet[bytes], claimed: AbstractSet[bytes]) -> bool:
-    """Whether a provisional host ``own`` of a node gives it up, seeing ``hosts`` host it.
-
-    To a host that claimed the node (its owner), always; among provisional hosts, all but the
-    smallest participant: every process decides alike from the same graph, so one is left.
-    """
-    others = set(hosts) - {own}
-    return bool(others) and (bool(set(claimed) - {own}) or min(others) < own)
-
-
-def _hosts_it(parameter: Parameter) -> bool:
-    """Whether writing ``parameter`` makes this process its node's host (see HOSTING_WRITERS)."""
-    return parameter.writers <= HOSTING_WRITERS[parameter.scope]
-
-
-def _allocated(parameter: Parameter) -> bool:
-    """A channel's parameter only the optimizer writes: it travels in ``/dbm/allocation``."""
-    return parameter.scope is Scope.CHANNEL and parameter.writers == {Writer.OPTIMIZER}
-
-
-def python_value(message: Any) -> object:
-    """A ``ParameterValue`` as Python (``None`` for NOT_SET, arrays as lists).
-
-    One of a type rclpy does not know (any node may send one) is an object the store refuses,
-    naming it, never an exception on the executor thread.
-    """
-    from rclpy.parameter import parameter_value_to_python
-
-    try:
-        value: object = parameter_value_to_python(message)
-    except Exception:  # rclpy raises its own errors for an unknown type number
-        return _UNKNOWN_VALUE
-    return value
-
-
-class _Unknown:
-    """A parameter value of a type rclpy does not know: the store refuses it, naming it."""
-
-    def __repr__(self) -> str:
-        return "<a parameter value of an unknown type>"
-
-
-_UNKNOWN_VALUE = _Unknown()
 
 
 @dataclass
@@ -318,7 +190,7 @@ class RclpyParams:
             transport.host,
             send=self._send,
             log=log,
-            check_name=_check_ros_name,
+            check_name=check_ros_name,
             sender_name="dbml-rclpy-param-send",
         )
         # Executor-thread state: never touched elsewhere.
@@ -380,7 +252,7 @@ class RclpyParams:
         value written or announced since it was asked: those names keep what they have.
         """
         for ros2_name, raw in values:
-            name = _full_name(node, ros2_name)
+            name = full_name(node, ros2_name)
             if name is None:
                 continue
             try:
@@ -406,7 +278,7 @@ class RclpyParams:
         allocation: dict[str, ParamValue] = {}
         for name, value in pending.items():
             parameter, node, ros2_name = node_of(name)
-            if _allocated(parameter) and node not in self._hosted:
+            if allocated(parameter) and node not in self._hosted:
                 allocation[name] = value
                 continue
             by_node.setdefault(node, {})[ros2_name] = (parameter, value)
@@ -416,7 +288,7 @@ class RclpyParams:
         elif allocation and self._hosted[GLOBAL_PREFIX].provisional:
             self._claim(GLOBAL_PREFIX, self._hosted[GLOBAL_PREFIX])
         for node, writes in by_node.items():
-            hosting = any(_hosts_it(p) for p, _v in writes.values())
+            hosting = any(hosts_it(p) for p, _v in writes.values())
             hosted = self._hosted.get(node)
             if hosted is None and (hosting or node not in self._live):
                 hosted = self._host(node, provisional=not hosting)
@@ -434,10 +306,10 @@ class RclpyParams:
         from rcl_interfaces.msg import ParameterDescriptor
         from rclpy.node import Node
 
-        scope = _scope_of(node)
+        scope = scope_of(node)
         namespace = "/" if scope is Scope.GLOBAL else node[: -len(GLOBAL_PREFIX)]
         ros_node = Node(
-            _DBM_NODE,
+            DBM_NODE,
             namespace=namespace,
             context=self._transport.context,
             start_parameter_services=True,
@@ -512,9 +384,9 @@ class RclpyParams:
 
         taken: list[tuple[str, ParamValue]] = []
         for parameter in parameters:
-            name = _full_name(node, parameter.name)
+            name = full_name(node, parameter.name)
             if name is None:
-                if parameter.name in _ROS_OWN:
+                if parameter.name in ROS_OWN:
                     continue
                 return SetParametersResult(
                     successful=False, reason=f"{parameter.name!r} is not a dbml parameter"
@@ -582,7 +454,7 @@ class RclpyParams:
         future = client.call_async(request)
         names = list(writes)
         with self._lock:  # which of this process's writes the request carries
-            stamps = [self._handed.get(_full_name(node, n) or "") for n in names]
+            stamps = [self._handed.get(full_name(node, n) or "") for n in names]
         future.add_done_callback(lambda done: self._on_set_reply(node, names, stamps, done))
 
     def _on_set_reply(
@@ -593,7 +465,7 @@ class RclpyParams:
             return
         refused = False
         for ros2_name, stamp, result in zip(names, stamps, response.results, strict=False):
-            name = _full_name(node, ros2_name)
+            name = full_name(node, ros2_name)
             if name is None:
                 continue
             if result.successful:
@@ -651,7 +523,7 @@ class RclpyParams:
         by_node: dict[str, dict[str, ParamValue]] = {}
         for name, value in values.items():
             found = lookup(name)
-            if found is None or not _allocated(found[0]):
+            if found is None or not allocated(found[0]):
                 self._bad.warning(name, "ignoring %s in an allocation: not the optimizer's", name)
                 continue
             try:
@@ -705,7 +577,7 @@ class RclpyParams:
             queue = self._unverified[participant] = deque()
         if len(queue) >= MAX_UNVERIFIED:
             queue.popleft()
-        queue.append((node, [(n, v) for n, v in changed if _full_name(node, n) is not None]))
+        queue.append((node, [(n, v) for n, v in changed if full_name(node, n) is not None]))
         self._unverified_since.setdefault(participant, time.monotonic())
         while len(self._unverified) > MAX_UNVERIFIED_SENDERS:
             dropped, _queue = self._unverified.popitem(last=False)
@@ -756,7 +628,7 @@ class RclpyParams:
         client = self._client("get", node)
         if not client.service_is_ready():
             return  # the next poll tries again
-        scope = _scope_of(node)
+        scope = scope_of(node)
         names = [p.ros2_name for p in PARAMETERS if p.scope is scope]
         self._fetching[node] = time.monotonic()
         asked_at = self.replica.mark()
@@ -853,7 +725,7 @@ class RclpyParams:
         """
         writes: dict[str, ParamValue] = {}
         for parameter in PARAMETERS:
-            if parameter.scope is not _scope_of(node) or Writer.OPERATOR not in parameter.writers:
+            if parameter.scope is not scope_of(node) or Writer.OPERATOR not in parameter.writers:
                 continue
             name = parameter.name if node == GLOBAL_PREFIX else f"{node}/{parameter.field}"
             if not self.replica.wrote(name) or not hosted.node.has_parameter(parameter.ros2_name):

@@ -61,15 +61,15 @@ from dbml.transports.base import (
 from dbml.transports.callbacks import CallbackList
 from dbml.transports.overflow import LogOnce, Overflow
 from dbml.transports.rclpy.fastdds import GID_BYTES, gid_host_id
-from dbml.transports.rclpy.params import (
+from dbml.transports.rclpy.nodes import (
     ALLOCATION_TOPIC,
     PARTICIPANT_BYTES,
-    RclpyParams,
     check_ros_topic,
     claim_topic,
     is_param_node,
     python_value,
 )
+from dbml.transports.rclpy.params import RclpyParams
 from dbml.transports.replica import Replica
 from dbml.transports.worker import FLUSH_TIMEOUT_S, BackgroundThread
 

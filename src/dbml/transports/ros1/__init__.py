@@ -2,6 +2,7 @@
 
 ``transport`` holds topics, ``graph`` the master's registrations, ``params`` the parameter
 server's sync, ``master`` the master's XML-RPC API (no rospy).
+
 The transport class is imported on first use: importing the package, or a part of it that
 needs no middleware, never loads rospy.
 """

@@ -1,6 +1,7 @@
 """The ros2 transport: rmw_zenoh's wire format on a zenoh session, no ROS 2 install.
 
 ``transport`` is the session's ROS 2 side, ``wire`` rmw_zenoh's formats (pure).
+
 The transport class is imported on first use: importing the package, or a part of it that
 needs no middleware, never loads zenoh.
 """

@@ -1,6 +1,8 @@
 """The zenoh transport: eclipse-zenoh in peer mode.
 
-``transport`` is the session and its graph, ``params`` the parameter store's sync over it.
+``transport`` is the session and its graph, ``keyed`` the parameter store's messages over keys
+(pure), ``params`` the store's sync over the session.
+
 The transport class is imported on first use: importing the package, or a part of it that
 needs no middleware, never loads zenoh.
 """
