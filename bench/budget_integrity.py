@@ -367,7 +367,7 @@ class Ros2Sniffer(SequenceCount):
         from sensor_msgs.msg import Image
 
         from dbml.harness.ros2node import PrivateRos
-        from dbml.transports.rclpy.transport import host_of_node
+        from dbml.transports.rclpy.graph import host_of_node
 
         super().__init__()
         self._host_of_node = host_of_node

@@ -29,14 +29,13 @@ rclpy = pytest.importorskip("rclpy")  # before dbml's rclpy module: the ROS 1 en
 from std_msgs.msg import Float64, String  # noqa: E402
 
 from dbml.harness.ros2node import private_node  # noqa: E402
+from dbml.transports.rclpy.graph import host_of_node, node_name_for  # noqa: E402
 from dbml.transports.rclpy.transport import (  # noqa: E402
     ALLOCATION_QOS,
     BYTES_TYPE,
     RclpyTransport,
     frame_bytes,
-    host_of_node,
     message_class,
-    node_name_for,
     sample_meta,
     unframe_bytes,
 )

@@ -1,8 +1,8 @@
 """The rclpy transport: real ROS 2 through rclpy, on whatever RMW it runs.
 
-``transport`` holds topics and the DDS graph, ``params`` the parameters as ROS 2 nodes' own,
-``nodes`` which node holds a name (pure), ``fastdds`` Fast DDS's discovery profile and GIDs (no
-rclpy).
+``transport`` holds topics and the executor thread, ``graph`` the DDS graph by host, ``params``
+the parameters as ROS 2 nodes' own, ``nodes`` which node holds a name (pure), ``fastdds`` Fast
+DDS's discovery profile and GIDs (no rclpy).
 
 The transport class is imported on first use: importing the package, or a part of it that
 needs no middleware, never loads rclpy.
