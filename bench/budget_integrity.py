@@ -307,7 +307,7 @@ class Ros2Sniffer(SequenceCount):
         from sensor_msgs.msg import Image
 
         from dbml.harness.ros2node import PrivateRos
-        from dbml.transports.rclpy import host_of_node
+        from dbml.transports.rclpy.graph import host_of_node
 
         super().__init__()
         self._host_of_node = host_of_node
@@ -437,8 +437,8 @@ def run_hostile_peer(topics: list[str]) -> None:
 
     from dbml.harness.ros2node import PrivateRos
     from dbml.protocol.keys import encode_batch
-    from dbml.transports.rclpyparams import ALLOCATION_TOPIC, node_of
-    from dbml.transports.ros2msg import image_cdr
+    from dbml.transports.codecs import image_cdr
+    from dbml.transports.rclpy.nodes import ALLOCATION_TOPIC, node_of
 
     ros = PrivateRos(domain_id=None, name="hostile")  # ROS_DOMAIN_ID
     node = ros.node("hostile_peer")

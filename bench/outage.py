@@ -37,7 +37,7 @@ from dbml.experiment.analysis.outage import LINK_SCOPE
 from dbml.testbed.options import TestbedOptions
 from dbml.testbed.result import TestbedResult
 from dbml.testbed.runner import run_teleop_testbed
-from dbml.transports.zenoh import LEASE_MS
+from dbml.transports.zenoh.transport import LEASE_MS
 
 LENGTHS_S = (1.0, 5.0, 10.0, 30.0, 120.0)
 SCOPES = (LINK_SCOPE, "R1")

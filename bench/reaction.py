@@ -192,7 +192,7 @@ class Ros2Setter:
         from rcl_interfaces.srv import SetParameters
 
         from dbml.harness.ros2node import PrivateRos
-        from dbml.transports.rclpyparams import node_of
+        from dbml.transports.rclpy.nodes import node_of
 
         self._request_type = SetParameters.Request
         _parameter, node_name, self._ros2_name = node_of(names.priority(R1))

@@ -32,7 +32,7 @@ from dbml.harness.rosmaster import RosMaster
 from dbml.harness.supervisor import Supervisor
 from dbml.protocol import names
 from dbml.scenarios.teleop import ROBOTS
-from dbml.transports.rosapi import MasterClient
+from dbml.transports.ros1.master import MasterClient
 
 SETTLE_S = 1.0
 TOLERANCE = 0.05

@@ -9,7 +9,7 @@ messages published back to back. Three ways, each on a topic of its own:
 - ``raw_msg``: an ``Image`` built per message (header, encoding, the pixels) and
   ``publisher.publish(msg)``, what a typical driver does; one call is build + publish;
 - ``managed``: ``ManagedPublisher.publish`` of those bytes, the hot path of ``dbml publish
-  --transport rclpy`` (its payload is ``transport.camera_frame``), with min = max =
+  --transport rclpy`` (its payload is ``dbml.transports.registry.camera_frame``'s), with min = max =
   ``MAX_RATE_HZ`` and that rate allocated, so its limiter never drops (``dropped`` counts the
   calls that returned False) and it pays for everything else: the rate in force, size tracking,
   the check for local subscribers of ``[topic]``, the metadata it packs and the put to
@@ -197,6 +197,8 @@ class Cases:
         from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
         from sensor_msgs.msg import Image
 
+        from dbml.transports.registry import camera_frame
+
         self._image = Image
         self.transport = transport
         qos = QoSProfile(
@@ -214,7 +216,7 @@ class Cases:
                     Image, topic_of(kind, size), qos
                 )
             topic = topic_of("managed", size)
-            self.payloads[size] = transport.camera_frame(topic, size)  # as `dbml publish` does
+            self.payloads[size] = camera_frame(transport, "rclpy", topic, size)  # as `dbml publish`
             # No optimizer runs here: the allocation is written as the optimizer's would be
             # (min = max, so the limiter never drops), and the fail-safe is kept quiet.
             self.managed[size] = ManagedPublisher(

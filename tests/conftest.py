@@ -111,10 +111,10 @@ def ros2_process_env(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]
 
     rclpy logs to ``ROS_LOG_DIR`` (else ``~/.ros/log``) and Fast DDS reads its profile once per
     process, at the first participant: both are set here, for the whole session (the 3-s lease
-    and fast announcements of ``dbml.transports.fastdds``; children get theirs from
+    and fast announcements of ``dbml.transports.rclpy.fastdds``; children get theirs from
     ``ros2_child_env``).
     """
-    from dbml.transports.fastdds import apply_discovery_profile
+    from dbml.transports.rclpy.fastdds import apply_discovery_profile
 
     log_dir = tmp_path_factory.mktemp("ros-log")
     saved = {k: os.environ.get(k) for k in ("ROS_LOG_DIR", "FASTDDS_DEFAULT_PROFILES_FILE")}

@@ -29,6 +29,9 @@ PACKAGES = [
     "dbml.testbed",
     "dbml.testing",
     "dbml.transports",
+    "dbml.transports.rclpy",
+    "dbml.transports.ros2",
+    "dbml.transports.zenoh",
 ]
 
 
@@ -38,7 +41,16 @@ def need_rospy(name: str) -> None:
         require(ros1_problem(), what=f"check {name}")
 
 
-@pytest.mark.parametrize("name", [*PACKAGES, pytest.param("dbml.ros1", marks=pytest.mark.ros1)])
+@pytest.mark.parametrize(
+    "name",
+    [
+        *PACKAGES,
+        *(
+            pytest.param(name, marks=pytest.mark.ros1)
+            for name in ("dbml.ros1", "dbml.transports.ros1")
+        ),
+    ],
+)
 def test_all_is_sorted_and_resolves(name: str) -> None:
     need_rospy(name)
     module = importlib.import_module(name)

@@ -24,7 +24,7 @@ from dbml.estimator import (
     settings_of,
     shared,
 )
-from dbml.estimator.base import Decision
+from dbml.estimator.base import Decision, SharedSettings
 from tests.estimator.link_model import CAP_MBIT, drop_and_rise, simulate
 
 
@@ -312,7 +312,7 @@ class _Scripted:
     estimate_mbit: list[float]
     calls: list[tuple[object, ...]]
 
-    def detector(self, shared: EstimatorSettings) -> _Recorder:
+    def detector(self, shared: SharedSettings) -> _Recorder:
         return _Recorder(self)
 
 

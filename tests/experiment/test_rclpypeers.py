@@ -28,8 +28,8 @@ from dbml.experiment.spec import TICK_S, RoleSpec
 from dbml.harness.ros2env import claim_domain, fastdds_shm_files, ros2_child_env
 from dbml.protocol import names
 from dbml.scenarios.teleop import MAX_RATE_HZ, ROBOTS, STEPS
+from dbml.transports.codecs import image_cdr
 from dbml.transports.registry import TRANSPORTS, open_transport
-from dbml.transports.ros2msg import image_cdr
 from tests.conftest import wait_for
 from tests.experiment.peer_process import Peer
 

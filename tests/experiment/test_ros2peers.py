@@ -47,7 +47,7 @@ from dbml.scenarios.teleop import MAX_RATE_HZ, PAPER_TABLE2, ROBOTS, STEPS
 from dbml.transports.base import Variant
 from dbml.transports.memory import MemoryTransport
 from dbml.transports.registry import TRANSPORTS, open_transport
-from dbml.transports.zenoh import open_router
+from dbml.transports.zenoh.transport import open_router
 from tests.conftest import wait_for
 from tests.experiment.peer_process import Peer
 

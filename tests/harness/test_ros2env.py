@@ -15,7 +15,7 @@ from dbml.harness.ros2env import (
     remove_fastdds_shm,
     ros2_child_env,
 )
-from dbml.transports.fastdds import DEFAULT_PROFILES_FILE, PROFILE_FILE_NAME
+from dbml.transports.rclpy.fastdds import DEFAULT_PROFILES_FILE, PROFILE_FILE_NAME
 from tests.harness.children import (
     CHILD_TIMEOUT_S,
     first_line,

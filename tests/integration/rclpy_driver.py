@@ -19,7 +19,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import Image
 
-from dbml.transports.ros2msg import IMAGE_OVERHEAD_BYTES
+from dbml.transports.codecs import IMAGE_OVERHEAD_BYTES
 
 MAX_RUN_S = 3600.0
 

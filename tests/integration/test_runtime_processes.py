@@ -183,8 +183,7 @@ def test_bad_values_from_a_peer_are_ignored_and_the_wire_keeps_the_budget(
         # its first frame (one that did not once counted 4 of the allocated 5.95 frames).
         flowing = (line for line in viewer.json_lines(timeout_s=10) if line["bytes_per_s"] > 0)
         assert next(flowing, None) is not None, viewer.stderr()
-        hostile = f.probe.params
-        writes: list[tuple[str, ParamValue]] = [
+        writes: list[tuple[str, ParamValue]] = [  # on the wire: set() refuses them here
             (names.max_rate(CAMERA), -1),  # once dropped the live channel from the allocation
             (names.max_rate(CAMERA), "x"),
             (names.current_value(CAMERA), math.nan),  # once killed the publisher
@@ -194,7 +193,7 @@ def test_bad_values_from_a_peer_are_ignored_and_the_wire_keeps_the_budget(
             (names.BANDWIDTH, 1e300),
         ]
         for name, value in writes:
-            hostile.set(name, value)
+            f.probe.session.put(param_key(name), encode_param(value, time.time_ns(), "hostile"))
         # A budget stamped an hour ahead: newest-stamp-wins once pinned such a write for good.
         future_ns = time.time_ns() + 3600 * 10**9
         f.probe.session.put(
@@ -224,7 +223,7 @@ def test_bad_values_from_a_peer_are_ignored_and_the_wire_keeps_the_budget(
             (names.PERIOD, 1.0),
             (names.BANDWIDTH, 2.0),
         ]:
-            hostile.set(name, good)
+            f.probe.params.set(name, good)
         wait_for(
             lambda: "ignored: " not in str(f.param(names.STATUS_MESSAGE)),
             timeout_s=10,

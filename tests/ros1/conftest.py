@@ -6,20 +6,11 @@ environment runs ``pytest -m "not ros1"``, the ROS 1 one ``pytest -m ros1``.
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import pytest
 
 HERE = Path(__file__).resolve().parent
-IMPORT_ROSPY = ("test_early_pushes.py", "test_param_mirror.py")
-"""Modules that import rospy as they load (they skip without it)."""
-
-if importlib.util.find_spec("rospy") is None:
-    # Where rospy is missing (the main environment) they are not collected at all: their tests
-    # are ros1's, run in the other environment, and a module's skip would say "skipped" for them.
-    # Elsewhere here a missing rospy is a skip, and a failure when CI=true (rosnet.require_ros1).
-    collect_ignore = list(IMPORT_ROSPY)
 
 
 @pytest.hookimpl(tryfirst=True)  # before -m selects by marker

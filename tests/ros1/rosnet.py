@@ -23,7 +23,7 @@ import pytest
 from dbml.harness.processes import foreign_interpreter_env
 from dbml.harness.rosmaster import RosMaster
 from dbml.harness.supervisor import Supervisor
-from dbml.transports.rosapi import MasterClient
+from dbml.transports.ros1.master import MasterClient
 from tests.conftest import require
 from tests.integration.procs import Proc
 

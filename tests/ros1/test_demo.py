@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from dbml.harness.rosmaster import RosMaster
-from dbml.transports.rosapi import MasterClient
+from dbml.transports.ros1.master import MasterClient
 from tests.ros1.rosnet import RosNet, require_ros1
 
 pytestmark = pytest.mark.integration

@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from dbml.transports.base import ParamValue
+from dbml.transports.replica import Write
 from tests.conftest import wait_for
 from tests.ros1.rosnet import RosNet
 
@@ -19,12 +19,13 @@ SET_BOUND_S = 0.5
 
 
 def test_rosparam_writes_namespaces_and_deletes_reach_the_mirror(ros: RosNet) -> None:
-    from dbml.transports.ros1 import _Ros1Params
-    from dbml.transports.rosapi import MasterClient
+    from dbml.transports.ros1.master import MasterClient
+    from dbml.transports.ros1.params import Ros1Params
 
     ros.rosparam("set", "/keep", "1")
     client = MasterClient(ros.master.uri, caller_id="/params_test")
-    params = _Ros1Params(client, "/params_test", "127.0.0.1", "127.0.0.1")
+    sync = Ros1Params(client, "/params_test", "127.0.0.1", "127.0.0.1")
+    params = sync.replica
     seen: list[tuple[str, object]] = []
     lock = threading.Lock()
 
@@ -66,17 +67,18 @@ def test_rosparam_writes_namespaces_and_deletes_reach_the_mirror(ros: RosNet) ->
         assert params.snapshot("/dbm") == {}
     finally:
         handle.close()
-        params.close()
+        sync.close()
         client.close()
 
 
 def test_writes_never_wait_for_a_stalled_master(ros: RosNet) -> None:
     """A write may come from inside the master's own push: it queues, and goes once it can."""
-    from dbml.transports.ros1 import _Ros1Params
-    from dbml.transports.rosapi import CALL_TIMEOUT_S, MasterClient
+    from dbml.transports.ros1.master import CALL_TIMEOUT_S, MasterClient
+    from dbml.transports.ros1.params import Ros1Params
 
     client = MasterClient(ros.master.uri, caller_id="/params_test")
-    params = _Ros1Params(client, "/params_test", "127.0.0.1", "127.0.0.1")
+    sync = Ros1Params(client, "/params_test", "127.0.0.1", "127.0.0.1")
+    params = sync.replica
     seen: list[tuple[str, object]] = []
     params.watch(lambda name, value: seen.append((name, value)))
     params.set("/r1/camera/dbm/priority", 0.1)
@@ -104,34 +106,35 @@ def test_writes_never_wait_for_a_stalled_master(ros: RosNet) -> None:
     assert ros.param("/dbm/status") == "optimal"
     assert ros.param("/r1/camera/dbm/priority") is None
     assert params.snapshot("/dbm") == {"/dbm/status": "optimal"}
-    params.close()
+    sync.close()
     client.close()
 
 
 def test_a_snapshot_holds_the_writes_not_sent_yet(ros: RosNet) -> None:
-    from dbml.transports.ros1 import _Ros1Params
-    from dbml.transports.rosapi import MasterClient
+    from dbml.transports.ros1.master import MasterClient
+    from dbml.transports.ros1.params import Ros1Params
 
     client = MasterClient(ros.master.uri, caller_id="/params_test")
-    params = _Ros1Params(client, "/params_test", "127.0.0.1", "127.0.0.1")
+    sync = Ros1Params(client, "/params_test", "127.0.0.1", "127.0.0.1")
+    params = sync.replica
     ros.rosparam("set", "/dbm/strategy", "fair")
     wait_for(lambda: params.get("/dbm/strategy") == "fair", timeout_s=5, what="the push")
     release = threading.Event()
-    real = params._write
+    real = sync._write
 
-    def held(item: tuple[str, ParamValue]) -> None:
+    def held(item: Write) -> None:
         assert release.wait(10), "the test never released the sender"
         real(item)
 
-    params._sender._send = held
+    params._send = held
     params.set("/dbm/strategy", "paper")
     params.set("/dbm/status", "optimal")
-    params.set("/other", 1)
+    params.set("/r1/camera/dbm/priority", 0.5)
     try:
         assert params.snapshot("/dbm") == {"/dbm/strategy": "paper", "/dbm/status": "optimal"}
     finally:
         release.set()
-    params.close()  # sends what is queued before it goes
+    sync.close()  # sends what is queued before it goes
     assert ros.param("/dbm/status") == "optimal"
-    assert ros.param("/other") == 1
+    assert ros.param("/r1/camera/dbm/priority") == 0.5
     client.close()

@@ -7,9 +7,14 @@
 from __future__ import annotations
 
 import signal
+import time
 
 import pytest
 
+from dbml.runtime.priority import PRIORITY_INTERVAL_S
+from dbml.transports.ros1.master import MasterClient
+from dbml.transports.ros1.params import Ros1Params
+from tests.conftest import wait_for
 from tests.integration.procs import Proc, publish_argv
 from tests.ros1.rosnet import RosNet
 
@@ -18,6 +23,7 @@ pytestmark = pytest.mark.integration
 OPTIMIZER, ROBOT, OPERATOR = "127.0.0.1", "127.0.0.2", "127.0.0.3"
 CAMERA = "/r1/camera"
 SIZE = 84_000
+PRIORITY_NODE = "tests.ros1.priority_node"
 
 
 def hz_for(budget_mbit: float, size_bytes: int = SIZE) -> float:
@@ -169,6 +175,46 @@ def test_rosparam_set_of_a_priority_moves_the_bandwidth(ros: RosNet) -> None:
     # Now R2 first: 16 Hz, and R1 the rest (steps 1, 8-10: 12.37 Hz).
     ros.wait_param(r2, lambda v: v == 16.0, timeout_s=2, what="R2 max")
     ros.wait_param(r1, close_to((budget - 16 * 21_000) / 84_000), timeout_s=2, what="R1 the rest")
+
+
+def test_a_float64_on_the_priority_topic_sets_the_priority_and_a_flood_keeps_the_rule(
+    ros: RosNet,
+) -> None:
+    """``rostopic pub`` (or a mission node) of ``std_msgs/Float64`` on ``[topic]/dbm/priority``."""
+    name = f"{CAMERA}/dbm/priority"
+    camera = start_camera(ros)
+    ros.wait_param(f"{CAMERA}/dbm/frequency/max", lambda v: v == 16.0, what="the camera up")
+    client = MasterClient(ros.master.uri, caller_id="/priority_test")
+    watcher = Ros1Params(client, "/priority_test", "127.0.0.1", "127.0.0.1")
+    writes: list[tuple[float, object]] = []
+    watcher.replica.watch(lambda n, v: writes.append((time.monotonic(), v)) if n == name else None)
+    try:
+        node = ros.node(f"{CAMERA}/dbm/priority", "0.7", "1.5", module=PRIORITY_NODE, host=OPERATOR)
+        ros.wait_param(name, lambda v: v == 0.7, what="the Float64's priority")
+        wait_for(
+            lambda: f"ignoring a priority: {name}=1.5 must be within [0, 1]" in camera.stderr(),
+            timeout_s=10,
+            what="the bad one refused, named",
+        )
+        node.stop()
+        assert ros.param(name) == 0.7
+        flood = [round(0.001 * i, 3) for i in range(1, 1_000)]
+        started = time.monotonic()
+        node = ros.node(
+            f"{CAMERA}/dbm/priority", *map(str, flood), module=PRIORITY_NODE, host=OPERATOR
+        )
+        ros.wait_param(name, lambda v: v == flood[-1], what="the flood's newest, at its end")
+        node.stop()
+        during = [(t, v) for t, v in writes if t >= started]
+        span_s = during[-1][0] - during[0][0]
+        # One write per interval at most (the first at once; its spacing seen here jitters by
+        # a write's trip through the master): far fewer than the messages.
+        assert len(during) <= span_s / PRIORITY_INTERVAL_S + 2, (len(during), span_s)
+        assert len(during) < len(flood) / 10
+        assert during[-1][1] == flood[-1]
+    finally:
+        watcher.close()
+        client.close()
 
 
 def test_bad_input_is_one_line_and_exit_2(ros: RosNet) -> None:

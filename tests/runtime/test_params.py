@@ -65,7 +65,7 @@ def test_the_view_keeps_the_last_good_value_and_reports_the_bad_one_once(
     assert view.dbm().bandwidth_mbit == 11.0
     with caplog.at_level(logging.WARNING, logger="dbml.params"):
         for _ in range(3):
-            writer.params.set(names.BANDWIDTH, math.inf)
+            network.forge({names.BANDWIDTH: math.inf})  # a peer's bad value
     assert view.dbm().bandwidth_mbit == 11.0
     assert view.problems() == ("/dbm/max_bandwidth_in_mbit=inf is not finite",)
     assert caplog.text.count("max_bandwidth_in_mbit=inf") == 1
@@ -82,7 +82,7 @@ def test_bad_writes_never_widen_the_budget_nor_drop_a_live_channel() -> None:
     _camera, optimizer = managed_fleet(network)
     assert optimizer.optimize().rates_hz[CAMERA] == pytest.approx(500_000 / 84_000)
     peer = MemoryTransport(network, host="hostile")
-    writes: list[tuple[str, ParamValue]] = [
+    writes: list[tuple[str, ParamValue]] = [  # what a hostile peer can put on the network
         (names.BANDWIDTH, 1e300),
         (names.max_rate(CAMERA), "x"),
         (names.max_rate(CAMERA), -1),
@@ -91,7 +91,7 @@ def test_bad_writes_never_widen_the_budget_nor_drop_a_live_channel() -> None:
         (names.PERIOD, math.inf),
     ]
     for name, value in writes:
-        peer.params.set(name, value)
+        network.forge({name: value}, writer="hostile")
     result = optimizer.optimize()
     assert [c.topic for c in result.channels] == [CAMERA]  # still allocated, not dropped
     assert result.rates_hz[CAMERA] == pytest.approx(500_000 / 84_000)
@@ -110,10 +110,10 @@ def test_a_publisher_ignores_a_bad_push_and_clamps_to_its_maximum() -> None:
     peer = MemoryTransport(network, host="hostile")
     peer.params.set(names.current_value(CAMERA), 8.0)
     assert camera.current_rate_hz() == 8.0
-    peer.params.set(names.current_value(CAMERA), math.nan)  # once crashed the publisher
-    peer.params.set(names.current_value(CAMERA), 1e12)
+    network.forge({names.current_value(CAMERA): math.nan})  # once crashed the publisher
+    network.forge({names.current_value(CAMERA): 1e12})
     assert camera.current_rate_hz() == 8.0
-    peer.params.set(names.current_value(CAMERA), 59.0)
+    network.forge({names.current_value(CAMERA): 59.0})  # above its maximum
     assert camera.current_rate_hz() == 16.0  # its own maximum: it is the authority on it
     assert peer.params.get(names.applied(CAMERA)) == 16.0
 
@@ -124,9 +124,9 @@ def test_an_optimizer_thread_survives_an_absurd_period() -> None:
     peer = MemoryTransport(network, host="hostile")
     optimizer.start()
     try:
-        peer.params.set(names.PERIOD, math.inf)
-        peer.params.set(names.PERIOD, 10**400)
-        peer.params.set(names.priority(CAMERA), 10**400)
+        network.forge({names.PERIOD: math.inf})
+        network.forge({names.PERIOD: 10**400})
+        network.forge({names.priority(CAMERA): 10**400})
         peer.params.set(names.BANDWIDTH, 8.0)  # a good change afterwards is still acted on
         wait_for(
             lambda: camera.current_rate_hz() == pytest.approx(1_000_000 / 84_000),
@@ -213,7 +213,7 @@ def test_a_channel_watcher_hears_its_own_channel_only_by_field() -> None:
     view.watch_channel("/r2/camera", lambda *c: other.append(c))
     view.watch_dbm(lambda *c: global_.append(c))
     writer.set(names.current_value(CAMERA), 8)
-    writer.set(names.priority(CAMERA), math.nan)  # a bad value calls nothing
+    network.forge({names.priority(CAMERA): math.nan})  # a bad value calls nothing
     writer.set(names.PERIOD, 0.5)
     writer.set(names.size(CAMERA), None)
     assert camera == [(names.CURRENT_FIELD, 8.0), (names.SIZE_FIELD, None)]
@@ -332,10 +332,11 @@ def test_a_priority_is_parsed_once_per_process_where_it_enters(
     monkeypatch.setattr(names, "topic_of", counted)
     source = collision_priority_source(MemoryTransport(network, host="r1-events"), CAMERA)
     source.set(0.5)
-    # One parse in each process whose view follows the store (the robot's and the optimizer's;
-    # the event source and the subscriber read no parameter): none by the optimizer's reaction,
-    # none again in the view (it parsed 5 times: twice in each view, once in the optimizer).
-    assert parses.count(names.priority(CAMERA)) == 2
+    # One parse in each process: the event source's store checks the name against the schema
+    # as it takes the write, the robot's and the optimizer's views as it enters; none by the
+    # optimizer's reaction, none again in a view (it parsed 5 times in the two views and the
+    # optimizer alone).
+    assert parses.count(names.priority(CAMERA)) == 3
     parses.clear()
     optimizer.optimize()
     written = {n for n in parses if not n.endswith(("/current_value", "/managed"))}

@@ -28,7 +28,7 @@ from dbml.protocol.schema import (
 from dbml.runtime.estimator import LINK_TOPIC
 from dbml.secure import NodeRole, access_control
 from dbml.transports.base import Variant
-from dbml.transports.zenoh import _data_key
+from dbml.transports.zenoh.transport import _data_key
 from tests.secure.conftest import NODES, small_fleet
 
 ROLE_WRITERS = {

@@ -189,7 +189,7 @@ def test_the_bridge_reports_the_publish_statistics_its_publisher_keeps() -> None
     pytest.importorskip("rclpy")  # the statistics are the rclpy transport's
     from dbml.experiment.bridge import timing_of
     from dbml.experiment.report import PublishTiming
-    from dbml.transports.rclpy import PublishStats
+    from dbml.transports.rclpy.transport import PublishStats
 
     class Timed:
         def stats(self) -> PublishStats:

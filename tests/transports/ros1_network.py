@@ -27,6 +27,7 @@ from typing import Any
 from dbml.core.errors import TransportError
 from dbml.harness.rosmaster import RosMaster
 from dbml.harness.supervisor import Supervisor
+from dbml.protocol.schema import ParamError
 from dbml.transports import (
     GraphEntry,
     Handle,
@@ -38,12 +39,15 @@ from dbml.transports import (
     Variant,
 )
 from dbml.transports.base import Closer, TransportPriority
+from dbml.transports.codecs import ROS1_FLOAT64
 from tests.conftest import require
 from tests.ros1.rosnet import ros1_problem
 
 ROOT = Path(__file__).resolve().parents[2]
 READY_S = 20.0
 CALL_S = 20.0
+RAISED: dict[str, type[Exception]] = {"TransportError": TransportError, "ParamError": ParamError}
+"""The peer's errors that the tests expect by type: raised here as the peer raised them."""
 
 Factory = Callable[[str], Transport]
 
@@ -111,7 +115,7 @@ class _Peer:
                 else:
                     self._replies.put((message[2], message[3]))
         except (EOFError, OSError):
-            self._replies.put((False, (False, "the peer process ended")))
+            self._replies.put((False, ("EOFError", "the peer process ended")))
         finally:
             self._events.put(None)
 
@@ -151,10 +155,10 @@ class _Peer:
                 raise TransportError(f"ros1 peer: {op} got no reply in {CALL_S} s") from None
         if ok:
             return value
-        is_transport_error, message = value
-        if is_transport_error:
-            raise TransportError(message)
-        raise RuntimeError(f"ros1 peer: {op}: {message}\n{self.stderr()}")
+        error, message = value
+        if error in RAISED:
+            raise RAISED[error](message)
+        raise RuntimeError(f"ros1 peer: {op}: {error}: {message}\n{self.stderr()}")
 
     def stop(self) -> None:
         if self.process.poll() is None:
@@ -189,8 +193,11 @@ class _PeerParams:
         self._peer.call("set", name, value)
 
     def set_many(self, values: Mapping[str, ParamValue], *, host: str | None = None) -> None:
-        for name, value in values.items():
-            self.set(name, value)
+        self._peer.call("set_many", dict(values), host)
+
+    def limit(self, more: int) -> None:
+        """The peer's store takes ``more`` new names of its own, and refuses the next."""
+        self._peer.call("limit_params", more)
 
     def get(self, name: str) -> ParamValue:
         value: ParamValue = self._peer.call("get", name)
@@ -224,6 +231,8 @@ class _PeerGraph:
 
 class PeerTransport(TransportBase):
     """A ``Transport`` whose every call runs in a ``ros1_peer`` process."""
+
+    float64 = ROS1_FLOAT64
 
     def __init__(self, peer: _Peer, name: str, hosts: _Hosts) -> None:
         self._peer = peer
@@ -260,9 +269,8 @@ class PeerTransport(TransportBase):
     def confirm_param(self, name: str, *, timeout_s: float) -> bool:
         return bool(self._peer.call("confirm_param", name, timeout_s))
 
-    def camera_frame(self, topic: str, size_bytes: int) -> bytes:
-        frame: bytes = self._peer.call("camera_frame", topic, size_bytes)
-        return frame
+    def set_topic_type(self, topic: str, msg_type: str) -> None:
+        self._peer.call("set_topic_type", topic, msg_type)
 
     def close(self) -> None:
         if not self._closed:

@@ -15,9 +15,9 @@ from collections.abc import Callable
 from multiprocessing.connection import Connection
 from typing import Any
 
-from dbml.core.errors import TransportError
 from dbml.transports import Publisher, Role, Sample, Transport, Variant, open_transport
 from dbml.transports.base import Handle
+from dbml.transports.replica import Replica
 
 
 class Peer:
@@ -37,6 +37,8 @@ class Peer:
             "close_publisher": lambda pid: self.publishers.pop(pid).close(),
             "close_handle": lambda hid: self.handles.pop(hid).close(),
             "set": transport.params.set,
+            "set_many": lambda values, host: transport.params.set_many(values, host=host),
+            "limit_params": self.limit_params,
             "get": transport.params.get,
             "snapshot": transport.params.snapshot,
             "watch_params": lambda hid: self.keep(hid, transport.params.watch(self.emitter(hid))),
@@ -50,8 +52,14 @@ class Peer:
             "confirm_param": lambda name, timeout_s: transport.confirm_param(
                 name, timeout_s=timeout_s
             ),
-            "camera_frame": transport.camera_frame,
+            "set_topic_type": transport.set_topic_type,
         }
+
+    def limit_params(self, more: int) -> None:
+        """Lower the store's bound to what it holds and ``more`` new names (its test)."""
+        store = self.transport.params
+        assert isinstance(store, Replica)
+        store._max_params = len(store._own) + more
 
     def send(self, message: tuple[Any, ...]) -> None:
         with self.send_lock:
@@ -94,7 +102,7 @@ class Peer:
             try:
                 result = self.ops[op](*args)
             except Exception as err:
-                self.send(("reply", call_id, False, (isinstance(err, TransportError), str(err))))
+                self.send(("reply", call_id, False, (type(err).__name__, str(err))))
             else:
                 self.send(("reply", call_id, True, result))
 

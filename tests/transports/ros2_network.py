@@ -7,7 +7,7 @@ from collections.abc import Callable, Iterator
 from dbml.harness.processes import free_port
 from dbml.transports.base import Transport
 from dbml.transports.ros2 import Ros2Transport
-from dbml.transports.zenoh import open_router
+from dbml.transports.zenoh.transport import open_router
 from tests.conftest import wait_for
 
 Factory = Callable[[str], Transport]

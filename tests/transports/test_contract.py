@@ -20,6 +20,7 @@ from pathlib import Path
 import pytest
 
 from dbml.core.errors import TransportError
+from dbml.protocol.schema import ParamError
 from dbml.transports import (
     TRANSPORTS,
     MemoryNetwork,
@@ -30,8 +31,11 @@ from dbml.transports import (
     Variant,
 )
 from dbml.transports.base import resolve_host
-from dbml.transports.paramstore import ReplicatedParams
-from dbml.transports.rosapi import CALL_TIMEOUT_S, MasterClient
+from dbml.transports.replica import Replica
+from dbml.transports.ros1.master import CALL_TIMEOUT_S, MasterClient
+from dbml.transports.ros2.transport import Ros2Transport
+from dbml.transports.zenoh.keyed import KeyedParams
+from dbml.transports.zenoh.transport import ZenohTransport
 from tests.conftest import wait_for
 from tests.transports.rclpy_network import rclpy_network, stalled_executor
 from tests.transports.ros1_network import PeerTransport, ros1_network
@@ -42,6 +46,8 @@ Factory = Callable[[str], Transport]
 Stall = Callable[[Transport], AbstractContextManager[None]]
 """Makes the network under one transport stop taking its writes, for the ``with`` block."""
 
+PRIORITY = "/r1/camera/dbm/priority"
+ROUND = "/dbm/round"
 SET_BOUND_S = 0.5
 """How long ``params.set`` may take while the network stalls: ample for a call (over ROS 1, a
 round trip to the peer process), far below the stall (a ROS 1 call waits 2 s for the master)."""
@@ -65,9 +71,10 @@ def memory_network() -> Iterator[Factory]:
 
 @contextmanager
 def stalled_sends(transport: Transport) -> Iterator[None]:
-    """The replicated store's network send blocks (a congested zenoh link) until the end."""
-    store = transport.params
-    assert isinstance(store, ReplicatedParams)
+    """The zenoh store's network send blocks (a congested zenoh link) until the end."""
+    zenoh = transport._dbml if isinstance(transport, Ros2Transport) else transport
+    assert isinstance(zenoh, ZenohTransport)
+    store: KeyedParams = zenoh._sync.keyed
     real = store._send
     released = threading.Event()
 
@@ -317,8 +324,49 @@ def test_bad_topics_are_rejected(make: Factory, topic: str) -> None:
         make("host-a").declare_publisher(topic)
 
 
-def test_bad_param_values_are_rejected(make: Factory) -> None:
-    with pytest.raises(
-        TransportError, match=r"parameter value=\[1\] must be a bool, number or string"
-    ):
-        make("host-a").params.set("/x", [1])  # type: ignore[arg-type]
+REFUSALS: list[tuple[str, object, type[Exception], str]] = [
+    (PRIORITY, [1], TransportError, r"^/r1/camera/dbm/priority=\[1\] is not a parameter value"),
+    ("/x", 1, TransportError, r"^/x=1: '/x' is not a parameter of dbml's schema"),
+    ("/r1/camera/dbm/x", 1, TransportError, r"^/r1/camera/dbm/x=1: '/r1/camera/dbm/x' is not a"),
+    (PRIORITY, 1.5, ParamError, r"^/r1/camera/dbm/priority=1\.5 must be within \[0, 1\]"),
+    ("/dbm/strategy", "best", ParamError, r"^/dbm/strategy='best' is not valid"),
+]
+"""What ``ParamStore.set`` refuses, with the error and its message: the same everywhere."""
+
+
+def test_set_refuses_a_bad_value_or_name_alike_everywhere(make: Factory) -> None:
+    a = make("host-a")
+    for name, value, error, message in REFUSALS:
+        with pytest.raises(error, match=message):
+            a.params.set(name, value)  # type: ignore[arg-type]
+        with pytest.raises(error, match=message):  # checked first: nothing of it is taken
+            a.params.set_many({ROUND: 3, name: value})  # type: ignore[dict-item]
+    a.params.set(ROUND, 4)  # a good write after them is taken
+    wait_for(lambda: a.params.get(ROUND) == 4, what="the good write")
+    assert a.params.get(PRIORITY) is None
+    assert a.params.get("/dbm/strategy") is None
+
+
+def limit(transport: Transport, more: int) -> None:
+    """Lower ``transport``'s bound on its own names to what it wrote and ``more`` new ones."""
+    if isinstance(transport, PeerTransport):
+        transport.params.limit(more)
+        return
+    store = transport.params
+    assert isinstance(store, Replica)
+    store._max_params = len(store._own) + more
+
+
+def test_set_refuses_a_new_name_past_the_bound_alike_everywhere(make: Factory) -> None:
+    a = make("host-a")
+    limit(a, 2)
+    a.params.set("/r1/camera/dbm/priority", 0.5)
+    a.params.set("/r2/camera/dbm/priority", 0.5)
+    message = r"^/r3/camera/dbm/priority=0\.5: this process wrote \d+ parameter names, and \d+"
+    with pytest.raises(TransportError, match=message):
+        a.params.set("/r3/camera/dbm/priority", 0.5)
+    with pytest.raises(TransportError, match=message):
+        a.params.set_many({"/r1/camera/dbm/priority": 0.25, "/r3/camera/dbm/priority": 0.5})
+    a.params.set("/r1/camera/dbm/priority", 0.75)  # a name it wrote is always written again
+    wait_for(lambda: a.params.get("/r1/camera/dbm/priority") == 0.75, what="the rewrite")
+    assert a.params.get("/r3/camera/dbm/priority") is None

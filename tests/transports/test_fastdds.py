@@ -15,7 +15,7 @@ from typing import Any
 import pytest
 
 from dbml.harness.ros2env import fastdds_shm_files, remove_fastdds_shm, ros2_child_env
-from dbml.transports.fastdds import (
+from dbml.transports.rclpy.fastdds import (
     DEFAULT_PROFILES_FILE,
     LEGACY_PROFILES_FILE,
     PROFILE_NAME,

@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 import pytest
@@ -18,8 +19,9 @@ from hypothesis import strategies as st
 from dbml.core.errors import TransportError
 from dbml.protocol.keys import encode_batch
 from dbml.protocol.metadata import MessageMeta
+from dbml.runtime.priority import PRIORITY_INTERVAL_S, PriorityTopic
 from dbml.transports.base import Role, Sample, Variant
-from dbml.transports.rclpyparams import UNATTRIBUTED_S
+from dbml.transports.rclpy.params import UNATTRIBUTED_S
 from tests.conftest import wait_for
 
 rclpy = pytest.importorskip("rclpy")  # before dbml's rclpy module: the ROS 1 environment lacks it
@@ -27,14 +29,13 @@ rclpy = pytest.importorskip("rclpy")  # before dbml's rclpy module: the ROS 1 en
 from std_msgs.msg import Float64, String  # noqa: E402
 
 from dbml.harness.ros2node import private_node  # noqa: E402
-from dbml.transports.rclpy import (  # noqa: E402
+from dbml.transports.rclpy.graph import host_of_node, node_name_for  # noqa: E402
+from dbml.transports.rclpy.transport import (  # noqa: E402
     ALLOCATION_QOS,
     BYTES_TYPE,
     RclpyTransport,
     frame_bytes,
-    host_of_node,
     message_class,
-    node_name_for,
     sample_meta,
     unframe_bytes,
 )
@@ -124,22 +125,43 @@ def test_a_channels_parameters_live_on_its_publishers_node(ros_domain: int) -> N
 
 
 @pytest.mark.integration
-def test_a_float64_priority_sets_the_channels_priority(
+def test_a_float64_priority_sets_the_channels_priority_and_a_flood_keeps_the_rule(
     ros_domain: int, caplog: pytest.LogCaptureFixture
 ) -> None:
+    """``ros2 topic pub`` (or a mission node) of ``std_msgs/msg/Float64`` on its topic."""
+    name = "/r1/camera/dbm/priority"
     robot = RclpyTransport(host="r1", domain_id=ros_domain)
+    heard = PriorityTopic(robot, "/r1/camera")  # what the channel's managed publisher runs
+    writes: list[tuple[float, object]] = []
+    robot.params.watch(lambda n, v: writes.append((time.monotonic(), v)) if n == name else None)
     try:
-        robot.params.set("/r1/camera/dbm/frequency/min", 1.0)
         with private_node("mission", domain_id=ros_domain) as mission:
-            publisher = mission.create_publisher(Float64, "/r1/camera/dbm/priority", 10)
-            wait_for(lambda: publisher.get_subscription_count() > 0, what="the host's subscription")
+            publisher = mission.create_publisher(Float64, name, 10)
+            wait_for(lambda: publisher.get_subscription_count() > 0, what="the subscription")
+
+            def applied(value: float) -> Callable[[], bool]:
+                def check() -> bool:  # a reliable publisher's first messages may precede matching
+                    publisher.publish(Float64(data=value))
+                    return robot.params.get(name) == value
+
+                return check
+
             publisher.publish(Float64(data=7.0))  # out of range: refused, named
             wait_for(lambda: "ignoring a priority" in caplog.text, what="the refusal")
-            assert "/r1/camera/dbm/priority=7.0" in caplog.text
-            assert robot.params.get("/r1/camera/dbm/priority") is None
-            publisher.publish(Float64(data=0.3))
-            wait_for(lambda: robot.params.get("/r1/camera/dbm/priority") == 0.3, what="0.3")
+            assert f"{name}=7.0" in caplog.text
+            assert robot.params.get(name) is None
+            wait_for(applied(0.3), what="0.3")
+            started = time.monotonic()
+            flood = [round(0.001 * i, 3) for i in range(1, 1_000)]
+            for value in flood:
+                publisher.publish(Float64(data=value))
+            wait_for(lambda: robot.params.get(name) == flood[-1], what="the flood's newest")
+        during = [t for t, _v in writes if t >= started]
+        span_s = during[-1] - during[0]
+        assert len(during) <= span_s / PRIORITY_INTERVAL_S + 1, (len(during), span_s)
+        assert len(during) < len(flood) / 10
     finally:
+        heard.close()
         robot.close()
 
 
@@ -276,6 +298,7 @@ def test_an_operators_value_can_precede_the_robot_that_hosts_it(ros_domain: int)
         wait_for(
             lambda: not _hosts(operator, "/r1/camera/dbm"), timeout_s=HANDOVER_S, what="hand-over"
         )
+        assert _claimed_by(ros_domain, "/r1/camera") == "r1"  # the endpoint that says so
         wait_for(
             lambda: robot is not None and robot.params.get("/r1/camera/dbm/priority") == 0.7,
             timeout_s=HANDOVER_S,
@@ -296,6 +319,17 @@ def test_an_operators_value_can_precede_the_robot_that_hosts_it(ros_domain: int)
 HANDOVER_S = 15.0
 
 
+def _claimed_by(domain_id: int, channel: str) -> str:
+    """The host a foreign node reads on ``[topic]/dbm/host``: who hosts the channel for good."""
+    got: list[str] = []
+    with private_node("reader", domain_id=domain_id) as reader:
+        reader.create_subscription(
+            String, f"{channel}/dbm/host", lambda m: got.append(m.data), ALLOCATION_QOS
+        )
+        wait_for(lambda: bool(got), timeout_s=HANDOVER_S, what="the claim's host")
+    return got[0]
+
+
 def _hosts(transport: RclpyTransport, node: str) -> bool:
     """Whether ``transport`` hosts ``node``, asked on its executor thread."""
     import threading
@@ -304,7 +338,7 @@ def _hosts(transport: RclpyTransport, node: str) -> bool:
     done = threading.Event()
 
     def ask() -> None:
-        answer.append(transport.params.hosts(node))
+        answer.append(transport._sync.hosts(node))
         done.set()
 
     transport.call_soon(ask)

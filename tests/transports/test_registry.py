@@ -9,7 +9,7 @@ import pytest
 from dbml import MemoryNetwork, open_transport
 from dbml.core.errors import TransportError
 from dbml.transports import DEFAULT_TRANSPORT, TRANSPORTS, MemoryTransport, Transport
-from dbml.transports.registry import Discovery
+from dbml.transports.registry import Discovery, camera_frame
 
 
 def test_names_are_in_one_order_with_the_default_first() -> None:
@@ -74,8 +74,8 @@ def test_memory_joins_a_given_network() -> None:
 
 def test_memory_alone_is_private() -> None:
     with open_transport("memory", host="a") as a, open_transport("memory", host="b") as b:
-        a.params.set("/x", 1)
-        assert b.params.get("/x") is None
+        a.params.set("/dbm/round", 1)
+        assert b.params.get("/dbm/round") is None
 
 
 def test_options_a_transport_cannot_use_are_refused() -> None:
@@ -98,7 +98,6 @@ def test_optional_capabilities_have_defaults_on_every_transport() -> None:
     with transport:
         assert transport.wait_for_peers(0.0) is True
         assert transport.confirm_param("/x", timeout_s=0.0) is True
-        assert transport.camera_frame("/r1/camera", 12) == bytes(range(12))
     with pytest.raises(TransportError, match="is closed"):
         transport.declare_publisher("/t")
 
@@ -137,3 +136,45 @@ def test_priority_links_reach_zenoh_and_are_refused_elsewhere(
     for name in ("memory", "ros1"):
         with pytest.raises(TransportError, match=f"transport='{name}' has no priority links"):
             open_transport(name, priority_links=True)
+
+
+class Typing(MemoryTransport):
+    """A memory transport that records the topic types declared to it."""
+
+    def __init__(self) -> None:
+        super().__init__(host="h")
+        self.types: dict[str, str] = {}
+
+    def set_topic_type(self, topic: str, msg_type: str) -> None:
+        self.types[topic] = msg_type
+
+
+@pytest.mark.parametrize(
+    ("name", "size_bytes", "msg_type"),
+    [
+        ("memory", 12, None),
+        ("zenoh", 12, None),
+        ("ros1", 42 + 12, "sensor_msgs/Image"),
+        ("rclpy", 52 + 12, "sensor_msgs/msg/Image"),
+        ("ros2", 52 + 12, "sensor_msgs/msg/Image"),
+    ],
+)
+def test_a_camera_frame_is_its_transports_and_types_its_topic(
+    name: str, size_bytes: int, msg_type: str | None
+) -> None:
+    with Typing() as transport:
+        frame = camera_frame(transport, name, "/r1/camera", size_bytes)
+        assert len(frame) == size_bytes
+        made = TRANSPORTS[name].frame.encode(size_bytes)
+        if name == "ros2":  # stamped with the wall clock when made: bytes 4-12 of its CDR
+            frame, made = frame[:4] + frame[12:], made[:4] + made[12:]
+        assert frame == made
+        assert transport.types == ({} if msg_type is None else {"/r1/camera": msg_type})
+        if msg_type is None:
+            assert frame == bytes(range(12))  # a ramp of bytes, not zeros
+        else:
+            with pytest.raises(TransportError, match="size_bytes=1 is below the"):
+                camera_frame(transport, name, "/r2/camera", 1)
+            assert "/r2/camera" not in transport.types  # refused before anything was declared
+    with pytest.raises(TransportError, match=r"transport='nope' is not one of: zenoh"):
+        camera_frame(transport, "nope", "/r1/camera", 12)

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import logging
 import math
-import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -23,6 +22,7 @@ from dbml.harness.processes import free_port
 from dbml.protocol import names
 from dbml.runtime.graph import summarize
 from dbml.runtime.optimizer import OptimizerNode
+from dbml.runtime.priority import PRIORITY_INTERVAL_S, PriorityTopic
 from dbml.runtime.publisher import ManagedPublisher
 from dbml.transports import (
     TRANSPORTS,
@@ -34,20 +34,19 @@ from dbml.transports import (
     Variant,
     open_transport,
 )
-from dbml.transports import ros2 as ros2_module
-from dbml.transports.ros2 import Ros2Transport, node_name_for, resolve_domain_id
-from dbml.transports.ros2msg import (
-    FLOAT64_TYPE,
-    IMAGE_TYPE,
+from dbml.transports.codecs import FLOAT64_TYPE, IMAGE_TYPE
+from dbml.transports.registry import camera_frame
+from dbml.transports.ros2 import transport as ros2_module
+from dbml.transports.ros2.transport import Ros2Transport, node_name_for, resolve_domain_id
+from dbml.transports.ros2.wire import (
     LivelinessToken,
     MessageTypes,
     TokenKind,
     data_key,
     decode_attachment,
-    encode_float64,
     parse_token,
 )
-from dbml.transports.zenoh import open_router
+from dbml.transports.zenoh.transport import open_router
 from tests.conftest import wait_for
 
 sdk = pytest.importorskip("zenoh_ros2_sdk")
@@ -191,12 +190,12 @@ def test_types_and_camera_frames(ros2: Callable[[str], Ros2Transport]) -> None:
     transport = ros2("host-a")
     with pytest.raises(TransportError, match="'foo/msg/Bar' is not known to the jazzy"):
         transport.set_topic_type("/x", "foo/msg/Bar")
-    assert len(transport.camera_frame("/r1/camera", 84_000)) == 84_000
+    assert len(camera_frame(transport, "ros2", "/r1/camera", 84_000)) == 84_000
+    assert transport._type_of("/r1/camera")[0] == IMAGE_TYPE  # the frame typed its topic
     with pytest.raises(TransportError, match="size_bytes=10 is below the 52-byte minimum"):
-        transport.camera_frame("/r1/camera", 10)
+        camera_frame(transport, "ros2", "/r2/camera", 10)
     transport.set_topic_type("/chatter", "std_msgs/msg/String")
-    with pytest.raises(TransportError, match="has type 'std_msgs/msg/String', not"):
-        transport.camera_frame("/chatter", 100)
+    assert transport._type_of("/chatter")[0] == "std_msgs/msg/String"
 
 
 def test_sdk_subscriber_receives_managed_frames_and_is_a_graph_entry(
@@ -210,7 +209,7 @@ def test_sdk_subscriber_receives_managed_frames_and_is_a_graph_entry(
         timeout_s=TIMEOUT_S,
         what="the SDK subscription in the graph",
     )
-    frame = transport.camera_frame("/r1/camera", 21_000)
+    frame = camera_frame(transport, "ros2", "/r1/camera", 21_000)
     publisher = ManagedPublisher(
         transport, "/r1/camera", min_rate_hz=50.0, max_rate_hz=100.0, failsafe_periods=0.01
     )
@@ -268,7 +267,7 @@ def test_ros2_priority_sets_the_param_and_bad_values_are_logged(
     ros2: Callable[[str], Ros2Transport], ros2_sdk: Sdk, caplog: pytest.LogCaptureFixture
 ) -> None:
     transport = ros2("robot-1")
-    managed = transport.declare_publisher("/r1/camera", Variant.OPTIMIZED)
+    managed = PriorityTopic(transport, "/r1/camera")  # a managed publisher's part
     publisher = ros2_sdk.publisher("/r1/camera/dbm/priority", FLOAT64_TYPE)
     name = "/r1/camera/dbm/priority"
 
@@ -280,7 +279,7 @@ def test_ros2_priority_sets_the_param_and_bad_values_are_logged(
         return check
 
     wait_for(applied(0.25), timeout_s=TIMEOUT_S, what="priority 0.25 from ROS 2")
-    with caplog.at_level(logging.WARNING, logger="dbml.ros2"):
+    with caplog.at_level(logging.WARNING, logger="dbml.priority"):
         publisher.publish(data=1.5)
         wait_for(
             lambda: f"{name}=1.5 must be within" in caplog.text,
@@ -296,38 +295,15 @@ def test_ros2_priority_sets_the_param_and_bad_values_are_logged(
         " (1 value(s) ignored; logged at most every 10 s)"
     ) == 1
     assert "nan" not in caplog.text
+    writes: list[float] = []
+    transport.params.watch(lambda n, _v: writes.append(time.monotonic()) if n == name else None)
+    flood = [round(0.001 * i, 3) for i in range(1, 500)]
+    for value in flood:  # a ROS 2 node publishing as fast as it can
+        publisher.publish(data=value)
+    wait_for(lambda: transport.params.get(name) == flood[-1], timeout_s=TIMEOUT_S, what="newest")
+    assert len(writes) <= (writes[-1] - writes[0]) / PRIORITY_INTERVAL_S + 1, writes
+    assert len(writes) < len(flood) / 10
     managed.close()
-
-
-def test_a_flood_of_bad_priorities_is_logged_once_per_interval_with_a_count(
-    caplog: pytest.LogCaptureFixture,
-) -> None:
-    now = [0.0]
-    throttled = ros2_module._ThrottledLog(10.0, clock=lambda: now[0])
-    with caplog.at_level(logging.WARNING, logger="dbml.ros2"):
-        for _ in range(1000):  # a 1 kHz NaN publisher, for one second
-            throttled.warning("/a/dbm/priority", "%s: ignoring priority %r", "/a", math.nan)
-            now[0] += 0.001
-        throttled.warning("/b/dbm/priority", "%s: ignoring priority %r", "/b", 2.0)
-        now[0] = 10.5
-        throttled.warning("/a/dbm/priority", "%s: ignoring priority %r", "/a", math.nan)
-    assert [r.getMessage() for r in caplog.records] == [
-        "/a: ignoring priority nan (1 value(s) ignored; logged at most every 10 s)",
-        "/b: ignoring priority 2.0 (1 value(s) ignored; logged at most every 10 s)",
-        "/a: ignoring priority nan (1000 value(s) ignored; logged at most every 10 s)",
-    ]
-
-
-def test_the_transport_logs_a_priority_flood_once(
-    ros2: Callable[[str], Ros2Transport], caplog: pytest.LogCaptureFixture
-) -> None:
-    transport = ros2("robot-1")
-    name = "/r1/camera/dbm/priority"
-    with caplog.at_level(logging.WARNING, logger="dbml.ros2"):
-        for _ in range(1000):
-            transport._on_priority(name, encode_float64(math.nan))
-    assert len([r for r in caplog.records if name in r.getMessage()]) == 1
-    assert transport.params.get(name) is None
 
 
 def test_dbml_tokens_describe_its_endpoints_and_are_not_double_counted(
@@ -345,6 +321,7 @@ def test_dbml_tokens_describe_its_endpoints_and_are_not_double_counted(
     )
     a.subscribe("/r1/camera", lambda _s: None, Variant.OPTIMIZED)
     publisher = a.declare_publisher("/r1/camera", Variant.OPTIMIZED)
+    priority = PriorityTopic(a, "/r1/camera")  # a managed publisher hears its priority so
     wait_for(lambda: len(seen) >= 4, timeout_s=TIMEOUT_S, what="node, MS, MP and priority MS")
     tokens = [parse_token(key) for key in seen]
     assert {(t.kind.value, t.topic) for t in tokens} >= {
@@ -359,6 +336,7 @@ def test_dbml_tokens_describe_its_endpoints_and_are_not_double_counted(
     assert b.topic_type("/r1/camera/optimized", timeout_s=TIMEOUT_S) == IMAGE_TYPE
     assert not remote_optimized(b, "/r1/camera"), "a dbml session's subscription counts once"
     publisher.close()
+    priority.close()
     wait_for(
         lambda: {parse_token(k).kind.value for k in gone} == {"MP", "MS"},
         timeout_s=TIMEOUT_S,
@@ -582,7 +560,7 @@ def test_the_bridge_republishes_under_its_sources_type_hash(
     assert f"hash {theirs} is not the jazzy typestore's" in caplog.text
     transport.set_topic_type("/r1/camera/optimized", IMAGE_TYPE)
     publisher = transport.declare_publisher("/r1/camera", Variant.OPTIMIZED)
-    frame = transport.camera_frame("/r1/camera", 100)
+    frame = camera_frame(transport, "ros2", "/r1/camera", 100)
 
     def delivered() -> bool:
         publisher.put(frame)
@@ -610,7 +588,7 @@ def test_a_failed_declaration_in_init_closes_dbmls_session(
     def refuse(self: Ros2Transport, *args: object) -> None:
         raise TransportError("refused")
 
-    monkeypatch.setattr("dbml.transports.ros2.ZenohTransport", recording)
+    monkeypatch.setattr("dbml.transports.ros2.transport.ZenohTransport", recording)
     monkeypatch.setattr(Ros2Transport, "_token", refuse)
     with pytest.raises(TransportError, match="refused"):
         Ros2Transport(
@@ -650,51 +628,15 @@ def test_a_failed_publisher_declaration_leaves_nothing_declared(
     monkeypatch.setattr(ros2_module, "_Ros2Publisher", refuse)
     with pytest.raises(zenoh.ZError, match="refused"):
         transport.declare_publisher("/r1/camera", Variant.OPTIMIZED)
-    assert transport._priorities == {}
     monkeypatch.undo()
     publisher = transport.declare_publisher("/r2/camera", Variant.OPTIMIZED)
     wait_for(
-        lambda: endpoints() == {("MP", "/r2/camera/optimized"), ("MS", "/r2/camera/dbm/priority")},
+        lambda: endpoints() == {("MP", "/r2/camera/optimized")},
         timeout_s=TIMEOUT_S,
-        what="only the later publisher's MP and priority MS",
+        what="only the later publisher's MP",
     )
     publisher.close()
     watcher.undeclare()  # type: ignore[no-untyped-call]
-
-
-def test_concurrent_managed_publishers_share_one_priority_subscription(
-    ros2: Callable[[str], Ros2Transport], monkeypatch: pytest.MonkeyPatch
-) -> None:
-    transport = ros2("robot-1")
-    real = transport._subscribe_key
-    calls: list[str] = []
-    second = threading.Event()
-
-    def slow(name: str, *args: Any) -> Any:
-        calls.append(name)
-        if len(calls) == 1:
-            second.wait(1.0)  # gives a racing declare the time to subscribe a second time
-        else:
-            second.set()
-        return real(name, *args)
-
-    monkeypatch.setattr(transport, "_subscribe_key", slow)
-    made: list[Any] = []
-    threads = [
-        threading.Thread(
-            target=lambda: made.append(transport.declare_publisher("/r1/cam", Variant.OPTIMIZED))
-        )
-        for _ in range(2)
-    ]
-    for thread in threads:
-        thread.start()
-    for thread in threads:
-        thread.join(timeout=TIMEOUT_S)
-    assert calls == ["/r1/cam/dbm/priority"]
-    assert transport._priorities["/r1/cam"].users == 2
-    for publisher in made:
-        publisher.close()
-    assert transport._priorities == {}
 
 
 def test_a_ros2_subscribers_departure_returns_the_channel_to_its_maximum(
@@ -703,7 +645,7 @@ def test_a_ros2_subscribers_departure_returns_the_channel_to_its_maximum(
     """README: "when it leaves, the channel goes back to its maximum"."""
     robot, base = ros2("robot-1"), ros2("base")
     assert base.wait_for_peers(TIMEOUT_S)
-    frame = robot.camera_frame("/r1/camera", 21_000)
+    frame = camera_frame(robot, "ros2", "/r1/camera", 21_000)
     publisher = ManagedPublisher(robot, "/r1/camera", min_rate_hz=1.0, max_rate_hz=16.0)
     optimizer = OptimizerNode(base, settings=DbmSettings(1.0))  # 1 Mbit/s: below 16 Hz
     try:

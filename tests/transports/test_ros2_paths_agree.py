@@ -12,7 +12,8 @@ from typing import Any
 
 import pytest
 
-from dbml.transports.ros2msg import IMAGE_OVERHEAD_BYTES, MessageTypes, encode_float64, image_cdr
+from dbml.transports.codecs import IMAGE_OVERHEAD_BYTES, encode_float64, image_cdr
+from dbml.transports.ros2.wire import MessageTypes
 
 pytest.importorskip("rclpy")
 pytest.importorskip("rosbags")

@@ -2,18 +2,15 @@
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import pytest
 
 from dbml.core.errors import TransportError
-from dbml.transports.ros2msg import (
+from dbml.transports.codecs import FLOAT64_TYPE, IMAGE_TYPE
+from dbml.transports.ros2.wire import (
     ATTACHMENT_SIZE_BYTES,
     DISTROS,
-    FLOAT64_TYPE,
-    IMAGE_OVERHEAD_BYTES,
-    IMAGE_TYPE,
     QOS_RELIABLE_VOLATILE_KEEP_LAST_10,
     Attachment,
     LivelinessToken,
@@ -23,10 +20,7 @@ from dbml.transports.ros2msg import (
     data_key,
     dds_type_name,
     decode_attachment,
-    decode_float64,
     encode_attachment,
-    encode_float64,
-    image_cdr,
     mangle,
     parse_token,
     ros_type_name,
@@ -152,33 +146,6 @@ def test_malformed_attachments_are_refused() -> None:
         decode_attachment(bytes(16) + b"\x0f" + bytes(16))
     with pytest.raises(TransportError, match="gid of 3 bytes must be 16"):
         encode_attachment(Attachment(1, 2, b"abc"))
-
-
-@pytest.mark.parametrize("size_bytes", [IMAGE_OVERHEAD_BYTES, 21_000, 84_000])
-def test_image_is_exactly_the_size_asked(types: MessageTypes, size_bytes: int) -> None:
-    frame = image_cdr(size_bytes, stamp_ns=1_700_000_000_123_456_789)
-    assert len(frame) == size_bytes
-    image = types.store.deserialize_cdr(frame, IMAGE_TYPE)
-    assert image.header.frame_id == "camera"  # type: ignore[attr-defined]
-    assert image.header.stamp.sec == 1_700_000_000  # type: ignore[attr-defined]
-    assert image.encoding == "mono8"  # type: ignore[attr-defined]
-    assert len(image.data) == size_bytes - IMAGE_OVERHEAD_BYTES  # type: ignore[attr-defined]
-    assert bytes(types.store.serialize_cdr(image, IMAGE_TYPE)) == frame
-
-
-def test_image_below_its_overhead_is_refused() -> None:
-    with pytest.raises(TransportError, match="size_bytes=51 is below the 52-byte minimum"):
-        image_cdr(51)
-
-
-def test_float64_cdr(types: MessageTypes) -> None:
-    assert encode_float64(1.5).hex() == "00010000000000000000f83f"
-    assert decode_float64(encode_float64(0.25)) == 0.25
-    message = types.store.types[FLOAT64_TYPE](data=0.75)
-    assert decode_float64(bytes(types.store.serialize_cdr(message, FLOAT64_TYPE))) == 0.75
-    assert math.isnan(decode_float64(encode_float64(math.nan)))
-    with pytest.raises(TransportError, match="is not 12 bytes of CDR"):
-        decode_float64(b"\x00\x01\x00\x00\x00")
 
 
 def test_tokens_round_trip() -> None:

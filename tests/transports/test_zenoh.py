@@ -6,6 +6,7 @@ import json
 import logging
 import os
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import cast
@@ -14,9 +15,11 @@ import pytest
 import zenoh
 
 from dbml.harness.processes import free_port
-from dbml.protocol import keys
+from dbml.protocol import keys, names
+from dbml.runtime.priority import PRIORITY_INTERVAL_S, PriorityTopic
 from dbml.transports import ParamValue, Role, Variant
-from dbml.transports.zenoh import (
+from dbml.transports.codecs import encode_float64
+from dbml.transports.zenoh.transport import (
     LEASE_MS,
     MAX_GRAPH_ENTRIES,
     OPEN_TIMEOUT_MS,
@@ -70,16 +73,18 @@ def test_writes_from_callbacks_under_a_flood_never_stall() -> None:
         acked = threading.Event()
 
         def ack(name: str, value: ParamValue) -> None:
-            if name.startswith("/flood/") and isinstance(value, int):
-                acker.params.set(f"/ack/{name.rsplit('/', 1)[-1]}", value)  # callback thread
+            if name.startswith("/flood") and name.endswith("/dbm/priority"):
+                channel = name.removesuffix("/dbm/priority")
+                acker.params.set(names.applied(channel), 1.0)  # on the callback thread
 
+        last = names.applied(f"/flood{writes - 1}/c")
         acker.params.watch(ack)
-        flooder.params.watch(lambda name, _v: acked.set() if name == f"/ack/{writes - 1}" else None)
+        flooder.params.watch(lambda name, _v: acked.set() if name == last else None)
         for i in range(writes):
-            flooder.params.set(f"/flood/{i}", i)
+            flooder.params.set(names.priority(f"/flood{i}/c"), 0.5)
         assert acked.wait(60), "the acknowledgements stalled"
         wait_for(
-            lambda: len(flooder.params.snapshot("/ack/")) == writes,
+            lambda: sum(n.endswith("/applied_value") for n in flooder.params.snapshot()) == writes,
             timeout_s=30,
             what="every acknowledgement",
         )
@@ -110,7 +115,7 @@ def test_a_newcomer_costs_each_session_answers_of_its_own_values_only() -> None:
         )
         answered: list[int] = []
         for transport in old:
-            owned = transport.params.owned
+            owned = transport._sync.keyed.owned
 
             def counting(
                 is_live: Callable[[str], bool],
@@ -120,7 +125,7 @@ def test_a_newcomer_costs_each_session_answers_of_its_own_values_only() -> None:
                 answered.append(len(answer))
                 return answer
 
-            transport.params.owned = counting  # type: ignore[method-assign]
+            transport._sync.keyed.owned = counting  # type: ignore[method-assign]
         with ZenohTransport(host="late", port=port) as late:
             assert late.wait_for_peers(10)
             wait_for(
@@ -152,13 +157,13 @@ def test_a_publishing_session_hears_its_own_channels_not_the_fleets_reports() ->
         assert robot.wait_for_peers(10)
         assert fleet.wait_for_peers(10)
         delivered: list[str] = []
-        on_write = robot.params.on_write
+        on_write = robot._sync.keyed.on_write
 
         def record(key: str, data: bytes) -> None:
             delivered.append(key)
             on_write(key, data)
 
-        robot.params.on_write = record  # type: ignore[method-assign]
+        robot._sync.keyed.on_write = record  # type: ignore[method-assign]
         robot.params.set("/r1/cam/dbm/frequency/max", 10.0)  # now it hears /r1/cam's parameters
         wait_for(lambda: fleet.params.get("/r1/cam/dbm/frequency/max") == 10.0, timeout_s=10)
         fleet.params.set("/r2/cam/dbm/frequency/applied_value", 3.0)  # another robot's report
@@ -290,3 +295,35 @@ def test_sessions_drop_a_lost_peer_soon_and_retry_a_returning_one_often() -> Non
     assert json.loads(config.get_json("transport/link/tx/lease")) == LEASE_MS < 10_000
     assert json.loads(config.get_json("transport/unicast/open_timeout")) == OPEN_TIMEOUT_MS
     assert json.loads(config.get_json("connect/retry"))["period_max_ms"] == RETRY_MAX_MS
+
+
+def test_a_cdr_float64_on_the_priority_topic_sets_the_priority_and_a_flood_keeps_the_rule(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Over zenoh a priority topic carries CDR, as rmw_zenoh's would: another session's."""
+    name = names.priority("/r1/camera")
+    robot, operator = sessions = mesh(free_port(), "r1", "op")
+    heard = PriorityTopic(robot, "/r1/camera")  # what the channel's managed publisher runs
+    writes: list[tuple[float, object]] = []
+    robot.params.watch(lambda n, v: writes.append((time.monotonic(), v)) if n == name else None)
+    try:
+        assert operator.wait_for_peers(10)
+        publisher = operator.declare_publisher("/r1/camera/dbm/priority")
+        wait_for(lambda: publisher.has_subscribers, timeout_s=10, what="the robot's subscription")
+        with caplog.at_level(logging.WARNING, logger="dbml.priority"):
+            publisher.put(encode_float64(1.5))
+            wait_for(lambda: f"{name}=1.5 must be within" in caplog.text, what="the refusal")
+        publisher.put(encode_float64(0.3))
+        wait_for(lambda: operator.params.get(name) == 0.3, timeout_s=10, what="0.3 everywhere")
+        started = time.monotonic()
+        flood = [round(0.001 * i, 3) for i in range(1, 1_000)]
+        for value in flood:
+            publisher.put(encode_float64(value))
+        wait_for(lambda: operator.params.get(name) == flood[-1], timeout_s=10, what="the newest")
+        during = [t for t, _v in writes if t >= started]
+        span_s = during[-1] - during[0]
+        assert len(during) <= span_s / PRIORITY_INTERVAL_S + 1, (len(during), span_s)
+        assert len(during) < len(flood) / 10
+    finally:
+        heard.close()
+        close_all(sessions)

@@ -13,7 +13,7 @@ from dbml.runtime import ManagedPublisher
 from dbml.runtime.qos import TransportQos, map_priority
 from dbml.transports import Sample, Variant
 from dbml.transports.base import TransportPriority
-from dbml.transports.zenoh import (
+from dbml.transports.zenoh.transport import (
     PRIORITY_LINK_RANGES,
     ZENOH_PRIORITY,
     ZenohTransport,

@@ -17,7 +17,7 @@ import zenoh
 
 from dbml.protocol import keys
 from dbml.transports.worker import death_count
-from dbml.transports.zenohsync import MAX_QUEUED_FETCHES, MAX_SESSIONS, ParamSync
+from dbml.transports.zenoh.params import MAX_QUEUED_FETCHES, MAX_SESSIONS, ParamSync
 from tests.conftest import wait_for
 
 TIMEOUT_S = 10.0

@@ -11,7 +11,7 @@ from typing import Any
 
 import pytest
 
-from dbml import DbmSettings, open_transport
+from dbml import DbmSettings
 from dbml.protocol import names
 from dbml.protocol.schema import ParamError, ParamValue, Writer
 from dbml.runtime.params import ParamView
@@ -140,8 +140,7 @@ def test_status_changes_and_refused_values_are_logged_once(fleet: Viewed) -> Non
     try:
         fleet.optimizer.optimize()
         wait_for(lambda: any(m.startswith("optimal:") for _, m in fleet.sink.text), what="status")
-        rogue = open_transport("memory", network=fleet.network, host="rogue")
-        rogue.params.set(names.priority(R1), 5.0)
+        fleet.network.forge({names.priority(R1): 5.0}, writer="rogue")  # a peer's bad value
         wait_for(
             lambda: any("/r1/camera/dbm/priority=5.0" in m for _, m in fleet.sink.text),
             what="the refused priority",

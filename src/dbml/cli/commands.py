@@ -30,6 +30,7 @@ from dbml.runtime.rounds import RoundFollower
 from dbml.runtime.serve import PEER_WAIT_S, Lifetime, run_bridge, run_optimizer
 from dbml.runtime.subscriber import ManagedSubscriber
 from dbml.transports.base import ParamValue, Sample, Transport, TransportPriority
+from dbml.transports.registry import camera_frame
 
 __all__ = [
     "PEER_WAIT_S",
@@ -49,6 +50,7 @@ def run_publisher(
     transport: Transport,
     topic: str,
     *,
+    transport_name: str,
     size_bytes: int,
     min_rate_hz: float,
     max_rate_hz: float,
@@ -59,13 +61,16 @@ def run_publisher(
 ) -> int:
     """``dbml publish``: a managed publisher of synthetic frames, paced by its rate.
 
+    ``transport_name`` is the registry's name of ``transport`` (it says how frames are made).
     ``transport_priority`` fixes the middleware class of its messages (a control stream's),
     instead of the one its priority maps to.
     """
     check_number(size_bytes, field="--size-bytes", minimum=0, exclusive_minimum=True)
     check_number(size_bytes, field="--size-bytes", maximum=MAX_SIZE_BYTES)
     transport.wait_for_peers(PEER_WAIT_S)
-    payload = transport.camera_frame(topic, size_bytes)  # first: it may set the ROS type
+    payload = camera_frame(
+        transport, transport_name, topic, size_bytes
+    )  # first: it types the topic
     publisher = ManagedPublisher(
         transport,
         topic,

@@ -234,6 +234,7 @@ def _cmd_publish(args: argparse.Namespace) -> int:
         lambda t, stop: commands.run_publisher(
             t,
             args.topic,
+            transport_name=args.transport,
             size_bytes=args.size_bytes,
             min_rate_hz=args.min_hz,
             max_rate_hz=args.max_hz,
@@ -292,7 +293,7 @@ def _cmd_bridge(args: argparse.Namespace) -> int:
 
 
 def _cmd_router(args: argparse.Namespace) -> int:
-    from dbml.transports.zenoh import open_router
+    from dbml.transports.zenoh.transport import open_router
 
     endpoints = args.listen or [DEFAULT_ROUTER_ENDPOINT]
     with stop_on_signals() as stop:

@@ -15,13 +15,10 @@ import math
 from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Protocol, runtime_checkable
+from typing import Protocol, runtime_checkable
 
 from dbml.core.errors import SpecError
 from dbml.core.spec import bytes_per_s_to_mbit
-
-if TYPE_CHECKING:
-    from dbml.estimator.shared import EstimatorSettings
 
 __all__ = [
     "RATE_FRAMES",
@@ -33,6 +30,7 @@ __all__ = [
     "Judged",
     "Phase",
     "Sample",
+    "SharedSettings",
     "View",
     "busy_rate_mbit",
     "check_positive",
@@ -164,11 +162,35 @@ class Detector(Protocol):
         """The phase and the estimate after ``view``."""
 
 
+class SharedSettings(Protocol):
+    """What a design reads of the settings every design shares (``EstimatorSettings``).
+
+    A protocol, so a design needs nothing of the shared loop's module (which makes the default
+    design, and would import it back).
+    """
+
+    @property
+    def window_s(self) -> float:
+        """The delay trend is measured over this much recent time."""
+
+    @property
+    def rate_window_s(self) -> float:
+        """The receive rate is measured over this much recent time."""
+
+    @property
+    def response_s(self) -> float:
+        """After a decrease, how long the senders take to act on it."""
+
+    @property
+    def probe_fraction(self) -> float:
+        """Below this share of the estimate received, more would not show: no increase."""
+
+
 @runtime_checkable
 class DetectorSettings(Protocol):
     """A design's own settings (a frozen dataclass): they make its detector."""
 
-    def detector(self, shared: EstimatorSettings) -> Detector:
+    def detector(self, shared: SharedSettings) -> Detector:
         """A fresh detector (it keeps state: one per estimator)."""
 
 

@@ -18,22 +18,19 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 from dbml.estimator.base import (
     Arrival,
     Decision,
     Phase,
     Sample,
+    SharedSettings,
     View,
     busy_rate_mbit,
     check_positive,
     check_shares,
     receive_rate_mbit,
 )
-
-if TYPE_CHECKING:
-    from dbml.estimator.shared import EstimatorSettings
 
 __all__ = ["DeliveryRateDetector", "DeliveryRateSettings"]
 
@@ -86,7 +83,7 @@ class DeliveryRateSettings:
         )
         check_shares("estimator", self, ("drain_gain",))
 
-    def detector(self, shared: EstimatorSettings) -> DeliveryRateDetector:
+    def detector(self, shared: SharedSettings) -> DeliveryRateDetector:
         """A fresh ``delivery-rate`` detector."""
         return DeliveryRateDetector(self, shared)
 
@@ -108,7 +105,7 @@ class _Queue:
 class DeliveryRateDetector:
     """BBR's max-filtered delivery rate and probe cycle, bounded by a standing queue."""
 
-    def __init__(self, settings: DeliveryRateSettings, shared: EstimatorSettings) -> None:
+    def __init__(self, settings: DeliveryRateSettings, shared: SharedSettings) -> None:
         self.settings = settings
         self._shared = shared
         self._frozen_until = -math.inf

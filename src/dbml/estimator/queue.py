@@ -14,21 +14,18 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 from dbml.estimator.base import (
     Arrival,
     Decision,
     Judged,
     Phase,
+    SharedSettings,
     View,
     busy_rate_mbit,
     check_positive,
     check_shares,
 )
-
-if TYPE_CHECKING:
-    from dbml.estimator.shared import EstimatorSettings
 
 __all__ = ["QueueDetector", "QueueSettings", "increase"]
 
@@ -66,7 +63,7 @@ class QueueSettings:
         )
         check_shares("estimator", self, ("backoff",))
 
-    def detector(self, shared: EstimatorSettings) -> QueueDetector:
+    def detector(self, shared: SharedSettings) -> QueueDetector:
         """A fresh ``queue`` detector."""
         return QueueDetector(self, shared)
 
@@ -74,7 +71,7 @@ class QueueSettings:
 class QueueDetector:
     """A standing or rising queue, a cut to the packet-pair rate."""
 
-    def __init__(self, settings: QueueSettings, shared: EstimatorSettings) -> None:
+    def __init__(self, settings: QueueSettings, shared: SharedSettings) -> None:
         self.settings = settings
         self._shared = shared
         self._frozen_until = -math.inf

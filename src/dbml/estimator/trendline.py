@@ -15,22 +15,19 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 from dbml.core.errors import SpecError
 from dbml.estimator.base import (
     Arrival,
     Decision,
     Phase,
+    SharedSettings,
     View,
     check_positive,
     check_shares,
     slope,
 )
 from dbml.estimator.queue import increase
-
-if TYPE_CHECKING:
-    from dbml.estimator.shared import EstimatorSettings
 
 __all__ = ["TrendlineDetector", "TrendlineSettings"]
 
@@ -78,7 +75,7 @@ class TrendlineSettings:
             raise SpecError(f"estimator frames={frames!r} must be >= {_MIN_FRAMES}")
         check_shares("estimator", self, ("smoothing", "backoff"))
 
-    def detector(self, shared: EstimatorSettings) -> TrendlineDetector:
+    def detector(self, shared: SharedSettings) -> TrendlineDetector:
         """A fresh ``trendline`` detector."""
         return TrendlineDetector(self, shared)
 
@@ -86,7 +83,7 @@ class TrendlineSettings:
 class TrendlineDetector:
     """GCC's delay-gradient detector and AIMD."""
 
-    def __init__(self, settings: TrendlineSettings, shared: EstimatorSettings) -> None:
+    def __init__(self, settings: TrendlineSettings, shared: SharedSettings) -> None:
         self.settings = settings
         self._shared = shared
         self._frozen_until = -math.inf

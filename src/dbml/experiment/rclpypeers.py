@@ -242,7 +242,7 @@ def _dds_meta(info: Any) -> tuple[bytes, MessageMeta] | None:
 
     None when the RMW did not fill them.
     """
-    from dbml.transports.rclpy import sample_meta
+    from dbml.transports.rclpy.transport import sample_meta
 
     packed = sample_meta(info)
     if packed is None:

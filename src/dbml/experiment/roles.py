@@ -101,7 +101,7 @@ def _managed_robot(
     life: Lifetime,
 ) -> None:
     camera = fleet_cameras(spec.robots)[index]
-    frame = transport.camera_frame(camera.topic, camera.size_bytes)  # first: it may set the type
+    frame = spec.transport.camera_frame(transport, camera.topic, camera.size_bytes)  # types it
     publisher = ManagedPublisher(
         transport, camera.topic, min_rate_hz=MIN_RATE_HZ, max_rate_hz=MAX_RATE_HZ
     )
@@ -143,7 +143,7 @@ def _unmanaged_robot(
 ) -> None:
     """What a robot does without dbml: publish every frame at the camera's maximum rate."""
     camera = fleet_cameras(spec.robots)[index]
-    frame = transport.camera_frame(camera.topic, camera.size_bytes)
+    frame = spec.transport.camera_frame(transport, camera.topic, camera.size_bytes)
     publisher = transport.declare_publisher(camera.topic, Variant.FULL)
     rate = Rate(lambda: MAX_RATE_HZ)
     seq = 0

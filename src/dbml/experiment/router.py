@@ -18,7 +18,7 @@ import zenoh
 
 from dbml.harness.child import Control
 from dbml.runtime.serve import Lifetime
-from dbml.transports.zenoh import RETRY_MAX_MS, prepare_runtime, put_link_timeouts
+from dbml.transports.zenoh.transport import RETRY_MAX_MS, prepare_runtime, put_link_timeouts
 
 __all__ = ["open_meshed_router", "serve"]
 

@@ -29,7 +29,7 @@ from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 
 from dbml.core.errors import DbmlError
-from dbml.transports.fastdds import apply_discovery_profile
+from dbml.transports.rclpy.fastdds import apply_discovery_profile
 
 __all__ = [
     "DOMAIN_IDS",

@@ -14,7 +14,7 @@ import signal
 from dbml.core.errors import TransportError
 from dbml.harness.processes import foreign_interpreter_env, free_port
 from dbml.harness.supervisor import ChildExitedError, ProcessChild, Supervisor
-from dbml.transports.rosapi import answers
+from dbml.transports.ros1.master import answers
 
 __all__ = ["RosMaster"]
 

@@ -13,7 +13,7 @@ import weakref
 from collections.abc import Callable, Iterable
 from typing import Any
 
-from dbml.transports.rosapi import ROSPY_MISSING
+from dbml.transports.ros1.master import ROSPY_MISSING
 
 try:
     import rospy
@@ -31,7 +31,7 @@ from dbml.runtime.rate import Rate
 from dbml.runtime.serve import Lifetime
 from dbml.runtime.subscriber import ManagedSubscriber
 from dbml.transports.base import Sample, Variant, check_topic
-from dbml.transports.ros1 import Ros1Transport, serialize
+from dbml.transports.ros1.transport import Ros1Transport, serialize
 from dbml.transports.worker import BackgroundThread
 
 __all__ = ["DBMOptimizer", "DBMPublisher", "DBMRate", "DBMSubscriber", "ros1_transport"]

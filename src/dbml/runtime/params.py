@@ -34,7 +34,7 @@ from dbml.protocol.schema import ParamError, Parameter, lookup
 from dbml.transports.base import Closer, Handle, ParamStore, ParamValue
 from dbml.transports.callbacks import CallbackList
 from dbml.transports.overflow import Overflow
-from dbml.transports.paramstore import MAX_PARAMS
+from dbml.transports.replica import MAX_PARAMS
 
 __all__ = [
     "MAX_PROBLEMS",

@@ -11,6 +11,8 @@ allocation nor the optimizer's heartbeat (``/dbm/round``) for ``failsafe_periods
 periods sends it back to its minimum (fail-safe), and the next one takes over again. Once it has
 heard the estimator's beacon (``LINK_TOPIC``) it holds ``[topic]/optimized`` through a link
 outage and releases it in the beacon's order when the link is back (``dbml.runtime.outage``).
+A ``std_msgs/Float64`` on ``[topic]/dbm/priority`` sets the channel's priority, over every
+transport (``dbml.runtime.priority.PriorityTopic``): a bridge's channel too.
 
 The publisher composes four small state machines, each with the clock passed in and tested on
 its own: ``FailSafe`` (the allocation in force and its deadline), ``OutageGate`` (hold, probe
@@ -47,6 +49,7 @@ from dbml.runtime.outage import (
     Release,
 )
 from dbml.runtime.params import ParamView
+from dbml.runtime.priority import PriorityTopic
 from dbml.runtime.qos import QosSwitch, TransportQos, channel_qos
 from dbml.runtime.rate import Rate, RateLimiter
 from dbml.runtime.size import SIZE_CHANGE, SizeTracker
@@ -170,6 +173,8 @@ class ManagedPublisher:
         self._switch = QosSwitch(self._declare_optimized, self._wanted_qos())
         self._announcement = transport.graph.announce(Role.PUBLISHER, topic, Variant.FULL)
         self._link_watch = transport.subscribe(LINK_TOPIC, self._on_link)
+        # A Float64 on [topic]/dbm/priority sets the priority, whoever publishes it.
+        self._priority_topic = PriorityTopic(transport, topic)
 
     # -- allocation and fail-safe -------------------------------------------------------------
 
@@ -479,6 +484,7 @@ class ManagedPublisher:
         publishers undeclared below.
         """
         self._link_watch.close()
+        self._priority_topic.close()
         with self._lock:
             self._closed = True
         self._announcement.close()

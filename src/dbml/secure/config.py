@@ -8,7 +8,12 @@ from typing import Any
 
 from dbml.secure.fleet import Fleet
 from dbml.secure.rules import access_control
-from dbml.transports.zenoh import KEEP_ALIVES_PER_LEASE, LEASE_MS, OPEN_TIMEOUT_MS, RETRY_MAX_MS
+from dbml.transports.zenoh.transport import (
+    KEEP_ALIVES_PER_LEASE,
+    LEASE_MS,
+    OPEN_TIMEOUT_MS,
+    RETRY_MAX_MS,
+)
 
 __all__ = ["NodeFiles", "zenoh_config"]
 

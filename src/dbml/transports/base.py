@@ -3,13 +3,13 @@
 A transport gives a process five things: publish bytes (with attachment metadata) on a topic,
 subscribe to a topic, a parameter store with change notification, the live graph (which host
 publishes or subscribes which topic variant) and this process's host identity. ``memory`` is the
-in-process test double; ``zenoh`` is the real engine; ``ros1`` is rospy and a ROS master. All
-pass one contract test suite.
+in-process test double; ``zenoh`` is the real engine; ``ros1`` is rospy and a ROS master;
+``rclpy`` real ROS 2; ``ros2`` rmw_zenoh's wire format. All pass one contract test suite.
 
 A transport is a context manager (leaving the block closes it). Capabilities that only some
-middleware needs (waiting for peers, confirming a write, a camera frame in the middleware's own
-message type) are part of the protocol, with the defaults of a store that is complete and
-synchronous in ``TransportBase``, so no caller has to ask whether a transport has them.
+middleware needs (waiting for peers, confirming a write, typed topics) are part of the
+protocol, with the defaults of a store that is complete and synchronous in ``TransportBase``,
+so no caller has to ask whether a transport has them.
 
 Topics are ROS-style names (``/r1/camera``). Callbacks may run on a middleware thread: keep them
 short and never block in them.
@@ -29,6 +29,7 @@ from dbml.protocol import names
 from dbml.protocol.keys import is_host_name
 from dbml.protocol.names import PRIORITY_SUFFIX, check_topic
 from dbml.protocol.schema import ParamValue, check_param_value
+from dbml.transports.codecs import CDR_FLOAT64, Float64Codec
 
 __all__ = [
     "DEFAULT_ROUTER_ENDPOINT",
@@ -155,19 +156,30 @@ class Publisher(Protocol):
         ...
 
 
-_RAMP = bytes(range(256))
-
-
 class ParamStore(Protocol):
     """Parameters under the paper's names, such as ``/r1/camera/dbm/priority``.
 
     Every process sees every value; the newest write wins; ``watch`` reports every change.
+    Every transport's store is a ``dbml.transports.replica.Replica`` and its middleware's sync.
 
     Writing never blocks, on every transport: ``set`` and ``set_many`` are called from
     middleware callback threads (a publisher answering an allocation), where waiting for the
     network, or for a ROS master whose own push is that callback, could deadlock. A write is
     applied here at once (``get`` and this process's watchers see it before ``set`` returns)
     and sent from a thread of the store's own, in order, once the network takes it.
+
+    What ``set`` refuses, alike on every transport, before anything changes (each message names
+    the name and the value, as ``/r1/camera/dbm/priority=1.5 must be within [0, 1]``):
+
+    - ``TransportError``: a value that is not a bool, number, string or None;
+    - ``TransportError``: a name outside the wire schema (``dbml.protocol.schema.lookup``), or
+      one the middleware cannot carry (ROS 2's names have no ``-``, ``.`` or ``~``);
+    - ``ParamError``: a value outside the schema's range or choices (``check_param``);
+    - ``TransportError``: a new name past the bound of the names this process may write
+      (``dbml.transports.replica.MAX_PARAMS``), and a malformed ``host`` of ``set_many``.
+
+    Values from the network are another matter: each sync and the runtime's ``ParamView``
+    validate them where they enter, and report and ignore a bad one.
     """
 
     def set(self, name: str, value: ParamValue) -> None:
@@ -177,10 +189,11 @@ class ParamStore(Protocol):
     def set_many(self, values: Mapping[str, ParamValue], *, host: str | None = None) -> None:
         """Write several names as one update: one message where the middleware allows.
 
-        The optimizer pushes a round's allocation this way, not one write per channel.
-        ``host``: the values concern the channels published on that host only; a middleware
-        that can address it sends them to that host's sessions (and to those that follow
-        every parameter), so a robot does not hear the fleet's allocation.
+        Every value is checked first: when one is refused, none is written. The optimizer
+        pushes a round's allocation this way, not one write per channel. ``host``: the values
+        concern the channels published on that host only; a middleware that can address it
+        sends them to that host's sessions (and to those that follow every parameter), so a
+        robot does not hear the fleet's allocation.
         """
         ...
 
@@ -237,6 +250,11 @@ class Transport(Protocol):
         """Whether ``declare_publisher``'s ``priority`` and ``express`` change anything here."""
         ...
 
+    @property
+    def float64(self) -> Float64Codec:
+        """A ``std_msgs/Float64`` as this middleware serialises it (a priority from a topic)."""
+        ...
+
     def declare_publisher(
         self,
         topic: str,
@@ -286,14 +304,6 @@ class Transport(Protocol):
         """
         ...
 
-    def camera_frame(self, topic: str, size_bytes: int) -> bytes:
-        """A synthetic camera frame of exactly ``size_bytes`` as this transport carries it.
-
-        Over ROS 1 the payload is a serialised message of the topic's declared type, so the size
-        the optimizer sees is the size asked for.
-        """
-        ...
-
     def topic_type(self, topic: str, *, timeout_s: float) -> str | None:
         """The message type the graph shows for ``topic`` (``pkg/msg/Name``), as rostopic finds it.
 
@@ -327,6 +337,8 @@ class TransportBase:
 
     has_priorities = False
     """Messages go in one class: a publisher's priority and ``express`` are ignored."""
+    float64 = CDR_FLOAT64
+    """CDR, ROS 2's serialisation: what rmw_zenoh and rclpy carry, and zenoh and memory too."""
 
     def close(self) -> None:
         """Release everything this transport declared; implemented by each transport."""
@@ -342,14 +354,6 @@ class TransportBase:
 
     def refresh(self, entry: GraphEntry) -> None:
         """Nothing to ask again: the store is complete."""
-
-    def camera_frame(self, topic: str, size_bytes: int) -> bytes:
-        """A synthetic camera frame of ``size_bytes``: raw bytes over this transport.
-
-        A ramp of byte values rather than zeros, so a viewer that shows the frames as pictures
-        (the live view's image panels) shows stripes, not a black square.
-        """
-        return (_RAMP * (size_bytes // len(_RAMP) + 1))[:size_bytes]
 
     def topic_type(self, topic: str, *, timeout_s: float) -> str | None:
         """Topics carry untyped bytes here: no type to find."""

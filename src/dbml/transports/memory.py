@@ -4,34 +4,42 @@ Every ``MemoryTransport`` attached to one ``MemoryNetwork`` sees the others' mes
 parameters and graph, as separate hosts on one network would. Delivery is synchronous (a ``put``
 returns after every callback ran), which makes unit tests exact. It is the runtime's test double
 and runs the teleoperation demo in one process.
+
+Each transport's parameters are a ``Replica`` of its own, as every other transport's are: the
+network hands a write to every other replica before ``set`` returns, ordered by one counter of
+the network's, and keeps every write for the transports that join later (as a parameter server
+would).
 """
 
 from __future__ import annotations
 
 import itertools
+import logging
 import threading
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 from dbml.core.errors import TransportError
+from dbml.protocol.schema import ParamValue
 from dbml.transports.base import (
     Closer,
     GraphEntry,
     Handle,
-    ParamValue,
     Role,
     Sample,
     TransportBase,
     TransportPriority,
     Variant,
-    check_param_value,
     check_topic,
     resolve_host,
 )
 from dbml.transports.callbacks import CallbackList
+from dbml.transports.replica import Entry, Replica, Write
 
 __all__ = ["ManualClock", "MemoryNetwork", "MemoryTransport"]
+
+log = logging.getLogger("dbml.memory")
 
 
 class ManualClock:
@@ -53,14 +61,15 @@ class ManualClock:
 
 @dataclass
 class MemoryNetwork:
-    """The shared medium of memory transports: routes, parameters and graph tokens."""
+    """The shared medium of memory transports: routes, parameter replicas and graph tokens."""
 
     routes: dict[str, CallbackList[[Sample]]] = field(default_factory=dict)
-    params: dict[str, tuple[ParamValue, int]] = field(default_factory=dict)
-    param_watchers: CallbackList[[str, ParamValue]] = field(default_factory=CallbackList)
     tokens: dict[str, GraphEntry] = field(default_factory=dict)
     graph_watchers: CallbackList[[]] = field(default_factory=CallbackList)
     lock: threading.RLock = field(default_factory=threading.RLock)
+    _replicas: list[Replica] = field(default_factory=list)
+    _kept: dict[str, Entry] = field(default_factory=dict)
+    """The newest write of every name, for a replica that joins later."""
     _ids: itertools.count[int] = field(default_factory=itertools.count)
     _stamps: itertools.count[int] = field(default_factory=lambda: itertools.count(1))
 
@@ -76,6 +85,44 @@ class MemoryNetwork:
         """The subscribers of one topic variant (created empty on first use)."""
         with self.lock:
             return self.routes.setdefault(key, CallbackList())
+
+    def join(self, writer: str) -> Replica:
+        """A replica of this network's parameters, holding every write made so far."""
+        replica = Replica(
+            writer, send=self._deliver, log=log, clock_ns=self.next_stamp, threaded=False
+        )
+        with self.lock:
+            kept = list(self._kept.items())
+            self._replicas.append(replica)
+        for name, held in kept:
+            replica.merge(name, held.value, stamp=held.stamp, writer=held.writer)
+        return replica
+
+    def leave(self, replica: Replica) -> None:
+        """``replica`` hears nothing more (its transport closed)."""
+        with self.lock:
+            if replica in self._replicas:
+                self._replicas.remove(replica)
+
+    def forge(self, values: Mapping[str, ParamValue], *, writer: str = "forger") -> None:
+        """``values`` written by a peer that skipped ``set``'s checks, as any peer may.
+
+        Every replica takes them as a write from the network (newest by the network's order):
+        what the runtime does with a bad value from the network is tested with it.
+        """
+        self._deliver(Write(dict(values), self.next_stamp(), writer, batch=True))
+
+    def _deliver(self, write: Write) -> None:
+        """A replica's write, handed to every other one at once (outside the network's lock)."""
+        with self.lock:
+            for name, value in write.values.items():
+                held = self._kept.get(name)
+                if held is None or (held.stamp, held.writer) < (write.stamp, write.writer):
+                    self._kept[name] = Entry(value, write.stamp, write.writer)
+            others = [r for r in self._replicas if r.writer != write.writer]
+        for replica in others:
+            for name, value in write.values.items():
+                replica.merge(name, value, stamp=write.stamp, writer=write.writer)
 
 
 class _MemoryPublisher:
@@ -94,45 +141,6 @@ class _MemoryPublisher:
 
     def close(self) -> None:
         pass
-
-
-class _MemoryParams:
-    def __init__(self, transport: MemoryTransport) -> None:
-        self._transport = transport
-
-    def set(self, name: str, value: ParamValue) -> None:
-        check_param_value(value)
-        network = self._transport.network
-        with network.lock:
-            network.params[name] = (value, network.next_stamp())
-        network.param_watchers.fire(name, value)
-
-    def set_many(self, values: Mapping[str, ParamValue], *, host: str | None = None) -> None:
-        """Every value to every transport: one network, no hosts to address (``host`` unused)."""
-        for value in values.values():
-            check_param_value(value)
-        network = self._transport.network
-        with network.lock:
-            for name, value in values.items():
-                network.params[name] = (value, network.next_stamp())
-        for name, value in values.items():
-            network.param_watchers.fire(name, value)
-
-    def get(self, name: str) -> ParamValue:
-        with self._transport.network.lock:
-            value, _ = self._transport.network.params.get(name, (None, 0))
-        return value
-
-    def snapshot(self, prefix: str = "/") -> dict[str, ParamValue]:
-        with self._transport.network.lock:
-            return {
-                name: value
-                for name, (value, _) in self._transport.network.params.items()
-                if name.startswith(prefix) and value is not None
-            }
-
-    def watch(self, callback: Callable[[str, ParamValue], None]) -> Handle:
-        return self._transport.network.param_watchers.add(callback)
 
 
 class _MemoryGraph:
@@ -178,7 +186,7 @@ class MemoryTransport(TransportBase):
     ) -> None:
         self.network = network if network is not None else MemoryNetwork()
         self.host = resolve_host(host)
-        self.params = _MemoryParams(self)
+        self.params = self.network.join(f"{self.host}.{self.network.next_id()}")
         self.graph = _MemoryGraph(self)
         self._clock = clock
         self._handles: set[Handle] = set()
@@ -228,6 +236,7 @@ class MemoryTransport(TransportBase):
         if self._closed:
             return
         self._closed = True
+        self.network.leave(self.params)
         for handle in list(self._handles):
             handle.close()
         with self.network.lock:

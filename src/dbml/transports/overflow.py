@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
+from collections.abc import Callable
 
-__all__ = ["MAX_LOGGED_KEYS", "LogOnce", "Overflow"]
+__all__ = ["MAX_LOGGED_KEYS", "LogOnce", "Overflow", "ThrottledLog"]
 
 MAX_LOGGED_KEYS = 1_000
 """Distinct bad keys a ``LogOnce`` remembers; past it, it says so once and logs no more."""
@@ -96,3 +98,46 @@ class LogOnce:
             self._log.warning("%d distinct bad keys logged: no more are logged", self._bound)
         else:
             self._log.warning(message, *args)
+
+
+class ThrottledLog:
+    """Logs a repeated problem per key at most once per ``interval_s``, with how many were ignored.
+
+    A node may publish a bad value at kilohertz rates; each one is still counted. At most
+    ``bound`` keys are remembered (the oldest is forgotten first).
+    """
+
+    def __init__(
+        self,
+        interval_s: float,
+        *,
+        log: logging.Logger,
+        clock: Callable[[], float] = time.monotonic,
+        bound: int = MAX_LOGGED_KEYS,
+    ) -> None:
+        self._interval_s = interval_s
+        self._log = log
+        self._clock = clock
+        self._bound = bound
+        self._lock = threading.Lock()
+        self._state: dict[str, tuple[float, int]] = {}
+        """By key: when it was last logged, and what was ignored since."""
+
+    def warning(self, key: str, message: str, *args: object) -> None:
+        """Log ``message % args`` for ``key`` unless it was logged within the interval."""
+        now = self._clock()
+        with self._lock:
+            last_s, ignored = self._state.pop(key, (None, 0))
+            ignored += 1
+            if last_s is not None and now - last_s < self._interval_s:
+                self._state[key] = (last_s, ignored)
+                return
+            while len(self._state) >= self._bound:
+                del self._state[next(iter(self._state))]
+            self._state[key] = (now, 0)
+        self._log.warning(
+            f"{message} (%d value(s) ignored; logged at most every %g s)",
+            *args,
+            ignored,
+            self._interval_s,
+        )

@@ -2,14 +2,16 @@
 
 ``TRANSPORTS`` maps each name to a ``TransportEntry``: the factory and what a caller must know
 before choosing it (whether it spans processes, how its processes find each other, whether its
-messages carry dbml's metadata, whether its parameter store is complete when a process starts).
-The command line's choices and help come from it, in its order, the default first.
+messages carry dbml's metadata, whether its parameter store is complete when a process starts,
+how its camera frames are made). The command line's choices and help come from it, in its
+order, the default first.
 """
 
 from __future__ import annotations
 
 import enum
 import importlib
+import time
 import types
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -18,6 +20,14 @@ from typing import Protocol
 
 from dbml.core.errors import TransportError
 from dbml.transports.base import Transport
+from dbml.transports.codecs import (
+    CDR_IMAGE,
+    IMAGE_TYPE,
+    RAW_FRAME,
+    ROS1_IMAGE,
+    FrameCodec,
+    image_cdr,
+)
 from dbml.transports.memory import MemoryNetwork, MemoryTransport
 
 __all__ = [
@@ -27,6 +37,7 @@ __all__ = [
     "TransportEntry",
     "TransportFactory",
     "TransportOptions",
+    "camera_frame",
     "open_transport",
 ]
 
@@ -97,6 +108,29 @@ class TransportEntry:
     send_times: bool = False
     """Whether a received message says when it was sent and its sequence number (dbml's
     attachment, or DDS's sample info over rclpy): what ``--estimate`` needs."""
+    frame: FrameCodec = RAW_FRAME
+    """A synthetic camera frame as this transport carries it (``camera_frame``)."""
+
+    def camera_frame(self, transport: Transport, topic: str, size_bytes: int) -> bytes:
+        """A synthetic camera frame of exactly ``size_bytes`` as this transport carries it.
+
+        ``transport`` is an open transport of this entry. Over a typed middleware (ROS 1, ROS 2)
+        the frame is a serialised ``sensor_msgs/Image`` and ``topic`` is declared of that type
+        first, so the size the optimizer sees is the size asked for; elsewhere raw bytes.
+        """
+        codec = self.frame
+        frame = codec.encode(size_bytes)  # first: a size too small is refused before anything
+        if codec.msg_type is not None:
+            transport.set_topic_type(topic, codec.msg_type)
+        return frame
+
+
+def _stamped_image(size_bytes: int) -> bytes:
+    """A CDR ``sensor_msgs/msg/Image`` stamped with the wall clock when made (``ros2``'s frame).
+
+    A ROS 2 viewer subscribed through rmw_zenoh shows when it was made.
+    """
+    return image_cdr(size_bytes, stamp_ns=time.time_ns())
 
 
 def _no_network(name: str, options: TransportOptions) -> None:
@@ -144,7 +178,7 @@ def _open_ros2(options: TransportOptions) -> Transport:
 
 
 def _open_rclpy(options: TransportOptions) -> Transport:
-    from dbml.transports.ros2msg import check_domain_id  # pure: no middleware imported
+    from dbml.transports.ros2.wire import check_domain_id  # pure: no middleware imported
 
     _no_endpoints(
         "rclpy",
@@ -160,11 +194,11 @@ def _open_rclpy(options: TransportOptions) -> Transport:
                 f"transport='rclpy' takes no {option} ({value!r}): rclpy brings its own types"
             )
     try:
-        module = importlib.import_module("dbml.transports.rclpy")
+        cls = importlib.import_module("dbml.transports.rclpy").RclpyTransport
     except ImportError as err:
         raise TransportError(str(err)) from err
     domain_id = None if options.domain_id is None else check_domain_id(options.domain_id)
-    transport: Transport = module.RclpyTransport(host=options.host, domain_id=domain_id)
+    transport: Transport = cls(host=options.host, domain_id=domain_id)
     return transport
 
 
@@ -189,10 +223,10 @@ def _open_ros1(options: TransportOptions) -> Transport:
     _no_ros2_options("ros1", options)
     _no_priority_links("ros1", options)
     try:
-        module = importlib.import_module("dbml.transports.ros1")
+        cls = importlib.import_module("dbml.transports.ros1").Ros1Transport
     except ImportError as err:
         raise TransportError(str(err)) from err
-    transport: Transport = module.Ros1Transport(host=options.host)
+    transport: Transport = cls(host=options.host)
     return transport
 
 
@@ -224,6 +258,7 @@ TRANSPORTS: Mapping[str, TransportEntry] = types.MappingProxyType(
             carries_metadata=False,
             params_complete_at_start=True,
             typed_topics=True,
+            frame=ROS1_IMAGE,
         ),
         "rclpy": TransportEntry(
             name="rclpy",
@@ -236,6 +271,7 @@ TRANSPORTS: Mapping[str, TransportEntry] = types.MappingProxyType(
             params_complete_at_start=False,
             typed_topics=True,
             send_times=True,
+            frame=CDR_IMAGE,
         ),
         "ros2": TransportEntry(
             name="ros2",
@@ -246,6 +282,7 @@ TRANSPORTS: Mapping[str, TransportEntry] = types.MappingProxyType(
             carries_metadata=False,
             params_complete_at_start=False,
             typed_topics=True,
+            frame=FrameCodec(IMAGE_TYPE, _stamped_image),
         ),
         "memory": TransportEntry(
             name="memory",
@@ -309,3 +346,11 @@ def open_transport(
             priority_links=priority_links,
         )
     )
+
+
+def camera_frame(transport: Transport, name: str, topic: str, size_bytes: int) -> bytes:
+    """``TRANSPORTS[name].camera_frame(...)``: a frame as transport ``name`` carries it."""
+    entry = TRANSPORTS.get(name)
+    if entry is None:
+        raise TransportError(f"transport={name!r} is not one of: {', '.join(TRANSPORTS)}")
+    return entry.camera_frame(transport, topic, size_bytes)

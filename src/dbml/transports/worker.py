@@ -253,23 +253,27 @@ class OrderedSender(Generic[T]):
         """False once the thread died (it does not on a failed send)."""
         return self._thread.alive
 
-    def put(self, item: T, *, slot: Hashable | None = None) -> None:
+    def put(self, item: T, *, slot: Hashable | None = None) -> T | None:
         """Queue ``item`` (replacing the one queued under ``slot``); returns at once.
 
-        It never logs: its caller may hold a lock (the sender's thread tells of drops).
+        Returns the item dropped to make room (the oldest, when the queue was full; ``item``
+        itself once closing), so its owner can forget it was pending. It never logs: its caller
+        may hold a lock (the sender's thread tells of drops).
         """
+        dropped: T | None = None
         with self._changed:
             if self._closing:
-                return
+                return item
             key: Hashable = object() if slot is None else slot
             if key in self._queue:
                 del self._queue[key]
             elif len(self._queue) >= self._capacity:
-                self._queue.popitem(last=False)
+                _, dropped = self._queue.popitem(last=False)
                 self.dropped += 1
                 self._untold += 1
             self._queue[key] = item
             self._changed.notify_all()
+        return dropped
 
     def pending(self) -> list[T]:
         """What is not sent yet, oldest first: the item being sent, then the queue."""

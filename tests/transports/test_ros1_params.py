@@ -1,4 +1,4 @@
-"""The ros1 parameter mirror's pushes, delivered by the test (a fake master that pushes nothing).
+"""The ros1 parameter sync's pushes, delivered by the test (a fake master that pushes nothing).
 
 The master pushes every write back, this process's own too, in the order it took them; here the
 test delivers each push itself (``_param_update``, as the push endpoint does), late if it likes.
@@ -13,17 +13,19 @@ from xmlrpc.server import SimpleXMLRPCServer
 
 import pytest
 
-pytest.importorskip("rospy")
-
-from dbml.transports import ros1
 from dbml.transports.base import ParamValue
-from dbml.transports.ros1 import ECHO_WAIT_S, _Ros1Params, _Write
-from dbml.transports.rosapi import MasterClient
+from dbml.transports.replica import Write
+from dbml.transports.ros1.master import MasterClient
+from dbml.transports.ros1.params import ECHO_WAIT_S, Ros1Params
 
 TIMEOUT_S = 10.0
 """How long a test waits for the sender thread, which acts within milliseconds."""
 BOUND = 8
-"""``MAX_MIRRORED_PARAMS`` in the bound's test: a flood of a few names."""
+"""The store's bound in the bound's test: a flood of a few names."""
+X = "/dbm/round"
+Y = "/r1/camera/dbm/priority"
+ABSENT = "/dbm/status_message"
+MINE = "/dbm/strategy"
 
 
 class FakeMaster:
@@ -73,14 +75,20 @@ class Clock:
 
 
 class Mirror:
-    """A ``_Ros1Params`` on the fake master, with what its watchers heard."""
+    """A ``Ros1Params`` on the fake master, with what its watchers heard."""
 
-    def __init__(self, master: FakeMaster) -> None:
+    def __init__(self, master: FakeMaster, *, max_params: int = BOUND * 100) -> None:
         self.clock = Clock()
         self.client = MasterClient(master.uri, caller_id="/mirror_test")
-        self.params = _Ros1Params(
-            self.client, "/mirror_test", "127.0.0.1", "127.0.0.1", clock=self.clock
+        self.sync = Ros1Params(
+            self.client,
+            "/mirror_test",
+            "127.0.0.1",
+            "127.0.0.1",
+            clock=self.clock,
+            max_params=max_params,
         )
+        self.params = self.sync.replica
         self.heard: list[tuple[str, ParamValue]] = []
         self.params.watch(lambda name, value: self.heard.append((name, value)))
 
@@ -91,7 +99,7 @@ class Mirror:
 
     def push(self, name: str, value: object, caller: str = "/master") -> None:
         """The master's push of a write of ``name`` (``{}``: deleted)."""
-        self.params._param_update(caller, name + "/", value)
+        self.sync._param_update(caller, name + "/", value)
 
 
 @pytest.fixture
@@ -105,7 +113,7 @@ def master() -> Iterator[FakeMaster]:
 def mirror(master: FakeMaster) -> Iterator[Mirror]:
     made = Mirror(master)
     yield made
-    made.params.close()
+    made.sync.close()
     made.client.close()
 
 
@@ -139,7 +147,7 @@ def test_a_late_echo_of_an_older_write_changes_nothing_and_tells_nobody(
     mirror.push("/dbm/round", 3, caller="/other")
     assert mirror.params.get("/dbm/round") == 3
     assert mirror.heard == [*told, ("/dbm/round", 3)]
-    assert mirror.params._own == {}  # every echo came: nothing awaited
+    assert mirror.sync._echoes == {}  # every echo came: nothing awaited
 
 
 def test_the_echoes_of_a_value_written_again_are_counted_off_in_order(mirror: Mirror) -> None:
@@ -151,7 +159,7 @@ def test_the_echoes_of_a_value_written_again_are_counted_off_in_order(mirror: Mi
         assert mirror.params.get("/dbm/status") == "optimal"
     mirror.push("/dbm/status", "optimal")
     assert mirror.heard == told
-    assert mirror.params._own == {}
+    assert mirror.sync._echoes == {}
 
 
 def test_a_push_before_our_echo_is_older_and_after_the_wait_another_writers_applies(
@@ -175,44 +183,45 @@ def test_the_echo_wait_starts_again_when_a_queued_write_reaches_the_master(
     master: FakeMaster, mirror: Mirror
 ) -> None:
     """A write held in the queue (a stalled master) longer than the wait still awaits its echo."""
-    mirror.write("/x", 1)
+    mirror.write(X, 1)
     entered, release = threading.Event(), threading.Event()
-    real = mirror.params._write
+    real = mirror.sync._write
 
-    def held(write: _Write) -> None:
+    def held(write: Write) -> None:
         entered.set()
         assert release.wait(TIMEOUT_S), "the test never released the sender"
         real(write)
 
-    mirror.params._sender._send = held
-    mirror.params.set("/x", 2)
+    mirror.params._send = held
+    mirror.params.set(X, 2)
     assert entered.wait(TIMEOUT_S)  # its send stalls; the next writes wait behind it
-    mirror.params.set("/y", 0)
-    mirror.params.set("/x", 3)
+    mirror.params.set(Y, 0)
+    mirror.params.set(X, 3)
     mirror.clock.now_s += ECHO_WAIT_S  # the queued write's wait is over before it is sent
+    mirror.push(X, 1)  # the first write's echo, late: older than the writes queued
+    assert mirror.params.get(X) == 3
     release.set()
     assert mirror.params.flush(TIMEOUT_S)
-    assert master.writes[-3:] == [("/x", 2), ("/y", 0), ("/x", 3)]
-    mirror.push("/x", 1)  # the first write's echo, late
-    assert mirror.params.get("/x") == 3
-    mirror.push("/x", 3)
-    assert mirror.heard == [("/x", 1), ("/x", 2), ("/y", 0), ("/x", 3)]
+    assert master.writes[-3:] == [(X, 2), (Y, 0), (X, 3)]
+    mirror.push(X, 2)  # the echoes, late
+    assert mirror.params.get(X) == 3
+    mirror.push(X, 3)
+    assert mirror.heard == [(X, 1), (X, 2), (Y, 0), (X, 3)]
 
 
 def test_deleting_a_name_the_master_lacks_awaits_no_echo(mirror: Mirror) -> None:
     """The master answers -1 and pushes nothing: the next push of the name is another writer's."""
-    mirror.write("/absent", None)
-    mirror.push("/absent", 5, caller="/other")
-    assert mirror.params.get("/absent") == 5
-    assert mirror.heard == [("/absent", None), ("/absent", 5)]
+    mirror.write(ABSENT, None)
+    mirror.push(ABSENT, "five", caller="/other")
+    assert mirror.params.get(ABSENT) == "five"
+    assert mirror.heard == [(ABSENT, None), (ABSENT, "five")]
 
 
 def test_the_mirror_refuses_new_names_past_its_bound_and_says_so_once_per_flood(
-    master: FakeMaster, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+    master: FakeMaster, caplog: pytest.LogCaptureFixture
 ) -> None:
-    monkeypatch.setattr(ros1, "MAX_MIRRORED_PARAMS", BOUND)
     with caplog.at_level(logging.WARNING, logger="dbml.ros1"):
-        mirror = Mirror(master)  # the tree holds /keep
+        mirror = Mirror(master, max_params=BOUND)  # the tree holds /keep
         try:
             for i in range(BOUND - 1):
                 mirror.push(f"/flood/{i}", i, caller="/other")
@@ -221,29 +230,29 @@ def test_the_mirror_refuses_new_names_past_its_bound_and_says_so_once_per_flood(
             mirror.push("/more", {"a": 1, "b": 2}, caller="/other")  # two more in one push
             assert mirror.params.get(f"/flood/{BOUND}") is None
             assert mirror.params.get("/more/a") is None
-            assert len(mirror.params._mirror) == BOUND
+            assert len(mirror.params) == BOUND
             mirror.push("/keep", 2, caller="/other")  # a name held is still updated
             assert mirror.params.get("/keep") == 2
-            mirror.params.set("/mine", "x")  # and this process's own writes always taken
-            assert mirror.params.get("/mine") == "x"
-            assert len(mirror.params._mirror) == BOUND + 1
+            mirror.params.set(MINE, "fair")  # and this process's own writes always taken
+            assert mirror.params.get(MINE) == "fair"
+            assert len(mirror.params) == BOUND + 1
             assert [r.getMessage() for r in caplog.records] == [
-                f"parameter names mirrored: {BOUND} held, the most kept; refusing new ones "
+                f"parameter names: {BOUND} held, the most kept; refusing new ones "
                 "(told once until half of them are gone)"
             ]
             assert mirror.heard == [
                 *((f"/flood/{i}", i) for i in range(BOUND - 1)),
                 ("/keep", 2),
-                ("/mine", "x"),
+                (MINE, "fair"),
             ]
 
             mirror.push("/flood", {}, caller="/other")  # down to half the bound: the flood is over
-            assert len(mirror.params._mirror) == 2
+            assert len(mirror.params) == 2
             assert caplog.records[-1].getMessage() == (
-                "parameter names mirrored: room again; 3 refused meanwhile"
+                "parameter names: room again; 3 refused meanwhile"
             )
             mirror.push("/more", {"a": 1}, caller="/other")
             assert mirror.params.get("/more/a") == 1
         finally:
-            mirror.params.close()
+            mirror.sync.close()
             mirror.client.close()

@@ -9,7 +9,7 @@ span machines. Shared memory is off unless asked for: it would bypass any shaped
 Key layout: the wire schema's (``dbml.protocol.keys``): a topic's data, parameter writes and
 batches, each session's owned values (a queryable), graph declarations and sessions (liveliness
 tokens). The parameter store's protocol over the session (meetings, fetches, confirmations) is
-``dbml.transports.zenohsync``; with ``follow_all_params=False`` (a process that only publishes)
+``dbml.transports.zenoh.params``; with ``follow_all_params=False`` (a process that only publishes)
 a session hears the global parameters, the batches and the channels it writes to, so the
 reports of a fleet's other publishers (bounds, sizes, acknowledgements) cost it nothing.
 """
@@ -42,7 +42,7 @@ from dbml.transports.base import (
 )
 from dbml.transports.callbacks import CallbackList
 from dbml.transports.overflow import LogOnce, Overflow
-from dbml.transports.zenohsync import ParamSync
+from dbml.transports.zenoh.params import ParamSync
 
 try:
     import zenoh

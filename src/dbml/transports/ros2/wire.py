@@ -35,9 +35,6 @@ __all__ = [
     "ATTACHMENT_SIZE_BYTES",
     "DEFAULT_DISTRO",
     "DISTROS",
-    "FLOAT64_TYPE",
-    "IMAGE_OVERHEAD_BYTES",
-    "IMAGE_TYPE",
     "MAX_DOMAIN_ID",
     "QOS_RELIABLE_VOLATILE_KEEP_LAST_10",
     "Attachment",
@@ -48,10 +45,7 @@ __all__ = [
     "data_key",
     "dds_type_name",
     "decode_attachment",
-    "decode_float64",
     "encode_attachment",
-    "encode_float64",
-    "image_cdr",
     "mangle",
     "parse_token",
     "ros_type_name",
@@ -67,21 +61,12 @@ MAX_DOMAIN_ID = 232
 """The largest ROS 2 domain id (as ``ROS_DOMAIN_ID`` allows)."""
 ADMIN_SPACE = "@ros2_lv"
 """rmw_zenoh's liveliness prefix; ``@`` keeps ``**`` of other keys from matching it."""
-IMAGE_TYPE = "sensor_msgs/msg/Image"
-FLOAT64_TYPE = "std_msgs/msg/Float64"
-IMAGE_OVERHEAD_BYTES = 52
-"""A mono8 Image of frame ``camera``, serialised with no pixels (encapsulation header included)."""
 QOS_RELIABLE_VOLATILE_KEEP_LAST_10 = "1:2:1,10:,:,:,,"
 """Explicit, not left to defaults: rmw_zenoh's default durability changed in 2025."""
 
 ATTACHMENT_SIZE_BYTES = 33
 GID_SIZE_BYTES = 16
 _ATTACHMENT = struct.Struct("<qqB")
-_CDR_LE = b"\x00\x01\x00\x00"
-_CDR_BE = b"\x00\x00\x00\x00"
-_FLOAT64_SIZE_BYTES = 12
-_FRAME_ID = "camera"
-_ENCODING = "mono8"
 _NODE_CHUNKS = 9
 _ENDPOINT_CHUNKS = 13
 _MAX_ZID_HEX = 32
@@ -173,46 +158,6 @@ def decode_attachment(data: bytes) -> Attachment:
     if gid_size != GID_SIZE_BYTES:
         raise TransportError(f"rmw attachment gid length {gid_size} must be {GID_SIZE_BYTES}")
     return Attachment(sequence, timestamp_ns, bytes(data[_ATTACHMENT.size :]))
-
-
-def encode_float64(value: float) -> bytes:
-    """A ``std_msgs/msg/Float64`` as CDR (little-endian, with its encapsulation header)."""
-    return _CDR_LE + struct.pack("<d", value)
-
-
-def decode_float64(payload: bytes) -> float:
-    """The value of a CDR ``std_msgs/msg/Float64``; ``TransportError`` if it is not one."""
-    if len(payload) != _FLOAT64_SIZE_BYTES or payload[:4] not in {_CDR_LE, _CDR_BE}:
-        raise TransportError(f"Float64 payload {payload[:16].hex()} is not 12 bytes of CDR")
-    order = "<" if payload[:4] == _CDR_LE else ">"
-    value: float = struct.unpack(order + "d", payload[4:])[0]
-    return value
-
-
-def _cdr_string(text: str) -> bytes:
-    raw = text.encode() + b"\x00"
-    return struct.pack("<I", len(raw)) + raw
-
-
-def image_cdr(size_bytes: int, *, stamp_ns: int = 0) -> bytes:
-    """A mono8 ``sensor_msgs/msg/Image`` of frame ``camera`` serialised to exactly ``size_bytes``.
-
-    One row of ``size_bytes - 52`` pixels: the size the optimizer sees is the size asked for.
-    """
-    pixels = size_bytes - IMAGE_OVERHEAD_BYTES
-    if pixels < 0:
-        raise TransportError(
-            f"image size_bytes={size_bytes} is below the {IMAGE_OVERHEAD_BYTES}-byte minimum"
-        )
-    sec, nanosec = divmod(max(0, stamp_ns), 1_000_000_000)
-    body = bytearray(struct.pack("<iI", sec, nanosec) + _cdr_string(_FRAME_ID))
-    body += bytes(-len(body) % 4)
-    body += struct.pack("<II", 1, pixels) + _cdr_string(_ENCODING) + b"\x00"  # is_bigendian
-    body += bytes(-len(body) % 4)
-    body += struct.pack("<II", pixels, pixels)  # step, then the data's length
-    frame = _CDR_LE + bytes(body) + bytes(pixels)
-    assert len(frame) == size_bytes, "the Image layout must keep its 52-byte overhead"
-    return frame
 
 
 class TokenKind(enum.StrEnum):

@@ -37,18 +37,16 @@ first.
 from __future__ import annotations
 
 import logging
-import re
 import threading
 import time
 from collections import OrderedDict, deque
 from collections.abc import Callable, Iterable, Mapping
 from collections.abc import Set as AbstractSet
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from dbml.core.errors import TransportError
 from dbml.protocol import keys
-from dbml.protocol.names import check_topic
 from dbml.protocol.schema import (
     GLOBAL_PREFIX,
     PARAMETERS,
@@ -60,45 +58,45 @@ from dbml.protocol.schema import (
     check_param,
     lookup,
 )
-from dbml.transports.base import Handle, ParamValue, check_param_value
-from dbml.transports.callbacks import CallbackList
+from dbml.transports.base import ParamValue, check_param_value
 from dbml.transports.overflow import LogOnce, Overflow
-from dbml.transports.paramstore import MAX_PARAMS
+from dbml.transports.rclpy.nodes import (
+    ALLOCATION_TOPIC,
+    DBM_NODE,
+    PARTICIPANT_BYTES,
+    ROS_OWN,
+    allocated,
+    check_ros_name,
+    claim_topic,
+    full_name,
+    hosts_it,
+    node_of,
+    python_value,
+    scope_of,
+    yields,
+)
+from dbml.transports.replica import Replica, Write
 
 if TYPE_CHECKING:
     from rclpy.node import Node
     from rclpy.publisher import Publisher as RosPublisher
 
-    from dbml.transports.rclpy import RclpyTransport
-
 __all__ = [
-    "ALLOCATION_TOPIC",
-    "HOSTING_WRITERS",
+    "FETCH_TIMEOUT_S",
+    "MAX_CLIENTS",
     "MAX_PARAM_NODES",
-    "PARTICIPANT_BYTES",
+    "MAX_UNATTRIBUTED",
+    "MAX_UNVERIFIED",
+    "MAX_UNVERIFIED_SENDERS",
+    "UNATTRIBUTED_S",
+    "RclpyHost",
     "RclpyParams",
-    "check_ros_topic",
-    "is_param_node",
-    "node_of",
-    "python_value",
-    "yields",
 ]
 
 log = logging.getLogger("dbml.rclpy")
 
-ALLOCATION_TOPIC = f"{GLOBAL_PREFIX}/allocation"
-"""Where the optimizer's ``/dbm`` node sends a round's allocation (``std_msgs/msg/String``,
-``dbml.protocol.keys``' batch encoding)."""
-HOSTING_WRITERS: Mapping[Scope, frozenset[Writer]] = {
-    Scope.GLOBAL: frozenset({Writer.OPTIMIZER, Writer.ESTIMATOR}),
-    Scope.CHANNEL: frozenset({Writer.PUBLISHER}),
-}
-"""Whose writes make a process host a node: a parameter only these roles write is written by the
-process the paper puts it on (the optimizer's ``/dbm``, the publisher's ``[topic]/dbm``)."""
 MAX_PARAM_NODES = 8_192
 """The most parameter nodes remembered (met, fetched); beyond, new ones are ignored (logged)."""
-PARTICIPANT_BYTES = 12
-"""A GID's first bytes name its participant (Fast DDS: vendor, host, process, participant)."""
 MAX_UNVERIFIED = 1_024
 """Events of one sender waiting for the graph to name it a host (the oldest go first)."""
 MAX_UNVERIFIED_SENDERS = 64
@@ -111,117 +109,6 @@ FETCH_TIMEOUT_S = 2.0
 """A ``GetParameters`` unanswered this long is asked again (an answer takes milliseconds)."""
 MAX_CLIENTS = 256
 """Service clients kept open to other processes' nodes; the least recently used is closed."""
-_DBM_NODE = GLOBAL_PREFIX[1:]
-"""Every parameter node's own name: ``dbm``, in the namespace ``/`` or ``[topic]``."""
-_ROS_NAME = re.compile(r"^(/[A-Za-z_][A-Za-z0-9_]*)+$")
-"""A ROS 2 topic name as dbml uses one: ``check_topic``'s, without ``-``, ``.`` and ``~``."""
-_ROS_OWN = frozenset({"use_sim_time", "start_type_description_service"})
-"""Parameters every rclpy node declares: not dbml's, never reported."""
-
-
-def node_of(name: str) -> tuple[Parameter, str, str]:
-    """The parameter ``name`` is, its node (``/dbm``, ``/r1/camera/dbm``) and its name there.
-
-    ``TransportError`` for a name outside dbml's schema: ROS 2 parameters live on nodes, so a
-    name must say which.
-    """
-    found = lookup(name)
-    if found is None:
-        raise TransportError(
-            f"parameter name={name!r} is not one of dbml's: over rclpy a parameter lives on a "
-            "node, /dbm/<field> or [topic]/dbm/<field>"
-        )
-    parameter, topic = found
-    node = GLOBAL_PREFIX if topic is None else f"{topic}{GLOBAL_PREFIX}"
-    return parameter, node, parameter.ros2_name
-
-
-def check_ros_topic(topic: str) -> str:
-    """``topic`` if ROS 2 accepts it as a name too (no ``-``, ``.``, ``~``); else the error.
-
-    dbml's topic rule (``check_topic``) allows those for zenoh; a ROS 2 name, a node's
-    namespace included, does not.
-    """
-    check_topic(topic)
-    if not _ROS_NAME.match(topic):
-        raise TransportError(
-            f"topic={topic!r} is not a ROS 2 name: letters, digits and _ only between the /"
-        )
-    return topic
-
-
-def _full_name(node: str, ros2_name: str) -> str | None:
-    """The store's name of parameter ``ros2_name`` on node ``node``; None if not dbml's."""
-    if ros2_name in _ROS_OWN:
-        return None
-    name = f"{node}/{ros2_name.replace('.', '/')}"
-    found = lookup(name)
-    if found is None:
-        return None
-    expected = GLOBAL_PREFIX if found[1] is None else f"{found[1]}{GLOBAL_PREFIX}"
-    return name if expected == node else None
-
-
-def _scope_of(node: str) -> Scope:
-    return Scope.GLOBAL if node == GLOBAL_PREFIX else Scope.CHANNEL
-
-
-def is_param_node(namespace: str, name: str) -> str | None:
-    """The fully qualified name of a parameter node (``/dbm``, ``/r1/camera/dbm``), else None."""
-    if name != _DBM_NODE:
-        return None
-    if namespace == "/":
-        return GLOBAL_PREFIX
-    try:
-        check_topic(namespace)
-    except TransportError:
-        return None
-    return f"{namespace}{GLOBAL_PREFIX}"
-
-
-def yields(own: bytes, hosts: AbstractSet[bytes], claimed: AbstractSet[bytes]) -> bool:
-    """Whether a provisional host ``own`` of a node gives it up, seeing ``hosts`` host it.
-
-    To a host that claimed the node (its owner), always; among provisional hosts, all but the
-    smallest participant: every process decides alike from the same graph, so one is left.
-    """
-    others = set(hosts) - {own}
-    return bool(others) and (bool(set(claimed) - {own}) or min(others) < own)
-
-
-def _hosts_it(parameter: Parameter) -> bool:
-    """Whether writing ``parameter`` makes this process its node's host (see HOSTING_WRITERS)."""
-    return parameter.writers <= HOSTING_WRITERS[parameter.scope]
-
-
-def _allocated(parameter: Parameter) -> bool:
-    """A channel's parameter only the optimizer writes: it travels in ``/dbm/allocation``."""
-    return parameter.scope is Scope.CHANNEL and parameter.writers == {Writer.OPTIMIZER}
-
-
-def python_value(message: Any) -> object:
-    """A ``ParameterValue`` as Python (``None`` for NOT_SET, arrays as lists).
-
-    One of a type rclpy does not know (any node may send one) is an object the store refuses,
-    naming it, never an exception on the executor thread.
-    """
-    from rclpy.parameter import parameter_value_to_python
-
-    try:
-        value: object = parameter_value_to_python(message)
-    except Exception:  # rclpy raises its own errors for an unknown type number
-        return _UNKNOWN_VALUE
-    return value
-
-
-class _Unknown:
-    """A parameter value of a type rclpy does not know: the store refuses it, naming it."""
-
-    def __repr__(self) -> str:
-        return "<a parameter value of an unknown type>"
-
-
-_UNKNOWN_VALUE = _Unknown()
 
 
 @dataclass
@@ -231,38 +118,81 @@ class _Hosted:
     node: Node
     provisional: bool
     """Hosted only because nobody did when this process wrote: given up once another hosts it."""
-    allocation: RosPublisher[Any] | None = None
-    """The ``/dbm`` node's allocation publisher (None on a channel's node)."""
-    priority: Handle | None = None
-    """A channel node's ``std_msgs/msg/Float64`` priority subscription."""
+    claim: RosPublisher[Any] | None = None
+    """The endpoint that says this process hosts the node for good (None while provisional):
+    the ``/dbm`` node's allocation publisher, a channel node's ``[topic]/dbm/host``."""
+
+
+class RclpyHost(Protocol):
+    """What the parameter sync needs of its transport: the executor thread and a few entities.
+
+    The rclpy transport is one; the sync never names its class (no import circle).
+    """
+
+    @property
+    def host(self) -> str:
+        """This process's host identity."""
+        ...
+
+    @property
+    def context(self) -> Any:
+        """The transport's rclpy context, for the parameter nodes."""
+        ...
+
+    @property
+    def node(self) -> Node:
+        """The transport's own node, for service clients."""
+        ...
+
+    def run(self, task: Callable[[], None]) -> bool:
+        """Run ``task`` on the executor thread and wait for it; False if the transport closed."""
+        ...
+
+    def call_soon(self, task: Callable[[], None]) -> None:
+        """Run ``task`` on the executor thread, soon (where every rclpy call of dbml's runs)."""
+        ...
+
+    def poll_soon(self) -> None:
+        """Read the graph at once rather than at the next tick."""
+        ...
+
+    def add_node(self, node: Node) -> None:
+        """Spin a parameter node with the transport's own (executor thread)."""
+        ...
+
+    def remove_node(self, node: Node) -> None:
+        """Stop spinning and destroy a parameter node (executor thread)."""
+        ...
+
+    def string_publisher(self, node: Node, topic: str) -> Any:
+        """``node``'s ``std_msgs/msg/String`` publisher of ``topic``, its newest message kept."""
+        ...
 
 
 class RclpyParams:
-    """The ``ParamStore`` of ``RclpyTransport``: a view of every dbml parameter node's values.
+    """The ``ParamStore`` of ``RclpyTransport`` (``replica``) and its sync with the nodes.
 
-    Constructed and used by the transport; every method that touches rclpy runs on its
-    executor thread (``_on_*``, ``_drain``, ``poll``); the public ones only touch the view.
+    Every method that touches rclpy runs on the transport's executor thread (``_on_*``,
+    ``_drain``, ``poll``, ``on_event``, ``on_allocation``); the replica is read and written
+    from any thread.
     """
 
-    def __init__(self, transport: RclpyTransport) -> None:
+    def __init__(self, transport: RclpyHost) -> None:
         self._transport = transport
         self._lock = threading.Lock()
-        self._values: dict[str, ParamValue] = {}
-        self._watchers: CallbackList[[str, ParamValue]] = CallbackList()
-        self._pending: OrderedDict[str, ParamValue] = OrderedDict()
-        """Writes not yet handed to rclpy, oldest first; a name's newer write replaces its own."""
-        self._confirmed: dict[str, bool] = {}
-        """Per name written here: whether a node of another process took the latest write."""
-        self._written: set[str] = set()
-        """Names this process wrote (its code bounds them): what it hands over as a host."""
-        self._overflow = Overflow("parameter names", MAX_PARAMS, log=log)
-        self._updates = 0
-        """Values written or heard so far: the clock a fetch's answer is judged by."""
-        self._updated: dict[str, int] = {}
-        """Per name, ``_updates`` when its value was last written or heard (``MAX_PARAMS``
-        names at most: only names the view holds or this process wrote get one)."""
+        self._handed: dict[str, int] = {}
+        """Per name this process wrote: the stamp of its latest write handed to rclpy."""
+        self._confirmed: dict[str, int] = {}
+        """Per name written to another process's node: the stamp of the write it took last."""
         self._nodes_overflow = Overflow("parameter nodes", MAX_PARAM_NODES, log=log)
         self._bad = LogOnce(log)
+        self.replica = Replica(
+            transport.host,
+            send=self._send,
+            log=log,
+            check_name=check_ros_name,
+            sender_name="dbml-rclpy-param-send",
+        )
         # Executor-thread state: never touched elsewhere.
         self._hosted: dict[str, _Hosted] = {}
         self._internal = False
@@ -292,113 +222,63 @@ class RclpyParams:
         self._allocation: dict[str, ParamValue] = {}
         """Everything this process allocated (it is the optimizer): sent whole every time."""
 
-    # -- the ParamStore protocol: any thread, never blocks -------------------------------------
+    # -- this process's writes: the replica hands them over -------------------------------------
 
-    def set(self, name: str, value: ParamValue) -> None:
-        """Hold ``value`` here at once; the executor thread hands it to its node."""
-        self.set_many({name: value})
-
-    def set_many(self, values: Mapping[str, ParamValue], *, host: str | None = None) -> None:
-        """Hold every value here at once; the executor thread sends them, one message per node.
-
-        A value lives on its channel's own ROS 2 node already: ``host`` adds nothing.
-        """
-        checked = {name: check_param_value(value) for name, value in values.items()}
-        for name, value in checked.items():
-            _parameter, node, _ros2_name = node_of(name)
-            if node != GLOBAL_PREFIX:
-                check_ros_topic(node[: -len(GLOBAL_PREFIX)])
-            check_param(name, value)  # its node would refuse it: say so here, change nothing
-        changes = []
-        with self._lock:
-            for name, value in checked.items():
-                self._pending[name] = value
-                self._pending.move_to_end(name)
-                self._confirmed[name] = False
-                self._written.add(name)
-                self._updates += 1
-                self._updated[name] = self._updates
-                if self._values.get(name) != value:
-                    changes.append((name, value))
-                    self._values[name] = value  # this process's own: always held
-        self._transport.call_soon(self._drain)
-        for name, value in changes:
-            self._watchers.fire(name, value)
-
-    def get(self, name: str) -> ParamValue:
-        """The value held for ``name``; None when unset."""
-        with self._lock:
-            return self._values.get(name)
-
-    def snapshot(self, prefix: str = "/") -> dict[str, ParamValue]:
-        """Every set value whose name starts with ``prefix``."""
-        with self._lock:
-            return {n: v for n, v in self._values.items() if n.startswith(prefix) and v is not None}
-
-    def watch(self, callback: Callable[[str, ParamValue], None]) -> Handle:
-        """Call ``callback(name, value)`` on every change of the view."""
-        return self._watchers.add(callback)
+    def _send(self, write: Write) -> None:
+        """Hand one write to the executor thread and wait until it was (the sender's thread)."""
+        if not self._transport.run(lambda: self._drain(write)):
+            log.debug("closed with a parameter write not handed over: %s", ", ".join(write.values))
 
     def confirmed(self, name: str) -> bool:
         """Whether a node of another process took this process's latest write of ``name``."""
+        if self.replica.pending(name):
+            return False
         with self._lock:
-            return self._confirmed.get(name, False)
+            handed = self._handed.get(name)
+            return handed is not None and self._confirmed.get(name) == handed
 
     def settled(self) -> bool:
-        """Whether every live parameter node met was fetched once (its values are in the view)."""
+        """Whether every write was handed over and every live parameter node met was read."""
         with self._lock:
-            return not self._pending and set(self._live) <= self._fetched
-
-    def _store_locked(self, name: str, value: ParamValue) -> bool:
-        """Hold ``value``; False (refused, logged once per flood) past ``MAX_PARAMS`` names."""
-        if name not in self._values and len(self._values) >= MAX_PARAMS:
-            self._overflow.refuse()
-            return False
-        self._values[name] = value
-        return True
+            read = set(self._live) <= self._fetched
+        return read and self.replica.unsent() == 0
 
     def _learn(
         self, node: str, values: Iterable[tuple[str, object]], *, asked_at: int | None = None
     ) -> None:
-        """Values a node announced or returned: validated, then held; changes are reported.
+        """Values a node announced or returned: validated, then held; changes are told.
 
-        A fetch's answer (``asked_at``: the update count when it was asked) is older than any
+        A fetch's answer (``asked_at``: the replica's mark when it was asked) is older than any
         value written or announced since it was asked: those names keep what they have.
         """
-        changes = []
-        with self._lock:
-            for ros2_name, raw in values:
-                name = _full_name(node, ros2_name)
-                if name is None:
-                    continue
-                try:
-                    value = check_param(name, check_param_value(raw))
-                except (ParamError, TransportError) as err:
-                    self._bad.warning(name, "ignoring %s from node %s: %s", name, node, err)
-                    continue
-                if name in self._pending:
-                    continue  # this process's newer write is on its way
-                if asked_at is not None and self._updated.get(name, -1) > asked_at:
-                    continue  # written or announced after the fetch was asked: newer
-                self._updates += 1
-                if name in self._updated or len(self._updated) < MAX_PARAMS:
-                    self._updated[name] = self._updates
-                if self._values.get(name) != value and self._store_locked(name, value):
-                    changes.append((name, value))
-        for name, value in changes:
-            self._watchers.fire(name, value)
+        for ros2_name, raw in values:
+            name = full_name(node, ros2_name)
+            if name is None:
+                continue
+            try:
+                value = check_param(name, check_param_value(raw))
+            except (ParamError, TransportError) as err:
+                self._bad.warning(name, "ignoring %s from node %s: %s", name, node, err)
+                continue
+            self.replica.arrived(name, value, writer=node, asked_at=asked_at)
 
     # -- executor thread -----------------------------------------------------------------------
 
-    def _drain(self) -> None:
-        """Hand every pending write to rclpy: local nodes, allocation, other processes' nodes."""
+    def _drain(self, write: Write) -> None:
+        """Hand a write to rclpy: local nodes, allocation, other processes' nodes.
+
+        Only what is still the newest of it: a name another process set on a node hosted here
+        meanwhile keeps that process's value.
+        """
+        pending = self.replica.current(write)
         with self._lock:
-            pending, self._pending = self._pending, OrderedDict()
+            for name in pending:
+                self._handed[name] = write.stamp
         by_node: dict[str, dict[str, tuple[Parameter, ParamValue]]] = {}
         allocation: dict[str, ParamValue] = {}
         for name, value in pending.items():
             parameter, node, ros2_name = node_of(name)
-            if _allocated(parameter) and node not in self._hosted:
+            if allocated(parameter) and node not in self._hosted:
                 allocation[name] = value
                 continue
             by_node.setdefault(node, {})[ros2_name] = (parameter, value)
@@ -408,7 +288,7 @@ class RclpyParams:
         elif allocation and self._hosted[GLOBAL_PREFIX].provisional:
             self._claim(GLOBAL_PREFIX, self._hosted[GLOBAL_PREFIX])
         for node, writes in by_node.items():
-            hosting = any(_hosts_it(p) for p, _v in writes.values())
+            hosting = any(hosts_it(p) for p, _v in writes.values())
             hosted = self._hosted.get(node)
             if hosted is None and (hosting or node not in self._live):
                 hosted = self._host(node, provisional=not hosting)
@@ -426,10 +306,10 @@ class RclpyParams:
         from rcl_interfaces.msg import ParameterDescriptor
         from rclpy.node import Node
 
-        scope = _scope_of(node)
+        scope = scope_of(node)
         namespace = "/" if scope is Scope.GLOBAL else node[: -len(GLOBAL_PREFIX)]
         ros_node = Node(
-            _DBM_NODE,
+            DBM_NODE,
             namespace=namespace,
             context=self._transport.context,
             start_parameter_services=True,
@@ -445,7 +325,7 @@ class RclpyParams:
                 name = parameter.name if scope is Scope.GLOBAL else f"{node}/{parameter.field}"
                 ros_node.declare_parameter(
                     parameter.ros2_name,
-                    self.get(name),
+                    self.replica.get(name),
                     ParameterDescriptor(
                         dynamic_typing=True,
                         description=f"{parameter.doc} Written by: "
@@ -462,17 +342,19 @@ class RclpyParams:
         return hosted
 
     def _claim(self, node: str, hosted: _Hosted) -> None:
-        """Host ``node`` for good: its role's endpoint says so to every provisional host.
+        """Host ``node`` for good: an endpoint of it says so to every provisional host.
 
-        The ``/dbm`` node's allocation publisher, a channel node's priority subscription.
+        The ``/dbm`` node's allocation publisher; a channel node's ``[topic]/dbm/host``, which
+        holds this process's host (``ros2 topic echo /r1/camera/dbm/host`` says who hosts it).
         """
+        from std_msgs.msg import String
+
         hosted.provisional = False
         if node == GLOBAL_PREFIX:
-            hosted.allocation = self._transport.string_publisher(hosted.node, ALLOCATION_TOPIC)
+            hosted.claim = self._transport.string_publisher(hosted.node, ALLOCATION_TOPIC)
         else:
-            hosted.priority = self._transport.hear_priority(
-                node[: -len(GLOBAL_PREFIX)], hosted.node
-            )
+            hosted.claim = self._transport.string_publisher(hosted.node, claim_topic(node))
+            hosted.claim.publish(String(data=self._transport.host))
 
     def _set_local(self, node: str, hosted: _Hosted, writes: Mapping[str, ParamValue]) -> None:
         """Set parameters of a node this process hosts (its announcement reaches everyone)."""
@@ -502,9 +384,9 @@ class RclpyParams:
 
         taken: list[tuple[str, ParamValue]] = []
         for parameter in parameters:
-            name = _full_name(node, parameter.name)
+            name = full_name(node, parameter.name)
             if name is None:
-                if parameter.name in _ROS_OWN:
+                if parameter.name in ROS_OWN:
                     continue
                 return SetParametersResult(
                     successful=False, reason=f"{parameter.name!r} is not a dbml parameter"
@@ -527,19 +409,11 @@ class RclpyParams:
                 )
             taken.append((name, checked))
         if not self._internal:
+            # Another process set them on a node hosted here: the view follows at once, and a
+            # write of this process still on its way is older (it is not handed over).
             for name, value in taken:
-                self._take_remote(name, value)
+                self.replica.arrived(name, value, writer=node, supersede=True)
         return SetParametersResult(successful=True)
-
-    def _take_remote(self, name: str, value: ParamValue) -> None:
-        """Another process set ``name`` on a node hosted here: the view follows at once."""
-        with self._lock:
-            self._pending.pop(name, None)
-            self._updates += 1
-            self._updated[name] = self._updates
-            changed = self._values.get(name) != value and self._store_locked(name, value)
-        if changed:
-            self._watchers.fire(name, value)
 
     def _client(self, kind: str, node: str) -> Any:
         """A cached service client of ``node``'s ``get_parameters``/``set_parameters``."""
@@ -579,21 +453,25 @@ class RclpyParams:
         ]
         future = client.call_async(request)
         names = list(writes)
-        future.add_done_callback(lambda done: self._on_set_reply(node, names, done))
+        with self._lock:  # which of this process's writes the request carries
+            stamps = [self._handed.get(full_name(node, n) or "") for n in names]
+        future.add_done_callback(lambda done: self._on_set_reply(node, names, stamps, done))
 
-    def _on_set_reply(self, node: str, names: list[str], future: Any) -> None:
+    def _on_set_reply(
+        self, node: str, names: list[str], stamps: list[int | None], future: Any
+    ) -> None:
         response = future.result()
         if response is None:
             return
         refused = False
-        for ros2_name, result in zip(names, response.results, strict=False):
-            name = _full_name(node, ros2_name)
+        for ros2_name, stamp, result in zip(names, stamps, response.results, strict=False):
+            name = full_name(node, ros2_name)
             if name is None:
                 continue
             if result.successful:
-                with self._lock:
-                    if name not in self._pending:
-                        self._confirmed[name] = True
+                if stamp is not None:
+                    with self._lock:
+                        self._confirmed[name] = stamp
             else:
                 refused = True
                 log.warning("%s refused %s: %s", node, name, result.reason)
@@ -607,7 +485,7 @@ class RclpyParams:
         host that matched the publisher late, or missed a message, has it all by the next round.
         """
         hosted = self._hosted.get(GLOBAL_PREFIX)
-        if hosted is None or hosted.allocation is None:
+        if hosted is None or hosted.claim is None:
             return
         self._allocation.update(values)
         for name in list(self._allocation):  # channels whose node left are allocated no more
@@ -616,7 +494,7 @@ class RclpyParams:
         from std_msgs.msg import String
 
         data = keys.encode_batch(self._allocation, time.time_ns(), self._transport.host)
-        hosted.allocation.publish(String(data=data.decode()))
+        hosted.claim.publish(String(data=data.decode()))
 
     def on_allocation(self, data: str, *, sender: bytes | None) -> None:
         """``/dbm/allocation``: values for the channels hosted here, from ``/dbm``'s node only.
@@ -645,7 +523,7 @@ class RclpyParams:
         by_node: dict[str, dict[str, ParamValue]] = {}
         for name, value in values.items():
             found = lookup(name)
-            if found is None or not _allocated(found[0]):
+            if found is None or not allocated(found[0]):
                 self._bad.warning(name, "ignoring %s in an allocation: not the optimizer's", name)
                 continue
             try:
@@ -699,7 +577,7 @@ class RclpyParams:
             queue = self._unverified[participant] = deque()
         if len(queue) >= MAX_UNVERIFIED:
             queue.popleft()
-        queue.append((node, [(n, v) for n, v in changed if _full_name(node, n) is not None]))
+        queue.append((node, [(n, v) for n, v in changed if full_name(node, n) is not None]))
         self._unverified_since.setdefault(participant, time.monotonic())
         while len(self._unverified) > MAX_UNVERIFIED_SENDERS:
             dropped, _queue = self._unverified.popitem(last=False)
@@ -750,11 +628,10 @@ class RclpyParams:
         client = self._client("get", node)
         if not client.service_is_ready():
             return  # the next poll tries again
-        scope = _scope_of(node)
+        scope = scope_of(node)
         names = [p.ros2_name for p in PARAMETERS if p.scope is scope]
         self._fetching[node] = time.monotonic()
-        with self._lock:
-            asked_at = self._updates
+        asked_at = self.replica.mark()
         future = client.call_async(GetParameters.Request(names=names))
 
         def done(finished: Any) -> None:
@@ -837,19 +714,8 @@ class RclpyParams:
         Names this process wrote stay (it may host them again, or hand them over), so what the
         network filled is what the network's departures empty.
         """
-        removed = []
-        with self._lock:
-            for node in gone:
-                prefix = f"{node}/"
-                for name in [n for n in self._values if n.startswith(prefix)]:
-                    if name not in self._written and name not in self._pending:
-                        del self._values[name]
-                        self._updated.pop(name, None)
-                        removed.append(name)
-            size = len(self._values)
-        self._overflow.room(size)
-        for name in removed:
-            self._watchers.fire(name, None)
+        for node in gone:
+            self.replica.forget(f"{node}/")
 
     def _give_up(self, node: str, hosted: _Hosted) -> None:
         """Another process hosts ``node`` too: push what anyone may write there, then leave it.
@@ -859,10 +725,10 @@ class RclpyParams:
         """
         writes: dict[str, ParamValue] = {}
         for parameter in PARAMETERS:
-            if parameter.scope is not _scope_of(node) or Writer.OPERATOR not in parameter.writers:
+            if parameter.scope is not scope_of(node) or Writer.OPERATOR not in parameter.writers:
                 continue
             name = parameter.name if node == GLOBAL_PREFIX else f"{node}/{parameter.field}"
-            if name not in self._written or not hosted.node.has_parameter(parameter.ros2_name):
+            if not self.replica.wrote(name) or not hosted.node.has_parameter(parameter.ros2_name):
                 continue  # only what this process wrote: the rest it only heard
             held = hosted.node.get_parameter(parameter.ros2_name).value
             if held is not None:
@@ -874,9 +740,7 @@ class RclpyParams:
 
     def _close_hosted(self, node: str, hosted: _Hosted) -> None:
         del self._hosted[node]
-        if hosted.priority is not None:
-            hosted.priority.close()
-        self._transport.remove_node(hosted.node)
+        self._transport.remove_node(hosted.node)  # its endpoints with it
 
     def refresh(self, node: str) -> None:
         """Read ``node``'s values again (a reader that sees its publisher but misses them)."""

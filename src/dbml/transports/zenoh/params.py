@@ -1,7 +1,7 @@
 """zenoh's half of the parameter store: meeting sessions, fetching what they own, confirming.
 
-``ReplicatedParams`` (``dbml.transports.paramstore``) holds the values and knows no middleware;
-this class wires it to a zenoh session. Every session caches the writes it hears and serves what
+``KeyedParams`` (``dbml.transports.zenoh.keyed``: a ``Replica`` and its messages) knows no
+session; this class wires it to one. Every session caches the writes it hears and serves what
 it owns under its owned-values key (``dbml.protocol.keys``). Two sessions that meet (see each
 other's node token, and again when their direct link comes up) each fetch what the other owns
 and tell the other to fetch theirs, so what one wrote before the other could hear it is not
@@ -27,8 +27,9 @@ from dbml.protocol import keys
 from dbml.protocol.names import check_topic
 from dbml.protocol.schema import GLOBAL_PREFIX
 from dbml.transports.overflow import LogOnce, Overflow
-from dbml.transports.paramstore import ReplicatedParams
-from dbml.transports.worker import BackgroundThread
+from dbml.transports.replica import Replica
+from dbml.transports.worker import FLUSH_TIMEOUT_S, BackgroundThread
+from dbml.transports.zenoh.keyed import KeyedParams
 
 __all__ = [
     "CONFIRM_POLL_S",
@@ -130,7 +131,8 @@ class ParamSync:
         """The live sessions that follow every parameter (a subset of ``_live``)."""
         self._followed: set[str] = set()
         """The channels whose parameters this session hears, when it does not hear them all."""
-        self.params = ReplicatedParams(node_id, send=self._send)
+        self.keyed = KeyedParams(node_id, send=self._send)
+        self.params: Replica = self.keyed.replica
         self._thread = BackgroundThread(self._fetch_loop, name="dbml-param-sync", log=log).start()
         heard = f"{keys.PARAM}/**" if follow_all else keys.global_params_filter()
         batches = [f"{keys.BATCH}/**"] if follow_all else [keys.batch_key(), keys.batch_key(host)]
@@ -202,15 +204,15 @@ class ParamSync:
             return
         owned = keys.own_name(str(sample.key_expr))
         if owned is not None and keys.is_node_id(owned[0]):
-            self.params.on_value(owned[1], sample.payload.to_bytes())
+            self.keyed.on_value(owned[1], sample.payload.to_bytes())
 
     def _on_param(self, sample: zenoh.Sample) -> None:
         self._count_received()
-        self.params.on_write(str(sample.key_expr), sample.payload.to_bytes())
+        self.keyed.on_write(str(sample.key_expr), sample.payload.to_bytes())
 
     def _on_batch(self, sample: zenoh.Sample) -> None:
         self._count_received()
-        self.params.on_batch(sample.payload.to_bytes())
+        self.keyed.on_batch(sample.payload.to_bytes())
 
     def _count_received(self) -> None:
         with self._counter_lock:
@@ -242,7 +244,7 @@ class ParamSync:
         if _HELD in parameters:
             key = str(query.key_expr)
             name = key[len(_OWN_ANY) :] if key.startswith(_OWN_ANY + "/") else ""
-            data = self.params.held(name) if name else None
+            data = self.keyed.held(name) if name else None
             if data is not None:
                 query.reply(own + name, data, attachment=self._replier)
             return
@@ -250,7 +252,7 @@ class ParamSync:
         if puller is not None:
             self._schedule_fetch(puller)
             return
-        for name, data in self.params.owned(self._is_live):
+        for name, data in self.keyed.owned(self._is_live):
             reply_key = own + name
             if query.key_expr.intersects(reply_key):
                 query.reply(reply_key, data, attachment=self._replier)
@@ -410,7 +412,7 @@ class ParamSync:
                 return
             key = str(sample.key_expr)
             if key.startswith(prefix + "/"):
-                self.params.on_value(key[len(prefix) :], sample.payload.to_bytes())
+                self.keyed.on_value(key[len(prefix) :], sample.payload.to_bytes())
 
         selectors = self._fetched_selectors(prefix)
         left = [len(selectors)]
@@ -471,7 +473,7 @@ class ParamSync:
 
     def confirm_param(self, name: str, *, timeout_s: float) -> bool:
         """Whether another session holds our latest write of ``name`` (polled, bounded)."""
-        mine = self.params.stamp(name)
+        mine = self.keyed.stamp(name)
         if mine is None:
             return False
         check_topic(name)
@@ -511,6 +513,7 @@ class ParamSync:
             self._queued.clear()
             self._work.notify_all()
             self._synced.notify_all()
-        self.params.close()
+        if not self.params.close():
+            log.warning("closing with parameter writes unsent after %.1f s", FLUSH_TIMEOUT_S)
         for item in declared:
             _undeclare(item)

@@ -1,4 +1,4 @@
-"""The ros1 parameter mirror's pushes kept while it subscribes are bounded (a fake master)."""
+"""The ros1 parameter sync's pushes kept while it subscribes are bounded (a fake master)."""
 
 from __future__ import annotations
 
@@ -10,13 +10,12 @@ from xmlrpc.server import SimpleXMLRPCServer
 
 import pytest
 
-pytest.importorskip("rospy")
-
-from dbml.transports.ros1 import MAX_EARLY_PUSHES, _Ros1Params
-from dbml.transports.rosapi import MasterClient
+from dbml.transports.ros1.master import MasterClient
+from dbml.transports.ros1.params import MAX_EARLY_PUSHES, Ros1Params
 
 OVER = 10
 PUSHES = MAX_EARLY_PUSHES + OVER
+SUBSCRIBE_TIMEOUT_S = 60.0
 
 
 class FakeMaster:
@@ -59,15 +58,17 @@ def master() -> Iterator[FakeMaster]:
 def test_pushes_past_the_bound_while_subscribing_are_read_again_whole(
     master: FakeMaster, caplog: pytest.LogCaptureFixture
 ) -> None:
-    client = MasterClient(master.uri, caller_id="/early_test")
+    # The fake master pushes from inside the subscription's call: thousands of calls, which a
+    # loaded machine takes seconds for, beyond a real call's timeout.
+    client = MasterClient(master.uri, caller_id="/early_test", timeout_s=SUBSCRIBE_TIMEOUT_S)
     with caplog.at_level(logging.WARNING, logger="dbml.ros1"):
-        params = _Ros1Params(client, "/early_test", "127.0.0.1", "127.0.0.1")
+        params = Ros1Params(client, "/early_test", "127.0.0.1", "127.0.0.1")
     try:
         assert params._early is None  # pushes apply directly from now on
         assert master.reads == 1  # the whole tree, read once again
-        assert params.get("/keep") == 1
-        assert params.get("/flood/0") == 0
-        assert params.get(f"/flood/{PUSHES - 1}") == PUSHES - 1  # dropped, then read
+        assert params.replica.get("/keep") == 1
+        assert params.replica.get("/flood/0") == 0
+        assert params.replica.get(f"/flood/{PUSHES - 1}") == PUSHES - 1  # dropped, then read
         assert [r.getMessage() for r in caplog.records] == [
             f"{PUSHES} parameter pushes arrived while subscribing, more than the "
             f"{MAX_EARLY_PUSHES} kept: reading every parameter again"

@@ -7,10 +7,9 @@ dbml's parameter store and graph (``dbml/**``) run unchanged in the same zenoh s
 (``dbml.transports.zenoh``), so dbml processes over ``ros2`` and over ``zenoh`` still meet.
 
 ROS 2 nodes take part without knowing dbml: a ROS 2 subscription of ``X/optimized`` appears in
-the graph as a subscriber of channel ``X`` (so the optimizer manages it), a ROS 2 publisher's
-token tells ``topic_type`` its type, and a ``std_msgs/msg/Float64`` on ``X/dbm/priority`` sets
-the channel's priority. Everything read from the network is validated; a malformed token or
-value is logged once and ignored.
+the graph as a subscriber of channel ``X`` (so the optimizer manages it), and a ROS 2
+publisher's token tells ``topic_type`` its type. Everything read from the network is validated;
+a malformed token is logged once and ignored.
 
 Topology as rmw_zenoh's: peer mode, connect to the router of this host (``tcp/localhost:7447``,
 ``dbml router`` or ``rmw_zenohd``), listen on a port of its own, no multicast, no shared memory.
@@ -38,10 +37,8 @@ import zenoh
 
 from dbml.core.errors import TransportError
 from dbml.protocol import keys
-from dbml.protocol.schema import ParamError, check_param
 from dbml.transports.base import (
     DEFAULT_ROUTER_ENDPOINT,
-    PRIORITY_SUFFIX,
     Closer,
     GraphEntry,
     GraphView,
@@ -55,11 +52,10 @@ from dbml.transports.base import (
     check_topic,
 )
 from dbml.transports.callbacks import CallbackList
+from dbml.transports.codecs import IMAGE_TYPE
 from dbml.transports.overflow import LogOnce
-from dbml.transports.ros2msg import (
+from dbml.transports.ros2.wire import (
     ADMIN_SPACE,
-    FLOAT64_TYPE,
-    IMAGE_TYPE,
     QOS_RELIABLE_VOLATILE_KEEP_LAST_10,
     Attachment,
     LivelinessToken,
@@ -67,12 +63,10 @@ from dbml.transports.ros2msg import (
     TokenKind,
     check_domain_id,
     data_key,
-    decode_float64,
     encode_attachment,
-    image_cdr,
     parse_token,
 )
-from dbml.transports.zenoh import ZENOH_PRIORITY, ZenohTransport
+from dbml.transports.zenoh.transport import ZENOH_PRIORITY, ZenohTransport
 
 __all__ = [
     "DEFAULT_LISTEN",
@@ -98,13 +92,6 @@ _MAX_DBML_SESSIONS = 1024
 """dbml sessions remembered at most; beyond, their ROS 2 tokens may be counted twice."""
 _MAX_NODES_PER_SESSION = 16
 """dbml node tokens remembered per session (one ``ZenohTransport`` declares one)."""
-_PRIORITY_LOG_INTERVAL_S = 10.0
-"""A managed topic's bad priorities are logged at most once per this many seconds."""
-_PRIORITY_WAIT_S = 5.0
-"""How long a managed publisher waits for another's declaration of their channel's priority
-subscription (one takes milliseconds). Past it, it stops waiting and shares the declaration
-still under way (logged): it hears priority once that returns, so a hung declaration holds up
-only the publisher that made it."""
 _NODE_ENTITY = 0
 """rmw_zenoh's node token repeats the node's id as its entity id."""
 _HOST_PREFIX = "ros2:"
@@ -132,52 +119,6 @@ def _guarded(callback: Callable[[zenoh.Sample], None]) -> Callable[[zenoh.Sample
             log.exception("ignoring %s: it could not be handled", str(sample.key_expr)[:160])
 
     return run
-
-
-class _ThrottledLog:
-    """Logs a repeated problem per name at most once per interval, with how many were ignored.
-
-    A ROS 2 node may publish a bad value at kilohertz rates; each one is still counted.
-    """
-
-    def __init__(self, interval_s: float, *, clock: Callable[[], float] = time.monotonic) -> None:
-        self._interval_s = interval_s
-        self._clock = clock
-        self._lock = threading.Lock()
-        self._state: dict[str, tuple[float, int]] = {}
-        """By name: when it was last logged, and what was ignored since."""
-
-    def warning(self, name: str, message: str, *args: object) -> None:
-        """Log ``message`` for ``name`` unless it was logged within the interval."""
-        now = self._clock()
-        with self._lock:
-            last_s, ignored = self._state.get(name, (None, 0))
-            ignored += 1
-            if last_s is not None and now - last_s < self._interval_s:
-                self._state[name] = (last_s, ignored)
-                return
-            self._state[name] = (now, 0)
-        log.warning(
-            f"{message} (%d value(s) ignored; logged at most every %g s)",
-            *args,
-            ignored,
-            self._interval_s,
-        )
-
-
-class _PriorityHearing:
-    """A channel's priority subscription, shared by its managed publishers of this transport."""
-
-    __slots__ = ("done", "handle", "users")
-
-    def __init__(self) -> None:
-        self.done = threading.Event()
-        """Set (under the transport's lock) once the declaration returned or failed."""
-        self.handle: Handle | None = None
-        """The subscription, once declared."""
-        self.users = 1
-        """The publishers hearing through it, the declaring one first. One closed while it is
-        declared is taken off at once: the declaration undeclares it if none is left."""
 
 
 class _Ros2Publisher:
@@ -351,8 +292,8 @@ class _Ros2Graph:
 class Ros2Transport(TransportBase):
     """dbml over rmw_zenoh's wire format; a ``ZenohTransport`` carries dbml's own keys.
 
-    Payloads are CDR already (``camera_frame`` makes a ``sensor_msgs/msg/Image``); a topic's
-    type is ``set_topic_type``'s, else ``sensor_msgs/msg/Image``. Always ``close()`` it.
+    Payloads are CDR already; a topic's type is ``set_topic_type``'s, else
+    ``sensor_msgs/msg/Image``. Always ``close()`` it.
     """
 
     has_priorities = True
@@ -400,7 +341,6 @@ class Ros2Transport(TransportBase):
         self._changed = threading.Condition(self._lock)
         self._closed = False
         self._log = LogOnce(log)
-        self._priority_log = _ThrottledLog(_PRIORITY_LOG_INTERVAL_S)
         self._declared_types: dict[str, str] = {}
         self._seen_types: dict[str, tuple[str, str, str]] = {}
         """ROS 2 publishers by token key: topic, type and type hash (``topic_type``'s answers)."""
@@ -408,9 +348,6 @@ class Ros2Transport(TransportBase):
         """Type hashes by type, as ``topic_type`` found them on publishers' tokens."""
         self._entity = _NODE_ENTITY
         self._handles: set[Handle] = set()
-        self._priorities: dict[str, _PriorityHearing] = {}
-        """Managed channels' priority subscriptions, declared or being declared (outside any
-        lock): a second publisher of the channel waits for the first's declaration."""
         liveliness = self.session.liveliness()
         self._node_token = liveliness.declare_token(self._token(TokenKind.NODE).key())
         self._subscribers = [
@@ -476,16 +413,6 @@ class Ros2Transport(TransportBase):
         with self._lock:
             return self._source_hashes.get(msg_type, ours)
 
-    def camera_frame(self, topic: str, size_bytes: int) -> bytes:
-        """A ``sensor_msgs/msg/Image`` serialised to exactly ``size_bytes`` (52 at least)."""
-        check_topic(topic)
-        frame = image_cdr(size_bytes, stamp_ns=time.time_ns())
-        with self._lock:
-            msg_type = self._declared_types.setdefault(topic, IMAGE_TYPE)
-        if msg_type != IMAGE_TYPE:
-            raise TransportError(f"topic {topic!r} has type {msg_type!r}, not {IMAGE_TYPE!r}")
-        return frame
-
     def topic_type(self, topic: str, *, timeout_s: float) -> str | None:
         """The type a ROS 2 publisher of ``topic`` declares, waiting up to ``timeout_s``."""
         check_topic(topic)
@@ -545,7 +472,7 @@ class Ros2Transport(TransportBase):
         priority: TransportPriority | None = None,
         express: bool = False,
     ) -> _Ros2Publisher:
-        """A ROS 2 publisher of ``topic``'s ``variant``; a managed one hears its priority topic.
+        """A ROS 2 publisher of ``topic``'s ``variant``.
 
         ``priority`` and ``express`` are zenoh's, as for the zenoh transport (rmw_zenoh's
         subscribers read the data whatever its class).
@@ -556,32 +483,21 @@ class Ros2Transport(TransportBase):
         token = self.session.liveliness().declare_token(
             self._token(TokenKind.PUBLISHER, name, msg_type).key()
         )
-        managed = variant is Variant.OPTIMIZED
-        hearing: _PriorityHearing | None = None
 
         def closed() -> None:
             with self._lock:
                 self._handles.discard(publisher)
-            if hearing is not None:
-                self._unhear_priority(topic, hearing)
 
         try:
-            if managed:
-                hearing = self._hear_priority(topic)
-            try:
-                publisher = _Ros2Publisher(
-                    self.session,
-                    topic,
-                    data_key(self.domain_id, name, msg_type, type_hash),
-                    token,
-                    closed,
-                    priority=priority,
-                    express=express,
-                )
-            except BaseException:
-                if hearing is not None:
-                    self._unhear_priority(topic, hearing)
-                raise
+            publisher = _Ros2Publisher(
+                self.session,
+                topic,
+                data_key(self.domain_id, name, msg_type, type_hash),
+                token,
+                closed,
+                priority=priority,
+                express=express,
+            )
         except BaseException:
             _undeclare(token)
             raise
@@ -631,98 +547,6 @@ class Ros2Transport(TransportBase):
 
         any_type = f"{self.domain_id}/{name.removeprefix('/')}/*/*"
         return self._subscribe_key(name, any_type, msg_type, on_sample)
-
-    # -- priority from ROS 2 ------------------------------------------------------------------
-
-    def _hear_priority(self, topic: str) -> _PriorityHearing:
-        """Subscribe to ``topic``'s priority topic, or share the subscription; what to unhear.
-
-        The declaration runs outside every lock (zenoh may call back into this transport
-        meanwhile). A concurrent declare of the same channel waits for it, then shares it, or
-        declares it itself if it failed; after ``_PRIORITY_WAIT_S`` it shares the declaration
-        still under way without waiting (it hears priority once that returns).
-        """
-        while True:
-            with self._lock:
-                hearing = self._priorities.get(topic)
-                if hearing is None:
-                    hearing = self._priorities[topic] = _PriorityHearing()
-                    break  # this publisher declares it
-                if hearing.done.is_set():
-                    hearing.users += 1
-                    return hearing
-            if hearing.done.wait(_PRIORITY_WAIT_S):
-                continue  # declared (shared now) or failed (declared anew)
-            with self._lock:
-                joined = not hearing.done.is_set()
-                if joined:
-                    hearing.users += 1
-            if joined:
-                log.warning(
-                    "%s: its priority subscription is still being declared after %g s; "
-                    "going on, hearing priority once it is",
-                    topic,
-                    _PRIORITY_WAIT_S,
-                )
-                return hearing
-        try:
-            name = topic + PRIORITY_SUFFIX
-            key = data_key(self.domain_id, name, FLOAT64_TYPE, self.types.type_hash(FLOAT64_TYPE))
-
-            def on_sample(sample: zenoh.Sample) -> None:
-                self._on_priority(name, sample.payload.to_bytes())
-
-            handle = self._subscribe_key(name, key, FLOAT64_TYPE, _guarded(on_sample))
-        except BaseException:
-            with self._lock:
-                del self._priorities[topic]  # the next publisher declares it anew
-                hearing.done.set()
-                stranded = hearing.users - 1
-            if stranded > 0:
-                log.error(
-                    "%s: its priority subscription could not be declared: %d publishers that "
-                    "stopped waiting for it do not hear priority",
-                    topic,
-                    stranded,
-                )
-            raise
-        with self._lock:
-            hearing.handle = handle
-            hearing.done.set()
-            unused = hearing.users <= 0
-            if unused:
-                del self._priorities[topic]
-        if unused:  # every user closed while it was declared: undeclared at once, unlocked
-            handle.close()
-        return hearing
-
-    def _unhear_priority(self, topic: str, hearing: _PriorityHearing) -> None:
-        """One user less of ``hearing``; the last one undeclares it.
-
-        While it is being declared, the declaration does once it returns (it finds no user).
-        """
-        with self._lock:
-            hearing.users -= 1
-            handle = hearing.handle
-            if hearing.users > 0 or handle is None:
-                return  # still shared, being declared, or never declared
-            if self._priorities.get(topic) is hearing:
-                del self._priorities[topic]
-        handle.close()  # outside the lock: an undeclaration is a middleware call too
-
-    def _on_priority(self, name: str, payload: bytes) -> None:
-        """Apply a ROS 2 priority in [0, 1]; log anything else (never raise on zenoh's thread)."""
-        try:
-            value = decode_float64(payload)
-        except TransportError as err:
-            self._priority_log.warning(name, "%s: ignoring an undecodable priority: %s", name, err)
-            return
-        try:
-            checked = check_param(name, value)
-        except ParamError as err:
-            self._priority_log.warning(name, "ignoring a priority: %s", err)
-            return
-        self.params.set(name, checked)
 
     # -- ROS 2's graph ------------------------------------------------------------------------
 

@@ -1,4 +1,7 @@
-"""The ros1 graph's polling thread: a failed poll is retried, and its death is said."""
+"""The ros1 graph's polling thread: a failed poll is retried, and its death is said.
+
+A fake master: the graph is the master's XML-RPC API, no rospy needed.
+"""
 
 from __future__ import annotations
 
@@ -8,9 +11,9 @@ from typing import Any
 import pytest
 
 from dbml.core.errors import TransportError
+from dbml.transports.ros1.graph import Ros1Graph
 from dbml.transports.worker import death_count
 from tests.conftest import wait_for
-from tests.ros1.rosnet import require_ros1
 
 TIMEOUT_S = 10.0
 """How long a test waits for a poll (one every ``POLL_S``)."""
@@ -39,18 +42,11 @@ class Master:
         return [[["/r1/camera", ["/camera"]]], [], []]
 
 
-@pytest.fixture(autouse=True)
-def _ros1() -> None:
-    require_ros1()
-
-
 def test_a_poll_that_raises_anything_is_logged_and_retried(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
-    from dbml.transports.ros1 import _Ros1Graph
-
     master = Master(TransportError("master away"), ValueError("a malformed answer"))
-    graph = _Ros1Graph(master, POLL_S)  # type: ignore[arg-type]
+    graph = Ros1Graph(master, POLL_S)  # type: ignore[arg-type]
     try:
         graph.watch(lambda: None)
         wait_for(lambda: master.polls >= 3, timeout_s=TIMEOUT_S, what="polls after failures")
@@ -62,10 +58,8 @@ def test_a_poll_that_raises_anything_is_logged_and_retried(
 
 
 def test_a_polling_thread_that_dies_says_so(caplog: pytest.LogCaptureFixture) -> None:
-    from dbml.transports.ros1 import _Ros1Graph
-
     master = Master(SystemExit("ends the thread"))
-    graph = _Ros1Graph(master, POLL_S)  # type: ignore[arg-type]
+    graph = Ros1Graph(master, POLL_S)  # type: ignore[arg-type]
     deaths = death_count()
     try:
         graph.watch(lambda: None)

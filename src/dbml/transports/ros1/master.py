@@ -57,14 +57,15 @@ class MasterClient:
     ) -> None:
         self.uri = uri or os.environ.get("ROS_MASTER_URI") or DEFAULT_MASTER_URI
         self.caller_id = caller_id
-        self._timeout_s = timeout_s
+        self.timeout_s = timeout_s
+        """How long one call may take."""
         self._local = threading.local()
 
     def _proxy(self) -> xmlrpc.client.ServerProxy:
         proxy = getattr(self._local, "proxy", None)
         if proxy is None:
             proxy = xmlrpc.client.ServerProxy(
-                self.uri, transport=_TimeoutTransport(self._timeout_s), allow_none=True
+                self.uri, transport=_TimeoutTransport(self.timeout_s), allow_none=True
             )
             self._local.proxy = proxy
         return proxy

@@ -12,14 +12,9 @@ Tested with Fast DDS (Kilted's ``ros-*`` wheels, ``pip install 'dbml[rclpy]'``);
   sample's writer sequence number and source timestamp (where the RMW fills them, as Fast DDS
   does) are its ``seq`` and send time, so estimation works; the rate in force does not travel.
 - **Parameters** are real ROS 2 parameters on ``/dbm`` and ``[topic]/dbm``
-  (``dbml.transports.rclpyparams``); a ``std_msgs/msg/Float64`` on ``[topic]/dbm/priority``
-  sets the priority of a channel hosted here.
+  (``dbml.transports.rclpy.params``).
 - **Graph**: the DDS graph itself, read every ``GRAPH_POLL_S`` (ROS 1's rule: ``announce``
-  declares nothing, the real endpoints are the graph). dbml's node names carry their host
-  (``dbml_<host>__<id>``); another node's host is read from its endpoint GID where the RMW is
-  Fast DDS (bytes 2-3: a hash of the host's IPv4 addresses) and matched to the dbml host with the
-  same hash; elsewhere it is unknown and the endpoint counts as remote. A foreign subscription
-  of ``[topic]/optimized`` is always a remote consumer, as the paper defines it.
+  declares nothing, the real endpoints are the graph), by host (``dbml.transports.rclpy.graph``).
 - **A full link never stalls or kills a publisher**: a publish that the middleware refuses
   (asynchronous Fast DDS raises after its queue stays full) is dropped and counted; a
   synchronous publish waits at most one frame's send.
@@ -38,7 +33,6 @@ import re
 import struct
 import threading
 import time
-import uuid
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -46,32 +40,28 @@ from typing import Any
 from dbml.core.errors import TransportError
 from dbml.core.extras import require
 from dbml.protocol.metadata import pack_meta
-from dbml.protocol.names import OPTIMIZED, PRIORITY_SUFFIX, check_topic
-from dbml.protocol.schema import GLOBAL_PREFIX, PRIORITY, ParamError
+from dbml.protocol.names import check_topic
+from dbml.protocol.schema import GLOBAL_PREFIX
 from dbml.transports.base import (
-    Closer,
     GraphEntry,
     Handle,
-    ParamValue,
-    Role,
     Sample,
     TransportBase,
     TransportPriority,
     Variant,
     resolve_host,
 )
-from dbml.transports.callbacks import CallbackList
-from dbml.transports.fastdds import GID_BYTES, gid_host_id
 from dbml.transports.overflow import LogOnce, Overflow
-from dbml.transports.rclpyparams import (
+from dbml.transports.rclpy.fastdds import GID_BYTES
+from dbml.transports.rclpy.graph import MAX_TOPICS, Graph, node_name_for, read_graph
+from dbml.transports.rclpy.nodes import (
     ALLOCATION_TOPIC,
-    PARTICIPANT_BYTES,
-    RclpyParams,
     check_ros_topic,
     is_param_node,
     python_value,
 )
-from dbml.transports.ros2msg import IMAGE_TYPE, image_cdr
+from dbml.transports.rclpy.params import RclpyParams
+from dbml.transports.replica import Replica
 from dbml.transports.worker import FLUSH_TIMEOUT_S, BackgroundThread
 
 RCLPY_HINT = "or source your ROS 2: . /opt/ros/<distro>/setup.bash"
@@ -105,9 +95,7 @@ __all__ = [
     "PublishStats",
     "RclpyTransport",
     "frame_bytes",
-    "host_of_node",
     "message_class",
-    "node_name_for",
     "sample_meta",
     "unframe_bytes",
 ]
@@ -126,11 +114,6 @@ SUBSCRIPTION_DEPTH = 10
 """Messages a subscription queues for its callback (KEEP_LAST: the oldest go first)."""
 PUBLISH_TIMES = 4_096
 """Durations of ``publish()`` a publisher keeps for its p99: the newest (its max covers all)."""
-PRIORITY_INTERVAL_S = 0.05
-"""A channel's ``Float64`` priorities are applied at most this often; a flood's newest value
-waits for the next graph poll (every parameter change is an event to every process)."""
-MAX_TOPICS = 4_096
-"""Topics of the graph read at most per poll (beyond: ignored, logged once per flood)."""
 MAX_SOON = 65_536
 """Work items waiting for the executor thread at most (each a write batch or a release)."""
 ALLOCATION_QOS = QoSProfile(
@@ -140,35 +123,10 @@ ALLOCATION_QOS = QoSProfile(
     durability=DurabilityPolicy.TRANSIENT_LOCAL,
 )
 """The newest whole allocation, kept for a host that matches the ``/dbm`` node late."""
-_NODE_PREFIX = "dbml_"
-_ESCAPE = re.compile(r"[^A-Za-z0-9]")
-_UNESCAPE = re.compile(r"_([0-9a-f]{2})")
-_DBML_NODE = re.compile(r"dbml_((?:[A-Za-z0-9]|_[0-9a-f]{2})+)__[0-9a-f]{8}")
-_INFRASTRUCTURE = frozenset({"/parameter_events", "/rosout"})
-_OPTIMIZED_SUFFIX = Variant.OPTIMIZED.key("")
 _BYTES_HEADER = struct.Struct("<4sIII")
 """CDR of an ``UInt8MultiArray`` with no dimensions: encapsulation, dims, offset, data length."""
 _CDR_LE = b"\x00\x01\x00\x00"
-_FOREIGN_HOST = "ros2:"
 _ROS_PACKAGE = re.compile(r"^[a-z][a-z0-9_]*$")
-
-
-def node_name_for(host: str) -> str:
-    """A unique ROS 2 node name for dbml on ``host`` that says the host (``dbml_r1__1a2b3c4d``).
-
-    Every character a node name may not hold is escaped as ``_`` and two hex digits, so the
-    host reads back exactly (``host_of_node``).
-    """
-    escaped = _ESCAPE.sub(lambda m: f"_{ord(m.group()):02x}", resolve_host(host))
-    return f"{_NODE_PREFIX}{escaped}__{uuid.uuid4().hex[:8]}"
-
-
-def host_of_node(name: str) -> str | None:
-    """The host a dbml node's name says, or None if the name is not dbml's."""
-    match = _DBML_NODE.fullmatch(name)
-    if match is None:
-        return None
-    return _UNESCAPE.sub(lambda m: chr(int(m.group(1), 16)), match.group(1))
 
 
 def frame_bytes(payload: bytes) -> bytes:
@@ -227,23 +185,6 @@ def message_class(msg_type: str) -> type:
 
 def _void(_result: object) -> None:
     """Drop a result (rclpy's ``destroy_*`` return a bool nobody needs)."""
-
-
-def _split(ros_topic: str) -> tuple[str, Variant]:
-    if ros_topic.endswith(_OPTIMIZED_SUFFIX) and len(ros_topic) > len(_OPTIMIZED_SUFFIX):
-        return ros_topic[: -len(_OPTIMIZED_SUFFIX)], Variant.OPTIMIZED
-    return ros_topic, Variant.FULL
-
-
-def _is_channel_topic(topic: str) -> bool:
-    """A topic the graph reports: not ROS's own, not dbml's parameters or priorities."""
-    if topic in _INFRASTRUCTURE:
-        return False
-    try:
-        check_topic(topic)
-    except TransportError:
-        return False
-    return "/dbm/" not in f"{topic}/" and OPTIMIZED not in topic.split("/")[:-1]
 
 
 def _guarded(what: str, callback: Callable[..., None]) -> Callable[..., None]:
@@ -456,34 +397,6 @@ class _Subscription:
         self._transport.forget(self)
 
 
-class _Graph:
-    """The DDS graph as dbml's entries, re-read on the executor thread every ``GRAPH_POLL_S``."""
-
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._entries: frozenset[GraphEntry] = frozenset()
-        self.watchers: CallbackList[[]] = CallbackList()
-        self.hosts_seen: set[str] = set()
-
-    def announce(self, role: Role, topic: str, variant: Variant) -> Handle:
-        """Nothing to do: the publisher or subscription declared is in the graph already."""
-        check_topic(topic)
-        return Closer(lambda: None)
-
-    def entries(self) -> frozenset[GraphEntry]:
-        with self._lock:
-            return self._entries
-
-    def watch(self, callback: Callable[[], None]) -> Handle:
-        return self.watchers.add(callback)
-
-    def update(self, entries: frozenset[GraphEntry]) -> None:
-        with self._lock:
-            changed, self._entries = entries != self._entries, entries
-        if changed:
-            self.watchers.fire()
-
-
 class RclpyTransport(TransportBase):
     """dbml over rclpy: one private context, one node (``dbml_<host>__<id>``), one executor.
 
@@ -509,18 +422,15 @@ class RclpyTransport(TransportBase):
         self._dbml_peers = 0
         self._bad = LogOnce(log)
         self._poll_queued = False
-        self._held_priorities: dict[str, ParamValue] = {}
-        """Priorities heard in a flood, the newest per channel, for the next poll (executor
-        thread; one per channel hosted here)."""
         self._topics_overflow = Overflow("graph topics", MAX_TOPICS, log=log)
-        self._graph = _Graph()
+        self._graph = Graph()
         self._polled = threading.Event()
         try:
             self.node = Node(node_name_for(self._host), context=self.context)
             self._executor = SingleThreadedExecutor(context=self.context)
             self._executor.add_node(self.node)
             self._wake = self.node.create_guard_condition(self._run_soon)
-            self._params = RclpyParams(self)
+            self._sync = RclpyParams(self)
             self.node.create_subscription(
                 _parameter_event(),
                 "/parameter_events",
@@ -559,14 +469,43 @@ class RclpyTransport(TransportBase):
 
     def call_soon(self, task: Callable[[], None]) -> None:
         """Run ``task`` on the executor thread (where every rclpy call of dbml's runs)."""
+        self._queue(task)
+
+    def _queue(self, task: Callable[[], None]) -> bool:
+        """Queue ``task`` for the executor thread; False if closed or the queue is full."""
         with self._lock:
             if self._closed:
-                return
+                return False
             if len(self._soon) >= MAX_SOON:
                 self._soon_overflow.refuse()
-                return
+                return False
             self._soon.append(task)
         self._wake.trigger()
+        return True
+
+    def run(self, task: Callable[[], None]) -> bool:
+        """Run ``task`` on the executor thread and wait until it ran (the parameter sender's).
+
+        False, without waiting longer, once the transport closes or its executor thread dies.
+        """
+        if self._thread.is_current():
+            task()
+            return True
+        done = threading.Event()
+
+        def step() -> None:
+            try:
+                task()
+            finally:
+                done.set()
+
+        while not self._queue(step):  # the queue is full: it drains
+            if self._closed or not self._thread.alive or done.wait(SPIN_TIMEOUT_S):
+                return False
+        while not done.wait(SPIN_TIMEOUT_S):
+            if self._closed or not self._thread.alive:
+                return False
+        return True
 
     def _run_soon(self) -> None:
         while True:
@@ -602,40 +541,6 @@ class RclpyTransport(TransportBase):
         """``node``'s ``std_msgs/msg/String`` publisher of the newest whole allocation."""
         return node.create_publisher(_string(), topic, ALLOCATION_QOS)
 
-    def hear_priority(self, topic: str, node: Node) -> Handle:
-        """Take ``std_msgs/msg/Float64`` on ``[topic]/dbm/priority`` as the channel's priority.
-
-        Subscribed by the channel's parameter node ``node``: the endpoint tells every process
-        that this one hosts the channel for good.
-        """
-        from std_msgs.msg import Float64
-
-        name = PRIORITY.key(topic)
-        last_s = [-PRIORITY_INTERVAL_S]
-
-        def heard(message: Float64) -> None:
-            try:
-                value = PRIORITY.check(message.data, name=f"{topic}{PRIORITY_SUFFIX}")
-            except ParamError as err:
-                self._bad.warning(name, "ignoring a priority: %s", err)
-                return
-            now = time.monotonic()
-            if now - last_s[0] < PRIORITY_INTERVAL_S:
-                self._held_priorities[name] = value  # a flood: the next poll applies the newest
-                return
-            last_s[0] = now
-            self._held_priorities.pop(name, None)
-            if self._params.get(name) != value:
-                self._params.set(name, value)
-
-        subscription = node.create_subscription(
-            Float64,
-            f"{topic}{PRIORITY_SUFFIX}",
-            _guarded(f"priority of {topic}", heard),
-            QoSProfile(depth=SUBSCRIPTION_DEPTH, reliability=ReliabilityPolicy.BEST_EFFORT),
-        )
-        return Closer(lambda: _void(node.destroy_subscription(subscription)))
-
     def _on_parameter_event(self, event: Any, info: Any) -> None:
         """A parameter node's changes, with their sender (two arguments: the message info).
 
@@ -655,143 +560,41 @@ class RclpyTransport(TransportBase):
             changed = [(name, value) for name, value in changed if value is not None]
             changed += [(p.name, python_value(p.value)) for p in event.changed_parameters]
             changed += [(p.name, None) for p in event.deleted_parameters]
-            self._params.on_event(fqn, changed, sender=_sender(info))
+            self._sync.on_event(fqn, changed, sender=_sender(info))
         except Exception:
             log.exception("a parameter event could not be handled")
 
     def _on_allocation(self, message: Any, info: Any) -> None:
         """``/dbm/allocation`` with its sender (two arguments: rclpy passes the message info)."""
         try:
-            self._params.on_allocation(message.data, sender=_sender(info))
+            self._sync.on_allocation(message.data, sender=_sender(info))
         except Exception:
             log.exception("an allocation could not be handled")
 
     def _poll(self) -> None:
-        """Read the graph: entries by host, topic types, parameter nodes, waiting subscriptions."""
+        """Read the graph; type and re-create the waiting subscriptions; tell the store."""
         self._poll_queued = False
-        node = self.node
-        listed: set[tuple[str, str]] = set()
-        dbml_hosts: dict[tuple[str, str], str] = {}
-        for name, namespace in node.get_node_names_and_namespaces():
-            listed.add((namespace, name))
-            host = host_of_node(name)
-            if host is not None:
-                dbml_hosts[(namespace, name)] = host
-        topics = node.get_topic_names_and_types()
-        if len(topics) > MAX_TOPICS:
-            self._topics_overflow.refuse(len(topics) - MAX_TOPICS)
-            topics = topics[:MAX_TOPICS]
-        infos: list[tuple[Role, str, Any]] = []
-        types: dict[str, str] = {}
-        best_effort: set[str] = set()
-        senders: set[bytes] = set()
-        host_ids: dict[int, set[str]] = {}
-        param_hosts: dict[str, set[bytes]] = {}
-        claimed: dict[str, set[bytes]] = {}
-        published: dict[str, list[tuple[bytes, str]]] = {}
-        own: bytes | None = None
-        for topic, _types in topics:
-            publishers = node.get_publishers_info_by_topic(topic)
-            subscribers = node.get_subscriptions_info_by_topic(topic)
-            for role, listing in ((Role.PUBLISHER, publishers), (Role.SUBSCRIBER, subscribers)):
-                for info in listing:
-                    where = (info.node_namespace, info.node_name)
-                    if where not in listed:
-                        continue  # not named yet (``_NODE_NAME_UNKNOWN_``): next poll
-                    gid = bytes(info.endpoint_gid)[:GID_BYTES]
-                    if role is Role.PUBLISHER:
-                        if info.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT:
-                            best_effort.add(topic)
-                        published.setdefault(topic, []).append(
-                            (gid[:PARTICIPANT_BYTES], info.topic_type)
-                        )
-                    host = dbml_hosts.get(where)
-                    host_id = gid_host_id(gid)
-                    if host is not None and host_id is not None:
-                        host_ids.setdefault(host_id, set()).add(host)
-                    if info.node_name == node.get_name() and info.node_namespace == "/":
-                        own = gid[:PARTICIPANT_BYTES]
-                    fqn = is_param_node(info.node_namespace, info.node_name)
-                    if fqn is not None:
-                        param_hosts.setdefault(fqn, set()).add(gid[:PARTICIPANT_BYTES])
-                        # A host's claim: /dbm's allocation publisher, a channel's priority.
-                        if (fqn == GLOBAL_PREFIX and topic == ALLOCATION_TOPIC) or (
-                            topic == f"{fqn[: -len(GLOBAL_PREFIX)]}{PRIORITY_SUFFIX}"
-                        ):
-                            claimed.setdefault(fqn, set()).add(gid[:PARTICIPANT_BYTES])
-                            if topic == ALLOCATION_TOPIC:
-                                senders.add(gid)
-                    infos.append((role, topic, info))
-        for topic, by in published.items():
-            # Other processes' publishers say a topic's type (this one's own follow it, and
-            # are asked only when nobody else publishes it).
-            found = {msg_type for prefix, msg_type in by if prefix != own} or {
-                msg_type for _prefix, msg_type in by
-            }
-            if len(found) > 1:
-                self._bad.warning(
-                    f"types:{topic}",
-                    "%s has publishers of types %s: using %s",
-                    topic,
-                    sorted(found),
-                    min(found),
-                )
-            if found:
-                types[topic] = min(found)
-        entries = set()
-        for role, topic, info in infos:
-            channel, variant = _split(topic)
-            if not _is_channel_topic(channel):
-                continue
-            gid = bytes(info.endpoint_gid)[:GID_BYTES]
-            host = dbml_hosts.get((info.node_namespace, info.node_name))
-            if host is None:
-                host = self._foreign_host(role, variant, gid, host_ids)
-            entries.add(GraphEntry(role, host, channel, variant, gid.hex()))
+        read = read_graph(self.node, topics_overflow=self._topics_overflow, bad=self._bad)
         with self._lock:
-            self._graph_types = types
-            self._best_effort = best_effort
-            self._dbml_peers = len(dbml_hosts) - 1
+            self._graph_types = read.types
+            self._best_effort = read.best_effort
+            self._dbml_peers = read.dbml_peers
             waiting = [s for s in self._subscriptions if not s.closed]
         for subscription in waiting:
-            msg_type = self._declared_types.get(subscription.topic) or types.get(
+            msg_type = self._declared_types.get(subscription.topic) or read.types.get(
                 subscription.ros_topic
             )
             if msg_type is None:
                 continue
             try:
-                subscription.ensure(msg_type, reliable=subscription.ros_topic not in best_effort)
+                subscription.ensure(
+                    msg_type, reliable=subscription.ros_topic not in read.best_effort
+                )
             except Exception as err:  # a type or name from the network: that one only
                 self._bad.warning(subscription.ros_topic, "cannot subscribe: %s", err)
-        held, self._held_priorities = self._held_priorities, {}
-        for name, value in held.items():
-            if self._params.get(name) != value:
-                self._params.set(name, value)
-        self._params.poll(
-            {n: frozenset(p) for n, p in param_hosts.items()},
-            {n: frozenset(p) for n, p in claimed.items()},
-            own,
-            senders,
-        )
-        self._graph.update(frozenset(entries))
+        self._sync.poll(read.param_hosts, read.claimed, read.own, read.senders)
+        self._graph.update(read.entries)
         self._polled.set()
-
-    @staticmethod
-    def _foreign_host(
-        role: Role, variant: Variant, gid: bytes, host_ids: dict[int, set[str]]
-    ) -> str:
-        """Where a node that is not dbml's runs: the dbml host with its GID's host id, if one.
-
-        A subscription of an optimized copy is a remote consumer whatever its host (the paper's
-        definition), and an endpoint whose host cannot be told is another host.
-        """
-        if role is Role.SUBSCRIBER and variant is Variant.OPTIMIZED:
-            return f"{_FOREIGN_HOST}{gid.hex()}"
-        host_id = gid_host_id(gid)
-        hosts = host_ids.get(host_id, set()) if host_id is not None else set()
-        if len(hosts) == 1:
-            return next(iter(hosts))
-        return f"{_FOREIGN_HOST}{gid.hex() if host_id is None else f'{host_id:04x}'}"
 
     # -- the Transport protocol ----------------------------------------------------------------
 
@@ -801,12 +604,12 @@ class RclpyTransport(TransportBase):
         return self._host
 
     @property
-    def params(self) -> RclpyParams:
+    def params(self) -> Replica:
         """The parameters of every ``/dbm`` and ``[topic]/dbm`` node, as last heard."""
-        return self._params
+        return self._sync.replica
 
     @property
-    def graph(self) -> _Graph:
+    def graph(self) -> Graph:
         """The DDS graph's endpoints by host."""
         return self._graph
 
@@ -866,7 +669,7 @@ class RclpyTransport(TransportBase):
         while True:
             with self._lock:
                 peers = self._dbml_peers > 0
-            if peers and self._params.settled():
+            if peers and self._sync.settled():
                 return True
             if time.monotonic() >= deadline:
                 return False
@@ -875,23 +678,17 @@ class RclpyTransport(TransportBase):
 
     def refresh(self, entry: GraphEntry) -> None:
         """Read the parameters of ``entry``'s channel again from its node."""
-        self._params.refresh(f"{entry.topic}{GLOBAL_PREFIX}")
+        self._sync.refresh(f"{entry.topic}{GLOBAL_PREFIX}")
 
     def confirm_param(self, name: str, *, timeout_s: float) -> bool:
         """Whether another process's node took this process's latest write of ``name``."""
         deadline = time.monotonic() + timeout_s
-        while not self._params.confirmed(name):
+        while not self._sync.confirmed(name):
             if time.monotonic() >= deadline:
                 return False
             self._polled.clear()
             self._polled.wait(GRAPH_POLL_S)
         return True
-
-    def camera_frame(self, topic: str, size_bytes: int) -> bytes:
-        """A mono8 ``sensor_msgs/msg/Image`` of exactly ``size_bytes`` (the topic's type set)."""
-        if self.resolve_type(topic) is None:
-            self.set_topic_type(topic, IMAGE_TYPE)
-        return image_cdr(size_bytes)
 
     def topic_type(self, topic: str, *, timeout_s: float) -> str | None:
         """The type the graph shows for ``topic``'s publishers, waiting up to ``timeout_s``."""
@@ -919,8 +716,8 @@ class RclpyTransport(TransportBase):
 
     @property
     def alive(self) -> bool:
-        """False once the executor thread died."""
-        return self._thread.alive
+        """False once the executor thread or the parameter sender died."""
+        return self._thread.alive and self._sync.replica.alive
 
     def close(self) -> None:
         """Send what is queued, stop the executor thread, destroy every node, shut down.
@@ -932,13 +729,13 @@ class RclpyTransport(TransportBase):
         with self._lock:
             if self._closed:
                 return
+        waits = self._thread.alive and not self._thread.is_current()
+        # The parameter writes first: their sender hands each to the executor and waits for it.
+        if not self._sync.replica.close(FLUSH_TIMEOUT_S if waits else 0.0):
+            log.warning("closing with parameter writes unsent (the executor was busy)")
         flushed = threading.Event()
         self.call_soon(flushed.set)
-        if (
-            self._thread.alive
-            and not self._thread.is_current()
-            and not flushed.wait(FLUSH_TIMEOUT_S)
-        ):
+        if waits and not flushed.wait(FLUSH_TIMEOUT_S):
             log.warning("closing with writes still queued (the executor was busy)")
         with self._lock:
             self._closed = True
@@ -948,7 +745,7 @@ class RclpyTransport(TransportBase):
             log.warning("the executor thread did not stop: its nodes are left to the exit")
             return
         try:
-            self._params.close()
+            self._sync.close()
             self._executor.shutdown(timeout_sec=1.0)
             self.node.destroy_node()
         finally:

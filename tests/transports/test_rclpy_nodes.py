@@ -8,7 +8,7 @@ from hypothesis import strategies as st
 
 from dbml.core.errors import TransportError
 from dbml.protocol import schema
-from dbml.transports.rclpyparams import _hosts_it, node_of, yields
+from dbml.transports.rclpy.nodes import hosts_it, node_of, yields
 
 participants = st.binary(min_size=12, max_size=12)
 
@@ -25,7 +25,7 @@ def test_hosting_follows_the_schemas_writers() -> None:
 
     The optimizer (and its estimator) for ``/dbm``, a channel's publisher for ``[topic]/dbm``.
     """
-    hosting = {p.field for p in schema.PARAMETERS if _hosts_it(p)}
+    hosting = {p.field for p in schema.PARAMETERS if hosts_it(p)}
     assert {"status", "round", "frequency/min", "message_size_in_bytes"} <= hosting
     assert not {"max_bandwidth_in_mbit", "priority", "frequency/current_value"} & hosting
 

@@ -1,0 +1,416 @@
+"""One process's replica of the parameter values: the store every transport is built on.
+
+It knows no middleware. It holds each name's newest value with the order of that write (its
+stamp) and its writer; takes this process's writes at once (read-your-writes: ``get`` and the
+watchers see a write before ``set`` returns) and hands them to its sync through an
+``OrderedSender`` (one slot per name: a name's newer write replaces its older one still queued),
+so ``set`` never waits for the network; holds at most ``MAX_PARAMS`` names from the network
+(a flood is refused and logged once); and tells its watchers of every change outside its lock.
+
+What each middleware adds is its sync: how a write goes out (``send``) and what arrives.
+Values arrive in one of two orders:
+
+- **by stamp** (``merge``): the writer's stamp travels with the value (zenoh, memory), and the
+  newest (stamp, writer) wins everywhere, whatever the order of arrival;
+- **by arrival** (``arrived``): the network holds the truth and pushes it in its own order (the
+  ROS master, a ROS 2 node's events), so what arrives is newer than what is held, except while
+  this process's own write of that name is still pending: the network has not seen it yet, and
+  what it says of the name is older. A question's answer (``asked_at``) is older than anything
+  written or heard since it was asked. A deletion arriving so forgets the name (the network
+  keeps the truth); a deletion by stamp is held, so a newcomer does not revive the name.
+
+What ``set`` refuses is the same on every transport (``ParamStore``): ``check_write`` below.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
+
+from dbml.core.errors import TransportError
+from dbml.core.spec import short_repr
+from dbml.protocol.keys import is_host_name
+from dbml.protocol.schema import ParamValue, check_param_value, lookup
+from dbml.transports.base import Handle, check_topic
+from dbml.transports.callbacks import CallbackList
+from dbml.transports.overflow import Overflow
+from dbml.transports.worker import DEFAULT_SENDER_CAPACITY, FLUSH_TIMEOUT_S, OrderedSender
+
+__all__ = [
+    "MAX_PARAMS",
+    "MAX_QUEUED_WRITES",
+    "Entry",
+    "Replica",
+    "Write",
+    "check_write",
+]
+
+MAX_PARAMS = 65_536
+"""The most parameter names held from the network (deletions held by stamp included: a deleted
+name is kept, so a newcomer does not revive it). A fleet of 160 robots with 4 channels writes 7
+names per channel and a dozen global ones, about 4,500: this is 14 times that (the optimizer
+tracks up to 4,096 channels, 28,672 names). Any peer can write, so past this a new name from
+the network is refused, and logged once per flood; names held are still updated. This process's
+own names are counted apart, against the same bound, so no flood can refuse them: past it,
+``set`` of a new name raises. A name costs a few hundred bytes: tens of MB at most."""
+MAX_QUEUED_WRITES = DEFAULT_SENDER_CAPACITY
+"""The most writes waiting for the network: a name's newer write replaces its queued one, so
+this bounds batches and distinct names; past it the oldest is dropped (``OrderedSender``)."""
+
+
+def check_write(name: str, value: object) -> ParamValue:
+    """``value`` if a store may take ``name=value`` from this process; else why not.
+
+    ``TransportError`` for a value that is not a bool, number, string or None, and for a name
+    outside the wire schema (``dbml.protocol.schema``); ``ParamError`` for a value outside the
+    schema's range. Each message names the name and the value.
+    """
+    try:
+        checked = check_param_value(value)
+    except TransportError:
+        raise TransportError(
+            f"{name}={short_repr(value)} is not a parameter value: a bool, number, string or None"
+        ) from None
+    try:
+        found = lookup(check_topic(name))
+    except TransportError:
+        found = None
+    if found is None:
+        raise TransportError(
+            f"{name}={short_repr(value)}: {short_repr(name)} is not a parameter of dbml's "
+            "schema (/dbm/<field> or [topic]/dbm/<field>)"
+        )
+    if checked is not None:
+        found[0].check(checked, name=name)  # the schema's range (one parse of the name)
+    return checked
+
+
+@dataclass(frozen=True, slots=True)
+class Entry:
+    """A name's newest write held here: its value (None: deleted), order and writer."""
+
+    value: ParamValue
+    stamp: int
+    writer: str
+
+
+@dataclass(frozen=True, slots=True)
+class Write:
+    """A write of this process, as the replica hands it to its sync (on the sender thread).
+
+    One name (``set``) or several at once (``set_many``, ``batch``), under one stamp; ``host``
+    is ``set_many``'s: the values concern that host's channels only.
+    """
+
+    values: Mapping[str, ParamValue]
+    stamp: int
+    writer: str
+    host: str | None = None
+    batch: bool = False
+
+
+def _same(a: ParamValue, b: ParamValue) -> bool:
+    """Equal and of one type: ``True`` and ``1`` are different writes."""
+    return type(a) is type(b) and a == b
+
+
+class Replica:
+    """One process's parameter values (a ``ParamStore``); ``writer`` names its writes.
+
+    ``send`` hands one ``Write`` to the network; it runs on the replica's sender thread, in
+    order, and may block. ``threaded=False`` calls it on the writer's thread instead, after the
+    write is applied and told here (the in-process network, whose delivery is synchronous).
+    ``batches=False`` queues a ``set_many`` as one write per name, each in its name's slot (a
+    middleware without a multi-set). ``check_name`` adds the middleware's own rule for a name
+    (ROS 2 allows fewer characters) to ``check_write``. ``clock_ns`` stamps writes: stamps only
+    grow, and a write's is newer than every held write of its names. ``on_exit`` runs on the
+    sender thread when it ends (to release what ``send`` holds per thread).
+    """
+
+    def __init__(
+        self,
+        writer: str,
+        *,
+        send: Callable[[Write], None],
+        log: logging.Logger,
+        clock_ns: Callable[[], int] = time.time_ns,
+        threaded: bool = True,
+        batches: bool = True,
+        check_name: Callable[[str], object] | None = None,
+        max_params: int = MAX_PARAMS,
+        sender_name: str = "dbml-param-send",
+        on_exit: Callable[[], object] | None = None,
+    ) -> None:
+        self.writer = writer
+        self._send = send
+        self._clock_ns = clock_ns
+        self._batches = batches
+        self._check_name = check_name
+        self._max_params = max_params
+        self._lock = threading.Lock()
+        self._entries: dict[str, Entry] = {}
+        """The newest write of each name: up to ``max_params`` from the network, and ours."""
+        self._own: set[str] = set()
+        """Names this process wrote (``max_params`` at most), whoever wrote them last."""
+        self._pending: dict[str, int] = {}
+        """Names whose write of ours the network has not taken yet, with that write's stamp."""
+        self._last = 0
+        """The newest stamp given out here."""
+        self._full = Overflow("parameter names", max_params, log=log)
+        self.watchers: CallbackList[[str, ParamValue]] = CallbackList()
+        self._sender: OrderedSender[Write] | None = None
+        if threaded:
+            self._sender = OrderedSender(
+                self._send_one,
+                name=sender_name,
+                log=log,
+                capacity=MAX_QUEUED_WRITES,
+                describe=lambda write: f"parameter write {', '.join(write.values)}",
+                on_exit=on_exit,
+            )
+
+    # -- this process's writes ----------------------------------------------------------------
+
+    def set(self, name: str, value: ParamValue) -> None:
+        """Write ``name`` here, queue it for the network, then tell the watchers."""
+        self._write({name: value}, host=None, batch=False)
+
+    def set_many(self, values: Mapping[str, ParamValue], *, host: str | None = None) -> None:
+        """Write every value as one update (one stamp); all are checked before any is taken."""
+        if values:
+            self._write(dict(values), host=host, batch=True)
+
+    def _check(self, name: str, value: ParamValue) -> None:
+        check_write(name, value)
+        if self._check_name is not None:
+            self._check_name(name)
+
+    def _write(self, values: dict[str, ParamValue], *, host: str | None, batch: bool) -> None:
+        for name, value in values.items():
+            self._check(name, value)
+        if host is not None and not is_host_name(host):
+            raise TransportError(f"host={host!r} must be letters, digits and _-.~ only")
+        with self._lock:
+            fresh = [name for name in values if name not in self._own]
+            if len(self._own) + len(fresh) > self._max_params:
+                name = fresh[max(0, self._max_params - len(self._own))]
+                raise TransportError(
+                    f"{name}={short_repr(values[name])}: this process wrote "
+                    f"{len(self._own)} parameter names, and {self._max_params} is the most"
+                )
+            stamp = self._stamp_locked(values)
+            for name, value in values.items():
+                self._entries[name] = Entry(value, stamp, self.writer)
+                self._own.add(name)
+                self._pending[name] = stamp
+            if batch and not self._batches:
+                writes = [Write({n: v}, stamp, self.writer, host) for n, v in values.items()]
+            else:
+                writes = [Write(values, stamp, self.writer, host, batch)]
+            if self._sender is not None:
+                # Queued under the lock: no older stamp of a name is queued after a newer one.
+                for write in writes:
+                    slot = None if write.batch else next(iter(write.values))
+                    dropped = self._sender.put(write, slot=slot)
+                    if dropped is not None:
+                        self._settle_locked(dropped)
+        for name, value in values.items():
+            self.watchers.fire(name, value)
+        if self._sender is None:
+            for write in writes:
+                self._send_one(write)
+
+    def _stamp_locked(self, names: Iterable[str]) -> int:
+        """A stamp newer than every one given out here and than every held write of ``names``."""
+        stamp = max(self._clock_ns(), self._last + 1)
+        for name in names:
+            held = self._entries.get(name)
+            if held is not None:
+                stamp = max(stamp, held.stamp + 1)
+        self._last = stamp
+        return stamp
+
+    def _send_one(self, write: Write) -> None:
+        try:
+            self._send(write)
+        finally:
+            with self._lock:
+                self._settle_locked(write)
+
+    def _settle_locked(self, write: Write) -> None:
+        """``write`` left the queue (sent, failed or dropped): its names are pending no more."""
+        for name in write.values:
+            if self._pending.get(name) == write.stamp:
+                del self._pending[name]
+
+    def pending(self, name: str) -> bool:
+        """Whether a write of ``name`` by this process is still waiting for the network."""
+        with self._lock:
+            return name in self._pending
+
+    def unsent(self) -> int:
+        """How many names have a write of this process waiting for the network."""
+        with self._lock:
+            return len(self._pending)
+
+    def wrote(self, name: str) -> bool:
+        """Whether this process ever wrote ``name``."""
+        with self._lock:
+            return name in self._own
+
+    def current(self, write: Write) -> dict[str, ParamValue]:
+        """What of ``write`` is still the newest here (nothing newer was written or heard)."""
+        with self._lock:
+            return {
+                name: value
+                for name, value in write.values.items()
+                if (held := self._entries.get(name)) is not None and held.stamp == write.stamp
+            }
+
+    def flush(self, timeout_s: float = FLUSH_TIMEOUT_S) -> bool:
+        """Wait until every queued write was handed to the network; False after ``timeout_s``."""
+        return True if self._sender is None else self._sender.flush(timeout_s)
+
+    def close(self, timeout_s: float = FLUSH_TIMEOUT_S) -> bool:
+        """Send what is queued (bounded), then stop the sender; False if some was left unsent."""
+        return True if self._sender is None else self._sender.close(timeout_s)
+
+    @property
+    def alive(self) -> bool:
+        """False once the sender thread died (a failed send does not end it)."""
+        return self._sender is None or self._sender.alive
+
+    # -- reading ------------------------------------------------------------------------------
+
+    def get(self, name: str) -> ParamValue:
+        """The newest value known of ``name``; None when unset or deleted."""
+        with self._lock:
+            held = self._entries.get(name)
+        return None if held is None else held.value
+
+    def entry(self, name: str) -> Entry | None:
+        """The newest write of ``name`` held here, deletions included."""
+        with self._lock:
+            return self._entries.get(name)
+
+    def entries(self) -> list[tuple[str, Entry]]:
+        """Every write held here, deletions included."""
+        with self._lock:
+            return list(self._entries.items())
+
+    def snapshot(self, prefix: str = "/") -> dict[str, ParamValue]:
+        """Every set value whose name starts with ``prefix``."""
+        with self._lock:
+            return {
+                name: held.value
+                for name, held in self._entries.items()
+                if name.startswith(prefix) and held.value is not None
+            }
+
+    def watch(self, callback: Callable[[str, ParamValue], None]) -> Handle:
+        """Call ``callback(name, value)`` on every change, this process's or the network's."""
+        return self.watchers.add(callback)
+
+    def __len__(self) -> int:
+        """How many names are held, deletions held by stamp included."""
+        with self._lock:
+            return len(self._entries)
+
+    # -- what arrives -------------------------------------------------------------------------
+
+    def mark(self) -> int:
+        """A stamp for a question asked now: its answer is ``arrived(..., asked_at=mark)``."""
+        with self._lock:
+            self._last = max(self._clock_ns(), self._last + 1)
+            return self._last
+
+    def merge(self, name: str, value: ParamValue, *, stamp: int, writer: str) -> bool:
+        """A write from the network ordered by its stamp: held if newer; True if it was."""
+        if writer == self.writer:
+            return False  # ours, applied when it was made
+        with self._lock:
+            held = self._entries.get(name)
+            if held is not None and (held.stamp, held.writer) >= (stamp, writer):
+                return False
+            if held is None and not self._room_locked():
+                return False
+            self._entries[name] = Entry(value, stamp, writer)
+        self.watchers.fire(name, value)
+        return True
+
+    def arrived(
+        self,
+        name: str,
+        value: ParamValue,
+        *,
+        writer: str,
+        asked_at: int | None = None,
+        supersede: bool = False,
+    ) -> bool:
+        """A value the network pushed, newer than what is held: True if it changed anything.
+
+        Not while this process's write of ``name`` is pending (the network has not seen it
+        yet), unless ``supersede`` (the network took a newer one: the pending write is
+        obsolete and will not be sent). ``asked_at``: an answer to a question asked then, older
+        than anything written or heard since. ``None`` forgets the name.
+        """
+        with self._lock:
+            if supersede:
+                self._pending.pop(name, None)
+            elif name in self._pending:
+                return False
+            held = self._entries.get(name)
+            if asked_at is not None and held is not None and held.stamp > asked_at:
+                return False
+            if value is None:
+                if held is None:
+                    return False
+                del self._entries[name]
+                size = len(self._entries)
+                changed = held.value is not None  # a deletion held here already is none
+            else:
+                if held is not None and _same(held.value, value):
+                    return False
+                if held is None and not self._room_locked():
+                    return False
+                self._entries[name] = Entry(value, self._stamp_locked([name]), writer)
+                size, changed = -1, True
+        if size >= 0:
+            self._full.room(size)
+        if changed:
+            self.watchers.fire(name, value)
+        return changed
+
+    def forget(self, prefix: str) -> list[str]:
+        """Forget the names under ``prefix`` that the network gave (their source left).
+
+        Names this process wrote stay: it may write them again, or hand them on.
+        """
+        with self._lock:
+            gone = [
+                name
+                for name in self._entries
+                if name.startswith(prefix) and name not in self._own and name not in self._pending
+            ]
+            for name in gone:
+                del self._entries[name]
+            size = len(self._entries)
+        self._full.room(size)
+        for name in gone:
+            self.watchers.fire(name, None)
+        return gone
+
+    def _room_locked(self) -> bool:
+        """Whether a new name from the network fits; a refusal is counted (logged per flood)."""
+        if len(self._entries) < self._max_params:
+            return True
+        self._full.refuse()
+        return False
+
+    @property
+    def refused(self) -> int:
+        """New names from the network refused so far (the store was full)."""
+        return self._full.total

@@ -1,0 +1,25 @@
+"""The ROS 1 transport: rospy topics, the parameter server and the master's graph.
+
+``transport`` holds topics, ``graph`` the master's registrations, ``params`` the parameter
+server's sync, ``master`` the master's XML-RPC API (no rospy).
+
+The transport class is imported on first use: importing the package, or a part of it that
+needs no middleware, never loads rospy.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from dbml.transports.ros1.transport import Ros1Transport
+
+__all__ = ["Ros1Transport"]
+
+
+def __getattr__(name: str) -> object:
+    if name == "Ros1Transport":
+        from dbml.transports.ros1.transport import Ros1Transport
+
+        return Ros1Transport
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
