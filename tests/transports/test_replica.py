@@ -370,3 +370,43 @@ def test_stamps_only_grow_and_a_mark_is_newer_than_every_write_before_it(
         last = entry.stamp
         assert store.mark() > last
         last = store.mark()
+
+
+def test_watchers_hear_changes_in_the_order_they_were_made_whoever_tells_them() -> None:
+    """A network merge told while a local write lands: the write is heard after, never before.
+
+    Two threads that each told their own change could tell them in the other order than made,
+    and a reader (``ParamView``) would keep the older value for good.
+    """
+    store = replica()
+    seen: list[ParamValue] = []
+    when_written: list[ParamValue] = []
+
+    def watcher(name: str, value: ParamValue) -> None:
+        seen.append(value)
+        if value == 0.2:  # while the merge of 0.2 is being told, another thread writes 0.9
+            thread = threading.Thread(target=store.set, args=(PRIORITY, 0.9))
+            thread.start()
+            thread.join(TIMEOUT_S)
+            when_written.extend(seen)
+
+    store.watch(watcher)
+    assert store.merge(PRIORITY, 0.2, stamp=1, writer="peer")
+    assert when_written == [0.2]  # the write's change waited for this one to be told
+    assert seen == [0.2, 0.9]
+    assert store.get(PRIORITY) == 0.9
+
+
+def test_a_write_made_by_a_watcher_is_heard_after_the_change_it_answers() -> None:
+    store = replica()
+    heard: list[tuple[str, ParamValue]] = []
+
+    def answer(name: str, value: ParamValue) -> None:
+        heard.append((name, value))
+        if name == PRIORITY:
+            store.set(ROUND, 1)  # as a publisher acknowledges an allocation from its callback
+
+    store.watch(answer)
+    store.watch(lambda name, value: heard.append(("second", value)))
+    store.set(PRIORITY, 0.5)
+    assert heard == [(PRIORITY, 0.5), ("second", 0.5), (ROUND, 1), ("second", 1)]

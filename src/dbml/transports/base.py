@@ -165,8 +165,10 @@ class ParamStore(Protocol):
     Writing never blocks, on every transport: ``set`` and ``set_many`` are called from
     middleware callback threads (a publisher answering an allocation), where waiting for the
     network, or for a ROS master whose own push is that callback, could deadlock. A write is
-    applied here at once (``get`` and this process's watchers see it before ``set`` returns)
-    and sent from a thread of the store's own, in order, once the network takes it.
+    applied here at once (``get`` sees it before ``set`` returns, and so do this process's
+    watchers unless another thread is telling them a change meanwhile, or ``set`` runs in a
+    watcher: then they hear it right after) and sent from a thread of the store's own, in
+    order, once the network takes it. Watchers hear the changes in the order they were made.
 
     What ``set`` refuses, alike on every transport, before anything changes (each message names
     the name and the value, as ``/r1/camera/dbm/priority=1.5 must be within [0, 1]``):

@@ -1,11 +1,12 @@
 """One process's replica of the parameter values: the store every transport is built on.
 
 It knows no middleware. It holds each name's newest value with the order of that write (its
-stamp) and its writer; takes this process's writes at once (read-your-writes: ``get`` and the
-watchers see a write before ``set`` returns) and hands them to its sync through an
+stamp) and its writer; takes this process's writes at once (read-your-writes: ``get`` sees a
+write before ``set`` returns) and hands them to its sync through an
 ``OrderedSender`` (one slot per name: a name's newer write replaces its older one still queued),
 so ``set`` never waits for the network; holds at most ``MAX_PARAMS`` names from the network
-(a flood is refused and logged once); and tells its watchers of every change outside its lock.
+(a flood is refused and logged once); and tells its watchers of every change outside its lock,
+one thread at a time, in the order the changes were made.
 
 What each middleware adds is its sync: how a write goes out (``send``) and what arrives.
 Values arrive in one of two orders:
@@ -161,6 +162,11 @@ class Replica:
         """The newest stamp given out here."""
         self._full = Overflow("parameter names", max_params, log=log)
         self.watchers: CallbackList[[str, ParamValue]] = CallbackList()
+        self._outbox: dict[str, ParamValue] = {}
+        """Changes committed and not told yet, in the order they were committed (a name's newer
+        change replaces its older one and moves to the end): at most one per name held."""
+        self._telling = False
+        """Whether a thread is telling the watchers now: the others leave their changes to it."""
         self._sender: OrderedSender[Write] | None = None
         if threaded:
             self._sender = OrderedSender(
@@ -217,8 +223,8 @@ class Replica:
                     dropped = self._sender.put(write, slot=slot)
                     if dropped is not None:
                         self._settle_locked(dropped)
-        for name, value in values.items():
-            self.watchers.fire(name, value)
+            self._told_locked(values.items())
+        self._tell()
         if self._sender is None:
             for write in writes:
                 self._send_one(write)
@@ -338,7 +344,8 @@ class Replica:
             if held is None and not self._room_locked():
                 return False
             self._entries[name] = Entry(value, stamp, writer)
-        self.watchers.fire(name, value)
+            self._told_locked([(name, value)])
+        self._tell()
         return True
 
     def arrived(
@@ -378,10 +385,11 @@ class Replica:
                     return False
                 self._entries[name] = Entry(value, self._stamp_locked([name]), writer)
                 size, changed = -1, True
+            if changed:
+                self._told_locked([(name, value)])
         if size >= 0:
             self._full.room(size)
-        if changed:
-            self.watchers.fire(name, value)
+        self._tell()
         return changed
 
     def forget(self, prefix: str) -> list[str]:
@@ -398,10 +406,40 @@ class Replica:
             for name in gone:
                 del self._entries[name]
             size = len(self._entries)
+            self._told_locked((name, None) for name in gone)
         self._full.room(size)
-        for name in gone:
-            self.watchers.fire(name, None)
+        self._tell()
         return gone
+
+    # -- telling the watchers -----------------------------------------------------------------
+
+    def _told_locked(self, changes: Iterable[tuple[str, ParamValue]]) -> None:
+        """Queue committed changes for the watchers (lock held: in the order they were made)."""
+        for name, value in changes:
+            self._outbox.pop(name, None)
+            self._outbox[name] = value
+
+    def _tell(self) -> None:
+        """Tell the watchers every queued change, in order, outside the lock.
+
+        One thread tells at a time: two threads that each told their own change could tell it
+        in the other order than they made it, and a reader would keep the older value for good
+        (a network merge told after a newer local write). A thread that finds another telling
+        leaves its change to it, so ``set`` may return before its watchers ran while another
+        thread tells; a watcher that writes has its change told after its own returns.
+        """
+        while True:
+            with self._lock:
+                if self._telling or not self._outbox:
+                    return
+                self._telling = True
+                changes, self._outbox = self._outbox, {}
+            try:
+                for name, value in changes.items():
+                    self.watchers.fire(name, value)
+            finally:
+                with self._lock:
+                    self._telling = False
 
     def _room_locked(self) -> bool:
         """Whether a new name from the network fits; a refusal is counted (logged per flood)."""
