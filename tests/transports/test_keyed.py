@@ -100,14 +100,15 @@ def test_a_write_is_applied_sent_and_notified_here_and_there() -> None:
 def test_the_newest_write_wins_by_stamp_then_writer() -> None:
     store = quiet()
     seen = record(store)
-    key = param_key("/x")
+    name = "/dbm/max_bandwidth_in_mbit"
+    key = param_key(name)
     store.on_write(key, encode_param(1, 10, "b"))
     store.on_write(key, encode_param(2, 9, "z"))  # older stamp: ignored
     store.on_write(key, encode_param(3, 10, "a"))  # same stamp, smaller writer: ignored
-    assert store.replica.get("/x") == 1
+    assert store.replica.get(name) == 1
     store.on_write(key, encode_param(4, 10, "c"))  # same stamp, larger writer: wins
-    assert store.replica.get("/x") == 4
-    assert seen == [("/x", 1), ("/x", 4)]
+    assert store.replica.get(name) == 4
+    assert seen == [(name, 1), (name, 4)]
 
 
 def test_its_own_write_echoed_back_is_ignored() -> None:
@@ -376,6 +377,11 @@ def test_a_write_stamped_too_far_ahead_is_refused(
     assert a.replica.get("/dbm/max_bandwidth_in_mbit") == 5
 
 
+def flood_name(i: int) -> str:
+    """A name of the schema's, of a channel nobody publishes: what a flood can make up."""
+    return f"/flood{i}/camera/dbm/priority"
+
+
 def test_names_from_the_network_are_bounded_and_a_flood_is_logged_once(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
@@ -384,12 +390,13 @@ def test_names_from_the_network_are_bounded_and_a_flood_is_logged_once(
     over = 100
     with caplog.at_level(logging.WARNING, logger="dbml.zenoh"):
         for i in range(MAX_PARAMS + over):
-            store.on_write(param_key(f"/flood/{i}"), encode_param(i, 10, "peer"))
-        store.on_batch(encode_batch({"/flood/batch/a": 1, "/flood/0": -1}, 11, "peer"))
+            store.on_write(param_key(flood_name(i)), encode_param(0.5, 10, "peer"))
+        batch = {"/flood/batch/dbm/priority": 0.1, flood_name(0): 0.25}
+        store.on_batch(encode_batch(batch, 11, "peer"))
         assert len(store.replica) == MAX_PARAMS
-        assert store.replica.get(f"/flood/{MAX_PARAMS}") is None  # refused
-        assert store.replica.get("/flood/batch/a") is None  # refused, in a batch too
-        assert store.replica.get("/flood/0") == -1  # a name held is still updated
+        assert store.replica.get(flood_name(MAX_PARAMS)) is None  # refused
+        assert store.replica.get("/flood/batch/dbm/priority") is None  # refused, in a batch too
+        assert store.replica.get(flood_name(0)) == 0.25  # a name held is still updated
         # This process's own writes are always taken: read-your-writes, served as owned.
         store.replica.set("/dbm/round", 1)
         store.replica.set_many({"/dbm/max_bandwidth_in_mbit": 2, "/r1/camera/dbm/priority": 0.3})
@@ -402,6 +409,38 @@ def test_names_from_the_network_are_bounded_and_a_flood_is_logged_once(
         "(told once until half of them are gone)"
     ]
     assert store.replica.refused == over + 1
+    store.replica.close()
+
+
+def test_a_flood_gives_way_to_a_live_channel_and_names_outside_the_schema_take_no_room(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A full store gives up a flood's oldest name for a channel someone publishes.
+
+    Refused for good, a new robot's bounds would never reach the optimizer: the channel would
+    never be allocated for the life of the process.
+    """
+    store = quiet()
+    live = {"/r9/camera"}
+    store.replica.keep = lambda name: name.startswith(tuple(f"{t}/" for t in live))
+    told: list[tuple[str, object]] = []
+    with caplog.at_level(logging.WARNING, logger="dbml.zenoh"):
+        for i in range(1000):
+            store.on_write(param_key(f"/made/up/{i}"), encode_param(1, 10, "peer"))
+        assert len(store.replica) == 0  # outside the schema: nothing held
+        for i in range(MAX_PARAMS):
+            store.on_write(param_key(flood_name(i)), encode_param(0.5, 10, "peer"))
+        store.replica.watch(lambda name, value: told.append((name, value)))
+        store.on_write(param_key("/r9/camera/dbm/frequency/max"), encode_param(16.0, 12, "r9"))
+        store.on_write(param_key(flood_name(MAX_PARAMS)), encode_param(0.5, 12, "peer"))
+    assert store.replica.get("/r9/camera/dbm/frequency/max") == 16.0
+    assert store.replica.get(flood_name(0)) is None  # the oldest of the flood's gave way
+    assert store.replica.get(flood_name(1)) is None  # and the next, for the next new name
+    assert store.replica.get(flood_name(MAX_PARAMS)) == 0.5
+    assert len(store.replica) == MAX_PARAMS
+    assert told[:2] == [(flood_name(0), None), ("/r9/camera/dbm/frequency/max", 16.0)]
+    unknown = [r.getMessage() for r in caplog.records if "outside the schema" in r.getMessage()]
+    assert unknown == ["ignoring /made/up/0 and other names outside the schema"]
     store.replica.close()
 
 

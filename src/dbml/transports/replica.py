@@ -28,6 +28,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import OrderedDict
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 
@@ -41,6 +42,7 @@ from dbml.transports.overflow import Overflow
 from dbml.transports.worker import DEFAULT_SENDER_CAPACITY, FLUSH_TIMEOUT_S, OrderedSender
 
 __all__ = [
+    "EVICTION_LOOKS",
     "MAX_PARAMS",
     "MAX_QUEUED_WRITES",
     "Entry",
@@ -54,9 +56,12 @@ MAX_PARAMS = 65_536
 name is kept, so a newcomer does not revive it). A fleet of 160 robots with 4 channels writes 7
 names per channel and a dozen global ones, about 4,500: this is 14 times that (the optimizer
 tracks up to 4,096 channels, 28,672 names). Any peer can write, so past this a new name from
-the network is refused, and logged once per flood; names held are still updated. This process's
+the network is refused (or, where the sync says which may go, the oldest of those is given up),
+and logged once per flood; names held are still updated. This process's
 own names are counted apart, against the same bound, so no flood can refuse them: past it,
 ``set`` of a new name raises. A name costs a few hundred bytes: tens of MB at most."""
+EVICTION_LOOKS = 64
+"""How many of the oldest names a full store looks at to find one to give up, per new name."""
 MAX_QUEUED_WRITES = DEFAULT_SENDER_CAPACITY
 """The most writes waiting for the network: a name's newer write replaces its queued one, so
 this bounds batches and distinct names; past it the oldest is dropped (``OrderedSender``)."""
@@ -156,6 +161,12 @@ class Replica:
         """The newest write of each name: up to ``max_params`` from the network, and ours."""
         self._own: set[str] = set()
         """Names this process wrote (``max_params`` at most), whoever wrote them last."""
+        self._heard: OrderedDict[str, None] = OrderedDict()
+        """Names only the network wrote, oldest first: what a full store may give up."""
+        self.keep: Callable[[str], bool] | None = None
+        """Which names the network wrote must stay when the store is full: the sync's rule (a
+        live channel's, the globals); None keeps every one, and a new name is refused. Called
+        under the replica's lock: it must be a quick local read."""
         self._pending: dict[str, int] = {}
         """Names whose write of ours the network has not taken yet, with that write's stamp."""
         self._last = 0
@@ -211,6 +222,7 @@ class Replica:
             for name, value in values.items():
                 self._entries[name] = Entry(value, stamp, self.writer)
                 self._own.add(name)
+                self._heard.pop(name, None)
                 self._pending[name] = stamp
             if batch and not self._batches:
                 writes = [Write({n: v}, stamp, self.writer, host) for n, v in values.items()]
@@ -341,8 +353,10 @@ class Replica:
             held = self._entries.get(name)
             if held is not None and (held.stamp, held.writer) >= (stamp, writer):
                 return False
-            if held is None and not self._room_locked():
-                return False
+            if held is None:
+                if not self._room_locked():
+                    return False
+                self._heard[name] = None
             self._entries[name] = Entry(value, stamp, writer)
             self._told_locked([(name, value)])
         self._tell()
@@ -376,13 +390,17 @@ class Replica:
                 if held is None:
                     return False
                 del self._entries[name]
+                self._heard.pop(name, None)
                 size = len(self._entries)
                 changed = held.value is not None  # a deletion held here already is none
             else:
                 if held is not None and _same(held.value, value):
                     return False
-                if held is None and not self._room_locked():
-                    return False
+                if held is None:
+                    if not self._room_locked():
+                        return False
+                    if name not in self._own:
+                        self._heard[name] = None
                 self._entries[name] = Entry(value, self._stamp_locked([name]), writer)
                 size, changed = -1, True
             if changed:
@@ -405,6 +423,7 @@ class Replica:
             ]
             for name in gone:
                 del self._entries[name]
+                self._heard.pop(name, None)
             size = len(self._entries)
             self._told_locked((name, None) for name in gone)
         self._full.room(size)
@@ -442,10 +461,34 @@ class Replica:
                     self._telling = False
 
     def _room_locked(self) -> bool:
-        """Whether a new name from the network fits; a refusal is counted (logged per flood)."""
+        """Whether a new name from the network fits; a refusal is counted (logged per flood).
+
+        A full store gives up the oldest name the network wrote that ``keep`` lets go (a
+        flood's, for a channel nobody publishes): told as deleted, and served no more.
+        """
         if len(self._entries) < self._max_params:
             return True
+        if self.keep is not None and self._evict_locked(self.keep):
+            return True
         self._full.refuse()
+        return False
+
+    def _evict_locked(self, keep: Callable[[str], bool]) -> bool:
+        """Give up the oldest name the network wrote that ``keep`` lets go; False if none.
+
+        At most ``EVICTION_LOOKS`` names are looked at; those kept go to the end, so the next
+        look starts further on.
+        """
+        for _ in range(min(EVICTION_LOOKS, len(self._heard))):
+            name = next(iter(self._heard))
+            if name in self._own or keep(name):
+                self._heard.move_to_end(name)
+                continue
+            del self._heard[name]
+            del self._entries[name]
+            self._told_locked([(name, None)])
+            self._full.refuse()  # counted as a refusal: a flood is logged once either way
+            return True
         return False
 
     @property

@@ -37,6 +37,7 @@ from dbml.protocol.keys import (
     param_key,
 )
 from dbml.protocol.names import check_topic
+from dbml.protocol.schema import lookup
 from dbml.transports.overflow import LogOnce
 from dbml.transports.replica import Replica, Write
 
@@ -48,6 +49,8 @@ MAX_CLOCK_AHEAD_NS = 30 * 1_000_000_000
 """A write stamped further ahead of this process's clock is refused: a peer's wrong clock (or a
 lie) must not make its value win every comparison for good. Fleet clocks agree far better."""
 _NS_PER_S = 1e9
+_UNKNOWN = "names outside the schema"
+"""Their refusals are logged under this one key: a flood of made-up names is one line."""
 
 Send: TypeAlias = Callable[[str, bytes], None]
 """Sends one encoded message under its key to every peer; may block (on the sender thread)."""
@@ -101,7 +104,7 @@ class KeyedParams:
         except TransportError as err:
             self._warn(name, str(err))
             return
-        if self._accepts(name, stamp, writer):
+        if self._known(name) and self._accepts(name, stamp, writer):
             self.replica.merge(name, value, stamp=stamp, writer=writer)
 
     def on_batch(self, data: bytes) -> None:
@@ -114,7 +117,15 @@ class KeyedParams:
         if not self._accepts(BATCH, stamp, writer):
             return
         for name, value in values.items():
-            self.replica.merge(name, value, stamp=stamp, writer=writer)
+            if self._known(name):
+                self.replica.merge(name, value, stamp=stamp, writer=writer)
+
+    def _known(self, name: str) -> bool:
+        """Whether ``name`` is one of the schema's: no other can take a place in the store."""
+        if lookup(name) is not None:
+            return True
+        self._warnings.warning(_UNKNOWN, "ignoring %s and other names outside the schema", name)
+        return False
 
     def _accepts(self, name: str, stamp: int, writer: str) -> bool:
         if writer == self.node_id:

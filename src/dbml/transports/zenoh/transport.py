@@ -22,12 +22,14 @@ import os
 import threading
 import time
 import weakref
+from collections import Counter
 from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import TypeAlias
 
 from dbml.core.errors import TransportError
 from dbml.protocol import keys
+from dbml.protocol.schema import split_channel_name
 from dbml.transports.base import (
     Closer,
     GraphEntry,
@@ -332,6 +334,29 @@ class _ZenohGraph:
         self._tokens: dict[str, zenoh.LivelinessToken] = {}
         self.watchers: CallbackList[[]] = CallbackList()
         self._count = 0
+        self._published: Counter[str] = Counter()
+        """Publisher entries per topic: the channels live now."""
+
+    def _add_locked(self, key: str, entry: GraphEntry) -> None:
+        self._entries[key] = entry
+        if entry.role is Role.PUBLISHER:
+            self._published[entry.topic] += 1
+
+    def _remove_locked(self, key: str) -> GraphEntry | None:
+        entry = self._entries.pop(key, None)
+        if entry is not None and entry.role is Role.PUBLISHER:
+            self._published[entry.topic] -= 1
+            if self._published[entry.topic] <= 0:
+                del self._published[entry.topic]
+        return entry
+
+    def keeps(self, name: str) -> bool:
+        """Whether a full store keeps parameter ``name``: a global, or a live channel's."""
+        split = split_channel_name(name)
+        if split is None:
+            return True
+        with self._lock:
+            return split[0] in self._published
 
     def announce(self, role: Role, topic: str, variant: Variant) -> Handle:
         check_topic(topic)
@@ -343,13 +368,13 @@ class _ZenohGraph:
         entry = GraphEntry(role, transport.host, topic, variant, uid)
         token = transport.session.liveliness().declare_token(key)
         with self._lock:
-            self._entries[key] = entry
+            self._add_locked(key, entry)
             self._tokens[key] = token
         self.watchers.fire()
 
         def withdraw() -> None:
             with self._lock:
-                self._entries.pop(key, None)
+                self._remove_locked(key)
                 self._tokens.pop(key, None)
                 self._full.room(len(self._entries))
             _undeclare(token)
@@ -383,8 +408,8 @@ class _ZenohGraph:
                 if len(self._entries) >= MAX_GRAPH_ENTRIES:
                     self._full.refuse()
                     return
-                self._entries[key] = entry
-            elif self._entries.pop(key, None) is None:
+                self._add_locked(key, entry)
+            elif self._remove_locked(key) is None:
                 return
             else:
                 self._full.room(len(self._entries))
@@ -449,6 +474,8 @@ class ZenohTransport(TransportBase):
         )
         self.params = self._sync.params
         self.graph = _ZenohGraph(self)
+        # A full store gives up a flood's names first: those of channels nobody publishes.
+        self.params.keep = self.graph.keeps
         self._declared.add(
             self.session.liveliness().declare_subscriber(
                 f"{keys.GRAPH}/**", self.graph.on_sample, history=True
