@@ -36,7 +36,7 @@ from dbml.runtime.reception import (
 )
 from dbml.runtime.subscriber import ManagedSubscriber
 from dbml.transports import MemoryNetwork, MemoryTransport, Variant
-from dbml.transports.base import Sample
+from dbml.transports.base import Role, Sample
 from dbml.transports.memory import ManualClock
 
 WALL_S = 1_700_000_000.0
@@ -53,7 +53,7 @@ class Link:
     """
 
     def __init__(self) -> None:
-        network = MemoryNetwork()
+        network = self.network = MemoryNetwork()
         self.op_clock = ManualClock(1000.0)
         self.base_clock = ManualClock(0.0)
         self.operator = MemoryTransport(network, host="op", clock=self.op_clock)
@@ -72,8 +72,18 @@ class Link:
         )
         robot = MemoryTransport(network, host="r1")
         self.raw = robot.declare_publisher("/cam", Variant.OPTIMIZED)
+        robot.graph.announce(Role.PUBLISHER, "/cam", Variant.FULL)  # a live channel, as a
+        # managed publisher announces it: the estimator takes reports of live channels only
         self.t = 0.0
         self.seq = 0
+
+    def listen(self, host: str, *topics: str) -> None:
+        """Live channels ``topics`` (a robot publishes them) that ``host`` subscribes to."""
+        transport = MemoryTransport(self.network, host=host)
+        robot = MemoryTransport(self.network, host="r9")
+        for topic in topics:
+            robot.graph.announce(Role.PUBLISHER, topic, Variant.FULL)
+            transport.graph.announce(Role.SUBSCRIBER, topic, Variant.OPTIMIZED)
 
     def _changed(self) -> None:
         self.changes += 1
@@ -203,6 +213,7 @@ def test_a_channel_heard_on_two_hosts_counts_as_the_one_that_heard_least() -> No
     carry.
     """
     link = Link()
+    link.listen("op2", "/cam")
     beacons = _down(link)
     down = len(beacons)
     link.run(0.5)
@@ -221,6 +232,7 @@ def test_the_channels_a_beacon_counts_are_bounded_by_the_ones_heard_last(
     """Channel names come from any peer's reports: one more evicts the one heard longest ago."""
     monkeypatch.setattr(node_estimator, "HEARD_MAX", 2)
     link = Link()
+    link.listen("op", *(f"/t{k}" for k in range(5)))
     beacons = _down(link)
     down = len(beacons)
     link.run(0.5)
@@ -233,7 +245,7 @@ def test_the_channels_a_beacon_counts_are_bounded_by_the_ones_heard_last(
     assert last.heard is not None
     assert set(last.heard) == {"/t3", "/t4"}  # the last two reported, no more
     assert [r.getMessage() for r in caplog.records] == [
-        "channels heard per host: 2 held, the most kept; evicting the oldest "
+        "(host, channel) pairs heard: 2 held, the most kept; evicting the oldest "
         "(told once until half of them are gone)"
     ]
     link.run(0.1)  # the real channel again: it evicts the one heard longest ago
@@ -242,8 +254,9 @@ def test_the_channels_a_beacon_counts_are_bounded_by_the_ones_heard_last(
 
 
 def test_channels_no_beacon_can_name_are_forgotten() -> None:
-    """A flood of made-up channels ends: what it filled is gone once no beacon can name it."""
+    """Channels heard once: what they filled is gone once no beacon can name it."""
     link = Link()
+    link.listen("op", *(f"/t{k}" for k in range(50)))
     link.run(0.5)
     others = tuple(ReceivedFrame(f"/t{k}", 1, 0, 0.0, 10) for k in range(50))
     report = ReceptionReport("op", link.base_clock(), others).encode()
@@ -359,8 +372,12 @@ def test_streams_and_frames_past_the_estimators_bounds_are_logged_once_per_flood
         monkeypatch.setattr(module, "MAX_STREAMS", 8)
         monkeypatch.setattr(module, "MAX_SAMPLES", 16)
     clock = ManualClock(0.0)
-    base = MemoryTransport(MemoryNetwork(), host="base", clock=clock)
+    network = MemoryNetwork()
+    base = MemoryTransport(network, host="base", clock=clock)
     base.params.set(names.BANDWIDTH, 10.0)
+    robot = MemoryTransport(network, host="r1")
+    for i in range(12):  # live channels: the estimator takes reports of those only
+        robot.graph.announce(Role.PUBLISHER, f"/t{i}", Variant.FULL)
     estimator = LinkEstimator(base)
     told: list[tuple[str, bool]] = []  # each warning, and whether the estimator's lock was held
 
@@ -453,6 +470,7 @@ def test_a_report_of_a_frame_that_queued_wakes_the_estimator_at_once() -> None:
 # -- a flood of made-up reporting hosts never keeps a real channel's release waiting ------------
 
 FLOOD_HOSTS = 10_000
+FLOOD_CHANNELS = 5_000
 CAMERA = "/r1/camera"
 
 
@@ -475,7 +493,9 @@ class OutageLink:
         self.up = True
         self.beacons: list[LinkBeacon] = []
         operator.subscribe(CAMERA, self._receive, Variant.OPTIMIZED)
+        operator.graph.announce(Role.SUBSCRIBER, CAMERA, Variant.OPTIMIZED)  # as subscribers do
         operator.subscribe(LINK_TOPIC, lambda s: self.beacons.append(LinkBeacon.decode(s.payload)))
+        self.operator = operator
         robot = MemoryTransport(network, host="r1", clock=self.clock)
         self.camera = ManagedPublisher(
             robot,
@@ -493,42 +513,62 @@ class OutageLink:
         if self.up:
             self.reporter.record(sample)
 
-    def step(self) -> None:
-        """0.1 s: a frame, the operator's report, the optimizer's heartbeat, the estimator."""
+    def step(self, *, flood: bool = False) -> None:
+        """0.1 s: a frame, the operator's report, the optimizer's heartbeat, the estimator.
+
+        ``flood``: and a forged report, before the tick, of ``FLOOD_CHANNELS`` made-up channels
+        from the operator's own host (the reports are not authenticated).
+        """
         self.clock.advance(1 / RATE_HZ)
         self.camera.publish(bytes(FRAME_BYTES // 10))
         self.reporter.flush()
+        if flood:
+            forged = self.forger.declare_publisher(RECEPTION_TOPIC)
+            frames = tuple(
+                ReceivedFrame(f"/forged{k}/camera", self.rounds, 0, self.clock(), 1_000)
+                for k in range(FLOOD_CHANNELS)
+            )
+            forged.put(ReceptionReport("op", self.clock(), frames).encode())
+            forged.close()
         self.rounds += 1
         self.base.params.set(names.ROUND, self.rounds)
         self.estimator.tick()
 
     def flood(self) -> None:
-        """A report from each of ``FLOOD_HOSTS`` made-up hosts, each of a channel of its own."""
+        """A report from each of ``FLOOD_HOSTS`` made-up hosts.
+
+        Of the camera (the live channel whose release is at stake) from half of them, of a
+        made-up channel from the others.
+        """
         forged = self.forger.declare_publisher(RECEPTION_TOPIC)
         for k in range(FLOOD_HOSTS):
-            frame = ReceivedFrame(f"/forged{k}/camera", 1, 0, self.clock(), 1_000)
+            topic = CAMERA if k % 2 else f"/forged{k}/camera"
+            frame = ReceivedFrame(topic, 1, 0, self.clock(), 1_000)
             forged.put(ReceptionReport(f"forged-{k}", self.clock(), (frame,)).encode())
         forged.close()
 
 
-@pytest.mark.parametrize("when", ["before the channel", "in the outage"])
+@pytest.mark.parametrize("when", ["before the channel", "in the outage", "every tick"])
 def test_a_flood_of_forged_reporters_never_keeps_a_channels_release_waiting(when: str) -> None:
     """Forged reports from 10,000 hosts, then the link out: the real channel is still heard.
 
     Back from the outage, the camera (which sent into the dead link: its probes) waits to be
     heard before it releases. It is heard at the first report after the link is back, so it
     releases long before ``HEARD_WAIT_S``, the bound on a wait for a channel never heard.
+    ``every tick``: a forged report of 5,000 made-up channels from the operator's own host
+    between each real report and the tick.
     """
     link = OutageLink()
+    every = when == "every tick"
     link.step()  # the first tick makes the core estimator
     if when == "before the channel":
         link.flood()
     for _ in range(20):  # 2 s up
-        link.step()
+        link.step(flood=every)
     assert not link.camera.holding
     link.up = False
     for _ in range(15):  # 1.5 s down: declared, and held
-        link.step()
+        link.step(flood=every)
     assert link.camera.holding
     assert not link.beacons[-1].up
     if when == "in the outage":
@@ -536,7 +576,7 @@ def test_a_flood_of_forged_reporters_never_keeps_a_channels_release_waiting(when
     link.up = True
     back = link.clock()
     while link.camera.holding and link.clock() - back < 2 * HEARD_WAIT_S:
-        link.step()
+        link.step(flood=every)
     released = link.clock() - back
     assert not link.camera.holding
     # the first probe after the link is back (one every PROBE_INTERVAL_S), its report, a tick

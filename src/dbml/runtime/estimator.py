@@ -23,7 +23,7 @@ import logging
 import math
 import threading
 import time
-from collections import deque
+from collections import OrderedDict, deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
@@ -52,7 +52,7 @@ from dbml.protocol.messages import (
 from dbml.runtime.params import ParamView
 from dbml.runtime.reception import EARLY_FLUSH_QUEUE_S, RECEPTION_TOPIC, REPORT_INTERVAL_S
 from dbml.runtime.worker import PeriodicWorker
-from dbml.transports.base import Sample, Transport
+from dbml.transports.base import Role, Sample, Transport
 from dbml.transports.overflow import Overflow
 
 __all__ = [
@@ -176,7 +176,6 @@ class LinkEstimator:
         self._worker = PeriodicWorker(
             self.tick, interval_s=interval_s, name="dbml-estimator", log=log
         )
-        self._subscription = transport.subscribe(RECEPTION_TOPIC, self._on_report)
         # In the data's own class, on purpose: after an outage the "up" beacon then arrives
         # behind the frames still queued for the link, so publishers release after that
         # backlog, not on top of it (as control traffic it overtook the backlog: the release
@@ -184,11 +183,22 @@ class LinkEstimator:
         self._beacon = transport.declare_publisher(LINK_TOPIC)
         self._order_until = -math.inf
         self._arrived: dict[tuple[str, str], _Arrivals] = {}
-        """Per reporting host and channel, its newest frames' arrivals, the one heard from
-        longest ago first. At most ``HEARD_MAX``: one more evicts the first (a flood of made-up
-        hosts or channels cannot keep a real one out), and each tick forgets those no beacon
-        can name any more (``_forget_unheard``)."""
-        self._arrivals_full = Overflow("channels heard per host", HEARD_MAX, log=log, evicts=True)
+        """Per reporting host and live channel, its newest frames' arrivals, the one heard from
+        longest ago first. At most ``HEARD_MAX``: one more evicts the oldest not vouched for
+        (``_unvouched``), else the oldest; each tick forgets those no beacon can name any more
+        (``_forget_unheard``)."""
+        self._unvouched: OrderedDict[tuple[str, str], None] = OrderedDict()
+        """Of those, the ones whose host the graph did not show subscribing to the channel when
+        first heard (a plain ROS 2 node's, or a forger's), oldest first: evicted first, so a
+        flood of reports under made-up hosts never evicts a real subscriber's channel."""
+        self._live: frozenset[str] = frozenset()
+        """The channels someone publishes, as the graph shows them: a report of any other is
+        not an arrival of the link (a made-up channel's frames would hide an outage)."""
+        self._listening: frozenset[tuple[str, str]] = frozenset()
+        """(host, channel) of every subscription the graph shows."""
+        self._arrivals_full = Overflow(
+            "(host, channel) pairs heard", HEARD_MAX, log=log, evicts=True
+        )
         self._silent_from = math.inf
         """The estimator's time when it last declared an outage: frames after it are back."""
         self._ticked_s = -math.inf
@@ -196,6 +206,9 @@ class LinkEstimator:
         self._cut: tuple[float, float] | None = None
         """The last cut's estimate and its wall-clock decision time: the hold states published
         while the estimate stays there carry that time."""
+        self._graph_watch = transport.graph.watch(self._on_graph)
+        self._on_graph()
+        self._subscription = transport.subscribe(RECEPTION_TOPIC, self._on_report)
 
     def cap_mbit(self) -> float | None:
         """The configured budget (bandwidth times utilization): the estimate's ceiling."""
@@ -205,6 +218,14 @@ class LinkEstimator:
         """The current estimate, or None before the budget is configured."""
         with self._lock:
             return None if self._estimator is None else self._estimator.estimate_mbit
+
+    def _on_graph(self) -> None:
+        """The graph changed: which channels are live, who subscribes to them from where."""
+        entries = self._transport.graph.entries()
+        live = frozenset(e.topic for e in entries if e.role is Role.PUBLISHER)
+        listening = frozenset((e.host, e.topic) for e in entries if e.role is Role.SUBSCRIBER)
+        with self._lock:
+            self._live, self._listening = live, listening
 
     def _on_report(self, sample: Sample) -> None:
         try:
@@ -226,6 +247,8 @@ class LinkEstimator:
             estimator = self._estimator
             if estimator is not None:
                 for frame in report.frames:
+                    if frame.topic not in self._live:
+                        continue  # no such channel (made up, or gone): not the link's
                     displaced += self._arrival(report.host, frame.topic, frame.seq, now)
                     queued = max(
                         queued,
@@ -261,15 +284,22 @@ class LinkEstimator:
         the publisher restarted. Returns 1 if it is a new channel of ``host`` while
         ``HEARD_MAX`` channels are, and it evicted the one heard from longest ago), else 0.
         """
-        arrived = self._arrived
+        arrived, unvouched, key = self._arrived, self._unvouched, (host, topic)
         evicted = 0
-        arrivals = arrived.pop((host, topic), None)
+        arrivals = arrived.pop(key, None)
         if arrivals is None:
             if len(arrived) >= HEARD_MAX:
-                del arrived[next(iter(arrived))]  # the one heard from longest ago
+                # the one heard from longest ago, of those no subscription vouches for first
+                victim = next(iter(unvouched or arrived))
+                del arrived[victim]
+                unvouched.pop(victim, None)
                 evicted = 1
             arrivals = _Arrivals(now, seq, deque(maxlen=HEARD_RECENT_MAX))
-        arrived[(host, topic)] = arrivals  # now the one heard last
+            if key not in self._listening:
+                unvouched[key] = None
+        arrived[key] = arrivals  # now the one heard last
+        if key in unvouched:
+            unvouched.move_to_end(key)
         arrivals.newest_s = max(arrivals.newest_s, now)
         arrivals.newest_seq = seq
         recent = arrivals.recent_s
@@ -320,6 +350,7 @@ class LinkEstimator:
                 if arrived[first].newest_s > forget_to:
                     break
                 del arrived[first]
+                self._unvouched.pop(first, None)
             return len(arrived)
 
     def _send_beacon(self, estimate: Estimate) -> None:
@@ -388,6 +419,7 @@ class LinkEstimator:
         """Stop and withdraw the estimate, so nobody reads a stale one."""
         self._worker.stop()
         self._subscription.close()
+        self._graph_watch.close()
         self._beacon.close()
         if self._published is not None:
             self._transport.params.set(names.ESTIMATE, None)
