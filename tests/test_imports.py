@@ -127,3 +127,16 @@ def test_no_module_of_dbml_is_in_an_import_circle() -> None:
     new = found - KNOWN_CYCLES
     assert not new, "import circles: " + "; ".join(" <-> ".join(sorted(c)) for c in new)
     assert not KNOWN_CYCLES - found, "listed circles that are gone: remove them from the list"
+
+
+def test_the_core_imports_nothing_of_dbml_but_itself() -> None:
+    """The layers below everything: the core (the model) is what every other package builds on."""
+    edges = graph()
+    outside = {
+        (name, target)
+        for name, targets in edges.items()
+        if name.startswith("dbml.core")
+        for target in targets
+        if not target.startswith("dbml.core")
+    }
+    assert outside == set()

@@ -8,7 +8,7 @@ from typing import Any
 import pytest
 
 from dbml.core.errors import SpecError
-from dbml.core.estimator import EstimatorState, Phase
+from dbml.estimator import Phase
 from dbml.experiment.analysis import Arrival, Tick
 from dbml.experiment.report import (
     PUBLISH_REPORT,
@@ -17,6 +17,7 @@ from dbml.experiment.report import (
     PublishReport,
     PublishTiming,
 )
+from dbml.protocol.messages import EstimatorState
 
 FRAMES = (
     Arrival(robot=0, seq=12, sent_s=100.25, arrival_s=100.3, size_bytes=84_000, rate_hz=5.95),

@@ -17,12 +17,12 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from dbml.core.errors import SpecError, TransportError
-from dbml.core.estimator import EstimatorState
 from dbml.experiment.analysis import Arrival, Tick
 from dbml.experiment.report import OperatorReport
 from dbml.experiment.spec import TAIL_S, TICK_S, URGENT_STREAMS, RoleSpec
 from dbml.harness.child import Emit
 from dbml.protocol import names
+from dbml.protocol.messages import EstimatorState
 from dbml.protocol.metadata import MessageMeta
 from dbml.runtime.params import ParamView
 from dbml.runtime.reception import ReceptionReporter

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import pytest
 
-from dbml.core.estimator import EstimatorState, Phase
+from dbml.estimator import Phase
 from dbml.experiment.analysis import Arrival, Tick, analyse, link_at
+from dbml.protocol.messages import EstimatorState
 from dbml.testbed import TestbedError
 from dbml.testbed.options import (
     TestbedOptions,
