@@ -436,9 +436,9 @@ def run_hostile_peer(topics: list[str]) -> None:
     from std_msgs.msg import Float64, String
 
     from dbml.harness.ros2node import PrivateRos
-    from dbml.protocol.keys import encode_batch
+    from dbml.protocol.keys import ALLOCATION_TOPIC, encode_batch
     from dbml.transports.codecs import image_cdr
-    from dbml.transports.rclpy.nodes import ALLOCATION_TOPIC, node_of
+    from dbml.transports.rclpy.nodes import node_of
 
     ros = PrivateRos(domain_id=None, name="hostile")  # ROS_DOMAIN_ID
     node = ros.node("hostile_peer")

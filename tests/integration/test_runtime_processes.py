@@ -12,10 +12,9 @@ from pathlib import Path
 import pytest
 
 from dbml.protocol import names
-from dbml.protocol.keys import encode_param, param_key
+from dbml.protocol.keys import LINK_TOPIC, encode_param, param_key
 from dbml.protocol.messages import Heard, LinkBeacon
 from dbml.protocol.metadata import MessageMeta
-from dbml.runtime.estimator import LINK_TOPIC
 from dbml.transports.base import ParamValue, Sample, Variant
 from tests.conftest import MONITOR_JSON_KEYS, wait_for
 from tests.integration.procs import fleet, publish_argv

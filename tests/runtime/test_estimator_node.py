@@ -9,6 +9,7 @@ import pytest
 from dbml.estimator import Phase
 from dbml.estimator import shared as estimator_shared
 from dbml.protocol import names
+from dbml.protocol.keys import LINK_TOPIC, RECEPTION_TOPIC
 from dbml.protocol.messages import (
     EstimatorState,
     Heard,
@@ -19,7 +20,6 @@ from dbml.protocol.messages import (
 from dbml.protocol.metadata import pack_meta
 from dbml.runtime import estimator as node_estimator
 from dbml.runtime.estimator import (
-    LINK_TOPIC,
     MAX_REPORTERS,
     WAKE_GAP_S,
     WAKE_QUEUE_S,
@@ -30,7 +30,6 @@ from dbml.runtime.outage import HEARD_WAIT_S, PROBE_INTERVAL_S
 from dbml.runtime.publisher import ManagedPublisher
 from dbml.runtime.reception import (
     EARLY_FLUSH_QUEUE_S,
-    RECEPTION_TOPIC,
     REPORT_INTERVAL_S,
     ReceptionReporter,
 )

@@ -10,7 +10,7 @@ import pytest
 
 from dbml.core import DbmSettings, LinkSpec, Status, Strategy
 from dbml.protocol import names
-from dbml.protocol.messages import ROUND_TOPIC
+from dbml.protocol.keys import ROUND_TOPIC
 from dbml.runtime import ManagedPublisher, ManagedSubscriber, OptimizerNode, Round
 from dbml.runtime.optimizer import MAX_CHANNELS
 from dbml.runtime.rounds import RoundFollower

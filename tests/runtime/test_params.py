@@ -16,7 +16,7 @@ from dbml.core import DbmSettings, Strategy, TransportError
 from dbml.protocol import names, schema
 from dbml.protocol.schema import Parameter
 from dbml.runtime import ManagedPublisher, ManagedSubscriber, OptimizerNode
-from dbml.runtime.params import MAX_PROBLEMS, MAX_VALUES, DbmParams, ParamView, valid_values
+from dbml.runtime.params import MAX_PROBLEMS, MAX_VALUES, DbmParams, ParamView, read_snapshot
 from dbml.runtime.priority import collision_priority_source
 from dbml.transports import MemoryNetwork, MemoryTransport
 from dbml.transports.base import Closer, Handle, ParamValue
@@ -74,7 +74,8 @@ def test_the_view_keeps_the_last_good_value_and_reports_the_bad_one_once(
     assert view.dbm().bandwidth_mbit == 5.0
     assert view.problems() == ()
     assert changes == [(names.BANDWIDTH, 5.0)]
-    assert valid_values({names.BANDWIDTH: "x", names.UTILIZATION: 0.5}) == {names.UTILIZATION: 0.5}
+    snapshot = read_snapshot({names.BANDWIDTH: "x", names.UTILIZATION: 0.5})
+    assert snapshot.globals == {schema.UTILIZATION: 0.5}
 
 
 def test_bad_writes_never_widen_the_budget_nor_drop_a_live_channel() -> None:

@@ -14,10 +14,11 @@ from dataclasses import replace
 import pytest
 
 from dbml.protocol import names
+from dbml.protocol.keys import LINK_TOPIC
 from dbml.protocol.messages import RELEASE_MAX_CHANNELS, RELEASE_MAX_S, Heard, LinkBeacon
 from dbml.protocol.metadata import MessageMeta
 from dbml.runtime import ManagedPublisher
-from dbml.runtime.estimator import LINK_TOPIC, LinkEstimator, release_offsets
+from dbml.runtime.estimator import LinkEstimator, release_offsets
 from dbml.runtime.publisher import HEARD_WAIT_S, HOLD_MAX_S, LINK_SILENCE_S, PROBE_INTERVAL_S
 from dbml.runtime.rate import RateLimiter
 from dbml.testing import BASE, Fleet

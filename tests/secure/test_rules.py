@@ -14,7 +14,7 @@ import pytest
 import zenoh
 
 from dbml.protocol import keys, names
-from dbml.protocol.messages import ROUND_TOPIC
+from dbml.protocol.keys import LINK_TOPIC, ROUND_TOPIC
 from dbml.protocol.schema import (
     PARAMETERS,
     Kind,
@@ -25,7 +25,6 @@ from dbml.protocol.schema import (
     check_param,
     lookup,
 )
-from dbml.runtime.estimator import LINK_TOPIC
 from dbml.secure import NodeRole, access_control
 from dbml.transports.base import Variant
 from dbml.transports.zenoh.transport import _data_key

@@ -20,8 +20,9 @@ from dbml.cli.main import main
 from dbml.experiment import rclpypeers
 from dbml.experiment.entry import ENTRY_MODULE, Kind
 from dbml.experiment.peers import FrameRecorder
+from dbml.protocol.keys import RECEPTION_TOPIC
 from dbml.protocol.messages import ReceptionReport
-from dbml.runtime.reception import RECEPTION_TOPIC, ReceptionReporter
+from dbml.runtime.reception import ReceptionReporter
 from dbml.scenarios.teleop import MAX_RATE_HZ, ROBOTS
 from dbml.testbed import Network, TestbedError, leftover_namespaces, rclpy_layout
 from dbml.testbed.options import TestbedOptions

@@ -30,6 +30,7 @@ from dbml.protocol.names import check_topic
 from dbml.protocol.schema import GLOBAL_PREFIX, ParamValue, check_param_value, split_channel_name
 
 __all__ = [
+    "ALLOCATION_TOPIC",
     "BATCH",
     "GRAPH",
     "LINK_TOPIC",
@@ -39,6 +40,7 @@ __all__ = [
     "PARAM",
     "RECEPTION_TOPIC",
     "ROOT",
+    "ROUND_TOPIC",
     "GraphKey",
     "batch_key",
     "channel_params_filter",
@@ -72,6 +74,12 @@ LINK_TOPIC = f"{GLOBAL_PREFIX}/link"
 """The estimator's beacon: a topic of dbml's own namespace, carried like a channel's data."""
 RECEPTION_TOPIC = f"{GLOBAL_PREFIX}/reception"
 """What managed subscribers received, reported to the estimator."""
+ROUND_TOPIC = f"{GLOBAL_PREFIX}/optimizer/round"
+"""What each optimizer round decided (``dbml.protocol.messages.RoundReport``)."""
+ALLOCATION_TOPIC = f"{GLOBAL_PREFIX}/allocation"
+"""Over rclpy, the optimizer's whole allocation, from its ``/dbm`` node to the channels' nodes
+(``std_msgs/msg/String``, this module's batch encoding); its publisher also says that the
+``/dbm`` node is claimed."""
 MAX_WRITE_BYTES = 1 << 20
 """A received message larger than this is not a parameter write (nor a batch of them)."""
 _SHOWN_CHARS = 80

@@ -13,7 +13,7 @@ the value. Each section below is one message and stands on its own:
 - **the reception report** (``ReceptionReport``, ``ReceivedFrame``) on
   ``keys.RECEPTION_TOPIC``: what a subscriber's host received, for the estimator
   (``TransportError``);
-- **the round report** (``RoundReport``, ``ChannelRound``) on ``ROUND_TOPIC``: what each
+- **the round report** (``RoundReport``, ``ChannelRound``) on ``keys.ROUND_TOPIC``: what each
   optimizer round decided, for the live view and ``dbml monitor`` (``TransportError``).
 
 Dependencies point one way: this module imports the pure estimator (``dbml.estimator``: a
@@ -35,7 +35,7 @@ from dbml.estimator.base import Estimate, Phase
 from dbml.protocol.keys import is_host_name
 from dbml.protocol.metadata import SEQ_MAX
 from dbml.protocol.names import check_topic
-from dbml.protocol.schema import GLOBAL_PREFIX, MAX_TEXT_CHARS
+from dbml.protocol.schema import MAX_TEXT_CHARS
 
 __all__ = [
     "HEARD_MAX",
@@ -48,7 +48,6 @@ __all__ = [
     "MAX_ROUND_BYTES",
     "RELEASE_MAX_CHANNELS",
     "RELEASE_MAX_S",
-    "ROUND_TOPIC",
     "ChannelRound",
     "EstimatorState",
     "Heard",
@@ -406,8 +405,6 @@ def _frame(row: object, where: str) -> ReceivedFrame:
 
 # -- the round report -------------------------------------------------------------------------
 
-ROUND_TOPIC = f"{GLOBAL_PREFIX}/optimizer/round"
-"""Where the optimizer says what each round decided."""
 MAX_REPORTED_CHANNELS = 4096
 """The most channels a round reports: the most the optimizer tracks (``MAX_CHANNELS``)."""
 MAX_ROUND_BYTES = 4 << 20
@@ -489,14 +486,15 @@ class ChannelRound:
         """A channel of a received report; ``TransportError`` naming a bad field."""
         if not isinstance(document, dict):
             raise TransportError(f"round channel={short_repr(document)} is not an object")
-        topic, managed = document.get("topic"), document.get("managed")
-        if not isinstance(topic, str):
-            raise TransportError(f"round channel topic={short_repr(topic)} is not a string")
-        check_topic(topic)
+        try:
+            topic = _name(document.get("topic"), "round channel topic")
+        except ValueError as err:
+            raise TransportError(str(err)) from None
+        managed = document.get("managed")
         if not isinstance(managed, bool):
             raise TransportError(f"{topic}: managed={short_repr(managed)} is not a boolean")
         try:
-            return cls(
+            channel = cls(
                 topic=topic,
                 managed=managed,
                 priority=_round_number(document, "priority", maximum=1.0),
@@ -512,6 +510,11 @@ class ChannelRound:
             )
         except TransportError as err:
             raise TransportError(f"{topic}: {err}") from None
+        if channel.min_hz > channel.max_hz:
+            raise TransportError(
+                f"{topic}: min_hz={channel.min_hz!r} is above max_hz={channel.max_hz!r}"
+            )
+        return channel
 
 
 @dataclass(frozen=True, slots=True)
@@ -542,8 +545,12 @@ class RoundReport:
         return total / _BYTES_PER_S_PER_MBIT
 
     def channel(self, topic: str) -> ChannelRound | None:
-        """The round's entry of ``topic``, if it reported one."""
+        """The round's entry of ``topic``, if it reported one (``by_topic`` for many)."""
         return next((c for c in self.channels if c.topic == topic), None)
+
+    def by_topic(self) -> dict[str, ChannelRound]:
+        """Every channel's entry, by topic."""
+        return {c.topic: c for c in self.channels}
 
     def as_json(self) -> dict[str, Any]:
         """The report as a document (the live view's ``/dbm/allocation`` adds nothing to it)."""
@@ -593,11 +600,14 @@ class RoundReport:
                 f"{MAX_REPORTED_CHANNELS}"
             )
         budget = _round_optional(document, "budget_mbit", exclusive_minimum=True)
+        rows = tuple(ChannelRound.from_json(c) for c in channels)
+        if len({row.topic for row in rows}) < len(rows):
+            raise TransportError("round report channels name a topic twice")
         return cls(
             round=counter,
             status=Status(status),
             message=message,
             strategy=Strategy(strategy),
             budget_mbit=budget,
-            channels=tuple(ChannelRound.from_json(c) for c in channels),
+            channels=rows,
         )

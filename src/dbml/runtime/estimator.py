@@ -50,14 +50,13 @@ from dbml.protocol.messages import (
     ReceptionReport,
 )
 from dbml.runtime.params import ParamView
-from dbml.runtime.reception import EARLY_FLUSH_QUEUE_S, RECEPTION_TOPIC, REPORT_INTERVAL_S
+from dbml.runtime.reception import EARLY_FLUSH_QUEUE_S, REPORT_INTERVAL_S
 from dbml.runtime.worker import PeriodicWorker
 from dbml.transports.base import Role, Sample, Transport
 from dbml.transports.overflow import Overflow
 
 __all__ = [
     "ESTIMATE_INTERVAL_S",
-    "LINK_TOPIC",
     "MAX_REPORTERS",
     "OWED_WINDOW_S",
     "WAKE_GAP_S",
@@ -82,8 +81,6 @@ it explains less (61 ms for 84 KB at 11 Mbit/s), so a steady link does not wake 
 WAKE_GAP_S = ESTIMATE_INTERVAL_S / 4
 """Woken ticks are at least this far apart: a congested link's reports from many hosts
 run the estimator at most this often."""
-LINK_TOPIC = keys.LINK_TOPIC
-"""Where the estimator's :class:`LinkBeacon` goes every tick."""
 RELEASE_ORDER_S = 2.0
 """After an outage, beacons carry the release order this long (publishers may hear late)."""
 OWED_WINDOW_S = 1.0
@@ -180,7 +177,7 @@ class LinkEstimator:
         # behind the frames still queued for the link, so publishers release after that
         # backlog, not on top of it (as control traffic it overtook the backlog: the release
         # exceeded the budget by 2.2 Mbit/s in 2 of 4 testbed runs, against 0.4-0.7).
-        self._beacon = transport.declare_publisher(LINK_TOPIC)
+        self._beacon = transport.declare_publisher(keys.LINK_TOPIC)
         self._order_until = -math.inf
         self._arrived: dict[tuple[str, str], _Arrivals] = {}
         """Per reporting host and live channel, its newest frames' arrivals, the one heard from
@@ -208,7 +205,7 @@ class LinkEstimator:
         while the estimate stays there carry that time."""
         self._graph_watch = transport.graph.watch(self._on_graph)
         self._on_graph()
-        self._subscription = transport.subscribe(RECEPTION_TOPIC, self._on_report)
+        self._subscription = transport.subscribe(keys.RECEPTION_TOPIC, self._on_report)
 
     def cap_mbit(self) -> float | None:
         """The configured budget (bandwidth times utilization): the estimate's ceiling."""

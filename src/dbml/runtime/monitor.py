@@ -11,11 +11,11 @@ from dataclasses import dataclass
 from typing import Any
 
 from dbml.core.errors import SpecError
-from dbml.protocol import names, schema
+from dbml.protocol import schema
 from dbml.protocol.messages import EstimatorState, RoundReport
 from dbml.protocol.schema import PARAMETERS, Parameter
-from dbml.runtime.graph import is_managed, published_topics, publisher_hosts
-from dbml.runtime.params import channel_params, dbm_params, valid_values
+from dbml.runtime.graph import summarize
+from dbml.runtime.params import read_snapshot
 from dbml.transports.base import Transport
 
 __all__ = ["MONITOR_PARAMETERS", "ChannelRow", "MonitorView", "channel_rows", "monitor_view"]
@@ -77,19 +77,19 @@ class MonitorView:
 
 def monitor_view(transport: Transport, report: RoundReport | None = None) -> MonitorView:
     """Read the graph and the (validated) parameters once, beside the optimizer's ``report``."""
-    entries = transport.graph.entries()
-    values = valid_values(transport.params.snapshot())
-    dbm = dbm_params(values)
-    status = values.get(names.STATUS)
-    estimator_text = _estimator_text(values.get(names.ESTIMATOR_STATE))
-    channels = channel_params(values)
+    graph = summarize(transport.graph.entries())
+    snapshot = read_snapshot(transport.params.snapshot())
+    dbm = snapshot.dbm
+    status = snapshot.globals.get(schema.STATUS)
+    estimator_text = _estimator_text(snapshot.globals.get(schema.ESTIMATOR_STATE))
+    reports = {} if report is None else report.by_topic()
     rows = []
-    for topic in sorted(published_topics(entries)):
-        channel = channels.get(topic)
+    for topic in sorted(graph.publishers):
+        channel = snapshot.channels.get(topic)
         if channel is None or channel.max_rate_hz is None:
             continue  # not a dbml channel (ROS 1's graph lists every topic, /rosout too)
-        managed = is_managed(entries, topic)
-        reported = None if report is None else report.channel(topic)
+        managed = topic in graph.managed
+        reported = reports.get(topic)
         allocated = channel.current_rate_hz if reported is None else reported.rate_hz
         share = None if reported is None else reported.share
         if allocated is None:
@@ -101,7 +101,7 @@ def monitor_view(transport: Transport, report: RoundReport | None = None) -> Mon
         rows.append(
             ChannelRow(
                 topic=topic,
-                host=",".join(sorted(publisher_hosts(entries, topic))),
+                host=",".join(sorted(graph.hosts.get(topic, ()))),
                 managed=managed,
                 priority=channel.priority,
                 size_bytes=channel.size_bytes,
@@ -112,7 +112,7 @@ def monitor_view(transport: Transport, report: RoundReport | None = None) -> Mon
                 estimator=estimator_text,
             )
         )
-    message = values.get(names.STATUS_MESSAGE)
+    message = snapshot.globals.get(schema.STATUS_MESSAGE)
     return MonitorView(
         rows=tuple(rows),
         bandwidth_mbit=dbm.bandwidth_mbit,

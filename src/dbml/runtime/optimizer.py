@@ -35,7 +35,8 @@ from dbml.core.config import DbmSettings
 from dbml.core.errors import DbmlError
 from dbml.core.spec import LinkSpec, Problem, mbit_to_bytes_per_s, short_repr
 from dbml.protocol import keys, names, schema
-from dbml.protocol.messages import MAX_REPORTED_CHANNELS, ROUND_TOPIC, ChannelRound, RoundReport
+from dbml.protocol.keys import ROUND_TOPIC
+from dbml.protocol.messages import MAX_REPORTED_CHANNELS, ChannelRound, RoundReport
 from dbml.protocol.schema import Parameter
 from dbml.runtime.graph import summarize
 from dbml.runtime.params import ChannelParams, DbmParams, ParamView, write_settings

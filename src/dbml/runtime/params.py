@@ -43,9 +43,9 @@ __all__ = [
     "ChannelParams",
     "DbmParams",
     "ParamView",
-    "channel_params",
+    "Snapshot",
     "dbm_params",
-    "valid_values",
+    "read_snapshot",
     "write_settings",
 ]
 
@@ -393,17 +393,39 @@ def _channel(topic: str, values: ByParameter) -> ChannelParams:
     )
 
 
+@dataclass(frozen=True, slots=True)
+class Snapshot:
+    """A one-off read of the store, validated, each name parsed once (``dbml monitor``'s)."""
+
+    globals: ByParameter
+    """The global parameters' valid values."""
+    channels: Mapping[str, ChannelParams]
+    """Every channel some valid value names, by topic."""
+
+    @property
+    def dbm(self) -> DbmParams:
+        """The ``/dbm/...`` parameters in force, with their defaults where unset."""
+        return _dbm(self.globals)
+
+
 def _by_parameter(
-    values: Mapping[str, ParamValue],
+    values: Mapping[str, ParamValue], *, check: bool = False
 ) -> tuple[dict[Parameter, ParamValue], dict[str, dict[Parameter, ParamValue]]]:
-    """Valid values by name as the globals and each channel's, by parameter (one parse each)."""
+    """Values by name as the globals and each channel's, by parameter (one parse each).
+
+    ``check``: a value its parameter's rule refuses is left out (it came from the network).
+    """
     globals_: dict[Parameter, ParamValue] = {}
     channels: dict[str, dict[Parameter, ParamValue]] = {}
-    for name, value in values.items():
+    for name, raw in values.items():
         found = lookup(name)
-        if found is None or value is None:
+        if found is None or raw is None:
             continue
         parameter, topic = found
+        try:
+            value = parameter.check(raw, name=name) if check else raw
+        except ParamError:
+            continue
         if topic is None:
             globals_[parameter] = value
         else:
@@ -411,31 +433,12 @@ def _by_parameter(
     return globals_, channels
 
 
+def read_snapshot(snapshot: Mapping[str, ParamValue]) -> Snapshot:
+    """A store's ``snapshot()`` validated and by parameter, each name parsed once."""
+    globals_, channels = _by_parameter(snapshot, check=True)
+    return Snapshot(globals_, {t: _channel(t, kept) for t, kept in channels.items()})
+
+
 def dbm_params(values: Mapping[str, ParamValue]) -> DbmParams:
     """``DbmParams`` from valid values by name (as ``ParamView.values`` gives them)."""
     return _dbm(_by_parameter(values)[0])
-
-
-def channel_params(values: Mapping[str, ParamValue]) -> dict[str, ChannelParams]:
-    """Every channel's ``ChannelParams`` from valid values by name, by topic.
-
-    For a reader that holds a one-off snapshot (``dbml monitor``): each name is parsed once.
-    """
-    return {topic: _channel(topic, kept) for topic, kept in _by_parameter(values)[1].items()}
-
-
-def valid_values(snapshot: Mapping[str, ParamValue]) -> dict[str, ParamValue]:
-    """The valid values of a one-off snapshot, bad ones left out.
-
-    For a reader that does not follow the store (``dbml monitor``'s rows).
-    """
-    good: dict[str, ParamValue] = {}
-    for name, value in snapshot.items():
-        found = lookup(name)
-        try:
-            checked = value if found is None or value is None else found[0].check(value, name=name)
-        except ParamError:
-            continue
-        if checked is not None:
-            good[name] = checked
-    return good

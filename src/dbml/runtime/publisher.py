@@ -32,10 +32,9 @@ from collections.abc import Callable
 
 from dbml.core.errors import TransportError
 from dbml.core.spec import ChannelSpec, check_number
-from dbml.protocol import names
+from dbml.protocol import keys, names
 from dbml.protocol.messages import LinkBeacon
 from dbml.protocol.metadata import pack_meta
-from dbml.runtime.estimator import LINK_TOPIC
 from dbml.runtime.failsafe import FAILSAFE_PERIODS, FailSafe
 from dbml.runtime.outage import (
     BEACON_WINDOW,
@@ -172,7 +171,7 @@ class ManagedPublisher:
         self._qos_stale = False  # our own priority write: the class below already has it
         self._switch = QosSwitch(self._declare_optimized, self._wanted_qos())
         self._announcement = transport.graph.announce(Role.PUBLISHER, topic, Variant.FULL)
-        self._link_watch = transport.subscribe(LINK_TOPIC, self._on_link)
+        self._link_watch = transport.subscribe(keys.LINK_TOPIC, self._on_link)
         # A Float64 on [topic]/dbm/priority sets the priority, whoever publishes it.
         self._priority_topic = PriorityTopic(transport, topic)
 

@@ -25,14 +25,12 @@ __all__ = [
     "EARLY_FLUSH_QUEUE_S",
     "MAX_FRAMES",
     "MAX_TOPICS",
-    "RECEPTION_TOPIC",
     "REPORT_INTERVAL_S",
     "ReceptionReporter",
 ]
 
 log = logging.getLogger("dbml.reception")
 
-RECEPTION_TOPIC = keys.RECEPTION_TOPIC
 REPORT_INTERVAL_S = 0.05
 """How often a reporter sends what it recorded: the estimator judges this much and half again
 in the past (frames still on their way to it), so it is part of the time to a cut."""
@@ -56,7 +54,7 @@ class ReceptionReporter:
 
     def __init__(self, transport: Transport, *, interval_s: float = REPORT_INTERVAL_S) -> None:
         self._transport = transport
-        self._publisher = transport.declare_publisher(RECEPTION_TOPIC)
+        self._publisher = transport.declare_publisher(keys.RECEPTION_TOPIC)
         self._frames: list[ReceivedFrame] = []
         """Recorded since the last flush, oldest first (``MAX_FRAMES`` at most)."""
         self._full = Overflow("received frames recorded", MAX_FRAMES, log=log, evicts=True)

@@ -13,7 +13,8 @@ import threading
 from collections.abc import Callable
 
 from dbml.core.errors import TransportError
-from dbml.protocol.messages import ROUND_TOPIC, RoundReport
+from dbml.protocol.keys import ROUND_TOPIC
+from dbml.protocol.messages import RoundReport
 from dbml.transports.base import Handle, Sample, Transport
 from dbml.transports.callbacks import CallbackList
 from dbml.transports.overflow import LogOnce

@@ -20,7 +20,7 @@ from types import MappingProxyType
 from typing import Any
 
 from dbml.protocol import keys
-from dbml.protocol.messages import ROUND_TOPIC
+from dbml.protocol.keys import ROUND_TOPIC
 from dbml.protocol.schema import PARAMETERS, Parameter, Scope, Writer
 from dbml.secure.fleet import Fleet, FleetNode, NodeRole
 

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from dbml.core.errors import TransportError
+from dbml.protocol import keys
 from dbml.protocol.names import OPTIMIZED, check_topic
 from dbml.protocol.schema import GLOBAL_PREFIX
 from dbml.transports.base import Closer, GraphEntry, Handle, Role, Variant, resolve_host
@@ -25,7 +26,6 @@ from dbml.transports.callbacks import CallbackList
 from dbml.transports.overflow import LogOnce, Overflow
 from dbml.transports.rclpy.fastdds import GID_BYTES, gid_host_id
 from dbml.transports.rclpy.nodes import (
-    ALLOCATION_TOPIC,
     PARTICIPANT_BYTES,
     claim_topic,
     is_param_node,
@@ -181,11 +181,11 @@ def read_graph(node: Node, *, topics_overflow: Overflow, bad: LogOnce) -> DdsGra
                 if fqn is not None:
                     param_hosts.setdefault(fqn, set()).add(gid[:PARTICIPANT_BYTES])
                     # A host's claim: /dbm's allocation publisher, a channel's host topic.
-                    if (fqn == GLOBAL_PREFIX and topic == ALLOCATION_TOPIC) or (
+                    if (fqn == GLOBAL_PREFIX and topic == keys.ALLOCATION_TOPIC) or (
                         fqn != GLOBAL_PREFIX and topic == claim_topic(fqn)
                     ):
                         claimed.setdefault(fqn, set()).add(gid[:PARTICIPANT_BYTES])
-                        if topic == ALLOCATION_TOPIC:
+                        if topic == keys.ALLOCATION_TOPIC:
                             senders.add(gid)
                 infos.append((role, topic, info))
     for topic, by in published.items():

@@ -17,7 +17,6 @@ from dbml.protocol.names import check_topic
 from dbml.protocol.schema import GLOBAL_PREFIX, Parameter, Scope, Writer, lookup
 
 __all__ = [
-    "ALLOCATION_TOPIC",
     "CLAIM_SUFFIX",
     "DBM_NODE",
     "HOSTING_WRITERS",
@@ -36,9 +35,6 @@ __all__ = [
     "yields",
 ]
 
-ALLOCATION_TOPIC = f"{GLOBAL_PREFIX}/allocation"
-"""Where the optimizer's ``/dbm`` node sends a round's allocation (``std_msgs/msg/String``,
-``dbml.protocol.keys``' batch encoding); the publisher also says that the node is claimed."""
 CLAIM_SUFFIX = f"{GLOBAL_PREFIX}/host"
 """A claimed channel node's ``std_msgs/msg/String`` topic, ``[topic]/dbm/host``: its publisher
 says in the graph that this process hosts ``[topic]/dbm`` for good, its message which host."""

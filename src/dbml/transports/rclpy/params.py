@@ -61,7 +61,6 @@ from dbml.protocol.schema import (
 from dbml.transports.base import ParamValue, check_param_value
 from dbml.transports.overflow import LogOnce, Overflow
 from dbml.transports.rclpy.nodes import (
-    ALLOCATION_TOPIC,
     DBM_NODE,
     PARTICIPANT_BYTES,
     ROS_OWN,
@@ -351,7 +350,7 @@ class RclpyParams:
 
         hosted.provisional = False
         if node == GLOBAL_PREFIX:
-            hosted.claim = self._transport.string_publisher(hosted.node, ALLOCATION_TOPIC)
+            hosted.claim = self._transport.string_publisher(hosted.node, keys.ALLOCATION_TOPIC)
         else:
             hosted.claim = self._transport.string_publisher(hosted.node, claim_topic(node))
             hosted.claim.publish(String(data=self._transport.host))

@@ -39,6 +39,7 @@ from typing import Any
 
 from dbml.core.errors import TransportError
 from dbml.core.extras import require
+from dbml.protocol import keys
 from dbml.protocol.metadata import pack_meta
 from dbml.protocol.names import check_topic
 from dbml.protocol.schema import GLOBAL_PREFIX
@@ -55,7 +56,6 @@ from dbml.transports.overflow import LogOnce, Overflow
 from dbml.transports.rclpy.fastdds import GID_BYTES
 from dbml.transports.rclpy.graph import MAX_TOPICS, Graph, node_name_for, read_graph
 from dbml.transports.rclpy.nodes import (
-    ALLOCATION_TOPIC,
     check_ros_topic,
     is_param_node,
     python_value,
@@ -439,7 +439,7 @@ class RclpyTransport(TransportBase):
             )
             self.node.create_subscription(
                 _string(),
-                ALLOCATION_TOPIC,
+                keys.ALLOCATION_TOPIC,
                 self._on_allocation,
                 ALLOCATION_QOS,
             )
