@@ -53,10 +53,11 @@ from dbml.runtime.params import ParamView
 from dbml.runtime.reception import EARLY_FLUSH_QUEUE_S, REPORT_INTERVAL_S
 from dbml.runtime.worker import PeriodicWorker
 from dbml.transports.base import Role, Sample, Transport
-from dbml.transports.overflow import Overflow
+from dbml.transports.overflow import Overflow, ThrottledLog
 
 __all__ = [
     "ESTIMATE_INTERVAL_S",
+    "MALFORMED_LOG_S",
     "MAX_REPORTERS",
     "OWED_WINDOW_S",
     "WAKE_GAP_S",
@@ -86,6 +87,8 @@ RELEASE_ORDER_S = 2.0
 OWED_WINDOW_S = 1.0
 """A release owes the frames of its channel that land in this window: those that arrived this
 long before it and those still in the link (a beacon's ``heard`` says both)."""
+MALFORMED_LOG_S = 10.0
+"""A malformed reception report is logged at most once this often (with how many since)."""
 MAX_REPORTERS = 1024
 """The most reporting hosts whose clock offsets are kept (a fleet has tens). A host name comes
 from the network: a report from one more host evicts the one silent the longest, whose offset
@@ -164,6 +167,8 @@ class LinkEstimator:
         self._offsets: dict[str, float] = {}
         """Per reporting host, its clock's offset to ours; the longest silent first."""
         self._reporters_full = Overflow("reporting hosts", MAX_REPORTERS, log=log, evicts=True)
+        self._malformed = ThrottledLog(MALFORMED_LOG_S, log=log)
+        """Malformed reports come from the network, maybe as a flood: one line a while."""
         self._streams_full = Overflow("streams followed", MAX_STREAMS, log=log, evicts=True)
         self._samples_full = Overflow("frames kept", MAX_SAMPLES, log=log)
         self._told = (0, 0)
@@ -228,7 +233,7 @@ class LinkEstimator:
         try:
             report = ReceptionReport.decode(sample.payload)
         except TransportError as err:
-            log.warning("%s", err)
+            self._malformed.warning("report", "ignoring a reception report: %s", err)
             return
         now = self._transport.now()
         evicted = refused = displaced = 0
