@@ -21,8 +21,9 @@ twins of ``ros2peers`` (which does the same job over rmw_zenoh's wire format):
   writer's sequence number (so gaps are losses on the link) and its source timestamp (the
   bridge's send, as zenoh's metadata says the managed publisher's). With ``spec.estimate`` its
   dbml transport also reports what arrived to the estimator (``ReceptionReporter``), each
-  frame with dbml's metadata made of that sample info (``dbml.transports.rclpy.sample_meta``):
-  rclpy alone gives the plain node everything the estimator needs; dbml only carries it.
+  frame with dbml's metadata made of that sample info (``sample_meta`` of
+  ``dbml.transports.rclpy.transport``): rclpy alone gives the plain node everything the
+  estimator needs; dbml only carries it.
 
 Robots ``r3``..``rN`` of a fleet (``spec.robots``, ``dbml.scenarios.fleet``) are cameras too,
 with the fleet's sizes and rotating events.

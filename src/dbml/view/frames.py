@@ -90,9 +90,9 @@ ALLOCATION_SCHEMA: dict[str, Any] = {
     "description": "One optimizer round: its status and every live channel's allocation.",
     "type": "object",
     "properties": {
-        "round": _NULLABLE_NUMBER,
-        "status": {"type": "string", "description": "null before the optimizer's first"},
-        "status_message": {"type": "string", "description": "null before the first"},
+        "round": _NUMBER,
+        "status": {"type": "string"},
+        "status_message": {"type": "string"},
         "strategy": {"type": "string"},
         "budget_mbit": _NULLABLE_NUMBER,
         "allocated_mbit": _NUMBER,

@@ -1,7 +1,8 @@
 """The rclpy transport: real ROS 2 through the user's own rclpy, on whatever RMW it runs.
 
 Tested with Fast DDS (Kilted's ``ros-*`` wheels, ``pip install 'dbml[rclpy]'``); a sourced
-``/opt/ros/<distro>`` works the same; in the library, only this module imports rclpy.
+``/opt/ros/<distro>`` works the same. In the runtime, only this package imports rclpy (the
+harness and the plain ROS 2 peers of the experiment use it too, as plain ROS 2 nodes).
 
 - **Data** is raw CDR both ways: a publisher sends the bytes it is given (``publish(bytes)``), a
   subscription hands over what arrived (``raw=True``); nothing is re-serialised. A topic's type

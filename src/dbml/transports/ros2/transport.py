@@ -529,7 +529,7 @@ class Ros2Transport(TransportBase):
     ) -> Handle:
         """Call ``callback`` for every message of ``topic``'s ``variant``, whatever its type.
 
-        The sample's attachment is rmw's 33 bytes (``ros2msg.decode_attachment``), not dbml's.
+        The sample's attachment is rmw's 33 bytes (``wire.decode_attachment``), not dbml's.
         """
         check_topic(topic)
         name = variant.key(topic)
