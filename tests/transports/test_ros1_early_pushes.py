@@ -10,11 +10,14 @@ from xmlrpc.server import SimpleXMLRPCServer
 
 import pytest
 
+from dbml.transports.ros1 import params as ros1_params
 from dbml.transports.ros1.master import MasterClient
-from dbml.transports.ros1.params import MAX_EARLY_PUSHES, Ros1Params
+from dbml.transports.ros1.params import Ros1Params
 
+BOUND = 64
+"""The pushes kept while subscribing, for the test (``MAX_EARLY_PUSHES``, 4,096, took 17 s)."""
 OVER = 10
-PUSHES = MAX_EARLY_PUSHES + OVER
+PUSHES = BOUND + OVER
 SUBSCRIBE_TIMEOUT_S = 60.0
 
 
@@ -56,8 +59,9 @@ def master() -> Iterator[FakeMaster]:
 
 
 def test_pushes_past_the_bound_while_subscribing_are_read_again_whole(
-    master: FakeMaster, caplog: pytest.LogCaptureFixture
+    master: FakeMaster, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    monkeypatch.setattr(ros1_params, "MAX_EARLY_PUSHES", BOUND)
     # The fake master pushes from inside the subscription's call: thousands of calls, which a
     # loaded machine takes seconds for, beyond a real call's timeout.
     client = MasterClient(master.uri, caller_id="/early_test", timeout_s=SUBSCRIBE_TIMEOUT_S)
@@ -71,7 +75,7 @@ def test_pushes_past_the_bound_while_subscribing_are_read_again_whole(
         assert params.replica.get(f"/flood/{PUSHES - 1}") == PUSHES - 1  # dropped, then read
         assert [r.getMessage() for r in caplog.records] == [
             f"{PUSHES} parameter pushes arrived while subscribing, more than the "
-            f"{MAX_EARLY_PUSHES} kept: reading every parameter again"
+            f"{BOUND} kept: reading every parameter again"
         ]
     finally:
         params.close()
