@@ -6,7 +6,7 @@ operator's ticks. This derives a link model from each trace: the payload rate th
 shaped Mbit/s (from frames that waited behind another), the delay noise on top of the FIFO
 (from frames that did not wait), how the allocation split the budget between the robots over
 time, and how late a budget change reached the senders. It then runs every design closed loop
-in that model (``tests/estimator/link_model.py``) on the trace's own link schedule, for a few seeds
+in that model (``dbml.estimator.simulation``) on the trace's own link schedule, for a few seeds
 of the noise, and prints JSON: per design and schedule the item-4 figures by name
 (min/median/max over traces and seeds). A steady trace is also replayed open loop: its
 recorded arrivals fed to each design as they came (item 3: the lowest estimate against the
@@ -33,7 +33,7 @@ from dbml.estimator import Arrival, BandwidthEstimator, Design, EstimatorSetting
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 import itertools
 
-from tests.estimator.link_model import FRAMES, Trace, simulate
+from dbml.estimator.simulation import FRAMES, Trace, simulate
 
 TRACES = Path(__file__).resolve().parent / "traces"
 UTILIZATION = 0.92

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from dbml import DbmSettings
-from dbml.core import TransportError
+from dbml.core import SpecError, TransportError
 from dbml.protocol import names
 from dbml.testing import BASE, FIRST_TIME_S, Fleet
 from dbml.transports import MemoryTransport
@@ -50,9 +50,9 @@ def test_the_clock_is_the_fleet_s_and_moves_only_when_told() -> None:
 
 
 def test_a_fleet_without_an_optimizer_says_so() -> None:
-    with pytest.raises(ValueError, match="optimizer=False takes none"):
+    with pytest.raises(SpecError, match="optimizer=False takes none"):
         Fleet(optimizer=False, settings=DbmSettings(max_bandwidth_mbit=1))
-    with Fleet(optimizer=False) as fleet, pytest.raises(RuntimeError, match="no optimizer"):
+    with Fleet(optimizer=False) as fleet, pytest.raises(SpecError, match="no optimizer"):
         fleet.optimize()
-    with Fleet(clock=lambda: 0.0) as fleet, pytest.raises(TypeError, match="manual clock"):
+    with Fleet(clock=lambda: 0.0) as fleet, pytest.raises(SpecError, match="manual clock"):
         fleet.advance(1.0)

@@ -28,12 +28,14 @@ from types import TracebackType
 from typing import Self
 
 from dbml.core.config import DbmSettings
+from dbml.core.errors import SpecError
 from dbml.core.spec import LinkSpec
 from dbml.protocol import names
+from dbml.runtime.failsafe import FAILSAFE_PERIODS
 from dbml.runtime.optimizer import ACK_TIMEOUT_S, OptimizerNode, Round
 from dbml.runtime.publisher import ManagedPublisher
 from dbml.runtime.subscriber import ManagedSubscriber
-from dbml.transports.base import Handle, ParamValue, Sample
+from dbml.transports.base import Handle, ParamValue, Sample, TransportPriority
 from dbml.transports.memory import ManualClock, MemoryNetwork, MemoryTransport
 
 __all__ = ["BASE", "OPERATOR", "Fleet"]
@@ -74,10 +76,14 @@ class Fleet:
         self._optimizer: OptimizerNode | None = None
         if optimizer:
             self._optimizer = OptimizerNode(
-                self.host(BASE), settings=settings, links=links, ack_timeout_s=ack_timeout_s
+                self.host(BASE),
+                settings=settings,
+                links=links,
+                ack_timeout_s=ack_timeout_s,
+                report_interval_s=0.0,  # every round reported, however close: a test steps them
             )
         elif settings is not None or links:
-            raise ValueError("settings and links are the optimizer's: optimizer=False takes none")
+            raise SpecError("settings and links are the optimizer's: optimizer=False takes none")
 
     def host(self, name: str) -> MemoryTransport:
         """The transport of host ``name`` (made on first use; one per host)."""
@@ -90,9 +96,9 @@ class Fleet:
 
     @property
     def optimizer(self) -> OptimizerNode:
-        """The base station's optimizer (``RuntimeError`` in a fleet made without one)."""
+        """The base station's optimizer (``SpecError`` in a fleet made without one)."""
         if self._optimizer is None:
-            raise RuntimeError("this fleet has no optimizer (optimizer=False)")
+            raise SpecError("this fleet has no optimizer (optimizer=False)")
         return self._optimizer
 
     @property
@@ -103,7 +109,7 @@ class Fleet:
     def advance(self, seconds: float) -> None:
         """Move the manual clock forward."""
         if not isinstance(self.clock, ManualClock):
-            raise TypeError("advance() needs the fleet's manual clock (clock=None)")
+            raise SpecError("advance() needs the fleet's manual clock (clock=None)")
         self.clock.advance(seconds)
 
     # -- the roles ----------------------------------------------------------------------------
@@ -117,7 +123,9 @@ class Fleet:
         min_rate_hz: float = 1.0,
         max_rate_hz: float = 16.0,
         priority: float | None = None,
-        **options: object,
+        failsafe_periods: float = FAILSAFE_PERIODS,
+        transport_priority: TransportPriority | None = None,
+        map_transport_priority: bool = True,
     ) -> ManagedPublisher:
         """A managed publisher of ``topic`` on ``host`` (by default the topic's first segment).
 
@@ -131,7 +139,9 @@ class Fleet:
             min_rate_hz=min_rate_hz,
             max_rate_hz=max_rate_hz,
             priority=priority,
-            **options,  # type: ignore[arg-type]
+            failsafe_periods=failsafe_periods,
+            transport_priority=transport_priority,
+            map_transport_priority=map_transport_priority,
         )
         self.publishers[topic] = publisher
         self._closing.append(publisher)

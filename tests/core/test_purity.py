@@ -11,6 +11,7 @@ PURE_IMPORTS = {
     "collections.abc",
     "dataclasses",
     "enum",
+    "heapq",
     "itertools",
     "math",
     "typing",

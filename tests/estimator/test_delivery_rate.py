@@ -19,7 +19,7 @@ from dbml.estimator import (
     EstimatorSettings,
     Phase,
 )
-from tests.estimator.link_model import CAP_MBIT, WIRE_EFFICIENCY, simulate
+from dbml.estimator.simulation import CAP_MBIT, WIRE_EFFICIENCY, simulate
 
 DELIVERY_RATE = EstimatorSettings(detector=DeliveryRateSettings())
 """The design that does not cut a steady link (docs/estimator.md); not the default."""

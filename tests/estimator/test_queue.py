@@ -1,4 +1,7 @@
-"""The ``queue`` design (the default), closed loop over a simulated bottleneck (link_model)."""
+"""The ``queue`` design (the default), closed loop over a simulated bottleneck.
+
+The bottleneck is ``dbml.estimator.simulation``'s.
+"""
 
 from __future__ import annotations
 
@@ -11,7 +14,7 @@ from hypothesis import strategies as st
 
 from dbml.core.errors import SpecError
 from dbml.estimator import Arrival, BandwidthEstimator, Phase, QueueSettings
-from tests.estimator.link_model import CAP_MBIT, WIRE_EFFICIENCY, drop_and_rise, simulate
+from dbml.estimator.simulation import CAP_MBIT, WIRE_EFFICIENCY, drop_and_rise, simulate
 
 DEMAND_MAX_MBIT = 16 * (84_000 + 21_000) * 8e-6  # both cameras at their maximum
 

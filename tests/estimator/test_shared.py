@@ -25,7 +25,7 @@ from dbml.estimator import (
     shared,
 )
 from dbml.estimator.base import Decision, SharedSettings
-from tests.estimator.link_model import CAP_MBIT, drop_and_rise, simulate
+from dbml.estimator.simulation import CAP_MBIT, drop_and_rise, simulate
 
 
 @given(

@@ -196,6 +196,8 @@ def test_types_and_camera_frames(ros2: Callable[[str], Ros2Transport]) -> None:
         camera_frame(transport, "ros2", "/r2/camera", 10)
     transport.set_topic_type("/chatter", "std_msgs/msg/String")
     assert transport._type_of("/chatter")[0] == "std_msgs/msg/String"
+    with pytest.raises(TransportError, match="has type 'std_msgs/msg/String', not"):
+        camera_frame(transport, "ros2", "/chatter", 100)
 
 
 def test_sdk_subscriber_receives_managed_frames_and_is_a_graph_entry(

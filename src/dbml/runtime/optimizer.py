@@ -25,6 +25,7 @@ many topics the graph shows; the channels past it are ignored, said in the statu
 from __future__ import annotations
 
 import logging
+import math
 import threading
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, replace
@@ -51,7 +52,7 @@ from dbml.transports.base import (
 )
 from dbml.transports.overflow import Overflow
 
-__all__ = ["MAX_CHANNELS", "ChannelState", "OptimizerNode", "Round"]
+__all__ = ["MAX_CHANNELS", "REPORT_INTERVAL_S", "ChannelState", "OptimizerNode", "Round"]
 
 log = logging.getLogger("dbml.optimizer")
 
@@ -79,6 +80,10 @@ ACK_TIMEOUT_S = 0.25
 """How long increases wait for publishers to acknowledge the decreases pushed before them."""
 COALESCE_S = 0.002
 """Triggers within this time of the first run one round."""
+REPORT_INTERVAL_S = 0.1
+"""Round reports (telemetry, not control: views and monitors read them, maybe over the radio)
+go at most this often; a burst of triggered rounds is reported by its last one but at most one
+period later. A report costs about 300 bytes a channel."""
 MAX_CHANNELS = MAX_REPORTED_CHANNELS
 """The most channels (published topics) the optimizer tracks: what it remembers per channel
 (rates pushed, publishers asked again) and each round's allocation grow with them. A fleet of
@@ -197,9 +202,12 @@ class OptimizerNode:
         coalesce_s: float = COALESCE_S,
         budget_mbit: Callable[[], float | None] | None = None,
         write_defaults: bool = False,
+        report_interval_s: float = REPORT_INTERVAL_S,
     ) -> None:
         self._transport = transport
         self._links = tuple(links)
+        self._report_interval_s = report_interval_s
+        self._reported_s = -math.inf
         self._ack_timeout_s = ack_timeout_s
         self._estimate = budget_mbit
         self._pushed: dict[str, tuple[float, frozenset[str]]] = {}
@@ -437,9 +445,19 @@ class OptimizerNode:
             self._rounds,
         )
         self.last_round = result
-        if self._reports.has_subscribers:
-            self._reports.put(result.report().encode())
+        self._report(result)
         return result
+
+    def _report(self, result: Round) -> None:
+        """Say what the round decided, to whoever listens: at most once a ``report_interval_s``.
+
+        A round within it is not reported; the next one (at most a period later) is, whole.
+        """
+        now = self._transport.now()
+        if now - self._reported_s < self._report_interval_s or not self._reports.has_subscribers:
+            return
+        self._reported_s = now
+        self._reports.put(result.report().encode())
 
     def _push(
         self,

@@ -708,7 +708,9 @@ class RclpyTransport(TransportBase):
         check_ros_topic(topic)
         message_class(msg_type)
         with self._lock:
-            self._declared_types[topic] = msg_type
+            declared = self._declared_types.setdefault(topic, msg_type)
+        if declared != msg_type:
+            raise TransportError(f"topic={topic!r} has type {declared!r}, not {msg_type!r}")
         self.call_soon(self._poll)
 
     def _check_open(self) -> None:

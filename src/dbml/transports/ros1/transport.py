@@ -382,7 +382,9 @@ class Ros1Transport(TransportBase):
         package = package.removesuffix("/msg")  # ROS 2 spelling: pkg/msg/Name
         if not package or "/" in package or not name:
             raise TransportError(f"type={msg_type!r} must look like 'sensor_msgs/Image'")
-        self._declared_types[base] = f"{package}/{name}"
+        declared = self._declared_types.setdefault(base, f"{package}/{name}")
+        if declared != f"{package}/{name}":
+            raise TransportError(f"topic={topic!r} has type {declared!r}, not {msg_type!r}")
         try:
             data_class = getattr(importlib.import_module(f"{package}.msg"), name, None)
         except ImportError:

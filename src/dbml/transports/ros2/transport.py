@@ -394,7 +394,9 @@ class Ros2Transport(TransportBase):
         check_topic(topic)
         self.types.type_hash(msg_type)
         with self._lock:
-            self._declared_types[topic] = msg_type
+            declared = self._declared_types.setdefault(topic, msg_type)
+        if declared != msg_type:
+            raise TransportError(f"topic={topic!r} has type {declared!r}, not {msg_type!r}")
 
     def _type_of(self, topic: str, variant: Variant = Variant.FULL) -> tuple[str, str]:
         with self._lock:

@@ -14,33 +14,50 @@ import heapq
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
-from dbml.estimator import Arrival, BandwidthEstimator, Estimate
+from dbml.estimator.base import Arrival, Estimate
+from dbml.estimator.shared import BandwidthEstimator
 
-FRAMES = (("r1", 84_000, 16.0, 0.8), ("r2", 21_000, 16.0, 0.2))  # stream, bytes, max Hz, share
-WIRE_EFFICIENCY = 0.957  # payload Mbit/s per shaped Mbit/s measured with raw TCP (FACTS.md)
+__all__ = ["CAP_MBIT", "FRAMES", "WIRE_EFFICIENCY", "Trace", "drop_and_rise", "simulate"]
+
+FRAMES = (("r1", 84_000, 16.0, 0.8), ("r2", 21_000, 16.0, 0.2))
+"""The paper's two cameras: stream, bytes per frame, maximum Hz, share of the budget."""
+WIRE_EFFICIENCY = 0.957
+"""Payload Mbit/s per shaped Mbit/s, measured with raw TCP on the testbed's link."""
 CAP_MBIT = 11.0 * 0.92
 """The testbed's budget on its 11-Mbit/s link: the estimate's cap."""
 
 
+_DROP_S, _RISE_S = 20.0, 40.0
+_FULL_MBIT, _DROPPED_MBIT = 11.0, 5.0
+_P95 = 0.95
+
+
 def drop_and_rise(t: float) -> float:
     """The testbed's drop: 11 Mbit/s, 5 from 20 s, 11 again from 40 s."""
-    return 11.0 if t < 20 or t >= 40 else 5.0
+    return _FULL_MBIT if t < _DROP_S or t >= _RISE_S else _DROPPED_MBIT
 
 
 @dataclass
 class Trace:
+    """What a simulation saw: each update's estimate, each frame's delay, what was offered."""
+
     estimates: list[Estimate] = field(default_factory=list)
-    delays: list[tuple[float, float, str]] = field(default_factory=list)  # (arrival, delay, stream)
-    sent_mbit: list[tuple[float, float]] = field(default_factory=list)  # (t, offered Mbit/s)
+    delays: list[tuple[float, float, str]] = field(default_factory=list)
+    """(arrival s, one-way delay s, stream) of every frame."""
+    sent_mbit: list[tuple[float, float]] = field(default_factory=list)
+    """(time s, Mbit/s the senders offered) at each tick."""
 
     def estimate_at(self, t_s: float) -> float:
+        """The estimate in force at ``t_s``."""
         return next(e.estimate_mbit for e in reversed(self.estimates) if e.t_s <= t_s)
 
     def p95_delay(self, start_s: float, end_s: float) -> float:
+        """The 95th percentile of the delays of the frames that arrived in ``[start_s, end_s)``."""
         delays = sorted(d for t, d, _ in self.delays if start_s <= t < end_s)
-        return delays[int(0.95 * (len(delays) - 1))]
+        return delays[int(_P95 * (len(delays) - 1))]
 
     def max_delay(self, start_s: float, end_s: float, stream: str | None = None) -> float:
+        """The longest delay of the frames (of ``stream``) that arrived in ``[start_s, end_s)``."""
         return max(d for t, d, s in self.delays if start_s <= t < end_s and stream in (None, s))
 
 
@@ -60,6 +77,13 @@ def simulate(
     report_lag_s: float = 0.0,
     shares: Callable[[float], Mapping[str, float]] | None = None,
 ) -> Trace:
+    """``FRAMES``' senders over a link of ``link_mbit(t)`` for ``duration_s``, and what arrived.
+
+    ``estimator`` (None: a constant budget of ``constant_mbit``) is told each frame as it
+    arrives (``report_lag_s`` late) and updated every ``tick_s``; its estimate reaches the
+    senders ``reaction_s`` later. ``clock_offsets_s`` shifts a stream's send times (the
+    sender's clock); ``jitter_s(stream, seq)`` delays a frame after the bottleneck.
+    """
     offsets = clock_offsets_s or {}
     last_arrival = dict.fromkeys((name for name, *_ in FRAMES), 0.0)
     trace = Trace()
