@@ -7,7 +7,6 @@ runtime's names load on first use, so ``import dbml.core`` stays free of threads
 
 from __future__ import annotations
 
-import importlib
 from typing import TYPE_CHECKING
 
 from dbml.core.allocation import Allocation, Status, Strategy, allocate
@@ -19,6 +18,7 @@ from dbml.core.errors import (
     SpecError,
     TransportError,
 )
+from dbml.core.lazy import lazy_names
 from dbml.core.priority import collision_priority, time_to_collision_s
 from dbml.core.spec import ChannelSpec, LinkSpec, Problem
 
@@ -66,11 +66,4 @@ _LAZY = {
 }
 
 
-def __getattr__(name: str) -> object:
-    """Load a runtime name on first use (PEP 562)."""
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module 'dbml' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
+__getattr__ = lazy_names(__name__, _LAZY)

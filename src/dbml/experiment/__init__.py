@@ -9,9 +9,9 @@ only what its kind needs.
 
 from __future__ import annotations
 
-import importlib
 from typing import TYPE_CHECKING
 
+from dbml.core.lazy import lazy_names
 from dbml.experiment.analysis import Analysis, Arrival, StepResult, Tick, Window, analyse
 from dbml.experiment.spec import ROLES, RoleSpec
 
@@ -39,11 +39,4 @@ _LAZY = {
 }
 
 
-def __getattr__(name: str) -> object:
-    """Load a runner's name on first use (PEP 562)."""
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module 'dbml.experiment' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
+__getattr__ = lazy_names(__name__, _LAZY)

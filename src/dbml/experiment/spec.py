@@ -19,6 +19,7 @@ from typing import Any
 from dbml.core.allocation import Strategy
 from dbml.core.errors import DbmlError
 from dbml.scenarios.teleop import LINK_MBIT, MIN_RATE_HZ, ROBOTS, STEPS
+from dbml.transports import registry
 from dbml.transports.registry import TRANSPORTS, TransportEntry
 
 __all__ = [
@@ -80,10 +81,7 @@ difference. The operator reports their arrivals as robots ``len(ROBOTS) + k``.""
 
 def transport_entry(name: str, *, flag: str = "--transport") -> TransportEntry:
     """The registered transport ``name``; ``DbmlError`` naming ``flag`` and the choices if none."""
-    entry = TRANSPORTS.get(name)
-    if entry is None:
-        raise DbmlError(f"{flag}={name!r} is not one of: {', '.join(TRANSPORTS)}")
-    return entry
+    return registry.entry(name, field=flag)
 
 
 def host_of(role: str) -> str:

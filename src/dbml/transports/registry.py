@@ -38,6 +38,7 @@ __all__ = [
     "TransportFactory",
     "TransportOptions",
     "camera_frame",
+    "entry",
     "open_transport",
 ]
 
@@ -329,10 +330,7 @@ def open_transport(
     (zenoh, ros2) opens a link per range of priorities to each ``connect`` endpoint, so urgent
     classes never wait behind bulk bytes in one TCP connection; the listening side needs it too.
     """
-    entry = TRANSPORTS.get(name)
-    if entry is None:
-        raise TransportError(f"transport={name!r} is not one of: {', '.join(TRANSPORTS)}")
-    return entry.factory(
+    return entry(name).factory(
         TransportOptions(
             host=host,
             connect=tuple(connect),
@@ -349,8 +347,13 @@ def open_transport(
 
 
 def camera_frame(transport: Transport, name: str, topic: str, size_bytes: int) -> bytes:
-    """``TRANSPORTS[name].camera_frame(...)``: a frame as transport ``name`` carries it."""
-    entry = TRANSPORTS.get(name)
-    if entry is None:
-        raise TransportError(f"transport={name!r} is not one of: {', '.join(TRANSPORTS)}")
-    return entry.camera_frame(transport, topic, size_bytes)
+    """``entry(name).camera_frame(...)``: a frame as transport ``name`` carries it."""
+    return entry(name).camera_frame(transport, topic, size_bytes)
+
+
+def entry(name: str, *, field: str = "transport") -> TransportEntry:
+    """The registered transport ``name``; ``TransportError`` naming ``field`` and the choices."""
+    found = TRANSPORTS.get(name)
+    if found is None:
+        raise TransportError(f"{field}={name!r} is not one of: {', '.join(TRANSPORTS)}")
+    return found

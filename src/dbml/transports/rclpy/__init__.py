@@ -12,15 +12,12 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+from dbml.core.lazy import lazy_names
+
 if TYPE_CHECKING:
     from dbml.transports.rclpy.transport import RclpyTransport
 
 __all__ = ["RclpyTransport"]
 
 
-def __getattr__(name: str) -> object:
-    if name == "RclpyTransport":
-        from dbml.transports.rclpy.transport import RclpyTransport
-
-        return RclpyTransport
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_names(__name__, {"RclpyTransport": "dbml.transports.rclpy.transport"})

@@ -11,15 +11,12 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+from dbml.core.lazy import lazy_names
+
 if TYPE_CHECKING:
     from dbml.transports.ros1.transport import Ros1Transport
 
 __all__ = ["Ros1Transport"]
 
 
-def __getattr__(name: str) -> object:
-    if name == "Ros1Transport":
-        from dbml.transports.ros1.transport import Ros1Transport
-
-        return Ros1Transport
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_names(__name__, {"Ros1Transport": "dbml.transports.ros1.transport"})

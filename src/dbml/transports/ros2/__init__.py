@@ -10,15 +10,12 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+from dbml.core.lazy import lazy_names
+
 if TYPE_CHECKING:
     from dbml.transports.ros2.transport import Ros2Transport
 
 __all__ = ["Ros2Transport"]
 
 
-def __getattr__(name: str) -> object:
-    if name == "Ros2Transport":
-        from dbml.transports.ros2.transport import Ros2Transport
-
-        return Ros2Transport
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_names(__name__, {"Ros2Transport": "dbml.transports.ros2.transport"})

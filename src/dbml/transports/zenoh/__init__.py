@@ -11,15 +11,12 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+from dbml.core.lazy import lazy_names
+
 if TYPE_CHECKING:
     from dbml.transports.zenoh.transport import ZenohTransport
 
 __all__ = ["ZenohTransport"]
 
 
-def __getattr__(name: str) -> object:
-    if name == "ZenohTransport":
-        from dbml.transports.zenoh.transport import ZenohTransport
-
-        return ZenohTransport
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_names(__name__, {"ZenohTransport": "dbml.transports.zenoh.transport"})
