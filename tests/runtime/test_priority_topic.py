@@ -20,7 +20,8 @@ from dbml.protocol import names
 from dbml.runtime.bridge import Bridge
 from dbml.runtime.priority import BAD_PRIORITY_LOG_S, PRIORITY_INTERVAL_S, PriorityTopic
 from dbml.runtime.publisher import ManagedPublisher
-from dbml.transports import ManualClock, MemoryNetwork, MemoryTransport, Publisher
+from dbml.testing import BASE, Fleet
+from dbml.transports import MemoryNetwork, MemoryTransport, Publisher
 from dbml.transports.codecs import encode_float64, encode_ros1_float64
 from tests.conftest import wait_for
 
@@ -29,52 +30,48 @@ NAME = names.priority(CAMERA)
 SOURCE = f"{CAMERA}/dbm/priority"
 
 
-class Fleet:
-    """A robot hearing its priority topic, an operator publishing on it, an observer's store."""
+class PriorityLink(Fleet):
+    """A robot hearing its priority topic, the operator publishing on it, the base's store."""
 
     def __init__(self, *, interval_s: float = PRIORITY_INTERVAL_S) -> None:
-        self.network = MemoryNetwork()
-        self.clock = ManualClock(100.0)
-        self.robot = MemoryTransport(self.network, host="r1", clock=self.clock)
+        super().__init__(optimizer=False)
+        self.robot = self.host("r1")
         self.topic = PriorityTopic(self.robot, CAMERA, interval_s=interval_s)
-        self.operator: Publisher = MemoryTransport(self.network, host="op").declare_publisher(
-            SOURCE
-        )
-        observer = MemoryTransport(self.network, host="base")
+        self.source: Publisher = self.operator.declare_publisher(SOURCE)
+        self.observer = self.host(BASE)
         self.written: list[object] = []
-        observer.params.watch(lambda n, v: self.written.append(v) if n == NAME else None)
-        self.observer = observer
+        self.observer.params.watch(lambda n, v: self.written.append(v) if n == NAME else None)
 
     def publish(self, value: float) -> None:
-        self.operator.put(encode_float64(value))
+        self.source.put(encode_float64(value))
 
 
 def test_a_float64_sets_the_priority_everyone_sees() -> None:
-    fleet = Fleet()
+    fleet = PriorityLink()
     fleet.publish(0.25)
     assert fleet.observer.params.get(NAME) == 0.25
     assert fleet.written == [0.25]
     fleet.topic.close()
-    fleet.clock.advance(1.0)
+    fleet.advance(1.0)
     fleet.publish(0.75)  # closed: heard no more
     assert fleet.written == [0.25]
 
 
 def test_a_flood_writes_at_most_once_per_interval_and_the_newest_held_at_its_end() -> None:
-    fleet = Fleet(interval_s=0.05)
+    fleet = PriorityLink(interval_s=0.05)
     fleet.publish(0.1)  # the first: written at once
     for step, value in ((0.01, 0.2), (0.02, 0.3), (0.01, 0.4)):
-        fleet.clock.advance(step)
+        fleet.advance(step)
         fleet.publish(value)  # within the interval: held, the newest replacing the older
         assert not fleet.topic.tick()
     assert fleet.written == [0.1]
-    fleet.clock.advance(0.01)  # 0.05 after the first write: the interval is over
+    fleet.advance(0.01)  # 0.05 after the first write: the interval is over
     assert fleet.topic.tick()
     assert fleet.written == [0.1, 0.4]
     assert not fleet.topic.tick()  # nothing held
-    fleet.clock.advance(0.03)
+    fleet.advance(0.03)
     fleet.publish(0.5)  # 0.03 after the last write: held
-    fleet.clock.advance(0.05)
+    fleet.advance(0.05)
     fleet.publish(0.6)  # past the interval: written at once, what was held is dropped
     assert not fleet.topic.tick()
     assert fleet.written == [0.1, 0.4, 0.6]
@@ -82,7 +79,7 @@ def test_a_flood_writes_at_most_once_per_interval_and_the_newest_held_at_its_end
 
 
 def test_the_same_value_again_is_no_write() -> None:
-    fleet = Fleet(interval_s=0.0)
+    fleet = PriorityLink(interval_s=0.0)
     for _ in range(3):
         fleet.publish(0.5)
     assert fleet.written == [0.5]
@@ -124,11 +121,11 @@ def test_the_held_value_is_written_by_the_worker_never_on_the_callback_thread() 
 def test_a_bad_priority_is_ignored_and_a_flood_of_them_logged_once_per_interval(
     payload: bytes, logged: str, caplog: pytest.LogCaptureFixture
 ) -> None:
-    fleet = Fleet()
+    fleet = PriorityLink()
     fleet.publish(0.5)
     with caplog.at_level(logging.WARNING, logger="dbml.priority"):
         for _ in range(1000):
-            fleet.operator.put(payload)
+            fleet.source.put(payload)
     messages = [r.getMessage() for r in caplog.records]
     assert len(messages) == 1, messages
     assert messages[0].startswith(logged)
