@@ -73,8 +73,13 @@ typecheck: $(STAMP)
 	$(BIN)/mypy src tests bench
 
 # Without npm the browser tests skip (under CI=true they fail: the page must be there).
+# Two files at a time (pytest-xdist, a file per worker: a module's fixtures run once). The tests
+# that start real processes (integration, browser) mostly wait on the clock of their scenario
+# (0.7 of a core for two at a time, measured), so they run apart from the CPU-bound unit tests.
+UNIT := not ros1 and not integration and not browser
 pytest: $(STAMP) $(if $(HAVE_NPM),$(STUDIO_DIST))
-	$(BIN)/pytest -m "not ros1"
+	$(BIN)/pytest -m "$(UNIT)" -n 2 --dist loadfile
+	$(BIN)/pytest -m "not ros1 and (integration or browser)" -n 2 --dist loadfile
 
 $(STUDIO_DIST): $(STUDIO)/package.json $(STUDIO)/package-lock.json $(STUDIO)/build.mjs $(STUDIO)/index.html $(STUDIO)/page.js
 	cd $(STUDIO) && npm ci --no-audit --no-fund && npm run build
@@ -87,7 +92,7 @@ screenshot: $(STAMP) $(STUDIO_DIST)
 
 ifeq ($(HAVE_ROS1),yes)
 pytest-ros1: $(ROS1_STAMP)
-	$(ROS1_BIN)/pytest -m ros1
+	$(ROS1_BIN)/pytest -m ros1 -n 2 --dist loadfile
 else
 pytest-ros1:
 	@echo "ROS 1 tests not run: $(NO_ROS1)"

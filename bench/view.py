@@ -71,6 +71,7 @@ def measure(channels: int, rounds: int) -> dict[str, Any]:
     optimizer = OptimizerNode(
         open_transport("memory", network=network, host="base"),
         settings=DbmSettings(max_bandwidth_mbit=11 * channels / 2),
+        report_interval_s=0.0,  # every round reported: the view shows each one
     )
     optimizer.optimize()
     with tempfile.TemporaryDirectory(prefix="dbml-view-bench-") as tmp:
