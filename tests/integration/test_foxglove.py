@@ -235,7 +235,7 @@ def test_the_optimizer_and_the_monitor_serve_the_view_and_a_priority_is_set_from
     config.write_text("dbm:\n  max_bandwidth_in_mbit: 4\n")
     optimizer_port, monitor_port = free_port(), free_port()
     with fleet() as procs:
-        procs.start(
+        optimizer = procs.start(
             "optimizer", "--config", str(config), "--host", "base",
             "--foxglove", f"127.0.0.1:{optimizer_port}",
         )  # fmt: skip
@@ -246,7 +246,7 @@ def test_the_optimizer_and_the_monitor_serve_the_view_and_a_priority_is_set_from
             "--record", str(tmp_path / "monitor.mcap"),
         )  # fmt: skip
         rate = 4e6 / 8 / 84_000
-        for port in (optimizer_port, monitor_port):
+        for server, port in ((optimizer, optimizer_port), (monitor, monitor_port)):
             with FoxgloveClient(f"ws://127.0.0.1:{port}", timeout_s=CONNECT_S) as client:
 
                 def allocated() -> bool:
@@ -256,9 +256,13 @@ def test_the_optimizer_and_the_monitor_serve_the_view_and_a_priority_is_set_from
                         for c in a["channels"]
                     )
 
-                assert client.pump(allocated, timeout_s=20), client.json_messages(
-                    "/dbm/allocation"
-                )[-2:]
+                assert client.pump(allocated, timeout_s=20), (
+                    server.args[0],
+                    server.poll(),
+                    client.topics(),
+                    client.json_messages("/dbm/allocation")[-2:],
+                    server.stderr()[-2000:],
+                )
                 assert client.pump(lambda: "/dbm/budget" in client.messages, timeout_s=5)
                 assert client.json_messages("/dbm/budget")[-1]["max_bandwidth_mbit"] == 4.0
         # A priority set from the monitor's view reaches the optimizer, as `dbml priority` does.

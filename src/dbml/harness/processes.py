@@ -6,6 +6,7 @@ Starting, reading and ending processes is the supervisor's (``dbml.harness.super
 from __future__ import annotations
 
 import os
+import random
 import socket
 import sys
 from collections.abc import Mapping
@@ -17,12 +18,44 @@ _ROS_WHEELS_GUARD = "_ROS_WHEELS_BOOTSTRAP_COMPLETE"
 """Set by the ROS 2 wheels' ``.pth`` bootstrap once it has re-executed with its library path."""
 
 
+EPHEMERAL_RANGE_FILE = Path("/proc/sys/net/ipv4/ip_local_port_range")
+"""Where Linux says which ports it hands out itself (``bind`` to port 0, a connection's own)."""
+LOWEST_PORT = 10_000
+"""The lowest port ``free_port`` offers: above the well-known and most services' ports."""
+PORT_TRIES = 64
+
+
+def _ephemeral_low() -> int | None:
+    """The first port the kernel hands out itself, where it says (Linux)."""
+    try:
+        return int(EPHEMERAL_RANGE_FILE.read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
 def free_port(host: str = "127.0.0.1") -> int:
-    """A TCP port free on ``host`` now (for a rendezvous or a master of a run's own)."""
+    """A TCP port free on ``host`` now (for a rendezvous or a master of a run's own).
+
+    Chosen below the kernel's ephemeral range where it can: the kernel never gives such a port
+    to another socket (a zenoh session listening on port 0, a connection's own end) between this
+    call and the caller's bind, as it may one of its own range, which two runs side by side (a
+    parallel test suite) once took (a run's processes met another run's at its rendezvous).
+    """
+    low = _ephemeral_low()
+    if low is not None and low > LOWEST_PORT:
+        pick = random.SystemRandom()
+        for _ in range(PORT_TRIES):
+            port = pick.randrange(LOWEST_PORT, low)
+            with socket.socket() as sock:
+                try:
+                    sock.bind((host, port))
+                except OSError:
+                    continue
+                return port
     with socket.socket() as sock:
         sock.bind((host, 0))
-        port: int = sock.getsockname()[1]
-        return port
+        bound: int = sock.getsockname()[1]
+        return bound
 
 
 def foreign_interpreter_env(base: Mapping[str, str] | None = None) -> dict[str, str]:
