@@ -88,7 +88,9 @@ class PriorityTopic:
     written as ``[topic]/dbm/priority``. One flood rule, on every transport: at most one write
     per ``interval_s``. A value heard sooner is held (a newer one replaces it) and written when
     the interval ends, by a worker thread of its own: the middleware's callback thread never
-    waits. ``clock`` (the transport's by default) decides when an interval ends.
+    waits. ``clock`` (the transport's by default) decides when an interval ends;
+    ``worker=False`` starts no thread: only ``tick()`` writes a held value (a test whose manual
+    clock a thread waking on real time would race).
     """
 
     def __init__(
@@ -98,6 +100,7 @@ class PriorityTopic:
         *,
         interval_s: float = PRIORITY_INTERVAL_S,
         clock: Callable[[], float] | None = None,
+        worker: bool = True,
     ) -> None:
         self.topic = names.check_channel(topic)
         self.interval_s = check_number(interval_s, field="interval_s", minimum=0)
@@ -112,6 +115,7 @@ class PriorityTopic:
         self._held: float | None = None
         """The newest value heard too soon, for the end of the interval."""
         self._closed = False
+        self._run_worker = worker
         self._worker: PeriodicWorker | None = None
         source = f"{topic}{names.PRIORITY_SUFFIX}"
         transport.set_topic_type(source, self._codec.msg_type)
@@ -139,16 +143,17 @@ class PriorityTopic:
             if self._closed:
                 return
             now = self._clock()
-            if now >= self._next_s:
+            due = now >= self._next_s
+            if due:
                 self._next_s = now + self.interval_s
                 self._held = None
                 worker = None
             else:
                 self._held = value
                 worker = self._worker_locked()
-        if worker is None:
+        if due:
             self._write(value)
-        else:
+        elif worker is not None:
             worker.wake()
 
     def tick(self) -> bool:
@@ -176,9 +181,9 @@ class PriorityTopic:
                 return _IDLE_S
             return max(0.0, self._next_s - self._clock())
 
-    def _worker_locked(self) -> PeriodicWorker:
-        """The flood's worker, started the first time a value is held."""
-        if self._worker is None:
+    def _worker_locked(self) -> PeriodicWorker | None:
+        """The flood's worker, started the first time a value is held (None: not run)."""
+        if self._worker is None and self._run_worker:
             self._worker = PeriodicWorker(
                 self.tick,
                 interval_s=self._wait_s,
