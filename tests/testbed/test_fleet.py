@@ -19,7 +19,7 @@ from dbml.testbed.options import TestbedOptions
 from dbml.testbed.result import TestbedResult
 from dbml.testbed.runner import run_teleop_testbed
 
-pytestmark = pytest.mark.integration
+pytestmark = [pytest.mark.integration, pytest.mark.alone]
 
 ROBOTS = 8
 STEP_S = 2.0
