@@ -9,12 +9,14 @@ from dbml.core.errors import (
     SpecError,
     TransportError,
 )
+from dbml.core.ladder import Ladder, Preference, Rung
 from dbml.core.priority import (
     collision_priority,
     linear_ramp,
     normalize_priorities,
     time_to_collision_s,
 )
+from dbml.core.quality import QualityAllocation, QualityStatus, allocate_quality
 from dbml.core.spec import BYTES_PER_S_PER_MBIT, ChannelSpec, LinkSpec, Problem
 
 __all__ = [
@@ -26,14 +28,20 @@ __all__ = [
     "ConfigError",
     "DbmSettings",
     "DbmlError",
+    "Ladder",
     "LinkSpec",
     "MissingExtraError",
+    "Preference",
     "Problem",
+    "QualityAllocation",
+    "QualityStatus",
+    "Rung",
     "SpecError",
     "Status",
     "Strategy",
     "TransportError",
     "allocate",
+    "allocate_quality",
     "collision_priority",
     "linear_ramp",
     "normalize_priorities",

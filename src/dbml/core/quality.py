@@ -1,0 +1,475 @@
+"""Rate and quality together: one rung and one rate per channel, under one budget.
+
+Channel ``i`` on rung ``j`` (``dbml.core.ladder``: ``s_ij`` bytes a frame, quality ``Q_ij``) at
+rate ``r`` costs ``r s_ij`` bytes/s and is worth::
+
+    u_i(j, r) = w_i * Q_ij ** gamma_i * ln(1 + r / k_i) / ln(1 + fmax_i / k_i)
+
+- ``w_i = WEIGHT_BASE + p'_i``: eq. 2's normalised priority (on the channel's declared size, as
+  the paper weighs it), plus a base so that a channel nobody prioritises is still worth a frame;
+- the rate's value is concave (a frame adds less the more there are) and 1 at the maximum rate;
+- the preference sets ``gamma`` and the rate's knee ``k``: ``keep_rate`` values every frame
+  almost as the first (``k`` at the maximum rate: the value is nearly linear), so detail goes
+  first; ``keep_detail`` weighs quality steeply (``gamma`` 8) and frames little past the first
+  (``k`` 0.25 Hz), so frames go first.
+
+This utility is a modelling assumption, not a human-factors result; the floors are the paper's.
+The allocation maximises the sum subject to ``sum_i r_i s_ij <= B``, the paper's priority floor
+(eq. 4) ``f'min_i <= r_i <= fmax_i`` and each ladder's quality floor: a multiple-choice knapsack
+with a continuous rate. A channel without a ladder is one rung (its declared size, quality 1).
+
+Solver: for a price ``lam`` per byte, each rung's best rate is closed-form,
+``r = w Q^gamma / (L lam s) - k`` clipped to its bounds, and each channel takes the rung of
+largest ``u - lam * cost`` (the Lagrangian relaxation). The price is searched until the choice
+fits; the rungs are then fixed and the rates water-filled exactly to the budget. With few
+channels (at most ``EXACT_COMBINATIONS`` rung combinations) every combination is water-filled
+and the best kept: exact. The dual value bounds the optimum from above (``upper_bound``).
+Infeasibility is a status: when the floors do not fit on the cheapest rungs, the floors are
+pulled back toward the minimums as ``allocate`` does, on the cheapest rungs.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from itertools import chain
+
+import numpy as np
+import numpy.typing as npt
+
+from dbml.core.errors import SpecError
+from dbml.core.ladder import Ladder, Preference
+from dbml.core.priority import normalize_priorities
+from dbml.core.spec import BYTES_PER_S_PER_MBIT, Problem
+
+__all__ = [
+    "EXACT_COMBINATIONS",
+    "LOCAL_SEARCH_CHANNELS",
+    "PREFERENCE_TERMS",
+    "WEIGHT_BASE",
+    "QualityAllocation",
+    "QualityStatus",
+    "allocate_quality",
+    "utility",
+]
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.intp]
+
+WEIGHT_BASE = 0.1
+"""What a channel without priority weighs beside a fully prioritised one (1 + 0.1)."""
+PREFERENCE_TERMS: Mapping[Preference, tuple[float, float | None]] = {
+    Preference.BALANCED: (1.0, 1.0),
+    Preference.KEEP_RATE: (1.0, None),
+    Preference.KEEP_DETAIL: (8.0, 0.25),
+}
+"""Per preference: ``gamma`` (the quality's exponent) and the rate's knee ``k`` in Hz (None: the
+channel's maximum rate)."""
+EXACT_COMBINATIONS = 1024
+"""Up to this many rung combinations, every one is tried (exact); beyond, the Lagrangian price."""
+LOCAL_SEARCH_CHANNELS = 16
+"""Up to this many channels, the price's choice is improved one channel's rung at a time: with
+few channels one rung is a large share of the whole, and the price alone may miss by percents."""
+_LOCAL_PASSES = 8
+_PRICE_STEPS = 100
+"""Bound on the price search's steps (each halves the bracket or closes on its end)."""
+_PRICE_REL_TOL = 1e-9
+_BUDGET_REL_TOL = 1e-12
+
+
+class QualityStatus(enum.StrEnum):
+    """Whether every floor held (``optimal``) or the floors were pulled back (``infeasible``)."""
+
+    OPTIMAL = "optimal"
+    INFEASIBLE = "infeasible"
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class QualityAllocation:
+    """A rung and a rate per channel (declaration order), with its status and utility.
+
+    ``rung[i]`` indexes the channel's ladder (-1 for a channel without one); ``size_bytes`` and
+    ``quality`` are the chosen rung's. ``upper_bound`` is the Lagrangian dual's value: no choice
+    within the budget is worth more (None when the status is infeasible).
+    """
+
+    status: QualityStatus
+    message: str
+    budget_bytes_per_s: float
+    topics: tuple[str, ...]
+    normalized_priority: FloatArray
+    floor_hz: FloatArray
+    rung: IntArray
+    rate_hz: FloatArray
+    size_bytes: FloatArray
+    quality: FloatArray
+    utility: float
+    upper_bound: float | None
+
+    @property
+    def success(self) -> bool:
+        """Whether every floor held."""
+        return self.status is QualityStatus.OPTIMAL
+
+    @property
+    def bytes_per_s(self) -> FloatArray:
+        """Each channel's rate times its chosen rung's size."""
+        return self.rate_hz * self.size_bytes
+
+    @property
+    def total_bytes_per_s(self) -> float:
+        """What the channels use together."""
+        return float(self.bytes_per_s.sum())
+
+
+@dataclass(frozen=True, slots=True)
+class _Table:
+    """The problem as padded arrays: channels x rungs (masked), ready for the price search."""
+
+    size: FloatArray  # (n, m) bytes a frame; +inf where masked
+    coef: FloatArray  # (n, m) w Q^gamma / L: u = coef * ln(1 + r / k)
+    rung: IntArray  # (n, m) index in the channel's ladder; -1 for a channel without one
+    quality: FloatArray  # (n, m)
+    valid: npt.NDArray[np.bool_]  # (n, m)
+    knee: FloatArray  # (n,) k
+    lo: FloatArray  # (n,) floor
+    hi: FloatArray  # (n,) fmax
+    fmin: FloatArray  # (n,)
+
+
+def _table(problem: Problem, ladders: Mapping[str, Ladder], floors: FloatArray) -> _Table:
+    arrays = problem.arrays
+    n = len(problem.topics)
+    found = [ladders.get(topic) for topic in problem.topics]
+    counts = np.fromiter((1 if lad is None else len(lad.choices) for lad in found), np.intp, n)
+    m = int(counts.max())
+    filled = np.arange(m) < counts[:, None]  # row-major: each channel's rungs in order
+    size = np.full((n, m), np.inf)
+    size[filled] = np.fromiter(
+        chain.from_iterable(
+            (arrays.size_bytes[i],) if lad is None else lad.choice_sizes
+            for i, lad in enumerate(found)
+        ),
+        float,
+    )
+    quality = np.zeros((n, m))
+    quality[filled] = np.fromiter(
+        chain.from_iterable((1.0,) if lad is None else lad.choice_qualities for lad in found),
+        float,
+    )
+    rung = np.full((n, m), -1, dtype=np.intp)
+    rung[filled] = np.fromiter(
+        chain.from_iterable((-1,) if lad is None else lad.choices for lad in found), np.intp
+    )
+    terms = [PREFERENCE_TERMS[lad.preference] if lad else (1.0, 1.0) for lad in found]
+    gamma = np.fromiter((g for g, _ in terms), float, n)
+    knee = np.array([k for _, k in terms], dtype=float)  # None (nan): the maximum rate
+    hi = arrays.max_rate_hz
+    knee = np.where(np.isnan(knee), hi, knee)
+    weight = WEIGHT_BASE + normalize_priorities(arrays.priority, arrays.size_bytes)
+    span = np.log1p(hi / knee)
+    coef = np.where(filled, weight[:, None] * quality ** gamma[:, None] / span[:, None], 0.0)
+    return _Table(size, coef, rung, quality, filled, knee, floors, hi, arrays.min_rate_hz)
+
+
+def _rates(
+    coef: FloatArray,
+    size: FloatArray,
+    price: float | FloatArray,
+    knee: FloatArray,
+    *,
+    lo: FloatArray,
+    hi: FloatArray,
+) -> FloatArray:
+    """The rate of largest ``u - price * cost`` on rungs of ``coef`` and ``size``: closed form."""
+    if np.isscalar(price) and price == 0:  # free: every rate at its maximum
+        return np.broadcast_to(hi, np.broadcast_shapes(np.shape(coef), np.shape(hi))).copy()
+    # A masked rung has size inf and coef 0: its rate is 0, then clipped; nothing is NaN.
+    return np.clip(coef / (price * size) - knee, lo, hi)
+
+
+def _choose(
+    table: _Table, price: float, rows: IntArray | None = None
+) -> tuple[IntArray, FloatArray]:
+    """The rung (column) of each channel (of ``rows``) at ``price``, and its rate there."""
+    sel = slice(None) if rows is None else rows
+    coef, size, knee = table.coef[sel], table.size[sel], table.knee[sel][:, None]
+    valid = table.valid[sel]
+    rates = _rates(coef, size, price, knee, lo=table.lo[sel][:, None], hi=table.hi[sel][:, None])
+    spend = np.where(valid, size, 0.0) * rates
+    value = np.where(valid, coef * np.log1p(rates / knee) - price * spend, -np.inf)
+    cols = np.argmax(value, axis=1)
+    return cols, np.take_along_axis(rates, cols[:, None], axis=1)[:, 0]
+
+
+def _dual(table: _Table, price: float, budget: float) -> float:
+    """The Lagrangian dual at ``price``: no choice within the budget is worth more."""
+    cols, rates = _choose(table, price)
+    rows = np.arange(len(cols))
+    size, coef = table.size[rows, cols], table.coef[rows, cols]
+    return price * budget + float(
+        (coef * np.log1p(rates / table.knee) - price * size * rates).sum()
+    )
+
+
+def _picked(table: _Table, cols: IntArray) -> tuple[FloatArray, FloatArray]:
+    rows = np.arange(len(cols))
+    return table.coef[rows, cols], table.size[rows, cols]
+
+
+def _water_fill(table: _Table, cols: IntArray, budget: float) -> FloatArray:
+    """The best rates for the chosen rungs within ``budget`` (their floors must fit): exact.
+
+    ``r_i(lam) = clip(c_i / (lam s_i) - k_i, lo_i, hi_i)`` is continuous and decreasing in the
+    price; between two of its breakpoints the spend is ``fixed + sum(c_i / lam - s_i k_i)`` over
+    the channels inside their bounds, solved for ``lam`` in closed form.
+    """
+    coef, size = _picked(table, cols)
+    lo, hi, knee = table.lo, table.hi, table.knee
+    if float(size @ hi) <= budget * (1 + _BUDGET_REL_TOL):
+        return hi.copy()
+    with np.errstate(divide="ignore", invalid="ignore"):
+        at_hi = coef / (size * (hi + knee))  # at or below this price: the maximum
+        at_lo = coef / (size * (lo + knee))  # at or above this price: the floor
+    marks = np.unique(np.concatenate([at_hi, at_lo, [0.0]]))
+
+    def spend(price: float) -> float:
+        return float(size @ _rates(coef, size, price, knee, lo=lo, hi=hi))
+
+    # The last breakpoint at which the spend still exceeds the budget, and the next one.
+    low, high = 0, len(marks) - 1
+    while high - low > 1:
+        mid = (low + high) // 2
+        if spend(float(marks[mid])) > budget:
+            low = mid
+        else:
+            high = mid
+    inside = (at_hi <= marks[low]) & (marks[high] <= at_lo)
+    probe = _rates(coef, size, float(marks[high]), knee, lo=lo, hi=hi)
+    fixed = float(size[~inside] @ probe[~inside])
+    left = budget - fixed + float(size[inside] @ knee[inside])
+    price = float(marks[high])
+    if inside.any() and left > 0:
+        price = min(max(float(coef[inside].sum()) / left, float(marks[low])), price)
+    rates = _rates(coef, size, price, knee, lo=lo, hi=hi)
+    over = float(size @ rates) - budget
+    if over > 0:  # rounding: taken from the channels above their floors, in proportion
+        room = (rates - lo) * size
+        rates = rates - room / max(float(room.sum()), 1e-300) * over / size
+    return np.clip(rates, lo, hi)
+
+
+def _value(table: _Table, cols: IntArray, rates: FloatArray) -> float:
+    coef, _ = _picked(table, cols)
+    return float((coef * np.log1p(rates / table.knee)).sum())
+
+
+def _exact(table: _Table, budget: float) -> tuple[IntArray, FloatArray]:
+    """Every combination of rungs whose floors fit, water-filled together (by price); the best."""
+    counts = [int(c) for c in table.valid.sum(axis=1)]
+    combos = np.array(list(np.ndindex(*counts)), dtype=np.intp)  # (K, n)
+    rows = np.arange(combos.shape[1])
+    coef, size = table.coef[rows, combos], table.size[rows, combos]
+    lo, hi, knee = table.lo, table.hi, table.knee
+    fits = size @ lo <= budget * (1 + _BUDGET_REL_TOL)
+    combos, coef, size = combos[fits], coef[fits], size[fits]
+    # Per combination, the price at which its rates spend the budget (bisection in log price).
+    low = np.full(len(combos), float((coef / (size * (hi + knee))).min()) / 2)
+    high = np.full(len(combos), float((coef / (size * (lo + knee))).max()) * 2)
+    for _ in range(_PRICE_STEPS):
+        mid = np.sqrt(low * high)
+        over = (size * _rates(coef, size, mid[:, None], knee, lo=lo, hi=hi)).sum(axis=1) > budget
+        low, high = np.where(over, mid, low), np.where(over, high, mid)
+        if float((high / low).max()) <= 1 + _PRICE_REL_TOL:
+            break
+    value = (coef * np.log1p(_rates(coef, size, high[:, None], knee, lo=lo, hi=hi) / knee)).sum(
+        axis=1
+    )
+    best = combos[int(np.argmax(value))]
+    return best, _water_fill(table, best, budget)
+
+
+def _improve(
+    table: _Table, cols: IntArray, rates: FloatArray, budget: float
+) -> tuple[IntArray, FloatArray]:
+    """Change one channel's rung at a time (rates water-filled again) while it gains."""
+    best = _value(table, cols, rates)
+    for _ in range(_LOCAL_PASSES):
+        improved = False
+        for i in range(len(cols)):
+            for col in np.flatnonzero(table.valid[i]):
+                if col == cols[i]:
+                    continue
+                trial = cols.copy()
+                trial[i] = col
+                if float(_picked(table, trial)[1] @ table.lo) > budget * (1 + _BUDGET_REL_TOL):
+                    continue
+                trial_rates = _water_fill(table, trial, budget)
+                gain = _value(table, trial, trial_rates)
+                if gain > best * (1 + 1e-12):
+                    best, cols, rates, improved = gain, trial, trial_rates, True
+        if not improved:
+            break
+    return cols, rates
+
+
+def _priced(table: _Table, budget: float) -> tuple[IntArray, FloatArray, float]:
+    """The Lagrangian price search, then the exact rates for its rungs; and the dual's bound.
+
+    Only the channels whose rung differs at the bracket's two ends are chosen again at each
+    step; the others keep their rung and only their rate follows the price.
+    """
+    cols, _ = _choose(table, 0.0)
+    size = _picked(table, cols)[1]
+    if float(size @ table.hi) <= budget:
+        return cols, table.hi.copy(), _value(table, cols, table.hi)
+    finite = table.valid & (table.coef > 0)
+    if not finite.any():  # nothing is worth anything: every channel at its floor, cheapest rung
+        return np.argmin(table.size, axis=1), table.lo.copy(), 0.0
+    per_byte = table.coef / np.where(finite, table.size, 1.0)
+    knee = table.knee[:, None]
+    low = float((per_byte / (table.hi[:, None] + knee))[finite].min()) / 2
+    high = max(float((per_byte / (table.lo[:, None] + knee))[finite].max()) * 2, low * 4)
+
+    cols_low, _ = _choose(table, low)
+    cols_high, rates_high = _choose(table, high)
+    for _ in range(_PRICE_STEPS):  # the cheapest rungs win at a price high enough
+        if float(_picked(table, cols_high)[1] @ rates_high) <= budget:
+            break
+        low, high = high, high * 16
+        cols_low = cols_high
+        cols_high, rates_high = _choose(table, high)
+    lo, hi, kn = table.lo, table.hi, table.knee
+    for _ in range(_PRICE_STEPS):
+        undecided = np.flatnonzero(cols_low != cols_high)
+        if len(undecided) <= 1 or high <= low * (1 + _PRICE_REL_TOL):
+            break  # one channel's rung at most is in doubt: the feasible end's is taken
+        mid = math.sqrt(low * high)
+        cols_mid = cols_high.copy()
+        cols_mid[undecided] = _choose(table, mid, undecided)[0]
+        c, s = _picked(table, cols_mid)
+        if float(s @ _rates(c, s, mid, kn, lo=lo, hi=hi)) > budget:
+            low, cols_low = mid, cols_mid
+        else:
+            high, cols_high = mid, cols_mid
+    bound = min(_dual(table, low, budget), _dual(table, high, budget))
+    # The bracket's two ends differ in one channel's rung at most: each, water-filled; the best.
+    best: tuple[float, IntArray, FloatArray] | None = None
+    for cols in (_choose(table, high)[0], cols_low):
+        if float(_picked(table, cols)[1] @ lo) > budget * (1 + _BUDGET_REL_TOL):
+            continue
+        rates = _water_fill(table, cols, budget)
+        gained = _value(table, cols, rates)
+        if best is None or gained > best[0]:
+            best = (gained, cols, rates)
+    if best is None:  # not expected: the high end's choice fits at its price
+        cols = np.argmin(table.size, axis=1)
+        return cols, _water_fill(table, cols, budget), bound
+    return best[1], best[2], bound
+
+
+def utility(
+    problem: Problem, ladders: Mapping[str, Ladder], rung: IntArray, rate_hz: FloatArray
+) -> float:
+    """The utility (module docstring) of ``rung`` (ladder indices, -1: none) at ``rate_hz``."""
+    floors = problem.arrays.min_rate_hz
+    table = _table(problem, ladders, floors)
+    cols = np.empty(len(rung), dtype=np.intp)
+    for i, j in enumerate(rung):
+        hits = np.flatnonzero(table.rung[i] == j) if j >= 0 else np.array([0])
+        if len(hits) == 0:
+            raise SpecError(f"channel {problem.topics[i]!r}: rung={int(j)} is not allowed")
+        cols[i] = hits[0]
+    return _value(table, cols, np.asarray(rate_hz, dtype=float))
+
+
+def allocate_quality(problem: Problem, ladders: Mapping[str, Ladder]) -> QualityAllocation:
+    """A rung and a rate for every channel (see the module docstring); infeasible is a status.
+
+    ``ladders`` by topic; a topic not in the problem is an error, a channel without a ladder
+    keeps its declared size. Per-link limits are not supported yet (``SpecError``).
+    """
+    unknown = sorted(set(ladders) - set(problem.topics))
+    if unknown:
+        raise SpecError(f"ladder of topic {unknown[0]!r}: no such channel in the problem")
+    if problem.links:
+        raise SpecError(
+            f"quality allocation does not support links yet (link {problem.links[0].name!r})"
+        )
+    arrays = problem.arrays
+    budget = problem.budget_bytes_per_s
+    normalized = normalize_priorities(arrays.priority, arrays.size_bytes)
+    fmin, fmax = arrays.min_rate_hz, arrays.max_rate_hz
+    floors = (fmax - fmin) * normalized + fmin
+    table = _table(problem, ladders, floors)
+    rows = np.arange(len(problem.topics))
+    cheapest = np.argmin(table.size, axis=1)
+    cheap_size = table.size[rows, cheapest]
+    status, upper = QualityStatus.OPTIMAL, None
+    need = float(cheap_size @ floors)
+    if need > budget * (1 + _BUDGET_REL_TOL):
+        cols = cheapest
+        need_min = float(cheap_size @ fmin)
+        if need_min > budget:
+            fraction = budget / need_min
+            rates = fraction * fmin
+            message = (
+                f"minimum rates need {need_min / BYTES_PER_S_PER_MBIT:.3f} Mbit/s on the cheapest "
+                f"rungs but the budget allows {budget / BYTES_PER_S_PER_MBIT:.3f} Mbit/s; every "
+                f"channel runs at {fraction:.1%} of its minimum"
+            )
+        else:
+            alpha = (budget - need_min) / (need - need_min)
+            rates = fmin + alpha * (floors - fmin)
+            message = (
+                f"priority floors need {need / BYTES_PER_S_PER_MBIT:.3f} Mbit/s on the cheapest "
+                f"rungs but the budget allows {budget / BYTES_PER_S_PER_MBIT:.3f} Mbit/s; floors "
+                f"pulled back to {alpha:.1%} of their height above the minimum rates"
+            )
+        status = QualityStatus.INFEASIBLE
+    else:
+        cols, rates, upper = _priced(table, budget)
+        if len(cols) <= LOCAL_SEARCH_CHANNELS:
+            cols, rates = _improve(table, cols, rates, budget)
+        if math.prod(int(c) for c in table.valid.sum(axis=1)) <= EXACT_COMBINATIONS:
+            exact_cols, exact_rates = _exact(table, budget)
+            if _value(table, exact_cols, exact_rates) >= _value(table, cols, rates):
+                cols, rates = exact_cols, exact_rates
+        message = ""
+    chosen_size = table.size[rows, cols]
+    used = float(chosen_size @ rates)
+    value = _value(table, cols, rates)
+    if status is QualityStatus.OPTIMAL:
+        message = (
+            f"{used / BYTES_PER_S_PER_MBIT:.3f} Mbit/s of a "
+            f"{budget / BYTES_PER_S_PER_MBIT:.3f} Mbit/s budget allocated"
+        )
+        upper = value if upper is None else max(upper, value)
+    return QualityAllocation(
+        status=status,
+        message=message,
+        budget_bytes_per_s=budget,
+        topics=problem.topics,
+        normalized_priority=_frozen(normalized),
+        floor_hz=_frozen(floors),
+        rung=_frozen_int(table.rung[rows, cols]),
+        rate_hz=_frozen(np.asarray(rates, dtype=float)),
+        size_bytes=_frozen(chosen_size),
+        quality=_frozen(table.quality[rows, cols]),
+        utility=value,
+        upper_bound=upper,
+    )
+
+
+def _frozen(array: FloatArray) -> FloatArray:
+    out = np.array(array, dtype=float)
+    out.flags.writeable = False
+    return out
+
+
+def _frozen_int(array: IntArray) -> IntArray:
+    out = np.array(array, dtype=np.intp)
+    out.flags.writeable = False
+    return out
