@@ -76,8 +76,9 @@ typecheck: $(STAMP)
 # Two files at a time (pytest-xdist, a file per worker: a module's fixtures run once). The tests
 # that start real processes (integration, browser) mostly wait on the clock of their scenario
 # (0.7 of a core for two at a time, measured), so they run apart from the CPU-bound unit tests;
-# those marked alone (eight robots' processes judged on latency: p95 228-339 ms beside another
-# test, under 200 alone) run last, one at a time.
+# those marked alone run last, one at a time: eight robots' processes judged on latency (p95
+# 228-339 ms beside another test, under 200 alone) and Chromium drawing the live demo (the demo's
+# measured rates missed Table 2's in 2 of 4 runs beside another test).
 UNIT := not ros1 and not integration and not browser and not alone
 pytest: $(STAMP) $(if $(HAVE_NPM),$(STUDIO_DIST))
 	$(BIN)/pytest -m "$(UNIT)" -n 2 --dist loadfile

@@ -44,7 +44,7 @@ from tests.browser.studio import (
 )
 from tests.integration.procs import ROOT, Proc
 
-pytestmark = pytest.mark.browser
+pytestmark = [pytest.mark.browser, pytest.mark.alone]
 
 READY_TIMEOUT_S = 90.0
 

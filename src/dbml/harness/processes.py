@@ -38,8 +38,8 @@ def free_port(host: str = "127.0.0.1") -> int:
 
     Chosen below the kernel's ephemeral range where it can: the kernel never gives such a port
     to another socket (a zenoh session listening on port 0, a connection's own end) between this
-    call and the caller's bind, as it may one of its own range, which two runs side by side (a
-    parallel test suite) once took (a run's processes met another run's at its rendezvous).
+    call and the caller's bind, as it may one of its own range; two runs side by side (a
+    parallel test suite) would then meet at one rendezvous.
     """
     low = _ephemeral_low()
     if low is not None and low > LOWEST_PORT:
