@@ -85,13 +85,6 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
         if "ros" in getattr(item, "fixturenames", ()):
             item.add_marker(pytest.mark.ros1)
-    # The testbed's files (the longest: a shaped run each takes 25-50 s) first, so that pytest-
-    # xdist, which hands out files in this order, does not end with one of them on one worker.
-    items.sort(key=lambda item: FIRST not in item.path.parents)
-
-
-FIRST = Path(__file__).parent / "testbed"
-"""The tests collected first (``pytest_collection_modifyitems``)."""
 
 
 @pytest.fixture(autouse=True)
