@@ -21,7 +21,7 @@ from dbml.harness.ros2env import fastdds_shm_files
 from dbml.harness.supervisor import Supervisor
 from tests.integration.test_demo import alive, assert_matches_table2, children_of, stdout_of
 
-pytestmark = pytest.mark.integration
+pytestmark = [pytest.mark.integration, pytest.mark.alone]
 
 DEMO = (sys.executable, "-m", "dbml", "demo", "teleop", "--transport", "rclpy")
 DEMO_TIMEOUT_S = 240.0
