@@ -12,6 +12,9 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass, field
 
+import numpy as np
+import numpy.typing as npt
+
 from dbml.core.errors import SpecError
 from dbml.core.spec import MAX_SIZE_BYTES, check_number
 
@@ -93,6 +96,8 @@ class Ladder:
     not dominated (another as good for no more bytes); or the best one if none is."""
     choice_sizes: tuple[float, ...] = field(init=False, repr=False, compare=False)
     choice_qualities: tuple[float, ...] = field(init=False, repr=False, compare=False)
+    choice_table: npt.NDArray[np.float64] = field(init=False, repr=False, compare=False)
+    """The choices as one read-only array: rows size, quality and rung index (the solver's)."""
 
     def __post_init__(self) -> None:
         rungs = tuple(self.rungs)
@@ -120,6 +125,11 @@ class Ladder:
         object.__setattr__(self, "choices", choices)
         object.__setattr__(self, "choice_sizes", tuple(rungs[j].size_bytes for j in choices))
         object.__setattr__(self, "choice_qualities", tuple(rungs[j].quality for j in choices))
+        table = np.array(
+            [self.choice_sizes, self.choice_qualities, [float(j) for j in choices]], dtype=float
+        )
+        table.flags.writeable = False
+        object.__setattr__(self, "choice_table", table)
 
     @property
     def meets_floor(self) -> bool:

@@ -34,7 +34,6 @@ import enum
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-from itertools import chain
 
 import numpy as np
 import numpy.typing as npt
@@ -77,6 +76,10 @@ _PRICE_STEPS = 100
 """Bound on the price search's steps (each halves the bracket or closes on its end)."""
 _PRICE_REL_TOL = 1e-9
 _BUDGET_REL_TOL = 1e-12
+_STEP_MIN = 0.1
+"""An interpolated price step moves at least this share of the bracket (log scale)."""
+_NARROW_LOG_SPAN = 1e-3
+"""Below this bracket width (log scale) the price search bisects."""
 
 
 class QualityStatus(enum.StrEnum):
@@ -143,26 +146,21 @@ def _table(problem: Problem, ladders: Mapping[str, Ladder], floors: FloatArray) 
     arrays = problem.arrays
     n = len(problem.topics)
     found = [ladders.get(topic) for topic in problem.topics]
-    counts = np.fromiter((1 if lad is None else len(lad.choices) for lad in found), np.intp, n)
+    # One array per channel (size, quality, rung index), concatenated: no loop per rung.
+    parts = [
+        np.array([[arrays.size_bytes[i]], [1.0], [-1.0]]) if lad is None else lad.choice_table
+        for i, lad in enumerate(found)
+    ]
+    counts = np.fromiter((p.shape[1] for p in parts), np.intp, n)
     m = int(counts.max())
     filled = np.arange(m) < counts[:, None]  # row-major: each channel's rungs in order
+    flat = np.concatenate(parts, axis=1)
     size = np.full((n, m), np.inf)
-    size[filled] = np.fromiter(
-        chain.from_iterable(
-            (arrays.size_bytes[i],) if lad is None else lad.choice_sizes
-            for i, lad in enumerate(found)
-        ),
-        float,
-    )
+    size[filled] = flat[0]
     quality = np.zeros((n, m))
-    quality[filled] = np.fromiter(
-        chain.from_iterable((1.0,) if lad is None else lad.choice_qualities for lad in found),
-        float,
-    )
+    quality[filled] = flat[1]
     rung = np.full((n, m), -1, dtype=np.intp)
-    rung[filled] = np.fromiter(
-        chain.from_iterable((-1,) if lad is None else lad.choices for lad in found), np.intp
-    )
+    rung[filled] = flat[2].astype(np.intp)
     terms = [PREFERENCE_TERMS[lad.preference] if lad else (1.0, 1.0) for lad in found]
     gamma = np.fromiter((g for g, _ in terms), float, n)
     knee = np.array([k for _, k in terms], dtype=float)  # None (nan): the maximum rate
@@ -187,7 +185,7 @@ def _rates(
     if np.isscalar(price) and price == 0:  # free: every rate at its maximum
         return np.broadcast_to(hi, np.broadcast_shapes(np.shape(coef), np.shape(hi))).copy()
     # A masked rung has size inf and coef 0: its rate is 0, then clipped; nothing is NaN.
-    return np.clip(coef / (price * size) - knee, lo, hi)
+    return np.minimum(np.maximum(coef / (price * size) - knee, lo), hi)  # np.clip costs more
 
 
 def _choose(
@@ -201,7 +199,7 @@ def _choose(
     spend = np.where(valid, size, 0.0) * rates
     value = np.where(valid, coef * np.log1p(rates / knee) - price * spend, -np.inf)
     cols = np.argmax(value, axis=1)
-    return cols, np.take_along_axis(rates, cols[:, None], axis=1)[:, 0]
+    return cols, rates[np.arange(len(cols)), cols]
 
 
 def _dual(table: _Table, price: float, budget: float) -> float:
@@ -333,27 +331,36 @@ def _priced(table: _Table, budget: float) -> tuple[IntArray, FloatArray, float]:
     low = float((per_byte / (table.hi[:, None] + knee))[finite].min()) / 2
     high = max(float((per_byte / (table.lo[:, None] + knee))[finite].max()) * 2, low * 4)
 
-    cols_low, _ = _choose(table, low)
+    cols_low, rates_low = _choose(table, low)
+    spend_low = float(_picked(table, cols_low)[1] @ rates_low)
     cols_high, rates_high = _choose(table, high)
+    spend_high = float(_picked(table, cols_high)[1] @ rates_high)
     for _ in range(_PRICE_STEPS):  # the cheapest rungs win at a price high enough
-        if float(_picked(table, cols_high)[1] @ rates_high) <= budget:
+        if spend_high <= budget:
             break
-        low, high = high, high * 16
-        cols_low = cols_high
+        low, high, cols_low, spend_low = high, high * 16, cols_high, spend_high
         cols_high, rates_high = _choose(table, high)
+        spend_high = float(_picked(table, cols_high)[1] @ rates_high)
     lo, hi, kn = table.lo, table.hi, table.knee
+    side = 0  # which end the last two steps moved (Illinois: halve the other's pull)
+    pull_low = pull_high = 1.0
     for _ in range(_PRICE_STEPS):
         undecided = np.flatnonzero(cols_low != cols_high)
         if len(undecided) <= 1 or high <= low * (1 + _PRICE_REL_TOL):
             break  # one channel's rung at most is in doubt: the feasible end's is taken
-        mid = math.sqrt(low * high)
+        mid = _interpolate((low, high), (spend_low, spend_high), budget, (pull_low, pull_high))
         cols_mid = cols_high.copy()
         cols_mid[undecided] = _choose(table, mid, undecided)[0]
         c, s = _picked(table, cols_mid)
-        if float(s @ _rates(c, s, mid, kn, lo=lo, hi=hi)) > budget:
-            low, cols_low = mid, cols_mid
+        spend = float(s @ _rates(c, s, mid, kn, lo=lo, hi=hi))
+        if spend > budget:
+            low, cols_low, spend_low = mid, cols_mid, spend
+            pull_high, pull_low = (pull_high / 2, 1.0) if side == -1 else (1.0, 1.0)
+            side = -1
         else:
-            high, cols_high = mid, cols_mid
+            high, cols_high, spend_high = mid, cols_mid, spend
+            pull_low, pull_high = (pull_low / 2, 1.0) if side == 1 else (1.0, 1.0)
+            side = 1
     bound = min(_dual(table, low, budget), _dual(table, high, budget))
     # The bracket's two ends differ in one channel's rung at most: each, water-filled; the best.
     best: tuple[float, IntArray, FloatArray] | None = None
@@ -368,6 +375,27 @@ def _priced(table: _Table, budget: float) -> tuple[IntArray, FloatArray, float]:
         cols = np.argmin(table.size, axis=1)
         return cols, _water_fill(table, cols, budget), bound
     return best[1], best[2], bound
+
+
+def _interpolate(
+    ends: tuple[float, float],
+    spends: tuple[float, float],
+    budget: float,
+    pulls: tuple[float, float],
+) -> float:
+    """The next price: where the spend meets the budget, interpolated in log-log (Illinois).
+
+    The spend falls roughly as a power of the price, so the interpolation lands near the
+    answer; a pull halved each time the same end moves twice keeps it from stalling, and a
+    step that would not shrink the bracket by a tenth is the geometric midpoint instead.
+    """
+    (low, high), (spend_low, spend_high), (pull_low, pull_high) = ends, spends, pulls
+    span = math.log(high / low)
+    a = math.log(max(spend_low, 1e-300) / budget) * pull_low
+    b = math.log(budget / max(spend_high, 1e-300)) * pull_high
+    t = a / (a + b) if a + b > 0 else 0.5
+    t = min(max(t, _STEP_MIN), 1 - _STEP_MIN) if span > _NARROW_LOG_SPAN else 0.5
+    return low * math.exp(span * t)
 
 
 def utility(
@@ -433,7 +461,7 @@ def allocate_quality(problem: Problem, ladders: Mapping[str, Ladder]) -> Quality
         cols, rates, upper = _priced(table, budget)
         if len(cols) <= LOCAL_SEARCH_CHANNELS:
             cols, rates = _improve(table, cols, rates, budget)
-        if math.prod(int(c) for c in table.valid.sum(axis=1)) <= EXACT_COMBINATIONS:
+        if float(np.log(table.valid.sum(axis=1)).sum()) <= math.log(EXACT_COMBINATIONS) + 1e-9:
             exact_cols, exact_rates = _exact(table, budget)
             if _value(table, exact_cols, exact_rates) >= _value(table, cols, rates):
                 cols, rates = exact_cols, exact_rates
