@@ -17,7 +17,16 @@ from dbml.core.errors import DbmlError, MissingExtraError
 from dbml.core.extras import EXTRAS, require
 
 REPO = Path(__file__).resolve().parents[1]
-OPTIONAL = ("matplotlib", "cryptography", "rclpy", "rosbags", "zenoh_ros2_sdk", "foxglove", "mcap")
+OPTIONAL = (
+    "matplotlib",
+    "cryptography",
+    "rclpy",
+    "rosbags",
+    "zenoh_ros2_sdk",
+    "foxglove",
+    "mcap",
+    "simplejpeg",
+)
 """What the extras bring, by the names they are imported as."""
 WITHOUT_EXTRAS = f"import sys\nfor name in {OPTIONAL!r}:\n    sys.modules[name] = None\n"
 DBML = WITHOUT_EXTRAS + "from dbml.cli import main\nsys.exit(main(sys.argv[1:]))\n"
@@ -170,7 +179,7 @@ def test_require_names_the_package_as_pip_knows_it(monkeypatch: pytest.MonkeyPat
 
 def test_require_refuses_an_extra_that_does_not_exist() -> None:
     with pytest.raises(
-        ValueError, match=r"^extra='plots' is not one of: plot, rclpy, ros2, secure, viz$"
+        ValueError, match=r"^extra='plots' is not one of: plot, quality, rclpy, ros2, secure, viz$"
     ):
         require("json", extra="plots", what="a test")
 

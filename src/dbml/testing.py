@@ -29,13 +29,15 @@ from typing import Self
 
 from dbml.core.config import DbmSettings
 from dbml.core.errors import SpecError
+from dbml.core.ladder import Preference
 from dbml.core.spec import LinkSpec
 from dbml.protocol import names
+from dbml.runtime.camera import ManagedCamera
 from dbml.runtime.failsafe import FAILSAFE_PERIODS
 from dbml.runtime.optimizer import ACK_TIMEOUT_S, OptimizerNode, Round
 from dbml.runtime.publisher import ManagedPublisher
 from dbml.runtime.subscriber import ManagedSubscriber
-from dbml.transports.base import Handle, ParamValue, Sample, TransportPriority
+from dbml.transports.base import Handle, ParamValue, Sample, TransportPriority, Variant
 from dbml.transports.memory import ManualClock, MemoryNetwork, MemoryTransport
 
 __all__ = ["BASE", "OPERATOR", "Fleet"]
@@ -69,7 +71,7 @@ class Fleet:
         self.network = MemoryNetwork()
         self.clock: Callable[[], float] = ManualClock(FIRST_TIME_S) if clock is None else clock
         self._hosts: dict[str, MemoryTransport] = {}
-        self._closing: list[Handle | ManagedPublisher | ManagedSubscriber] = []
+        self._closing: list[Handle | ManagedPublisher | ManagedSubscriber | ManagedCamera] = []
         self.publishers: dict[str, ManagedPublisher] = {}
         self.received: dict[str, list[Sample]] = {}
         """What the operator's subscribers received, by topic."""
@@ -149,13 +151,44 @@ class Fleet:
             publisher.publish(bytes(size_bytes))
         return publisher
 
-    def watch(self, topic: str, *, host: str = OPERATOR) -> ManagedSubscriber:
+    def camera(
+        self,
+        topic: str,
+        *,
+        host: str | None = None,
+        min_rate_hz: float = 1.0,
+        max_rate_hz: float = 16.0,
+        priority: float | None = None,
+        preference: Preference | None = None,
+        ladder: bool = True,
+    ) -> ManagedCamera:
+        """A managed camera of ``topic`` on ``host`` (JPEG and a ladder: the ``quality`` extra).
+
+        Its ladder is measured on the first frame it is given (``publish_frame``).
+        """
+        robot = host if host is not None else topic.split("/")[1]
+        camera = ManagedCamera(
+            self.host(robot),
+            topic,
+            min_rate_hz=min_rate_hz,
+            max_rate_hz=max_rate_hz,
+            priority=priority,
+            preference=preference,
+            ladder=ladder,
+        )
+        self._closing.append(camera)
+        return camera
+
+    def watch(
+        self, topic: str, *, host: str = OPERATOR, remote: Variant = Variant.OPTIMIZED
+    ) -> ManagedSubscriber:
         """A managed subscriber of ``topic`` on ``host``: remote, so the channel is managed.
 
-        What it receives is kept in ``received[topic]``.
+        What it receives is kept in ``received[topic]``; ``remote=Variant.COMPRESSED`` takes a
+        camera's JPEG copy.
         """
         received = self.received.setdefault(topic, [])
-        subscriber = ManagedSubscriber(self.host(host), topic, received.append)
+        subscriber = ManagedSubscriber(self.host(host), topic, received.append, remote=remote)
         self._closing.append(subscriber)
         return subscriber
 

@@ -44,7 +44,7 @@ def limit_hz(camera: ManagedPublisher, fleet: Outage) -> float:
 
 
 def test_the_limiter_runs_at_the_one_derived_rate_in_each_state(fleet: Outage) -> None:
-    camera = fleet.camera(TOPIC, 0.9, rate_hz=None)
+    camera = fleet.stream(TOPIC, 0.9, rate_hz=None)
     assert not camera.publish(b"waiting")  # awaiting a first allocation: credit spent, none sent
     assert limit_hz(camera, fleet) == MIN_RATE_HZ
     fleet.host(BASE).params.set(names.current_value(TOPIC), RATE_HZ)
@@ -68,7 +68,7 @@ def test_the_limiter_runs_at_the_one_derived_rate_in_each_state(fleet: Outage) -
 
 
 def test_past_the_holds_bound_the_limiter_runs_at_the_minimum(fleet: Outage) -> None:
-    camera = fleet.camera(TOPIC, 0.9)
+    camera = fleet.stream(TOPIC, 0.9)
     fleet.say(LinkBeacon(up=True))
     round_ = 0
     while fleet.clock() < 100.0 + LINK_SILENCE_S + HOLD_MAX_S + PERIOD_S:
@@ -84,7 +84,7 @@ def test_past_the_holds_bound_the_limiter_runs_at_the_minimum(fleet: Outage) -> 
 
 def test_a_slower_allocation_below_the_probe_rate_caps_its_probes_itself(fleet: Outage) -> None:
     slow_hz = PROBE_RATE_HZ / 4
-    camera = fleet.camera(TOPIC, 0.9, rate_hz=slow_hz)
+    camera = fleet.stream(TOPIC, 0.9, rate_hz=slow_hz)
     fleet.say(LinkBeacon(up=True))
     fleet.say(LinkBeacon(up=False, release_s={TOPIC: 0.0}))
     camera.publish(b"probe")
@@ -272,7 +272,7 @@ def test_what_goes_out_never_exceeds_the_integral_of_the_derived_rate(steps: lis
     the limiter runs at the allocation it assumes.
     """
     fleet = Outage()
-    camera = fleet.camera(TOPIC, 0.9, rate_hz=None)
+    camera = fleet.stream(TOPIC, 0.9, rate_hz=None)
     sent: list[float] = []
     fleet.operator.subscribe(TOPIC, lambda _s: sent.append(fleet.clock()), Variant.OPTIMIZED)
     fleet.say(LinkBeacon(up=True))

@@ -41,7 +41,7 @@ class Outage(Fleet):
         self.beacon = self.host(BASE).declare_publisher(LINK_TOPIC)
         self.arrivals: list[Sample] = []
 
-    def camera(
+    def stream(
         self, topic: str, priority: float, *, rate_hz: float | None = RATE_HZ
     ) -> ManagedPublisher:
         publisher = self.publisher(topic, min_rate_hz=MIN_RATE_HZ, priority=priority)
@@ -69,7 +69,7 @@ def fleet() -> Iterator[Outage]:
 
 def _confirmed_then_silent(fleet: Outage, topic: str) -> ManagedPublisher:
     """A channel whose last message went before a beacon (the link carried it), then silence."""
-    camera = fleet.camera(topic, 0.9)
+    camera = fleet.stream(topic, 0.9)
     fleet.advance(PERIOD_S)
     assert camera.publish(b"before")
     fleet.say(LinkBeacon(up=True))  # after "before": nothing unconfirmed
@@ -93,7 +93,7 @@ def test_a_silent_link_holds_only_the_newest_message_and_sends_it_when_back(
 
 
 def test_the_release_banks_no_credit_from_the_outage(fleet: Outage) -> None:
-    camera = fleet.camera("/r1/camera", 0.9)
+    camera = fleet.stream("/r1/camera", 0.9)
     fleet.say(LinkBeacon(up=True))
     fleet.advance(PERIOD_S)
     fleet.advance(HOLD_MAX_S - 1.0)  # a long outage, nothing published
@@ -110,7 +110,7 @@ def test_the_release_banks_no_credit_from_the_outage(fleet: Outage) -> None:
 
 def test_the_release_owes_what_went_into_the_dead_link(fleet: Outage) -> None:
     """Frames sent after the last beacon sit in TCP's buffer and arrive with the release."""
-    camera = fleet.camera("/r1/camera", 0.9)
+    camera = fleet.stream("/r1/camera", 0.9)
     fleet.say(LinkBeacon(up=True))
     fleet.advance(PERIOD_S)
     unheard = 0
@@ -136,7 +136,7 @@ def test_the_release_owes_what_went_into_the_dead_link(fleet: Outage) -> None:
 
 def _stuck(fleet: Outage, topic: str) -> ManagedPublisher:
     """A channel that sent into the link just before it died, now holding."""
-    camera = fleet.camera(topic, 0.9)
+    camera = fleet.stream(topic, 0.9)
     fleet.say(LinkBeacon(up=True))
     fleet.advance(PERIOD_S)
     assert camera.publish(b"unheard")
@@ -185,7 +185,7 @@ def test_a_channel_that_sent_nothing_into_the_dead_link_need_not_be_heard(
 
 
 def test_a_release_owes_at_most_one_window_of_the_rate(fleet: Outage) -> None:
-    camera = fleet.camera("/r1/camera", 0.9, rate_hz=MIN_RATE_HZ)
+    camera = fleet.stream("/r1/camera", 0.9, rate_hz=MIN_RATE_HZ)
     fleet.say(LinkBeacon(up=True))
     unheard = 0
     for k in range(3 * round(RATE_HZ)):  # 3 s of a 1 Hz channel; beacon silence from 0.3 s
@@ -210,8 +210,8 @@ def test_a_release_owes_at_most_one_window_of_the_rate(fleet: Outage) -> None:
 
 
 def test_in_an_outage_the_channels_take_turns_to_probe(fleet: Outage) -> None:
-    urgent = fleet.camera("/r1/camera", 0.9)
-    calm = fleet.camera("/r2/camera", 0.1)
+    urgent = fleet.stream("/r1/camera", 0.9)
+    calm = fleet.stream("/r2/camera", 0.1)
     fleet.say(LinkBeacon(up=True))
     fleet.advance(PERIOD_S)
     fleet.say(LinkBeacon(up=False, release_s=release_offsets(TWO_CAMERAS, 1e6)))
@@ -232,8 +232,8 @@ def test_in_an_outage_the_channels_take_turns_to_probe(fleet: Outage) -> None:
 
 def test_an_idle_first_channel_does_not_keep_the_others_from_probing(fleet: Outage) -> None:
     """The most urgent channel's publisher stopped: the others still find the link back."""
-    fleet.camera("/r1/camera", 0.9)  # never publishes again
-    calm = fleet.camera("/r2/camera", 0.1)
+    fleet.stream("/r1/camera", 0.9)  # never publishes again
+    calm = fleet.stream("/r2/camera", 0.1)
     fleet.say(LinkBeacon(up=True))
     fleet.advance(PERIOD_S)
     for _ in range(round(2 * PROBE_INTERVAL_S / PERIOD_S) + 1):
@@ -245,7 +245,7 @@ def test_an_idle_first_channel_does_not_keep_the_others_from_probing(fleet: Outa
 
 def test_a_probe_never_exceeds_the_channel_s_own_rate(fleet: Outage) -> None:
     slow_hz = 0.5  # allocated below the probe rate (and below its minimum: infeasible floors)
-    camera = fleet.camera("/r1/camera", 0.9, rate_hz=slow_hz)
+    camera = fleet.stream("/r1/camera", 0.9, rate_hz=slow_hz)
     fleet.say(LinkBeacon(up=True))
     fleet.advance(PERIOD_S)
     fleet.say(LinkBeacon(up=False, release_s={"/r1/camera": 0.0}))
@@ -260,8 +260,8 @@ def test_a_probe_never_exceeds_the_channel_s_own_rate(fleet: Outage) -> None:
 
 
 def test_the_release_goes_in_priority_order(fleet: Outage) -> None:
-    urgent = fleet.camera("/r1/camera", 0.9)
-    calm = fleet.camera("/r2/camera", 0.1)
+    urgent = fleet.stream("/r1/camera", 0.9)
+    calm = fleet.stream("/r2/camera", 0.1)
     fleet.say(LinkBeacon(up=True))
     fleet.advance(LINK_SILENCE_S + 0.01)
     assert not calm.publish(b"calm newest")
@@ -277,7 +277,7 @@ def test_the_release_goes_in_priority_order(fleet: Outage) -> None:
 
 
 def test_a_release_puts_outside_the_lock_and_numbers_stay_unique(fleet: Outage) -> None:
-    camera = fleet.camera("/r1/camera", 0.9)
+    camera = fleet.stream("/r1/camera", 0.9)
     locked: list[bool] = []
     fleet.operator.subscribe(
         "/r1/camera", lambda _s: locked.append(camera._lock.locked()), Variant.OPTIMIZED
@@ -295,7 +295,7 @@ def test_a_release_puts_outside_the_lock_and_numbers_stay_unique(fleet: Outage) 
 
 def test_a_dead_estimator_leaves_the_fail_safe_minimum_not_a_hold(fleet: Outage) -> None:
     """Beacons were heard, then never again: after HOLD_MAX_S the channel runs at its minimum."""
-    camera = fleet.camera("/r1/camera", 0.9)
+    camera = fleet.stream("/r1/camera", 0.9)
     fleet.say(LinkBeacon(up=True))
     fleet.advance(LINK_SILENCE_S + HOLD_MAX_S + 0.01)
     assert not camera.holding
@@ -317,7 +317,7 @@ def test_a_dead_estimator_leaves_the_fail_safe_minimum_not_a_hold(fleet: Outage)
 
 
 def test_repeated_outage_beacons_do_not_extend_the_hold(fleet: Outage) -> None:
-    camera = fleet.camera("/r1/camera", 0.9)
+    camera = fleet.stream("/r1/camera", 0.9)
     fleet.say(LinkBeacon(up=True))
     for _ in range(round((HOLD_MAX_S + 1.0) / PERIOD_S)):  # the estimator hears nothing
         fleet.say(LinkBeacon(up=False))
@@ -327,7 +327,7 @@ def test_repeated_outage_beacons_do_not_extend_the_hold(fleet: Outage) -> None:
 
 
 def test_a_channel_never_allocated_sends_nothing_through_an_outage(fleet: Outage) -> None:
-    fresh = fleet.camera("/r3/camera", 0.9, rate_hz=None)
+    fresh = fleet.stream("/r3/camera", 0.9, rate_hz=None)
     fleet.say(LinkBeacon(up=True))
     fleet.advance(PERIOD_S)
     fleet.say(LinkBeacon(up=False, release_s={"/r3/camera": 0.0}))
@@ -360,7 +360,7 @@ def test_the_release_order_names_no_more_channels_than_a_beacon_takes() -> None:
 def test_malformed_beacons_are_ignored_and_reported_once(
     fleet: Outage, caplog: pytest.LogCaptureFixture
 ) -> None:
-    camera = fleet.camera("/r1/camera", 0.9)
+    camera = fleet.stream("/r1/camera", 0.9)
     fleet.say(LinkBeacon(up=True))
     fleet.advance(LINK_SILENCE_S + 0.01)
     assert not camera.publish(b"held")
@@ -376,13 +376,13 @@ def test_malformed_beacons_are_ignored_and_reported_once(
 
 
 def test_without_a_beacon_nothing_is_ever_held(fleet: Outage) -> None:
-    camera = fleet.camera("/r1/camera", 0.9)
+    camera = fleet.stream("/r1/camera", 0.9)
     fleet.advance(10.0)  # no estimator runs: silence means nothing
     assert not camera.holding
 
 
 def test_a_beacon_buffered_through_the_outage_is_stale(fleet: Outage) -> None:
-    camera = fleet.camera("/r1/camera", 0.9)
+    camera = fleet.stream("/r1/camera", 0.9)
     fleet.say(LinkBeacon(up=True))
     sent_before_the_outage = fleet.clock()
     fleet.advance(2.0)
@@ -394,7 +394,7 @@ def test_a_beacon_buffered_through_the_outage_is_stale(fleet: Outage) -> None:
 
 
 def test_a_beacon_stamped_ahead_does_not_make_the_genuine_ones_stale(fleet: Outage) -> None:
-    camera = fleet.camera("/r1/camera", 0.9)
+    camera = fleet.stream("/r1/camera", 0.9)
     fleet.say(LinkBeacon(up=True))
     fleet.beacon.put(LinkBeacon(up=True, sent_s=fleet.clock() + 100.0).encode())
     for _ in range(5):  # genuine beacons go on: the link is up throughout
@@ -404,7 +404,7 @@ def test_a_beacon_stamped_ahead_does_not_make_the_genuine_ones_stale(fleet: Outa
 
 
 def test_beacons_late_for_long_are_a_new_clock_offset_not_a_backlog(fleet: Outage) -> None:
-    camera = fleet.camera("/r1/camera", 0.9)
+    camera = fleet.stream("/r1/camera", 0.9)
     fleet.say(LinkBeacon(up=True))
     step = 0.1
     for _ in range(15):  # the estimator's clock stepped back 2 s: every beacon looks late
@@ -416,7 +416,7 @@ def test_beacons_late_for_long_are_a_new_clock_offset_not_a_backlog(fleet: Outag
 
 
 def test_after_close_a_beacon_sends_nothing(fleet: Outage) -> None:
-    camera = fleet.camera("/r1/camera", 0.9)
+    camera = fleet.stream("/r1/camera", 0.9)
     fleet.say(LinkBeacon(up=True))
     fleet.advance(LINK_SILENCE_S + 0.01)
     assert not camera.publish(b"held")

@@ -81,6 +81,7 @@ def test_the_access_control_has_one_subject_per_node_and_unique_ids() -> None:
     assert by_id["r1/put"]["key_exprs"] == ["r1/**", "dbm/reception", "dbml/param/r1/**"]
     assert by_id["r1/put-deny"]["key_exprs"] == [
         "dbml/param/r1/**/dbm/frequency/current_value",
+        "dbml/param/r1/**/dbm/encoding/current_value",
         "dbml/param/r1/**/dbm/managed",
     ]
     assert by_id["opt/reply"]["key_exprs"] == ["dbml/own/**"]

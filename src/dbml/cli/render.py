@@ -120,18 +120,20 @@ def monitor_table(view: MonitorView) -> Table:
         if view.estimator is not None:
             title += f" ({view.estimator})"
     table = Table(title=title)
-    columns = [p.column for p in MONITOR_PARAMETERS if p.column is not None]
-    for name in ("topic", "host", "managed", *(c.title for c in columns), "share", "status"):
+    shown = [
+        (p, p.column)
+        for p in MONITOR_PARAMETERS
+        if p.column is not None
+        and (not p.column.optional or any(row.value(p) is not None for row in view.rows))
+    ]
+    for name in ("topic", "host", "managed", *(c.title for _, c in shown), "share", "status"):
         table.add_column(name, justify="left" if name in {"topic", "host", "status"} else "right")
     for row in view.rows:
         table.add_row(
             row.topic,
             row.host,
             "yes" if row.managed else "no",
-            *(
-                _fmt(row.value(p), column.format)
-                for p, column in zip(MONITOR_PARAMETERS, columns, strict=True)
-            ),
+            *(_fmt(row.value(p), column.format) for p, column in shown),
             _fmt(row.share, ".1%"),
             row.status,
         )
@@ -140,7 +142,7 @@ def monitor_table(view: MonitorView) -> Table:
     return table
 
 
-def _fmt(value: float | None, spec: str) -> str:
+def _fmt(value: float | str | None, spec: str) -> str:
     return "-" if value is None else format(value, spec)
 
 

@@ -15,7 +15,7 @@ from dbml.core.errors import MissingExtraError
 
 __all__ = ["EXTRAS", "require"]
 
-EXTRAS = ("plot", "rclpy", "ros2", "secure", "viz")
+EXTRAS = ("plot", "quality", "rclpy", "ros2", "secure", "viz")
 """The extras of ``pip install 'dbml[...]'`` (``all`` and ``dev`` include every one)."""
 
 

@@ -33,6 +33,7 @@ from dbml.core.errors import SpecError, TransportError
 from dbml.core.spec import MAX_RATE_HZ, MAX_SIZE_BYTES, check_number, short_repr
 from dbml.estimator.base import Estimate, Phase
 from dbml.protocol.keys import is_host_name
+from dbml.protocol.ladders import parse_encoding
 from dbml.protocol.metadata import SEQ_MAX
 from dbml.protocol.names import check_topic
 from dbml.protocol.schema import MAX_TEXT_CHARS
@@ -446,6 +447,17 @@ def _round_optional(
     return _round_number(document, field, maximum=maximum, exclusive_minimum=exclusive_minimum)
 
 
+def _round_encoding(value: object) -> str | None:
+    """A rung's label (``dbml.protocol.ladders``), or None where absent."""
+    if value is None:
+        return None
+    try:
+        parse_encoding(value)
+    except SpecError as err:
+        raise TransportError(str(err)) from None
+    return str(value)
+
+
 @dataclass(frozen=True, slots=True)
 class ChannelRound:
     """One live channel in a round: what it declared and what the optimizer made of it.
@@ -465,10 +477,16 @@ class ChannelRound:
     floor_hz: float | None = None
     rate_hz: float | None = None
     share: float | None = None
+    encoding: str | None = None
+    """A laddered channel's rung (``x0.5 q80``); its bytes are ``size_bytes``."""
+    quality: float | None = None
+    """The rung's quality score in [0, 1] (None: no ladder)."""
 
     def as_json(self) -> dict[str, Any]:
         """The channel as a round report carries it (and the live view shows it)."""
         return {
+            "encoding": self.encoding,
+            "quality": self.quality,
             "topic": self.topic,
             "priority": self.priority,
             "normalized_priority": self.normalized_priority,
@@ -507,6 +525,8 @@ class ChannelRound:
                 floor_hz=_round_optional(document, "floor_hz", maximum=MAX_RATE_HZ),
                 rate_hz=_round_optional(document, "rate_hz", maximum=MAX_RATE_HZ),
                 share=_round_optional(document, "share"),
+                encoding=_round_encoding(document.get("encoding")),
+                quality=_round_optional(document, "quality", maximum=1.0),
             )
         except TransportError as err:
             raise TransportError(f"{topic}: {err}") from None

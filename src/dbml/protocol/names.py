@@ -14,7 +14,9 @@ from dbml.protocol import schema
 __all__ = [
     "APPLIED_FIELD",
     "BANDWIDTH",
+    "COMPRESSED",
     "CURRENT_FIELD",
+    "ENCODING_FIELD",
     "ESTIMATE",
     "ESTIMATOR_STATE",
     "FRAME_HEADROOM",
@@ -35,9 +37,14 @@ __all__ = [
     "check_channel",
     "check_topic",
     "current_value",
+    "encoding",
+    "encoding_applied",
+    "ladder",
     "managed",
     "max_rate",
+    "min_quality",
     "min_rate",
+    "preference",
     "priority",
     "size",
     "topic_of",
@@ -45,6 +52,8 @@ __all__ = [
 
 OPTIMIZED = "optimized"
 """The last segment of a channel's managed copy: ``/r1/camera/optimized``."""
+COMPRESSED = "compressed"
+"""After ``optimized``, a camera's managed copy as JPEG: ``/r1/camera/optimized/compressed``."""
 
 BANDWIDTH = schema.BANDWIDTH.name
 UTILIZATION = schema.UTILIZATION.name
@@ -64,6 +73,7 @@ PRIORITY_FIELD = schema.PRIORITY.field
 CURRENT_FIELD = schema.CURRENT.field
 APPLIED_FIELD = schema.APPLIED.field
 MANAGED_FIELD = schema.MANAGED.field
+ENCODING_FIELD = schema.ENCODING.field
 PRIORITY_SUFFIX = f"/{schema.PRIORITY.relative}"
 """A channel's priority parameter after its topic (over ROS 2 also a ``Float64`` topic)."""
 
@@ -110,6 +120,31 @@ def applied(topic: str) -> str:
     return schema.APPLIED.key(topic)
 
 
+def encoding(topic: str) -> str:
+    """``[topic]/dbm/encoding/current_value``: the rung the optimizer chose."""
+    return schema.ENCODING.key(topic)
+
+
+def encoding_applied(topic: str) -> str:
+    """``[topic]/dbm/encoding/applied_value``: the encoding the publisher applies."""
+    return schema.ENCODING_APPLIED.key(topic)
+
+
+def preference(topic: str) -> str:
+    """``[topic]/dbm/preference``: what a laddered channel gives up first."""
+    return schema.PREFERENCE.key(topic)
+
+
+def min_quality(topic: str) -> str:
+    """``[topic]/dbm/quality/min``: a laddered channel's quality floor."""
+    return schema.MIN_QUALITY.key(topic)
+
+
+def ladder(topic: str) -> str:
+    """``[topic]/dbm/ladder``: the ladder the publisher measured."""
+    return schema.LADDER.key(topic)
+
+
 def managed(topic: str) -> str:
     """Whether the optimizer manages the channel (a remote host subscribes)."""
     return schema.MANAGED.key(topic)
@@ -123,7 +158,11 @@ def check_channel(topic: str) -> str:
     """
     check_topic(topic)
     segments = topic.split("/")
-    if segments[-1] == OPTIMIZED or _RESERVED_SEGMENT in segments:
+    if (
+        segments[-1] == OPTIMIZED
+        or segments[-2:] == [OPTIMIZED, COMPRESSED]
+        or _RESERVED_SEGMENT in segments
+    ):
         raise TransportError(
             f"topic={topic!r} is reserved: '.../{OPTIMIZED}' and "
             f"'.../{_RESERVED_SEGMENT}/...' are dbml's own names, not channels"

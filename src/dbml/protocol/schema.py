@@ -12,12 +12,13 @@ the roles whose processes may set it; everyone may read it.
 from __future__ import annotations
 
 import enum
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import TypeAlias
 
 from dbml.core.allocation import Status, Strategy
 from dbml.core.errors import SpecError, TransportError
+from dbml.core.ladder import Preference
 from dbml.core.spec import (
     MAX_BANDWIDTH_MBIT,
     MAX_PERIOD_S,
@@ -27,21 +28,27 @@ from dbml.core.spec import (
     check_number,
     short_repr,
 )
+from dbml.protocol.ladders import decode_rungs, parse_encoding
 
 __all__ = [
     "APPLIED",
     "BANDWIDTH",
     "CURRENT",
+    "ENCODING",
+    "ENCODING_APPLIED",
     "ESTIMATE",
     "ESTIMATOR_STATE",
     "FRAME_HEADROOM",
     "GLOBAL_PREFIX",
+    "LADDER",
     "MANAGED",
     "MAX_RATE",
     "MAX_TEXT_CHARS",
+    "MIN_QUALITY",
     "MIN_RATE",
     "PARAMETERS",
     "PERIOD",
+    "PREFERENCE",
     "PRIORITY",
     "ROUND",
     "SIZE",
@@ -111,6 +118,8 @@ class Column:
 
     title: str
     format: str
+    optional: bool = False
+    """Shown only when some row has a value (the ladder's columns, in a fleet with none)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -129,6 +138,8 @@ class Parameter:
     choices: tuple[str, ...] = ()
     column: Column | None = None
     """Its column in ``dbml monitor`` (None: not shown as a column)."""
+    parse: Callable[[str], object] | None = None
+    """A text's own rule (a ladder, an encoding's label): raises ``SpecError`` naming it."""
 
     @property
     def relative(self) -> str:
@@ -169,6 +180,11 @@ class Parameter:
         if self.kind is Kind.BOOL and isinstance(value, bool):
             return value
         if self.kind is Kind.TEXT and isinstance(value, str) and len(value) <= MAX_TEXT_CHARS:
+            if self.parse is not None:
+                try:
+                    self.parse(value)
+                except SpecError as err:
+                    raise ParamError(f"{name}: {err}") from None
             return value
         if self.kind is Kind.CHOICE and isinstance(value, str) and value in self.choices:
             return value
@@ -328,6 +344,52 @@ APPLIED = Parameter(
     exclusive_minimum=True,
     maximum=MAX_RATE_HZ,
 )
+PREFERENCE = Parameter(
+    "preference",
+    Scope.CHANNEL,
+    Kind.CHOICE,
+    frozenset({Writer.OPERATOR, Writer.PUBLISHER}),
+    "What a laddered channel gives up first when the budget is short: ``keep_rate`` (detail "
+    "goes first), ``keep_detail`` (frames go first) or ``balanced``; set like the priority.",
+    choices=tuple(p.value for p in Preference),
+    column=Column("prefer", "", optional=True),
+)
+MIN_QUALITY = Parameter(
+    "quality/min",
+    Scope.CHANNEL,
+    Kind.NUMBER,
+    frozenset({Writer.OPERATOR, Writer.PUBLISHER}),
+    "A laddered channel's quality floor in [0, 1]: rungs below it are never chosen.",
+    minimum=0.0,
+    maximum=1.0,
+)
+LADDER = Parameter(
+    "ladder",
+    Scope.CHANNEL,
+    Kind.TEXT,
+    _PUBLISHER,
+    "The channel's ladder as the publisher measures it on its own frames: JSON, one "
+    "``[size_bytes, quality, scale, jpeg_quality]`` a rung (``dbml.protocol.ladders``).",
+    parse=decode_rungs,
+)
+ENCODING = Parameter(
+    "encoding/current_value",
+    Scope.CHANNEL,
+    Kind.TEXT,
+    _OPTIMIZER,
+    "The rung chosen for a laddered channel, pushed with its rate: ``x0.5 q80`` (scale, JPEG "
+    "quality) or ``x1 raw``.",
+    parse=parse_encoding,
+    column=Column("encoding", "", optional=True),
+)
+ENCODING_APPLIED = Parameter(
+    "encoding/applied_value",
+    Scope.CHANNEL,
+    Kind.TEXT,
+    _PUBLISHER,
+    "The encoding the publisher is applying: its acknowledgement of ``encoding/current_value``.",
+    parse=parse_encoding,
+)
 MANAGED = Parameter(
     "managed",
     Scope.CHANNEL,
@@ -353,6 +415,11 @@ PARAMETERS: tuple[Parameter, ...] = (
     SIZE,
     CURRENT,
     APPLIED,
+    PREFERENCE,
+    MIN_QUALITY,
+    LADDER,
+    ENCODING,
+    ENCODING_APPLIED,
     MANAGED,
 )
 """Every parameter dbml reads or writes (those with a ``column`` in ``dbml monitor``'s order)."""

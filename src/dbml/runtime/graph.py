@@ -13,7 +13,7 @@ from collections import defaultdict
 from collections.abc import Iterable
 from dataclasses import dataclass
 
-from dbml.transports.base import GraphEntry, Role, Variant
+from dbml.transports.base import GraphEntry, Role
 
 __all__ = [
     "GraphSummary",
@@ -37,7 +37,7 @@ def published_topics(entries: Iterable[GraphEntry]) -> set[str]:
 
 def _crosses(subscriber: GraphEntry, hosts: Iterable[str]) -> bool:
     """Whether ``subscriber`` receives the optimized copy from a publisher on another host."""
-    return subscriber.variant is Variant.OPTIMIZED and any(h != subscriber.host for h in hosts)
+    return subscriber.variant.managed and any(h != subscriber.host for h in hosts)
 
 
 def remote_subscribers(entries: Iterable[GraphEntry], topic: str) -> set[GraphEntry]:

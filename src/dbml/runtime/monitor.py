@@ -12,6 +12,7 @@ from typing import Any
 
 from dbml.core.errors import SpecError
 from dbml.protocol import schema
+from dbml.protocol.ladders import encoding_label
 from dbml.protocol.messages import EstimatorState, RoundReport
 from dbml.protocol.schema import PARAMETERS, Parameter
 from dbml.runtime.graph import summarize
@@ -38,13 +39,20 @@ class ChannelRow:
     status: str
     estimate_mbit: float | None = None
     estimator: str | None = None
+    preference: str | None = None
+    """A laddered channel's preference (None: no ladder)."""
+    encoding: str | None = None
+    """A laddered channel's rung, as the optimizer reported it; ``size_bytes`` is its bytes."""
+    quality: float | None = None
 
-    def value(self, parameter: Parameter) -> float | None:
+    def value(self, parameter: Parameter) -> float | str | None:
         """The row's value of one of ``MONITOR_PARAMETERS``."""
-        values = {
+        values: dict[Parameter, float | str | None] = {
             schema.PRIORITY: self.priority,
             schema.SIZE: self.size_bytes,
             schema.CURRENT: self.allocated_hz,
+            schema.PREFERENCE: self.preference,
+            schema.ENCODING: self.encoding,
         }
         return values[parameter]
 
@@ -61,6 +69,9 @@ class ChannelRow:
             "status": self.status,
             "estimate_mbit": self.estimate_mbit,
             "estimator": self.estimator,
+            "preference": self.preference,
+            "encoding": self.encoding,
+            "quality": self.quality,
         }
 
 
@@ -92,6 +103,14 @@ def monitor_view(transport: Transport, report: RoundReport | None = None) -> Mon
         reported = reports.get(topic)
         allocated = channel.current_rate_hz if reported is None else reported.rate_hz
         share = None if reported is None else reported.share
+        laddered = channel.rungs is not None
+        size = channel.size_bytes
+        encoding = None
+        if laddered and channel.encoding is not None:
+            encoding = encoding_label(*channel.encoding)
+        quality = None
+        if reported is not None and reported.encoding is not None:
+            encoding, quality, size = reported.encoding, reported.quality, reported.size_bytes
         if allocated is None:
             state = "no allocation"
         elif not managed:
@@ -104,12 +123,15 @@ def monitor_view(transport: Transport, report: RoundReport | None = None) -> Mon
                 host=",".join(sorted(graph.hosts.get(topic, ()))),
                 managed=managed,
                 priority=channel.priority,
-                size_bytes=channel.size_bytes,
+                size_bytes=size,
                 allocated_hz=allocated,
                 share=share,
                 status=state,
                 estimate_mbit=dbm.estimate_mbit,
                 estimator=estimator_text,
+                preference=channel.preference.value if laddered else None,
+                encoding=encoding,
+                quality=quality,
             )
         )
     message = snapshot.globals.get(schema.STATUS_MESSAGE)

@@ -34,9 +34,12 @@ from typing import TypeAlias
 from dbml.core.allocation import Allocation, Status, Strategy, allocate
 from dbml.core.config import DbmSettings
 from dbml.core.errors import DbmlError
+from dbml.core.ladder import Ladder
+from dbml.core.quality import QualityAllocation, QualityStatus, allocate_quality
 from dbml.core.spec import LinkSpec, Problem, mbit_to_bytes_per_s, short_repr
 from dbml.protocol import keys, names, schema
 from dbml.protocol.keys import ROUND_TOPIC
+from dbml.protocol.ladders import Encoding, encoding_label, parse_encoding
 from dbml.protocol.messages import MAX_REPORTED_CHANNELS, ChannelRound, RoundReport
 from dbml.protocol.schema import Parameter
 from dbml.runtime.graph import summarize
@@ -67,6 +70,9 @@ _TRIGGERS = frozenset(
         schema.PERIOD,
         schema.STRATEGY,
         schema.FRAME_HEADROOM,
+        schema.LADDER,
+        schema.PREFERENCE,
+        schema.MIN_QUALITY,
     }
 )
 """Parameters whose change re-allocates at once: a channel's inputs, the budget, the rules."""
@@ -95,6 +101,25 @@ bound) and named by count in ``/dbm/status_message`` every round."""
 
 _Writes: TypeAlias = dict[str | None, dict[str, ParamValue]]
 """Writes by the channel whose names they are (None: global ones): addressed with no parse."""
+_Wanted: TypeAlias = tuple[float | None, str | None]
+"""A channel's rate and its rung's label (None: no ladder) as pushed or acknowledged."""
+
+
+def _writes(topic: str, wanted: _Wanted) -> dict[str, ParamValue]:
+    rate, label = wanted
+    values: dict[str, ParamValue] = {names.current_value(topic): rate}
+    if label is not None:
+        values[names.encoding(topic)] = label
+    return values
+
+
+def _rung_bytes(channel: ChannelParams, label: str) -> float:
+    """The bytes a frame of the rung ``label`` names, by the channel's ladder (else its size)."""
+    encoding = parse_encoding(label)
+    for rung in channel.rungs or ():
+        if (rung.scale, rung.jpeg_quality) == encoding:
+            return rung.size_bytes
+    return channel.size_bytes or 0.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -128,21 +153,34 @@ class Round:
     strategy: Strategy = Strategy.PAPER
     number: int = 0
     """The round's counter, as ``/dbm/round`` carries it."""
+    encodings: Mapping[str, Encoding] = field(default_factory=dict)
+    """The rung pushed to each laddered channel."""
+    quality: QualityAllocation | None = None
+    """The rate-and-quality allocation, when a managed channel carries a ladder."""
 
     def report(self) -> RoundReport:
         """The round as the optimizer says it on the wire: every live channel, floors included."""
-        allocation = self.allocation
+        allocation = self.allocation or self.quality
         allocated: dict[str, tuple[float, float]] = {}
         if allocation is not None:
             allocated = {
                 topic: (float(allocation.normalized_priority[i]), float(allocation.floor_hz[i]))
                 for i, topic in enumerate(allocation.topics)
             }
+        chosen: dict[str, tuple[float, float]] = {}
+        if self.quality is not None:
+            quality = self.quality
+            chosen = {
+                topic: (float(quality.size_bytes[i]), float(quality.quality[i]))
+                for i, topic in enumerate(quality.topics)
+                if quality.rung[i] >= 0
+            }
         budget = None if self.budget_mbit is None else mbit_to_bytes_per_s(self.budget_mbit)
         channels = []
         for state in self.channels:
             params, rate = state.params, self.rates_hz.get(state.topic)
-            size = params.size_bytes
+            size, score = chosen.get(state.topic, (params.size_bytes, None))
+            encoding = self.encodings.get(state.topic)
             share = None
             if state.managed and budget and rate is not None and size is not None:
                 share = rate * size / budget
@@ -159,6 +197,8 @@ class Round:
                     floor_hz=floor,
                     rate_hz=rate,
                     share=share,
+                    encoding=None if encoding is None else encoding_label(*encoding),
+                    quality=score,
                 )
             )
         return RoundReport(
@@ -181,6 +221,24 @@ class _Outcome:
     """The managed channels' rates; a channel without one is pushed nothing."""
     allocation: Allocation | None = None
     """The allocator's result, when it ran."""
+    encodings: Mapping[str, Encoding] = field(default_factory=dict)
+    """The laddered channels' rungs."""
+    quality: QualityAllocation | None = None
+    """The rate-and-quality allocation's result, when it ran."""
+
+
+def _quality_outcome(problem: Problem, ladders: Mapping[str, Ladder]) -> _Outcome:
+    """A rung and a rate for every channel (``allocate_quality``): the laddered ones' rungs."""
+    quality = allocate_quality(problem, ladders)
+    rates = {t: float(r) for t, r in zip(quality.topics, quality.rate_hz, strict=True)}
+    encodings: dict[str, Encoding] = {}
+    for i, topic in enumerate(quality.topics):
+        ladder = ladders.get(topic)
+        if ladder is not None and quality.rung[i] >= 0:
+            rung = ladder.rungs[int(quality.rung[i])]
+            encodings[topic] = (rung.scale, rung.jpeg_quality)
+    status = Status.OPTIMAL if quality.status is QualityStatus.OPTIMAL else Status.INFEASIBLE
+    return _Outcome(status, quality.message, rates, None, encodings, quality)
 
 
 class OptimizerNode:
@@ -210,7 +268,7 @@ class OptimizerNode:
         self._reported_s = -math.inf
         self._ack_timeout_s = ack_timeout_s
         self._estimate = budget_mbit
-        self._pushed: dict[str, tuple[float, frozenset[str]]] = {}
+        self._pushed: dict[str, tuple[_Wanted, frozenset[str]]] = {}
         self._pushed_at: dict[str, float] = {}
         """When each channel's rate was last pushed: one not acknowledged a period later is
         pushed again."""
@@ -268,7 +326,7 @@ class OptimizerNode:
         """A valid value arrived (the view has it already): react to what it changes."""
         if parameter in _TRIGGERS:
             self.poke()
-        elif parameter is schema.APPLIED:
+        elif parameter is schema.APPLIED or parameter is schema.ENCODING_APPLIED:
             with self._acks:
                 self._acks.notify_all()
 
@@ -392,6 +450,9 @@ class OptimizerNode:
             links=links,
             frame_headroom=dbm.frame_headroom,
         )
+        ladders = {c.topic: ladder for c in managed if c.topic in topics and (ladder := c.ladder())}
+        if ladders and dbm.strategy is Strategy.PAPER and not links:
+            return _quality_outcome(problem, ladders)
         allocation = allocate(problem, strategy=dbm.strategy)
         return _Outcome(
             allocation.status, allocation.message, allocation.rates_by_topic(), allocation
@@ -431,9 +492,11 @@ class OptimizerNode:
                 log.warning("infeasible: %s", message)
             else:
                 log.info("%s", message)
+        encodings = {t: encoding_label(*e) for t, e in outcome.encodings.items() if t in rates}
         self._owned = {name: v for values in owned.values() for name, v in values.items()}
         self._owned |= {names.current_value(t): r for t, r in rates.items()}
-        self._push(rates, channels, updates)
+        self._owned |= {names.encoding(t): e for t, e in encodings.items()}
+        self._push(rates, encodings, channels, updates)
         result = Round(
             channels,
             rates,
@@ -443,6 +506,8 @@ class OptimizerNode:
             outcome.allocation,
             dbm.strategy,
             self._rounds,
+            {t: outcome.encodings[t] for t in encodings},
+            outcome.quality,
         )
         self.last_round = result
         self._report(result)
@@ -462,43 +527,62 @@ class OptimizerNode:
     def _push(
         self,
         rates: dict[str, float],
+        encodings: dict[str, str],
         channels: tuple[ChannelState, ...],
         updates: _Writes,
     ) -> None:
-        """Push what changed: decreases first (acknowledged), then the rest and the heartbeat."""
+        """Push what changed: decreases first (acknowledged), then the rest and the heartbeat.
+
+        A laddered channel's rung goes with its rate, and what decreases is its bytes a second
+        (rate times the rung's bytes), so a channel trading detail for frames is not raised
+        before another's cut is applied.
+        """
         params = self._transport.params
         publishers = {c.topic: c.publishers for c in channels}
+        ladders = {c.topic: c.params for c in channels if c.params.rungs is not None}
         now = self._transport.now()
         period_s = self._view.dbm().period_s  # once per round, not once per channel
         # Changed, or for new publishers (a restarted one heard nothing), or overwritten by
         # another node (the store is not ours alone), or not acknowledged for a period (the push
         # or its acknowledgement was lost on the way): pushed; an unchanged rate is not.
+        wanted = {t: (r, encodings.get(t)) for t, r in rates.items()}
         changed = {
-            t: r
-            for t, r in rates.items()
-            if self._pushed.get(t) != (r, publishers.get(t))
-            or params.get(names.current_value(t)) != r
-            or (self._applied_hz(t) != r and now - self._pushed_at.get(t, now) >= period_s)
+            t: w
+            for t, w in wanted.items()
+            if self._pushed.get(t) != (w, publishers.get(t))
+            or params.get(names.current_value(t)) != w[0]
+            or (w[1] is not None and params.get(names.encoding(t)) != w[1])
+            or (not self._acknowledged(t, w) and now - self._pushed_at.get(t, now) >= period_s)
         }
 
-        before = {t: self._running_hz(t) for t in changed}
+        def spend(topic: str, rate: float | None, label: str | None) -> float | None:
+            channel = ladders.get(topic)
+            if rate is None or channel is None or label is None:
+                return rate  # no ladder: the size is the same on both sides
+            return rate * _rung_bytes(channel, label)
+
+        before = {t: spend(t, *self._running(t)) for t in changed}
         # A channel nobody pushed to yet sends nothing: it rises from zero, after the decreases.
-        decreases = {t: r for t, r in changed.items() if (b := before[t]) is not None and r < b}
-        increases = {t: r for t, r in changed.items() if t not in decreases}
+        decreases = {
+            t: w
+            for t, w in changed.items()
+            if (b := before[t]) is not None and (after := spend(t, *w)) is not None and after < b
+        }
+        increases = {t: w for t, w in changed.items() if t not in decreases}
         if decreases and increases:
-            self._send({t: {names.current_value(t): r} for t, r in decreases.items()}, channels)
+            self._send({t: _writes(t, w) for t, w in decreases.items()}, channels)
             self._pushed_at.update(dict.fromkeys(decreases, now))
             self._await_acks(decreases)
             decreases = {}
         self._rounds += 1
         pushed = decreases | increases
-        writes: _Writes = {t: {names.current_value(t): r} for t, r in pushed.items()}
+        writes: _Writes = {t: _writes(t, w) for t, w in pushed.items()}
         for topic, values in updates.items():
             writes[topic] = writes.get(topic, {}) | values
         writes[None] = writes.get(None, {}) | {names.ROUND: self._rounds}
         self._send(writes, channels)
         self._pushed_at.update(dict.fromkeys(pushed, now))
-        self._pushed = {t: (r, publishers.get(t, frozenset())) for t, r in rates.items()}
+        self._pushed = {t: (w, publishers.get(t, frozenset())) for t, w in wanted.items()}
         for topic in set(self._pushed_at) - set(rates):
             del self._pushed_at[topic]
 
@@ -524,24 +608,34 @@ class OptimizerNode:
         if common:
             params.set_many(common)
 
-    def _running_hz(self, topic: str) -> float | None:
+    def _running(self, topic: str) -> _Wanted:
         """What the publisher acknowledged running, else what was last pushed to it."""
-        applied = self._applied_hz(topic)
-        if applied is not None:
-            return applied
         pushed = self._pushed.get(topic)
-        return None if pushed is None else pushed[0]
+        pushed_rate, pushed_label = (None, None) if pushed is None else pushed[0]
+        applied = self._applied_hz(topic)
+        label = self._view.get(names.encoding_applied(topic))
+        return (
+            pushed_rate if applied is None else applied,
+            label if isinstance(label, str) else pushed_label,
+        )
 
     def _applied_hz(self, topic: str) -> float | None:
         """The rate the publisher acknowledged (validated by the view)."""
         value = self._view.get(names.applied(topic))
         return value if isinstance(value, float) else None
 
-    def _await_acks(self, decreases: dict[str, float]) -> None:
+    def _acknowledged(self, topic: str, wanted: _Wanted) -> bool:
+        """Whether the publisher applies ``wanted``: the rate, and the rung if it has one."""
+        rate, label = wanted
+        if self._applied_hz(topic) != rate:
+            return False
+        return label is None or self._view.get(names.encoding_applied(topic)) == label
+
+    def _await_acks(self, decreases: Mapping[str, _Wanted]) -> None:
         """Wait until publishers apply the decreases (bounded), so increases come after them."""
 
         def late() -> list[str]:
-            return sorted(t for t, r in decreases.items() if self._applied_hz(t) != r)
+            return sorted(t for t, w in decreases.items() if not self._acknowledged(t, w))
 
         with self._acks:
             if not self._acks.wait_for(lambda: not late(), timeout=self._ack_timeout_s):

@@ -28,8 +28,11 @@ from typing import ClassVar, TypeAlias
 
 from dbml.core.allocation import Strategy
 from dbml.core.config import DbmSettings
+from dbml.core.errors import SpecError
+from dbml.core.ladder import Ladder, Preference, Rung
 from dbml.core.spec import ChannelSpec
 from dbml.protocol import names, schema
+from dbml.protocol.ladders import Encoding, decode_rungs, parse_encoding
 from dbml.protocol.schema import ParamError, Parameter, lookup
 from dbml.transports.base import Closer, Handle, ParamStore, ParamValue
 from dbml.transports.callbacks import CallbackList
@@ -122,6 +125,20 @@ class ChannelParams:
     applied_rate_hz: float | None = None
     """The rate the publisher acknowledged applying."""
     managed: bool | None = None
+    rungs: tuple[Rung, ...] | None = None
+    """The ladder the publisher measured (None: the channel has none)."""
+    preference: Preference = Preference.BALANCED
+    min_quality: float = 0.0
+    encoding: Encoding | None = None
+    """The rung the optimizer pushed: ``(scale, jpeg_quality)``."""
+    applied_encoding: Encoding | None = None
+    """The encoding the publisher acknowledged applying."""
+
+    def ladder(self) -> Ladder | None:
+        """The channel's ladder with its quality floor and preference (None: no ladder)."""
+        if self.rungs is None:
+            return None
+        return Ladder(self.rungs, min_quality=self.min_quality, preference=self.preference)
 
     @property
     def bounded(self) -> bool:
@@ -379,8 +396,33 @@ def _dbm(values: ByParameter) -> DbmParams:
     )
 
 
+def _text(values: ByParameter, parameter: Parameter) -> str | None:
+    value = values.get(parameter)
+    return value if isinstance(value, str) else None
+
+
+def _rungs(text: str | None) -> tuple[Rung, ...] | None:
+    """A checked ladder's rungs (the view checked it as it entered; cached by text)."""
+    if text is None:
+        return None
+    try:
+        return decode_rungs(text)
+    except SpecError:  # not reached for a value the view took in; a snapshot's is checked too
+        return None
+
+
+def _encoding(text: str | None) -> Encoding | None:
+    if text is None:
+        return None
+    try:
+        return parse_encoding(text)
+    except SpecError:
+        return None
+
+
 def _channel(topic: str, values: ByParameter) -> ChannelParams:
     managed = values.get(schema.MANAGED)
+    preference = _text(values, schema.PREFERENCE)
     return ChannelParams(
         topic=topic,
         min_rate_hz=_float(values.get(schema.MIN_RATE)),
@@ -390,6 +432,11 @@ def _channel(topic: str, values: ByParameter) -> ChannelParams:
         current_rate_hz=_float(values.get(schema.CURRENT)),
         applied_rate_hz=_float(values.get(schema.APPLIED)),
         managed=managed if isinstance(managed, bool) else None,
+        rungs=_rungs(_text(values, schema.LADDER)),
+        preference=Preference(preference) if preference is not None else Preference.BALANCED,
+        min_quality=_float(values.get(schema.MIN_QUALITY)) or 0.0,
+        encoding=_encoding(_text(values, schema.ENCODING)),
+        applied_encoding=_encoding(_text(values, schema.ENCODING_APPLIED)),
     )
 
 

@@ -33,6 +33,7 @@ from collections.abc import Callable
 from dbml.core.errors import TransportError
 from dbml.core.spec import ChannelSpec, check_number
 from dbml.protocol import keys, names
+from dbml.protocol.ladders import Encoding, parse_encoding
 from dbml.protocol.messages import LinkBeacon
 from dbml.protocol.metadata import pack_meta
 from dbml.runtime.failsafe import FAILSAFE_PERIODS, FailSafe
@@ -114,12 +115,19 @@ class ManagedPublisher:
         republish_full: bool = True,
         transport_priority: TransportPriority | None = None,
         map_transport_priority: bool = True,
+        variant: Variant = Variant.OPTIMIZED,
+        encoding: Encoding | None = None,
     ) -> None:
         names.check_channel(topic)
         # Validates the bounds with the same rules and messages as the allocation core.
         ChannelSpec(topic, min_rate_hz, max_rate_hz, 1.0, 0.0 if priority is None else priority)
         check_number(failsafe_periods, field="failsafe_periods", minimum=0, exclusive_minimum=True)
+        if not variant.managed:
+            raise ValueError(f"variant={variant.value!r}: the managed copy is not the full one")
         self.topic = topic
+        self._variant = variant
+        self._encoding = encoding
+        """The rung in force (a camera's): the optimizer's last push, else the default."""
         self.min_rate_hz = float(min_rate_hz)
         self.max_rate_hz = float(max_rate_hz)
         self._transport = transport
@@ -183,6 +191,10 @@ class ManagedPublisher:
             if isinstance(value, float):
                 self._on_allocation(value)
             return
+        if field == names.ENCODING_FIELD:
+            if isinstance(value, str) and self._encoding is not None:
+                self._on_encoding(value)
+            return
         if field == names.SIZE_FIELD:
             real = self._sizes.dispute(value)
             if real is not None:
@@ -216,6 +228,16 @@ class ManagedPublisher:
             self._log_recovery(rate)
         # A non-blocking write: this may be the middleware's callback thread.
         self._transport.params.set(names.applied(self.topic), rate)
+
+    def _on_encoding(self, label: str) -> None:
+        """Apply a pushed rung (the view checked it) and acknowledge it, as a rate is."""
+        self._encoding = parse_encoding(label)  # one reference swapped: read without a lock
+        self._transport.params.set(names.encoding_applied(self.topic), label)
+
+    @property
+    def encoding(self) -> Encoding | None:
+        """The rung in force, ``(scale, jpeg_quality)``: a camera's (None for other channels)."""
+        return self._encoding
 
     def _on_dbm_param(self, name: str, value: ParamValue) -> None:
         """A new optimisation period, or the optimizer's heartbeat."""
@@ -402,9 +424,9 @@ class ManagedPublisher:
 
     def _declare_optimized(self, qos: TransportQos | None) -> Publisher:
         if qos is None:
-            return self._transport.declare_publisher(self.topic, Variant.OPTIMIZED)
+            return self._transport.declare_publisher(self.topic, self._variant)
         return self._transport.declare_publisher(
-            self.topic, Variant.OPTIMIZED, priority=qos.priority, express=qos.express
+            self.topic, self._variant, priority=qos.priority, express=qos.express
         )
 
     def update_transport_class(self) -> bool:
@@ -436,19 +458,28 @@ class ManagedPublisher:
             self._allocation.size_known(now)
             self._apply_locked(now)
 
-    def publish(self, payload: bytes) -> bool:
+    def publish(
+        self,
+        payload: bytes,
+        *,
+        encode: Callable[[], bytes] | None = None,
+        size_bytes: int | None = None,
+    ) -> bool:
         """Send ``payload``; True if it went to ``[topic]/optimized`` (within the rate).
 
         Each variant numbers its own messages, so a receiver's sequence gaps are losses, never
-        the throttling.
+        the throttling. A camera gives ``encode``: what its managed copy carries instead of
+        ``payload`` (the frame at the rung in force), called only for a frame that goes; and
+        ``size_bytes``, the size the optimizer is told (its frame at the default rung).
         """
         now = self._now()
         rate, until = self._steady
         steady = now <= until  # the common case: the limiter runs at the allocation already
         if not steady:
             rate = self._rate_in_force(now)  # before a new size moves the deadline
-        if len(payload) != self._sizes.known_bytes:
-            self._track_size(len(payload))
+        size = len(payload) if size_bytes is None else size_bytes
+        if size != self._sizes.known_bytes:
+            self._track_size(size)
         if self._qos_stale:
             self.update_transport_class()
         full = self._full
@@ -473,7 +504,8 @@ class ManagedPublisher:
             )
         if not allowed:
             return False
-        self._switch.publisher.put(payload, attachment=pack_meta(seq, self._wall_clock_ns(), rate))
+        managed = payload if encode is None else encode()
+        self._switch.publisher.put(managed, attachment=pack_meta(seq, self._wall_clock_ns(), rate))
         return True
 
     def close(self) -> None:

@@ -37,7 +37,10 @@ second, and reading the graph view is cheap (every transport keeps it in memory)
 
 
 class ManagedSubscriber:
-    """Receive ``topic`` in the right copy, following the publisher's host."""
+    """Receive ``topic`` in the right copy, following the publisher's host.
+
+    ``remote``: the copy taken from another host; a camera's JPEG is ``Variant.COMPRESSED``.
+    """
 
     def __init__(
         self,
@@ -46,8 +49,12 @@ class ManagedSubscriber:
         callback: Callable[[Sample], None],
         *,
         reporter: ReceptionReporter | None = None,
+        remote: Variant = Variant.OPTIMIZED,
     ) -> None:
+        if not remote.managed:
+            raise ValueError(f"remote={remote.value!r} is not a managed copy")
         self.topic = names.check_channel(topic)
+        self._remote = remote
         self._transport = transport
         self._callback = callback
         self._reporter = reporter
@@ -90,7 +97,7 @@ class ManagedSubscriber:
         # Full rate only when every publisher is here: a forged "publisher on this host" beside
         # a real remote one must not pull the full-rate stream across the network.
         hosts = publisher_hosts(self._transport.graph.entries(), self.topic)
-        return Variant.FULL if hosts == {self._transport.host} else Variant.OPTIMIZED
+        return Variant.FULL if hosts == {self._transport.host} else self._remote
 
     @property
     def alive(self) -> bool:
@@ -128,7 +135,7 @@ class ManagedSubscriber:
     def _switch(self, wanted: Variant) -> None:
         # Subscribe to the new copy before leaving the old one, so nothing is missed.
         callback = self._callback
-        if wanted is Variant.OPTIMIZED and self._reporter is not None:
+        if wanted.managed and self._reporter is not None:
             callback = self._reported
         subscription = self._transport.subscribe(self.topic, callback, wanted)
         token = self._transport.graph.announce(Role.SUBSCRIBER, self.topic, wanted)

@@ -32,6 +32,7 @@ from dbml.protocol.schema import ParamValue, check_param_value
 from dbml.transports.codecs import CDR_FLOAT64, Float64Codec
 
 __all__ = [
+    "COMPRESSED_TYPE",
     "DEFAULT_ROUTER_ENDPOINT",
     "PRIORITY_SUFFIX",
     "Closer",
@@ -69,15 +70,34 @@ def resolve_host(host: str | None = None) -> str:
     return chosen
 
 
+COMPRESSED_TYPE = "sensor_msgs/msg/CompressedImage"
+"""The ROS 2 type of a camera's compressed copy (``Variant.COMPRESSED``) on every transport."""
+
+
 class Variant(enum.StrEnum):
-    """Which copy of a topic: every message (``full``) or the rate-managed one (``optimized``)."""
+    """Which copy of a topic: every message (``full``), the rate-managed one (``optimized``).
+
+    ``compressed``: a camera's rate-managed copy as ``sensor_msgs/msg/CompressedImage`` at the
+    rung the optimizer chose (``[topic]/optimized/compressed``, where image_transport's
+    subscribers look for it); it is managed as ``optimized`` is.
+    """
 
     FULL = "full"
     OPTIMIZED = names.OPTIMIZED
+    COMPRESSED = names.COMPRESSED
 
     def key(self, topic: str) -> str:
         """The name this copy of ``topic`` travels under (``/r1/camera/optimized``)."""
-        return topic if self is Variant.FULL else f"{topic}/optimized"
+        if self is Variant.FULL:
+            return topic
+        if self is Variant.OPTIMIZED:
+            return f"{topic}/{names.OPTIMIZED}"
+        return f"{topic}/{names.OPTIMIZED}/{names.COMPRESSED}"
+
+    @property
+    def managed(self) -> bool:
+        """Whether this copy is the rate-managed one (a remote subscriber makes it managed)."""
+        return self is not Variant.FULL
 
 
 class TransportPriority(enum.StrEnum):

@@ -83,6 +83,8 @@ _CHANNEL_SCHEMA: dict[str, Any] = {
         "size_bytes": _NULLABLE_NUMBER,
         "share": _NULLABLE_NUMBER,
         "managed": {"type": "boolean"},
+        "encoding": {"type": "string", "description": "a laddered channel's rung; else null"},
+        "quality": _NULLABLE_NUMBER,
     },
 }
 ALLOCATION_SCHEMA: dict[str, Any] = {

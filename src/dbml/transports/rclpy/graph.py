@@ -54,6 +54,7 @@ _UNESCAPE = re.compile(r"_([0-9a-f]{2})")
 _DBML_NODE = re.compile(r"dbml_((?:[A-Za-z0-9]|_[0-9a-f]{2})+)__[0-9a-f]{8}")
 _INFRASTRUCTURE = frozenset({"/parameter_events", "/rosout"})
 _OPTIMIZED_SUFFIX = Variant.OPTIMIZED.key("")
+_COMPRESSED_SUFFIX = Variant.COMPRESSED.key("")
 _FOREIGN_HOST = "ros2:"
 
 
@@ -77,8 +78,12 @@ def host_of_node(name: str) -> str | None:
 
 def split(ros_topic: str) -> tuple[str, Variant]:
     """A ROS topic as dbml's topic and variant: ``/x/optimized`` is ``/x``'s optimized copy."""
-    if ros_topic.endswith(_OPTIMIZED_SUFFIX) and len(ros_topic) > len(_OPTIMIZED_SUFFIX):
-        return ros_topic[: -len(_OPTIMIZED_SUFFIX)], Variant.OPTIMIZED
+    for suffix, variant in (
+        (_OPTIMIZED_SUFFIX, Variant.OPTIMIZED),
+        (_COMPRESSED_SUFFIX, Variant.COMPRESSED),
+    ):
+        if ros_topic.endswith(suffix) and len(ros_topic) > len(suffix):
+            return ros_topic[: -len(suffix)], variant
     return ros_topic, Variant.FULL
 
 
@@ -99,7 +104,7 @@ def foreign_host(role: Role, variant: Variant, gid: bytes, host_ids: dict[int, s
     A subscription of an optimized copy is a remote consumer whatever its host (the paper's
     definition), and an endpoint whose host cannot be told is another host.
     """
-    if role is Role.SUBSCRIBER and variant is Variant.OPTIMIZED:
+    if role is Role.SUBSCRIBER and variant.managed:
         return f"{_FOREIGN_HOST}{gid.hex()}"
     host_id = gid_host_id(gid)
     hosts = host_ids.get(host_id, set()) if host_id is not None else set()

@@ -45,6 +45,7 @@ from dbml.protocol.metadata import pack_meta
 from dbml.protocol.names import check_topic
 from dbml.protocol.schema import GLOBAL_PREFIX
 from dbml.transports.base import (
+    COMPRESSED_TYPE,
     GraphEntry,
     Handle,
     Sample,
@@ -229,7 +230,7 @@ class _RclpyPublisher:
     def __init__(self, transport: RclpyTransport, topic: str, variant: Variant) -> None:
         self.topic = topic
         self._transport = transport
-        self._type = transport.resolve_type(topic) or BYTES_TYPE
+        self._type = transport.resolve_type(topic, variant) or BYTES_TYPE
         self._framed = self._type == BYTES_TYPE
         self._matched: int | None = None
         """Subscriptions matched, as the middleware's matched events last said (None where the
@@ -341,6 +342,7 @@ class _Subscription:
         callback: Callable[[Sample], None],
     ) -> None:
         self.topic = topic
+        self.variant = variant
         self.ros_topic = variant.key(topic)
         self._transport = transport
         self._callback = callback
@@ -582,8 +584,11 @@ class RclpyTransport(TransportBase):
             self._dbml_peers = read.dbml_peers
             waiting = [s for s in self._subscriptions if not s.closed]
         for subscription in waiting:
-            msg_type = self._declared_types.get(subscription.topic) or read.types.get(
-                subscription.ros_topic
+            msg_type = (
+                COMPRESSED_TYPE
+                if subscription.variant is Variant.COMPRESSED
+                else self._declared_types.get(subscription.topic)
+                or read.types.get(subscription.ros_topic)
             )
             if msg_type is None:
                 continue
@@ -615,7 +620,12 @@ class RclpyTransport(TransportBase):
         return self._graph
 
     def resolve_type(self, topic: str, variant: Variant = Variant.FULL) -> str | None:
-        """The type declared for ``topic`` or, else, the one its graph shows."""
+        """The type declared for ``topic`` or, else, the one its graph shows.
+
+        A camera's compressed copy is always ``sensor_msgs/msg/CompressedImage``.
+        """
+        if variant is Variant.COMPRESSED:
+            return COMPRESSED_TYPE
         with self._lock:
             return (
                 self._declared_types.get(topic)

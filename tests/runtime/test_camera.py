@@ -1,0 +1,113 @@
+"""A managed camera on an in-memory fleet: its ladder, the rung pushed, the JPEG that arrives."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+
+pytest.importorskip("simplejpeg")
+
+from dbml.core.ladder import Preference
+from dbml.media.images import Frame, decode_compressed, encode_image
+from dbml.media.jpeg import decode_jpeg
+from dbml.media.photos import PanCamera
+from dbml.protocol import names
+from dbml.protocol.ladders import decode_rungs, encoding_label
+from dbml.runtime.camera import ManagedCamera
+from dbml.testing import Fleet
+from dbml.transports.base import Variant
+
+
+@pytest.fixture
+def fleet() -> Iterator[Fleet]:
+    fleet = Fleet()
+    yield fleet
+    fleet.close()
+
+
+def _camera(
+    fleet: Fleet, topic: str, *, priority: float | None = None, preference: Preference | None = None
+) -> ManagedCamera:
+    return fleet.camera(topic, priority=priority, preference=preference)
+
+
+def test_a_camera_publishes_its_ladder_and_sends_the_rung_the_optimizer_pushed(
+    fleet: Fleet,
+) -> None:
+    eye = PanCamera(640, 480)
+    camera = _camera(fleet, "/r1/camera", priority=1.0, preference=Preference.KEEP_RATE)
+    fleet.watch("/r1/camera", remote=Variant.COMPRESSED)
+    fleet.budget(3.0)  # 375 kB/s: 16 Hz fits only below about 23 kB a frame
+    assert not camera.publish_frame(Frame(eye.frame(), "rgb8"))  # nothing before an allocation
+    rungs = decode_rungs(fleet.get(names.ladder("/r1/camera")))
+    assert len(rungs) == 21
+    assert all(r.jpeg_quality is not None for r in rungs)
+    full = {r.jpeg_quality: r.size_bytes for r in rungs if r.scale == 1.0}
+    assert full[10] < full[50] < full[95]  # a real JPEG: more quality, more bytes
+
+    result = fleet.optimize()
+    pushed = fleet.get(names.encoding("/r1/camera"))
+    assert isinstance(pushed, str)
+    assert pushed == encoding_label(*result.encodings["/r1/camera"])
+    rate = result.rates_hz["/r1/camera"]
+    assert rate == pytest.approx(16.0)  # keep_rate: every frame, detail given up
+    chosen = next(r for r in rungs if encoding_label(r.scale, r.jpeg_quality) == pushed)
+    assert rate * chosen.size_bytes <= 3e6 / 8 * (1 + 1e-9)
+    assert camera.publisher.encoding == (chosen.scale, chosen.jpeg_quality)
+    assert fleet.get(names.encoding_applied("/r1/camera")) == pushed
+
+    fleet.advance(1.0)
+    assert camera.publish_frame(Frame(eye.frame(), "rgb8"))
+    sample = fleet.received["/r1/camera"][-1]
+    message = decode_compressed(sample.payload)
+    assert message.format == "rgb8; jpeg compressed bgr8"
+    pixels = decode_jpeg(message.data)
+    assert pixels.shape == (round(480 * chosen.scale), round(640 * chosen.scale), 3)
+    assert len(message.data) < 1.5 * chosen.size_bytes
+
+
+def test_keep_detail_gives_up_frames_where_keep_rate_gives_up_detail(fleet: Fleet) -> None:
+    eye = PanCamera(640, 480)
+    # No priority: eq. 4's floor is the minimum, so the rate is the allocation's to choose.
+    camera = _camera(fleet, "/r1/camera", preference=Preference.KEEP_DETAIL)
+    fleet.watch("/r1/camera", remote=Variant.COMPRESSED)
+    fleet.budget(3.0)
+    camera.publish_frame(Frame(eye.frame(), "rgb8"))
+    detail = fleet.optimize()
+    fleet.set(names.preference("/r1/camera"), Preference.KEEP_RATE.value)
+    rate = fleet.optimize()
+    assert detail.rates_hz["/r1/camera"] < rate.rates_hz["/r1/camera"]
+    assert detail.quality is not None
+    assert rate.quality is not None
+    assert detail.quality.quality[0] > rate.quality.quality[0]
+
+
+def test_a_message_that_is_not_an_image_is_dropped_not_raised(fleet: Fleet) -> None:
+    camera = _camera(fleet, "/r1/camera")
+    assert camera.publish(b"\x00\x01\x00\x00 not an image") is False
+    uint16 = Frame(np.zeros((4, 4), np.uint8), "mono8")
+    image = bytearray(encode_image(uint16))
+    image[image.find(b"mono8") : image.find(b"mono8") + 5] = b"mono9"
+    assert camera.publish(bytes(image)) is False
+    assert fleet.get(names.ladder("/r1/camera")) is None
+
+
+def test_a_bad_ladder_from_the_network_is_reported_and_the_last_good_one_stands(
+    fleet: Fleet,
+) -> None:
+    eye = PanCamera(640, 480)
+    camera = _camera(fleet, "/r1/camera")
+    fleet.watch("/r1/camera", remote=Variant.COMPRESSED)
+    fleet.budget(11.0)
+    camera.publish_frame(Frame(eye.frame(), "rgb8"))
+    good = fleet.optimize()
+    bad = json.dumps([[0, 0.9, 1.0, 50]])
+    fleet.network.forge({names.ladder("/r1/camera"): bad})  # a peer that skips the checks
+    result = fleet.optimize()
+    assert "ladder" in result.message
+    assert "size_bytes=0" in result.message
+    assert result.encodings == good.encodings
+    assert result.rates_hz == good.rates_hz
