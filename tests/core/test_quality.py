@@ -18,7 +18,7 @@ from scipy.sparse import coo_array
 
 from dbml.core.errors import SpecError
 from dbml.core.ladder import MAX_RUNGS, Ladder, Preference, Rung
-from dbml.core.quality import QualityStatus, allocate_quality
+from dbml.core.quality import QualityStatus, allocate_quality, channel_utility
 from dbml.core.spec import ChannelSpec, Problem
 
 # A 640x480 photograph's JPEG ladder (../shared/QUALITY.md): (scale, quality, bytes, SSIM).
@@ -279,3 +279,17 @@ def test_bad_input_is_one_error_naming_the_field_and_value(make: object, message
         make()  # type: ignore[operator]
     assert message in str(caught.value)
     assert "\n" not in str(caught.value)
+
+
+def test_a_channels_utility_is_the_documented_formula() -> None:
+    # keep_detail: gamma 8, knee 0.25 Hz; balanced: gamma 1, knee 1 Hz; keep_rate: knee = fmax.
+    detail = channel_utility(
+        weight=1.1, quality=0.9, rate_hz=4.0, max_rate_hz=16.0, preference=Preference.KEEP_DETAIL
+    )
+    assert detail == pytest.approx(1.1 * 0.9**8 * math.log(1 + 16) / math.log(1 + 64))
+    plain = channel_utility(weight=0.1, quality=0.5, rate_hz=16.0, max_rate_hz=16.0)
+    assert plain == pytest.approx(0.05)
+    rate = channel_utility(
+        weight=1.0, quality=1.0, rate_hz=8.0, max_rate_hz=16.0, preference=Preference.KEEP_RATE
+    )
+    assert rate == pytest.approx(math.log(1.5) / math.log(2))

@@ -17,7 +17,7 @@ from dbml.media.images import (
 )
 from dbml.media.jpeg import compressed_format, decode_jpeg, encode_jpeg, scale_down
 from dbml.media.ladder import measure_ladder
-from dbml.media.photos import PanCamera
+from dbml.media.photos import PanCamera, frame_position, position_frame_id
 from dbml.media.ssim import ssim
 
 
@@ -94,7 +94,7 @@ def test_ssim_falls_as_noise_rises() -> None:
 
 
 def test_a_measured_ladder_costs_more_bytes_for_more_quality() -> None:
-    rungs = measure_ladder(PanCamera(640, 480, offset=300).frame(), encoding="rgb8")
+    rungs = measure_ladder(PanCamera(640, 480, offset_px=300).frame(), encoding="rgb8")
     for scale in (1.0, 0.5, 0.25):
         row = sorted((r for r in rungs if r.scale == scale), key=lambda r: r.jpeg_quality or 0)
         sizes = [r.size_bytes for r in row]
@@ -113,3 +113,11 @@ def test_the_camera_moves_over_the_photographs() -> None:
     assert not np.array_equal(first, second)
     assert np.array_equal(first[:, 4:], second[:, :-4])  # four pixels to the right
     assert PanCamera(320, 240).frame().shape == (240, 320, 3)
+    small = PanCamera(160, 120, speed_px_per_s=40)
+    assert small.at(0.0) == 0
+    assert small.at(1.0) == 10  # a quarter of the resolution: a quarter of the pixels
+    assert np.array_equal(small.window(small.at(1.0)), small.window(10))
+    with pytest.raises(SpecError, match="x=-1"):
+        small.window(-1)
+    assert frame_position(position_frame_id(1234)) == 1234
+    assert frame_position("camera") is None

@@ -9,12 +9,13 @@ import math
 from dataclasses import asdict
 from typing import Any
 
+from dbml.demo.photos import PhotoDemoResult, PhotoRun
 from dbml.demo.runner import DemoResult
 from dbml.experiment.analysis import LinkChange, SeriesPoint, StepResult, Window
 from dbml.scenarios.teleop import LINK_MBIT
 from dbml.testbed.result import TestbedResult
 
-__all__ = ["demo_document", "testbed_document"]
+__all__ = ["demo_document", "photo_demo_document", "testbed_document"]
 
 
 def demo_document(result: DemoResult) -> dict[str, Any]:
@@ -50,6 +51,57 @@ def demo_document(result: DemoResult) -> dict[str, Any]:
         "steps": steps,
         "ok": result.ok,
         "interrupted": result.interrupted,
+    }
+
+
+def _photo_run(run: PhotoRun) -> dict[str, Any]:
+    return {
+        "ladder": run.ladder,
+        "utility": run.utility,
+        "complete": run.complete,
+        "worst_window_bytes": run.wire.worst_bytes,
+        "windows_over_share": run.wire.over_share,
+        "limit_bytes": run.limit_bytes,
+        "within_budget": run.within_budget,
+        "steps": [
+            {
+                "step": step.step.step,
+                "utility": step.utility,
+                "robots": [
+                    {
+                        "robot": robot.measured.robot,
+                        "topic": robot.topic,
+                        "priority": robot.priority,
+                        "preference": robot.preference.value,
+                        "weight": robot.weight,
+                        "allocated_hz": robot.measured.allocated_hz,
+                        "delivered_fps": robot.measured.delivered_hz,
+                        "ssim": robot.measured.ssim,
+                        "encoding": robot.measured.encoding,
+                        "goodput_mbit": robot.measured.goodput_mbit,
+                        "utility": robot.utility,
+                    }
+                    for robot in step.robots
+                ],
+            }
+            for step in run.steps
+        ],
+    }
+
+
+def photo_demo_document(result: PhotoDemoResult) -> dict[str, Any]:
+    """``dbml demo teleop --frames photos --json``: both runs, the gain and each check."""
+    return {
+        "scenario": "teleop",
+        "frames": "photos",
+        "transport": result.transport.name,
+        "step_seconds": result.step_seconds,
+        "budget_mbit": LINK_MBIT,
+        "ladder": _photo_run(result.ladder),
+        "rate_only": None if result.rate_only is None else _photo_run(result.rate_only),
+        "utility_gain": result.gain,
+        "checks": result.checks,
+        "ok": result.ok,
     }
 
 

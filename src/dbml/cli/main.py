@@ -400,7 +400,48 @@ def _require_plot(args: argparse.Namespace) -> None:
         require("matplotlib", extra="plot", what="--plot")
 
 
+def _cmd_photo_demo(args: argparse.Namespace) -> int:
+    """``dbml demo teleop --frames photos``: the ladder, then rate only, on the same frames."""
+    from dbml.cli.documents import photo_demo_document
+    from dbml.demo.photos import PhotoDemoResult, check_photo_options, run_photo
+
+    transport = check_photo_options(
+        transport=args.transport,
+        step_seconds=args.step_seconds,
+        view=args.foxglove is not None or args.record is not None,
+        plot=args.plot is not None,
+    )
+    require("simplejpeg", extra="quality", what="--frames photos")
+    console = Console(stderr=args.json)
+    runs = []
+    for ladder in (True, False):
+        title = f"dbml demo teleop — real frames, {'the ladder' if ladder else 'rate only'}"
+        with render.ExperimentView(
+            Console(stderr=True), title=title, step_s=args.step_seconds, show=not args.json
+        ) as view:
+            runs.append(
+                run_photo(
+                    transport, step_seconds=args.step_seconds, ladder=ladder, observe=view.update
+                )
+            )
+        if runs[-1].interrupted:
+            break
+    rate_only = runs[1] if len(runs) > 1 else None
+    result = PhotoDemoResult(transport, args.step_seconds, runs[0], rate_only)
+    _show(
+        args,
+        console,
+        photo_demo_document(result),
+        lambda: console.print(render.photo_demo_table(result)),
+    )
+    if runs[-1].interrupted:
+        return EXIT_OK
+    return EXIT_OK if result.ok else EXIT_MISMATCH
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
+    if args.frames == "photos":
+        return _cmd_photo_demo(args)
     _require_plot(args)
     from dbml.cli.documents import demo_document
     from dbml.demo.runner import DemoOptions, run_teleop_demo

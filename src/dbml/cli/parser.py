@@ -226,6 +226,14 @@ def build_parser() -> argparse.ArgumentParser:
     demo_cmd.add_argument("--json", action="store_true", help="one JSON object on stdout")
     demo_cmd.add_argument("--plot", metavar="FILE.png", help="write a PNG of rates and bandwidth")
     demo_cmd.add_argument(
+        "--frames",
+        choices=["synthetic", "photos"],
+        default="synthetic",
+        help="synthetic (default): frames of the paper's sizes, judged against Table 2; photos: "
+        "cameras moving over real photographs, sent as JPEG with rate and quality chosen "
+        "together, then again at one quality (rate only), compared (the quality extra)",
+    )
+    demo_cmd.add_argument(
         "--transport",
         choices=list(TRANSPORTS),
         default=DEFAULT_TRANSPORT,

@@ -33,6 +33,7 @@ from dbml.scenarios.teleop import LINK_MBIT, ROBOTS, STEPS
 from dbml.testbed.options import Policy, Topology
 
 if TYPE_CHECKING:
+    from dbml.demo.photos import PhotoDemoResult
     from dbml.demo.runner import DemoResult
     from dbml.experiment.runner import Snapshot
     from dbml.testbed.result import TestbedResult
@@ -43,6 +44,7 @@ __all__ = [
     "demo_table",
     "mark",
     "monitor_table",
+    "photo_demo_table",
     "reproduce_table",
     "testbed_table",
 ]
@@ -244,6 +246,55 @@ def demo_table(result: DemoResult) -> Table:
     table.caption = (
         f"{verdict}: allocated = Table 2, measured within {RATE_TOLERANCE * 100:g} % "
         f"(or {RATE_TOLERANCE_HZ:g} Hz) of allocated"
+    )
+    return table
+
+
+def photo_demo_table(result: PhotoDemoResult) -> Table:
+    """``dbml demo teleop --frames photos``: per step and robot, the ladder beside rate only."""
+    table = Table(
+        title=f"Real frames over {result.transport.name}, {result.step_seconds:g} s a step: "
+        "the ladder, then rate only (0)"
+    )
+    for name in ("step", "robot", "p", "keep", "rung", "fps", "SSIM", "fps0", "SSIM0"):
+        table.add_column(name, justify="right", no_wrap=True)
+    table.add_column("utility", justify="right", no_wrap=True)
+    rate_only = result.rate_only.steps if result.rate_only is not None else ()
+    for k, step in enumerate(result.ladder.steps):
+        other = rate_only[k] if k < len(rate_only) else None
+        for i, robot in enumerate(step.robots):
+            measured = robot.measured
+            base = other.robots[i].measured if other is not None else None
+            good = robot.at_least_min_fps and robot.at_max_if_prioritised
+            table.add_row(
+                str(step.step.step) if i == 0 else "",
+                measured.robot,
+                f"{robot.priority:.2f}",
+                "rate" if robot.preference.value == "keep_rate" else "-",
+                measured.encoding or "-",
+                f"{measured.delivered_hz:.1f}{mark(good)}",
+                _fmt(measured.ssim, ".3f"),
+                _fmt(None if base is None else base.delivered_hz, ".1f"),
+                _fmt(None if base is None else base.ssim, ".3f"),
+                (
+                    f"{step.utility:.2f}/{_fmt(other.utility if other else None, '.2f')}"
+                    if i == 0
+                    else ""
+                ),
+                end_section=i == len(step.robots) - 1,
+            )
+    checks = result.checks
+    gain = result.gain
+    verdict = "[green]ok[/]" if result.ok else "[bold red]NOT ok[/]"
+    failed = [name.replace("_", " ") for name, held in checks.items() if not held]
+    wire = result.ladder.wire
+    table.caption = (
+        f"{verdict}{': ' + ', '.join(failed) if failed else ''}. Utility "
+        f"{result.ladder.utility:.3f} with the ladder, "
+        f"{_fmt(result.rate_only.utility if result.rate_only else None, '.3f')} rate only "
+        f"({_fmt(None if gain is None else gain * 100, '+.1f')} %); the worst 1-s window "
+        f"{wire.worst_bytes:,} B against {result.ladder.limit_bytes:,.0f} B (the budget and one "
+        "frame). fps and SSIM as the operator decoded them."
     )
     return table
 

@@ -51,6 +51,7 @@ __all__ = [
     "QualityAllocation",
     "QualityStatus",
     "allocate_quality",
+    "channel_utility",
     "utility",
 ]
 
@@ -396,6 +397,25 @@ def _interpolate(
     t = a / (a + b) if a + b > 0 else 0.5
     t = min(max(t, _STEP_MIN), 1 - _STEP_MIN) if span > _NARROW_LOG_SPAN else 0.5
     return low * math.exp(span * t)
+
+
+def channel_utility(
+    *,
+    weight: float,
+    quality: float,
+    rate_hz: float,
+    max_rate_hz: float,
+    preference: Preference = Preference.BALANCED,
+) -> float:
+    """One channel's utility (the module docstring's ``u_i``): how a run is judged afterwards.
+
+    ``weight`` is ``WEIGHT_BASE`` plus eq. 2's normalised priority; ``quality`` the score of
+    what was seen (a measured SSIM), ``rate_hz`` what was delivered.
+    """
+    gamma, knee = PREFERENCE_TERMS[Preference(preference)]
+    k = max_rate_hz if knee is None else knee
+    value = math.log1p(max(rate_hz, 0.0) / k) / math.log1p(max_rate_hz / k)
+    return float(weight * max(quality, 0.0) ** gamma * value)
 
 
 def utility(

@@ -50,6 +50,7 @@ class OperatorReport:
             "estimate_mbit": tick.estimate_mbit,
             "estimator": None if tick.estimator is None else tick.estimator.as_json(),
             "variants": list(tick.variants),
+            "encodings": list(tick.encodings),
         }
 
     @classmethod
@@ -71,6 +72,10 @@ class OperatorReport:
             variants=tuple(
                 _text(value, f"variants[{k}]")
                 for k, value in enumerate(_items(message, "variants"))
+            ),
+            encodings=tuple(
+                None if value is None else _text(value, f"encodings[{k}]")
+                for k, value in enumerate(message.get("encodings") or [])
             ),
         )
         return cls(
@@ -148,6 +153,7 @@ def _encode_frame(frame: Arrival) -> dict[str, Any]:
         "arrival_s": frame.arrival_s,
         "size_bytes": frame.size_bytes,
         "rate_hz": frame.rate_hz,
+        "ssim": frame.ssim,
     }
 
 
@@ -162,6 +168,7 @@ def _decode_frame(document: object, field: str) -> Arrival:
         arrival_s=_number(document.get("arrival_s"), f"{field}.arrival_s"),
         size_bytes=_count(document.get("size_bytes"), f"{field}.size_bytes"),
         rate_hz=_optional_number(document.get("rate_hz"), f"{field}.rate_hz"),
+        ssim=_optional_number(document.get("ssim"), f"{field}.ssim"),
     )
 
 

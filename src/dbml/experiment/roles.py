@@ -28,6 +28,7 @@ from collections.abc import Iterable
 
 from dbml.core.config import DbmSettings
 from dbml.core.errors import SpecError
+from dbml.core.ladder import Preference
 from dbml.core.spec import LinkSpec
 from dbml.experiment.operator import run_operator
 from dbml.experiment.spec import (
@@ -38,12 +39,14 @@ from dbml.experiment.spec import (
     URGENT_RATE_HZ,
     URGENT_SIZE_BYTES,
     URGENT_STREAMS,
+    Frames,
     RoleSpec,
     fleet_phase_s,
     robot_index,
     wait_until,
 )
 from dbml.harness.child import Emit, RoleError, emit_json, serve_role
+from dbml.protocol import names
 from dbml.protocol.metadata import pack_meta
 from dbml.protocol.schema import Writer
 from dbml.runtime.priority import collision_priority_source
@@ -51,7 +54,7 @@ from dbml.runtime.publisher import ManagedPublisher
 from dbml.runtime.rate import Rate
 from dbml.runtime.serve import Lifetime, run_optimizer
 from dbml.scenarios.fleet import fleet_cameras, fleet_steps
-from dbml.scenarios.teleop import MAX_RATE_HZ, MIN_RATE_HZ
+from dbml.scenarios.teleop import MAX_RATE_HZ, MIN_RATE_HZ, ROBOTS
 from dbml.transports.base import Transport, Variant
 from dbml.transports.memory import MemoryNetwork
 from dbml.transports.registry import open_transport
@@ -65,6 +68,8 @@ log = logging.getLogger("dbml.experiment")
 
 _OPERATOR = frozenset({Writer.OPERATOR})
 """The operator's view sets what an operator writes: the budget and priorities."""
+_PAN_OFFSET_PX = 800
+"""How far apart the robots' cameras start on the panorama (so they see different photographs)."""
 _URGENT_JOIN_S = 5.0
 """How long robot R1 waits for its urgent streams' last tick (a send in progress)."""
 
@@ -126,6 +131,80 @@ def _managed_robot(
         while not life.over() and time.time() < t0 + spec.duration_s:
             publisher.rate.sleep()
             publisher.publish(frame)
+    finally:
+        finished.set()
+        events.join(2.0)
+        publisher.close()
+
+
+def _camera_robot(
+    transport: Transport,
+    index: int,
+    t0: float,
+    spec: RoleSpec,
+    stop: threading.Event,
+    *,
+    life: Lifetime,
+) -> None:
+    """A robot whose camera sends real frames: a camera moving over photographs, as JPEG.
+
+    Its ladder is on or off (``spec.ladder``); without it the frames go at the one quality
+    whose frames are the paper's 84,000 B (the rate-only baseline). An event that raises its
+    priority also asks to keep its frame rate (the robot near an obstacle): detail goes first.
+    """
+    from dbml.media.images import IMAGE_TYPE, Frame  # the quality extra's, imported on use
+    from dbml.media.photos import PanCamera, position_frame_id, quality_for_size
+    from dbml.runtime.camera import ManagedCamera
+
+    camera = fleet_cameras(spec.robots)[index]
+    if spec.transport.frame.msg_type is not None:  # a typed middleware: [topic] is an Image
+        transport.set_topic_type(camera.topic, IMAGE_TYPE)
+    # Across the panorama once in the run: the scene the run sees averages what the rate-only
+    # quality was chosen on (the paper's 84,000 B a frame at 640x480).
+    travel_px = PanCamera().travel_px
+    eye = PanCamera(
+        camera.width,
+        camera.height,
+        offset_px=_PAN_OFFSET_PX * index,
+        speed_px_per_s=travel_px / spec.duration_s,
+    )
+    quality = quality_for_size(ROBOTS[0].size_bytes)
+    publisher = ManagedCamera(
+        transport,
+        camera.topic,
+        min_rate_hz=MIN_RATE_HZ,
+        max_rate_hz=MAX_RATE_HZ,
+        ladder=spec.ladder,
+        default_encoding=(1.0, quality),
+    )
+    priority = collision_priority_source(transport, camera.topic)
+    finished = threading.Event()
+
+    def replay_events() -> None:
+        preference = None
+        for k, step in enumerate(fleet_steps(spec.robots)):
+            if not wait_until(t0 + k * spec.step_s, finished) or stop.is_set():
+                return
+            event = step.events[index]
+            priority.update(event.distance_m, event.speed_m_per_s)
+            wanted = Preference.KEEP_RATE if event.priority > 0 else Preference.BALANCED
+            if wanted is not preference:
+                transport.params.set(names.preference(camera.topic), wanted.value)
+                preference = wanted
+
+    def capture() -> Frame:
+        x = eye.at(time.time() - t0)
+        return Frame(eye.window(x), "rgb8", time.time_ns(), position_frame_id(x))
+
+    events = BackgroundThread(replay_events, name=f"events-{camera.robot}", log=log)
+    try:
+        publisher.publish_frame(capture())  # the ladder and the size known before step 1
+        events.start()
+        wait_until(t0 + fleet_phase_s(index, spec.robots), stop)
+        publisher.rate.reset()
+        while not life.over() and time.time() < t0 + spec.duration_s:
+            publisher.rate.sleep()
+            publisher.publish_frame(capture())
     finally:
         finished.set()
         events.join(2.0)
@@ -232,6 +311,8 @@ def _run_role(
                 live.close()
     elif role == "optimizer":
         return _optimizer(transport, t0, spec, stop)
+    elif spec.managed and spec.frames is Frames.PHOTOS:
+        _camera_robot(transport, robot_index(role), t0, spec, stop, life=life)
     elif spec.managed:
         _managed_robot(transport, robot_index(role), t0, spec, stop, life=life)
     else:

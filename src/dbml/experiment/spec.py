@@ -8,6 +8,7 @@ entry and its ``strategy`` an enum: converted once, where the spec is made or re
 
 from __future__ import annotations
 
+import enum
 import json
 import re
 import threading
@@ -33,6 +34,7 @@ __all__ = [
     "URGENT_RATE_HZ",
     "URGENT_SIZE_BYTES",
     "URGENT_STREAMS",
+    "Frames",
     "RoleSpec",
     "UrgentStream",
     "fleet_phase_s",
@@ -79,6 +81,20 @@ URGENT_STREAMS = (
 difference. The operator reports their arrivals as robots ``len(ROBOTS) + k``."""
 
 
+class Frames(enum.StrEnum):
+    """What the robots' cameras send.
+
+    ``synthetic``: frames of the paper's sizes (bytes that are no picture); ``photos``: real
+    frames of a camera moving over photographs (``dbml.media.photos``), at the paper's
+    resolutions, as JPEG on ``[topic]/optimized/compressed``: with a ladder (rate and quality
+    chosen together) or without (``RoleSpec.ladder``: rate only, at the one JPEG quality whose
+    frames are the paper's 84,000 B).
+    """
+
+    SYNTHETIC = "synthetic"
+    PHOTOS = "photos"
+
+
 def transport_entry(name: str, *, flag: str = "--transport") -> TransportEntry:
     """The registered transport ``name``; ``DbmlError`` naming ``flag`` and the choices if none."""
     return registry.entry(name, field=flag)
@@ -121,6 +137,9 @@ class RoleSpec:
     """The operator's live view: its Foxglove server's ``HOST:PORT`` (``--foxglove``)."""
     record: str | None = None
     """The operator's live view: its MCAP recording (``--record``)."""
+    frames: Frames = Frames.SYNTHETIC
+    ladder: bool = True
+    """With ``frames=photos``: the cameras publish their ladders (False: rate only)."""
 
     def to_json(self) -> str:
         """The spec as one JSON object (the role process's argument)."""
@@ -129,6 +148,7 @@ class RoleSpec:
         }
         document["transport"] = self.transport.name
         document["uplinks_mbit"] = dict(self.uplinks_mbit)
+        document["frames"] = self.frames.value
         return json.dumps(document)
 
     @classmethod
@@ -145,6 +165,11 @@ class RoleSpec:
             document["strategy"] = Strategy(strategy)
         except ValueError:
             raise DbmlError(f"spec strategy={strategy!r} is not a strategy") from None
+        frames = document.get("frames", Frames.SYNTHETIC.value)
+        try:
+            document["frames"] = Frames(frames)
+        except ValueError:
+            raise DbmlError(f"spec frames={frames!r} is not one of synthetic, photos") from None
         try:
             return cls(**document)
         except TypeError as err:

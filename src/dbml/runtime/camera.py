@@ -13,7 +13,7 @@ a probe took long) and holds one frame (the newest offered). The bytes actually 
 the ladder: when the last ``SENT_WINDOW`` frames ran above what the ladder said of their rung
 (a scene busier than the probed frame), every rung's bytes are scaled up by that much, so the
 budget holds on the wire as the scene changes. The ladder is written to ``[topic]/dbm/ladder``
-when a rung moved by ``SIZE_CHANGE`` or more.
+when a rung's bytes rose by ``LADDER_RISE`` or fell by ``SIZE_CHANGE``.
 
 With ``ladder=False`` it publishes no ladder: the optimizer allocates its rate alone, on frames
 at the one ``default_encoding`` (the rate-only baseline, on the same frames).
@@ -41,6 +41,7 @@ from dbml.transports.worker import PeriodicWorker
 
 __all__ = [
     "DEFAULT_ENCODING",
+    "LADDER_RISE",
     "PROBE_CPU_SHARE",
     "PROBE_INTERVAL_S",
     "SENT_WINDOW",
@@ -56,6 +57,9 @@ PROBE_INTERVAL_S = 5.0
 PROBE_CPU_SHARE = 0.05
 """The most of a core the probe takes: after a probe of ``t`` seconds it waits at least
 ``t / PROBE_CPU_SHARE``. A 640x480 probe of 21 rungs takes about 80 ms here: 1.6 % at 5 s."""
+LADDER_RISE = 0.02
+"""A rung's bytes risen by this much are written at once (fallen: by ``SIZE_CHANGE``): the
+allocation fills the budget, so a ladder that says too little overspends it by as much."""
 SENT_WINDOW = 32
 """Frames whose bytes against the ladder's correct it (two seconds at 16 Hz)."""
 
@@ -110,6 +114,8 @@ class ManagedCamera:
         """The newest frame offered to the probe (one at most: the probe's memory bound)."""
         self._measured: tuple[Rung, ...] | None = None
         self._written: tuple[Rung, ...] | None = None
+        self._last_bytes: int | None = None
+        """The last message's size (what the optimizer is told without a ladder)."""
         self._sent: collections.deque[float] = collections.deque(maxlen=SENT_WINDOW)
         """Recent frames' bytes over what the ladder said of their rung."""
         self._bad = LogOnce(log)
@@ -155,7 +161,9 @@ class ManagedCamera:
                 frame.pixels, encoding=frame.encoding, quality=quality or 1, scale=scale
             )
             sent.append(len(data))
-            return encode_compressed(frame, data, format=compressed_format(frame.encoding))
+            message = encode_compressed(frame, data, format=compressed_format(frame.encoding))
+            self._last_bytes = len(message)
+            return message
 
         went = self.publisher.publish(payload, encode=compress, size_bytes=self._size_bytes())
         if sent:
@@ -163,11 +171,15 @@ class ManagedCamera:
         return went
 
     def _size_bytes(self) -> int:
-        """The size the optimizer is told: the default rung's, by the (corrected) ladder.
+        """The size the optimizer is told.
 
-        Not the last frame's: with a ladder the rung changes with the allocation, and a size
-        that followed it would move the priorities' weights (eq. 2) and re-allocate for nothing.
+        Without a ladder, the last message's (the paper's publisher: what it sends). With one,
+        the default rung's by the (corrected) ladder, not the last message's: the rung changes
+        with the allocation, and a size that followed it would move the priorities' weights
+        (eq. 2) and re-allocate for nothing.
         """
+        if not self._laddered and self._last_bytes is not None:
+            return self._last_bytes
         rungs = self._written or self._measured or ()
         for rung in rungs:
             if (rung.scale, rung.jpeg_quality) == self._default:
@@ -209,7 +221,9 @@ class ManagedCamera:
                 Rung(r.size_bytes * factor, r.quality, r.scale, r.jpeg_quality) for r in measured
             )
             if written is not None and all(
-                abs(new.size_bytes - old.size_bytes) <= SIZE_CHANGE * old.size_bytes
+                -SIZE_CHANGE * old.size_bytes
+                <= new.size_bytes - old.size_bytes
+                <= LADDER_RISE * old.size_bytes
                 and abs(new.quality - old.quality) <= SIZE_CHANGE * max(old.quality, 1e-3)
                 for new, old in zip(rungs, written, strict=True)
             ):

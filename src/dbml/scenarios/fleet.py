@@ -15,6 +15,7 @@ optimizer's own rule computed independently, not by Table 2's two-robot numbers.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 
 from dbml.core.allocation import Allocation, Strategy, allocate
 from dbml.core.errors import SpecError
@@ -51,7 +52,6 @@ CALM_SPEED_M_PER_S = 0.0625
 """A calm robot moves slowly with nothing in range: tc = 32 s > 20 s, so priority 0 (eq. 7)."""
 CALM_EVENT = RobotEvent(SENSOR_RANGE_M, CALM_SPEED_M_PER_S)
 """What a robot without one of the paper's events senses."""
-_CAMERA_SIZES_BYTES = tuple(camera.size_bytes for camera in ROBOTS)
 
 
 def robot_role(index: int) -> str:
@@ -72,10 +72,8 @@ def fleet_cameras(robots: int) -> tuple[RobotCamera, ...]:
     if _check(robots) == len(ROBOTS):
         return ROBOTS
     return tuple(
-        RobotCamera(
-            robot_role(k).upper(),
-            f"/{robot_role(k)}/camera",
-            _CAMERA_SIZES_BYTES[k % len(_CAMERA_SIZES_BYTES)],
+        replace(
+            ROBOTS[k % len(ROBOTS)], robot=robot_role(k).upper(), topic=f"/{robot_role(k)}/camera"
         )
         for k in range(robots)
     )

@@ -38,6 +38,9 @@ class RobotCamera:
     robot: str
     topic: str
     size_bytes: int
+    width: int = 640
+    height: int = 480
+    """The camera's resolution, where it sends real frames (``dbml demo --frames photos``)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -68,7 +71,7 @@ class Step:
 
 ROBOTS = (
     RobotCamera("R1", "/r1/camera", 84_000),
-    RobotCamera("R2", "/r2/camera", 21_000),
+    RobotCamera("R2", "/r2/camera", 21_000, 160, 120),
 )
 
 

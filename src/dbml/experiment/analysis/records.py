@@ -33,6 +33,9 @@ class Arrival:
     size_bytes: int
     rate_hz: float | None
     """The rate the publisher applied when it sent this frame."""
+    ssim: float | None = None
+    """A camera's JPEG decoded by the operator, scored against the frame that was sent (None:
+    not a camera's JPEG, or not scored)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -47,6 +50,8 @@ class Tick:
     """The estimator's state (phase, receive rate, queueing, losses), when one runs."""
     variants: tuple[str, ...] = ()
     """The copy each robot's subscriber takes (``full`` or ``optimized``)."""
+    encodings: tuple[str | None, ...] = ()
+    """The rung pushed to each robot's camera (``x1 q80``; None: none, or no ladder)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -61,6 +66,10 @@ class Window:
     lost: int
     goodput_mbit: float
     variant: str | None = None
+    ssim: float | None = None
+    """The mean SSIM of the frames scored in the window (None: none was)."""
+    encoding: str | None = None
+    """The rung pushed to the robot's camera at the window's end (None: none)."""
 
     def within_rate(self, *, floor_hz: float = 0.0) -> bool:
         """Delivered within ``RATE_TOLERANCE`` of the allocation (or ``floor_hz``)."""

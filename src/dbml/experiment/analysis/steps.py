@@ -49,7 +49,10 @@ def analyse(
                 start + settle_s(step_s), end, allocated(stream, end), lost_from=start
             )
             variant = tick.variants[stream.index] if tick is not None and tick.variants else None
-            rows.append(replace(window, variant=variant))
+            encoding = None
+            if tick is not None and stream.index < len(tick.encodings):
+                encoding = tick.encodings[stream.index]
+            rows.append(replace(window, variant=variant, encoding=encoding))
         step_rows.append(
             StepResult(
                 step=k + 1,

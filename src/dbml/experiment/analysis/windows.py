@@ -115,6 +115,7 @@ class RobotFrames:
         latencies = [f.arrival_s - f.sent_s for f in inside if f.sent_s is not None]
         delivered = rate_hz(self.times, start, end)
         mean_size = sum(f.size_bytes for f in inside) / len(inside) if inside else 0.0
+        scores = [f.ssim for f in inside if f.ssim is not None]
         return Window(
             robot=self.name,
             allocated_hz=allocated_hz,
@@ -123,6 +124,7 @@ class RobotFrames:
             latency_p95_ms=percentile_ms(latencies, 95),
             lost=sum(n for at, n in self.gaps if lost_from <= at < end),
             goodput_mbit=bytes_per_s_to_mbit(delivered * mean_size),
+            ssim=sum(scores) / len(scores) if scores else None,
         )
 
     def applied_hz(self, at: float) -> float | None:
