@@ -56,6 +56,7 @@ def test_a_frame_travels_with_named_keys() -> None:
         "arrival_s": 100.3,
         "size_bytes": 84_000,
         "rate_hz": 5.95,
+        "ssim": None,
     }
     assert message["estimator"]["decided_at_s"] == 100.125
 

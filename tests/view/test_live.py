@@ -9,6 +9,7 @@ from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
 import pytest
 
 from dbml import DbmSettings
@@ -230,3 +231,24 @@ def test_a_process_sets_only_what_its_role_writes(fleet: Viewed) -> None:
         assert fleet.operator.params.get(names.BANDWIDTH) == 4.0
     finally:
         view.close()
+
+
+def test_a_cameras_compressed_frames_are_shown_as_they_came(fleet: Viewed) -> None:
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    types = store.types
+    message = types["sensor_msgs/msg/CompressedImage"](
+        header=types["std_msgs/msg/Header"](
+            stamp=types["builtin_interfaces/msg/Time"](sec=1, nanosec=0), frame_id="pan/0"
+        ),
+        format="rgb8; jpeg compressed bgr8",
+        data=np.frombuffer(b"\xff\xd8 not really a jpeg \xff\xd9", dtype=np.uint8),
+    )
+    payload = bytes(store.serialize_cdr(message, "sensor_msgs/msg/CompressedImage"))
+    view = live_view(fleet, interval_s=60)
+    view.frame(R1, payload, compressed=True)
+    view.close()
+    assert [(t, n, p) for t, n, p, _ in fleet.sink.cdr] == [
+        (f"{R1}/optimized/compressed", "sensor_msgs/msg/CompressedImage", payload)
+    ]

@@ -273,7 +273,9 @@ def _bridge_channels(args: argparse.Namespace) -> tuple[BridgeChannel, ...]:
     for name, value in flags.items():
         if value is None:
             raise DbmlError(f"{name}=None: required with topic={args.topic!r}")
-    return (BridgeChannel(args.topic, args.min_hz, args.max_hz, args.priority, args.type),)
+    return (
+        BridgeChannel(args.topic, args.min_hz, args.max_hz, args.priority, args.type, args.ladder),
+    )
 
 
 def _cmd_bridge(args: argparse.Namespace) -> int:
@@ -406,12 +408,11 @@ def _cmd_photo_demo(args: argparse.Namespace) -> int:
     from dbml.demo.photos import PhotoDemoResult, check_photo_options, run_photo
 
     transport = check_photo_options(
-        transport=args.transport,
-        step_seconds=args.step_seconds,
-        view=args.foxglove is not None or args.record is not None,
-        plot=args.plot is not None,
+        transport=args.transport, step_seconds=args.step_seconds, plot=args.plot is not None
     )
     require("simplejpeg", extra="quality", what="--frames photos")
+    target = _view_target(args, pick_port=True)
+    _announce(target)
     console = Console(stderr=args.json)
     runs = []
     for ladder in (True, False):
@@ -421,7 +422,11 @@ def _cmd_photo_demo(args: argparse.Namespace) -> int:
         ) as view:
             runs.append(
                 run_photo(
-                    transport, step_seconds=args.step_seconds, ladder=ladder, observe=view.update
+                    transport,
+                    step_seconds=args.step_seconds,
+                    ladder=ladder,
+                    observe=view.update,
+                    view=target if ladder else None,  # the ladder's run: one recording
                 )
             )
         if runs[-1].interrupted:
@@ -530,7 +535,8 @@ def _cmd_foxglove(args: argparse.Namespace) -> int:
 
     cameras = [check_channel(t) for t in args.camera] or list(DEFAULT_CAMERAS)
     channels = [check_channel(t) for t in args.channel] or cameras
-    print(json.dumps(studio_layout(cameras=cameras, channels=channels), indent=2))
+    layout = studio_layout(cameras=cameras, channels=channels, compressed=args.compressed)
+    print(json.dumps(layout, indent=2))
     return EXIT_OK
 
 

@@ -196,6 +196,12 @@ def build_parser() -> argparse.ArgumentParser:
     bridge_cmd.add_argument(
         "--type", metavar="PKG/msg/NAME", help="message type (default: as the graph shows it)"
     )
+    bridge_cmd.add_argument(
+        "--ladder",
+        action="store_true",
+        help="a camera (sensor_msgs/msg/Image): send its frames as CompressedImage on "
+        "[topic]/optimized/compressed, rate and JPEG quality chosen together (the quality extra)",
+    )
     bridge_cmd.add_argument("--config", metavar="FILE", help="YAML whose channels: are bridged")
     bridge_cmd.add_argument(
         "--wait",
@@ -329,6 +335,12 @@ def build_parser() -> argparse.ArgumentParser:
         default=[],
         metavar="TOPIC",
         help="a channel whose rates are plotted (repeatable; default the cameras)",
+    )
+    layout_cmd.add_argument(
+        "--compressed",
+        action="store_true",
+        help="the image panels show [topic]/optimized/compressed: cameras with a ladder "
+        "(dbml demo teleop --frames photos, dbml bridge --ladder)",
     )
 
     secure_cmd = commands.add_parser(

@@ -44,6 +44,7 @@ from dbml.core.spec import (
 )
 
 __all__ = [
+    "LADDER_TYPE",
     "MAX_CONFIG_BYTES",
     "MAX_CONFIG_DEPTH",
     "BridgeChannel",
@@ -60,6 +61,8 @@ MAX_CONFIG_BYTES = 1 << 20
 """1 MiB: far above any fleet's config; a larger file is not a config."""
 MAX_CONFIG_DEPTH = 16
 """The deepest nesting a config may have (it needs 4)."""
+LADDER_TYPE = "sensor_msgs/msg/Image"
+"""The one type a laddered channel carries (its managed copy is a ``CompressedImage``)."""
 
 
 _POSITIVE: dict[str, Any] = {"minimum": 0, "exclusive_minimum": True}
@@ -361,6 +364,9 @@ class BridgeChannel:
     max_rate_hz: float
     priority: float | None = None
     msg_type: str | None = None
+    ladder: bool = False
+    """A camera's: its frames go as JPEG at the rung the optimizer chooses, with a ladder
+    measured on them (``sensor_msgs/msg/Image`` only, the type it implies)."""
 
     def __post_init__(self) -> None:
         # The same rules and messages as a channel of the allocation problem.
@@ -377,6 +383,14 @@ class BridgeChannel:
             object.__setattr__(self, "priority", spec.priority)
         if self.msg_type is not None:
             check_msg_type(self.msg_type, field=f"channel {self.topic!r}: type")
+        if self.ladder:
+            if self.msg_type is None:
+                object.__setattr__(self, "msg_type", LADDER_TYPE)
+            elif self.msg_type != LADDER_TYPE:
+                raise SpecError(
+                    f"channel {self.topic!r}: type={self.msg_type!r} cannot be laddered: "
+                    f"only {LADDER_TYPE} is (rgb8, bgr8, mono8)"
+                )
 
 
 def _topic_and_bounds(where: str, data: dict[str, object]) -> tuple[str, float, float]:
@@ -395,7 +409,7 @@ def _bridge_channel(index: int, value: object) -> BridgeChannel:
     data = _mapping(
         where,
         value,
-        {"topic", "frequency", "message_size_in_bytes", "priority", "type"},
+        {"topic", "frequency", "message_size_in_bytes", "priority", "type", "ladder"},
         {"topic", "frequency"},
     )
     topic, fmin, fmax = _topic_and_bounds(where, data)
@@ -408,7 +422,10 @@ def _bridge_channel(index: int, value: object) -> BridgeChannel:
     try:
         if msg_type is not None:
             check_msg_type(msg_type)
-        return BridgeChannel(topic, fmin, fmax, priority, msg_type)
+        ladder = data.get("ladder", False)
+        if not isinstance(ladder, bool):
+            raise ConfigError(f"{where}: ladder={ladder!r} must be true or false")
+        return BridgeChannel(topic, fmin, fmax, priority, msg_type, ladder)
     except SpecError as err:
         raise ConfigError(f"{where}: {err}") from None
 

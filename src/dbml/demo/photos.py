@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -33,6 +33,7 @@ from dbml.experiment.spec import HOSTS, Frames, RoleSpec, transport_entry
 from dbml.harness.sniffer import WindowStats, window_stats
 from dbml.scenarios.teleop import LINK_MBIT, MAX_RATE_HZ, ROBOTS, STEPS
 from dbml.transports.registry import TransportEntry
+from dbml.view.target import ViewTarget
 
 __all__ = [
     "MIN_FPS",
@@ -231,7 +232,7 @@ plain ROS 2 node or speaks ROS 1, where the CompressedImage variant is not carri
 
 
 def check_photo_options(
-    *, transport: str, step_seconds: float, view: bool = False, plot: bool = False
+    *, transport: str, step_seconds: float, plot: bool = False
 ) -> TransportEntry:
     """The transport ``--frames photos`` runs over; ``DbmlError`` naming a flag it cannot take."""
     entry = transport_entry(transport)
@@ -241,8 +242,8 @@ def check_photo_options(
         )
     if not step_seconds >= MIN_STEP_S:
         raise DbmlError(f"--step-seconds={step_seconds!r} must be >= {MIN_STEP_S:g}")
-    if view or plot:
-        raise DbmlError("--frames photos does not take --foxglove, --record or --plot yet")
+    if plot:
+        raise DbmlError("--frames photos does not take --plot yet: its table has every figure")
     return entry
 
 
@@ -252,8 +253,13 @@ def run_photo(
     step_seconds: float,
     ladder: bool,
     observe: Observer | None = None,
+    view: ViewTarget | None = None,
 ) -> PhotoRun:
-    """One run of the scenario on real frames, with the ladder or rate only."""
+    """One run of the scenario on real frames, with the ladder or rate only.
+
+    ``view``: the operator's live view (``--foxglove``/``--record``), the JPEG it receives in
+    its image panels.
+    """
     layout = layout_of(transport)
     layout.check()
     specs = {
@@ -266,6 +272,10 @@ def run_photo(
         )
         for role, host in HOSTS.items()
     }
+    if view is not None:
+        specs["operator"] = replace(
+            specs["operator"], foxglove=view.foxglove_flag, record=view.record_flag
+        )
     with contextlib.ExitStack() as run:
         plan = layout.plan(specs, transport, run)
         recording = run_experiment(plan, what="demo", observe=observe)

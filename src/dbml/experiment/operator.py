@@ -171,7 +171,7 @@ def run_operator(
         def on_sample(sample: Sample) -> None:
             arrival_s = time.time()
             if shown is not None and live is not None:
-                live.frame(shown, sample.payload)
+                live.frame(shown, sample.payload, compressed=photos)
             try:
                 meta: MessageMeta | None = MessageMeta.decode(sample.attachment)
             except TransportError:

@@ -15,6 +15,7 @@ import threading
 
 from dbml.core.config import BridgeChannel
 from dbml.core.errors import TransportError
+from dbml.runtime.camera import ManagedCamera
 from dbml.runtime.publisher import FAILSAFE_PERIODS, ManagedPublisher
 from dbml.runtime.rate import Rate
 from dbml.transports.base import Handle, Sample, Transport, Variant
@@ -63,13 +64,15 @@ class Bridge:
         self._sending = threading.Lock()
         """Held across one send, and by ``close`` around the publisher's close: never both."""
         self._publisher: ManagedPublisher | None = None
+        self._camera: ManagedCamera | None = None
+        """A laddered channel's camera (its publisher is ``_publisher``)."""
         self._thread: BackgroundThread | None = None
         self._paced = threading.Event()
         """Set when the pacing loop ended, by ``close`` or by dying."""
         self.forwarded = 0
         """Messages sent on ``[topic]/optimized`` so far."""
         if channel.msg_type is not None:
-            for variant in Variant:
+            for variant in (Variant.FULL, Variant.OPTIMIZED):  # a compressed copy is typed
                 transport.set_topic_type(variant.key(channel.topic), channel.msg_type)
         self._subscription: Handle = transport.subscribe(channel.topic, self._on_sample)
 
@@ -117,15 +120,27 @@ class Bridge:
                 "(is its publisher running on this host?)"
             )
         channel = self.channel
-        self._publisher = ManagedPublisher(
-            self._transport,
-            channel.topic,
-            min_rate_hz=channel.min_rate_hz,
-            max_rate_hz=channel.max_rate_hz,
-            priority=channel.priority,
-            failsafe_periods=self._failsafe_periods,
-            republish_full=False,
-        )
+        if channel.ladder:
+            self._camera = ManagedCamera(
+                self._transport,
+                channel.topic,
+                min_rate_hz=channel.min_rate_hz,
+                max_rate_hz=channel.max_rate_hz,
+                priority=channel.priority,
+                failsafe_periods=self._failsafe_periods,
+                republish_full=False,
+            )
+            self._publisher = self._camera.publisher
+        else:
+            self._publisher = ManagedPublisher(
+                self._transport,
+                channel.topic,
+                min_rate_hz=channel.min_rate_hz,
+                max_rate_hz=channel.max_rate_hz,
+                priority=channel.priority,
+                failsafe_periods=self._failsafe_periods,
+                republish_full=False,
+            )
         if pace:
             self._thread = BackgroundThread(
                 self._run, name=f"dbml-bridge {channel.topic}", log=log
@@ -155,7 +170,8 @@ class Bridge:
         with self._sending:
             if self._stop.is_set():
                 return False
-            sent = publisher.publish(payload)
+            camera = self._camera
+            sent = publisher.publish(payload) if camera is None else camera.publish(payload)
         if sent:
             self.forwarded += 1
             return True
@@ -202,4 +218,7 @@ class Bridge:
         self._subscription.close()
         if self._publisher is not None:
             with self._sending:
-                self._publisher.close()
+                if self._camera is not None:
+                    self._camera.close()  # its publisher too
+                else:
+                    self._publisher.close()

@@ -22,7 +22,7 @@ from dbml.protocol import names
 from dbml.runtime.bridge import FIRST_MESSAGE_TIMEOUT_S, Bridge
 from dbml.runtime.estimator import LinkEstimator
 from dbml.runtime.optimizer import OptimizerNode
-from dbml.transports.base import Transport
+from dbml.transports.base import Transport, Variant
 from dbml.transports.worker import death_count
 
 __all__ = ["PEER_WAIT_S", "Lifetime", "Running", "run_bridge", "run_optimizer"]
@@ -165,9 +165,11 @@ def run_bridge(
                 )
             bridge.start(timeout_s=0)
             log.info(
-                "%s: bridged to %s/optimized (%s)",
+                "%s: bridged to %s (%s)",
                 bridge.topic,
-                bridge.topic,
+                (Variant.COMPRESSED if bridge.channel.ladder else Variant.OPTIMIZED).key(
+                    bridge.topic
+                ),
                 bridge.channel.msg_type or "bytes",
             )
         life = Lifetime(stop, duration_s, watching=bridges)

@@ -18,6 +18,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
+from dbml.transports.base import Variant
 from dbml.view.frames import (
     ALLOCATION_TOPIC,
     BUDGET_TOPIC,
@@ -52,10 +53,10 @@ _BUDGET = "RawMessages!budget"
 _PARAMETERS = "Parameters!dbm"
 
 
-def _image_config(camera: str) -> dict[str, Any]:
+def _image_config(camera: str, *, compressed: bool) -> dict[str, Any]:
     return {
         _TITLE: camera,
-        "cameraTopic": image_topic(camera),
+        "cameraTopic": Variant.COMPRESSED.key(camera) if compressed else image_topic(camera),
         "enabledMarkerTopics": [],
         "mode": "fit",
         "pan": {"x": 0, "y": 0},
@@ -113,7 +114,11 @@ def _split(nodes: Sequence[str | dict[str, Any]], direction: str) -> str | dict[
 
 
 def studio_layout(
-    *, cameras: Sequence[str], channels: Sequence[str], delivered: bool = True
+    *,
+    cameras: Sequence[str],
+    channels: Sequence[str],
+    delivered: bool = True,
+    compressed: bool = False,
 ) -> dict[str, Any]:
     """The layout of dbml's view, for Studio to load as it is (JSON-serialisable).
 
@@ -127,12 +132,14 @@ def studio_layout(
         cameras: Camera topics such as `/r1/camera`; none leaves out the image row.
         channels: Managed topics whose rates are plotted (`<topic>/dbm/frequency/...`).
         delivered: Also plot the delivered rate next to the allocated one.
+        compressed: The cameras send JPEG (a ladder): the panels show
+            `<topic>/optimized/compressed`.
     """
     config_by_id: dict[str, dict[str, Any]] = {}
     images: list[str | dict[str, Any]] = []
     for index, camera in enumerate(cameras):
         panel_id = f"{_IMAGE}!camera{index}"
-        config_by_id[panel_id] = _image_config(camera)
+        config_by_id[panel_id] = _image_config(camera, compressed=compressed)
         images.append(panel_id)
     config_by_id[_PLOT] = _plot_config(channels, delivered=delivered)
     config_by_id[_TABLE] = {_TITLE: "Allocation", "topicPath": f"{ALLOCATION_TOPIC}.channels"}

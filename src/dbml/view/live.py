@@ -35,7 +35,7 @@ from dbml.protocol.schema import ParamValue, Writer
 from dbml.runtime.graph import published_topics
 from dbml.runtime.params import ParamView
 from dbml.runtime.rounds import RoundFollower
-from dbml.transports.base import Handle, Transport
+from dbml.transports.base import COMPRESSED_TYPE, Handle, Transport, Variant
 from dbml.transports.overflow import Overflow
 from dbml.transports.worker import PeriodicWorker
 from dbml.view import frames
@@ -130,18 +130,24 @@ class _Frame:
     topic: str
     payload: bytes
     time_ns: int
+    compressed: bool = False
+    """A camera's ``CompressedImage`` in CDR already: logged as it came."""
 
 
 class _Images:
     """Frames as ROS 2 ``sensor_msgs/msg/Image`` in CDR (rosbags' typestore, no ROS 2)."""
 
     name = frames.IMAGE_TYPE
+    compressed_name = COMPRESSED_TYPE
 
     def __init__(self) -> None:
         from rosbags.typesys import Stores, get_typestore
 
         self._store = get_typestore(Stores.ROS2_JAZZY)
         self.definition = self._store.generate_msgdef(self.name, ros_version=2)[0]
+        self.compressed_definition = self._store.generate_msgdef(
+            self.compressed_name, ros_version=2
+        )[0]
 
     def encode(self, frame: _Frame) -> bytes:
         import numpy as np
@@ -248,14 +254,18 @@ class LiveView:
         self._round_due.set()
         self._worker.wake()
 
-    def frame(self, topic: str, payload: bytes) -> None:
-        """A frame this process received on ``topic``: an image and a delivered-rate count."""
+    def frame(self, topic: str, payload: bytes, *, compressed: bool = False) -> None:
+        """A frame this process received on ``topic``: an image and a delivered-rate count.
+
+        ``compressed``: a camera's ``sensor_msgs/msg/CompressedImage`` (its JPEG copy), shown
+        as it came; else the frame's bytes, shown as a grey image.
+        """
         now, tick = self._clock(), self._monotonic()
         with self._lock:
             if len(self._queued) >= MAX_QUEUED_FRAMES:
                 self._queued.popleft()
                 self._dropped.refuse()
-            self._queued.append(_Frame(topic, payload, now))
+            self._queued.append(_Frame(topic, payload, now, compressed))
             arrivals = self._arrivals.get(topic)
             if arrivals is None:
                 if len(self._arrivals) >= MAX_METERED:
@@ -335,6 +345,15 @@ class LiveView:
             self._images = _Images()
         images = self._images
         for frame in queued:
+            if frame.compressed:
+                self._sink.log_cdr(
+                    Variant.COMPRESSED.key(frame.topic),
+                    images.compressed_name,
+                    images.compressed_definition,
+                    frame.payload,
+                    time_ns=frame.time_ns,
+                )
+                continue
             self._sink.log_cdr(
                 frames.image_topic(frame.topic),
                 images.name,
