@@ -10,7 +10,13 @@ between what the floors need on the cheapest rungs and three times that. For eac
   ``--grid`` rates from floor to maximum (negative: the continuous rate beat the grid);
 - ``gap_to_bound``: 1 - its utility / its own Lagrangian dual bound.
 
-    python bench/quality.py [--channels 2 20 80 320] [--repeat 20] [--grid 17] [--json]
+- ``encoding``: a 640x480 camera at 16 Hz through ``ManagedCamera``: the CPU of its JPEG path
+  per frame and as a share of a core, against the 3 % target; the ladder's probe;
+- ``teleop``: ``dbml demo teleop --frames photos`` over zenoh (the ladder, then rate only, on
+  the same frames): per step fps, SSIM, rung, utility; the worst 1-s window; the gain.
+
+    python bench/quality.py [--channels 2 20 80 320] [--repeat 20] [--grid 17]
+                            [--cpu-seconds 10] [--step-seconds 3] [--json]
 """
 
 from __future__ import annotations
@@ -30,6 +36,8 @@ from dbml.core.ladder import Ladder, Preference, Rung
 from dbml.core.priority import normalize_priorities
 from dbml.core.quality import PREFERENCE_TERMS, WEIGHT_BASE, allocate_quality
 from dbml.core.spec import ChannelSpec, Problem
+from dbml.media.jpeg import encode_jpeg
+from dbml.protocol.ladders import encoding_label
 
 PHOTO = (
     (1.0, 10, 15_871, 0.835), (1.0, 30, 30_488, 0.925), (1.0, 50, 41_227, 0.950),
@@ -43,6 +51,7 @@ libjpeg-turbo (../shared/QUALITY.md)."""
 PAPER_SIZE_BYTES = 84_000
 """The paper's R1 frame: each camera's declared size is this, scaled."""
 MILP_TIME_LIMIT_S = 120.0
+PROBE_NOTE = "5 s (its own thread)"
 
 
 def fleet(rng: np.random.Generator, n: int) -> tuple[Problem, dict[str, Ladder]]:
@@ -136,25 +145,124 @@ def measure(n: int, repeat: int, grid: int, seed: int) -> dict[str, Any]:
     }
 
 
+def encoding_cpu(seconds: float) -> dict[str, Any]:
+    """A 640x480 camera at 16 Hz through ``ManagedCamera``: the CPU its JPEG path takes.
+
+    - ``path``: the publishing thread's CPU time (``time.thread_time``) over ``seconds`` of
+      frames paced at 16 Hz, each encoded at the rung the optimizer chose (11 Mbit/s for one
+      camera) into a ``CompressedImage`` and published, in a process with the optimizer's and
+      the probe's threads beside it;
+    - ``encode``: libjpeg-turbo alone on the same frames at the same rung, the same thread;
+    - ``probe``: the ladder's probe (its own thread): one probe's time over its interval.
+
+    Each as a share of a core at 16 Hz, against the 3 % target and the frame period.
+    """
+    from dbml.media.images import Frame
+    from dbml.media.photos import PanCamera
+    from dbml.runtime.camera import PROBE_INTERVAL_S, ManagedCamera
+    from dbml.testing import Fleet
+    from dbml.transports.base import Variant
+
+    rate_hz = 16.0
+    with Fleet(clock=time.monotonic) as fleet:
+        camera = ManagedCamera(fleet.host("r1"), "/r1/camera", min_rate_hz=1.0, max_rate_hz=rate_hz)
+        fleet.watch("/r1/camera", remote=Variant.COMPRESSED)
+        fleet.budget(11.0)
+        eye = PanCamera(640, 480)
+        camera.publish_frame(Frame(eye.frame(), "rgb8"))  # the first probe, in this thread
+        fleet.optimizer.start()  # rounds and heartbeats: the allocation stays in force
+        frames = [Frame(eye.frame(), "rgb8") for _ in range(int(seconds * rate_hz))]
+        deadline = time.monotonic() + 10.0
+        while camera.publisher.encoding is None or camera.current_rate_hz() < rate_hz:
+            if time.monotonic() > deadline:
+                raise RuntimeError("no allocation of 16 Hz within 10 s")
+            time.sleep(0.01)
+        sent = 0
+        camera.rate.reset()
+        cpu_start, wall_start = time.thread_time(), time.perf_counter()
+        for frame in frames:  # paced as a driver is: one frame a period
+            camera.rate.sleep()
+            sent += camera.publish_frame(frame)
+        cpu_s = time.thread_time() - cpu_start
+        wall_s = time.perf_counter() - wall_start
+        probe_s = camera.probe_seconds
+        encoding = camera.publisher.encoding
+        camera.close()
+    assert encoding is not None
+    scale, quality = encoding
+    assert quality is not None
+    encode_start = time.thread_time()
+    for frame in frames:
+        encode_jpeg(frame.pixels, encoding="rgb8", quality=quality, scale=scale)
+    encode_ms = (time.thread_time() - encode_start) / len(frames) * 1e3
+    per_frame_ms = cpu_s / max(sent, 1) * 1e3
+    return {
+        "camera": "640x480 rgb8 at 16 Hz",
+        "rung": encoding_label(scale, quality),
+        "frames": len(frames),
+        "sent": sent,
+        "path_ms_per_frame": round(per_frame_ms, 3),
+        "path_share_at_16_hz": round(per_frame_ms * rate_hz / 1e3, 4),
+        "encode_ms_per_frame": round(encode_ms, 3),
+        "encode_share_at_16_hz": round(encode_ms * rate_hz / 1e3, 4),
+        "target_share": 0.03,
+        "reference_frame_period_ms": round(1e3 / rate_hz, 2),
+        "probe_ms": round(probe_s * 1e3, 1),
+        "probe_share": round(probe_s / PROBE_INTERVAL_S, 4),
+        "wall_s": round(wall_s, 2),
+    }
+
+
+def teleop(step_s: float) -> dict[str, Any]:
+    """The paper's experiment on real frames over zenoh: the ladder, then rate only."""
+    from dbml.cli.documents import photo_demo_document
+    from dbml.demo.photos import run_photo_demo
+    from dbml.transports.registry import TRANSPORTS
+
+    result = run_photo_demo(TRANSPORTS["zenoh"], step_seconds=step_s)
+    return photo_demo_document(result)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--channels", type=int, nargs="+", default=[2, 20, 80, 320])
     parser.add_argument("--repeat", type=int, default=20)
     parser.add_argument("--grid", type=int, default=17, help="MILP rates per rung")
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--cpu-seconds", type=float, default=10.0, help="0: skip")
+    parser.add_argument("--step-seconds", type=float, default=3.0, help="teleop; 0: skip")
     parser.add_argument("--json", action="store_true", help="JSON only")
     args = parser.parse_args()
     results = [measure(n, args.repeat, args.grid, args.seed) for n in args.channels]
-    document = {
+    document: dict[str, Any] = {
         "benchmark": "quality_solver",
         "reference": "scipy.optimize.milp (HiGHS) over every allowed rung at a grid of rates",
         "results": results,
     }
+    if args.cpu_seconds > 0:
+        document["encoding"] = encoding_cpu(args.cpu_seconds)
+    if args.step_seconds > 0:
+        document["teleop"] = teleop(args.step_seconds)
     if not args.json:
         for row in results:
             print(
                 f"{row['channels']:>4} channels: {row['solver_ms_median']:.3f} ms, gap to milp "
                 f"{row['gap_to_milp']:+.2e}, to bound {row['gap_to_bound']:.2e}"
+            )
+        if "encoding" in document:
+            enc = document["encoding"]
+            print(
+                f"camera at {enc['rung']}: encoding {enc['encode_ms_per_frame']:.2f} ms a frame "
+                f"({enc['encode_share_at_16_hz']:.1%} of a core at 16 Hz), the whole path "
+                f"{enc['path_ms_per_frame']:.2f} ms ({enc['path_share_at_16_hz']:.1%}); target 3 "
+                f"%; probe {enc['probe_ms']:.0f} ms every {PROBE_NOTE}"
+            )
+        if "teleop" in document:
+            tel = document["teleop"]
+            print(
+                f"teleop: utility {tel['ladder']['utility']:.3f} with the ladder, "
+                f"{tel['rate_only']['utility'] if tel['rate_only'] else float('nan'):.3f} rate "
+                f"only ({tel['utility_gain']:+.1%}); checks {tel['checks']}"
             )
     print(json.dumps(document))
 

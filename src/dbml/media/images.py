@@ -8,6 +8,7 @@ the network: a malformed message is a ``SpecError`` naming what is wrong, never 
 from __future__ import annotations
 
 import functools
+import struct
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -39,6 +40,8 @@ MAX_PIXELS = 4096 * 4096
 """The largest image a camera channel takes (width x height): a frame from the network that
 claims more is refused before anything is allocated for it."""
 _NS = 1_000_000_000
+_CDR_LE = b"\x00\x01\x00\x00"
+"""The encapsulation header of little-endian CDR."""
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -126,13 +129,20 @@ def decode_image(payload: bytes) -> Frame:
 
 
 def encode_compressed(frame: Frame, data: bytes, *, format: str) -> bytes:
-    """A CDR ``sensor_msgs/msg/CompressedImage`` of ``data`` with ``frame``'s header."""
-    message = _store().types[COMPRESSED_TYPE](
-        header=_header(frame.stamp_ns, frame.frame_id),
-        format=format,
-        data=np.frombuffer(data, dtype=np.uint8),
-    )
-    return bytes(_store().serialize_cdr(message, COMPRESSED_TYPE))
+    """A CDR ``sensor_msgs/msg/CompressedImage`` of ``data`` with ``frame``'s header.
+
+    Packed here (little-endian CDR: the stamp, two strings, a byte sequence), not through the
+    typestore: it is every frame's path, and rosbags' general serialiser cost a camera 0.3 ms
+    of its 1.6 a frame. The tests read it back with rosbags.
+    """
+    sec, nanosec = divmod(max(0, int(frame.stamp_ns)), _NS)
+    body = bytearray(struct.pack("<iI", sec, nanosec))
+    for text in (frame.frame_id, format):
+        raw = text.encode() + b"\x00"
+        body += struct.pack("<I", len(raw)) + raw
+        body += bytes(-len(body) % 4)
+    body += struct.pack("<I", len(data))
+    return _CDR_LE + bytes(body) + bytes(data)
 
 
 def decode_compressed(payload: bytes) -> Compressed:

@@ -25,6 +25,7 @@ import collections
 import logging
 import threading
 import time
+from collections.abc import Callable
 
 from dbml.core.errors import SpecError
 from dbml.core.ladder import Preference, Rung
@@ -114,6 +115,8 @@ class ManagedCamera:
         """The newest frame offered to the probe (one at most: the probe's memory bound)."""
         self._measured: tuple[Rung, ...] | None = None
         self._written: tuple[Rung, ...] | None = None
+        self._factor = 1.0
+        """The correction the ladder last written was made with."""
         self._last_bytes: int | None = None
         """The last message's size (what the optimizer is told without a ladder)."""
         self._sent: collections.deque[float] = collections.deque(maxlen=SENT_WINDOW)
@@ -149,7 +152,13 @@ class ManagedCamera:
         else:
             with self._lock:
                 self._offered = frame
-        payload = encode_image(frame) if image is None else image
+        payload: bytes | Callable[[], bytes] = (
+            image
+            if image is not None
+            else (
+                lambda: encode_image(frame)  # made only when a local subscriber takes it
+            )
+        )
         encoding = self.publisher.encoding or self._default
         if encoding[1] is None:  # a raw rung: a camera's ladder has none; keep to JPEG
             encoding = self._default
@@ -217,6 +226,9 @@ class ManagedCamera:
             if measured is None:
                 return
             factor = max((*self._sent, 1.0))  # how far recent frames ran above the ladder
+            if written is not None and factor == self._factor:
+                return  # nothing moved since the last look (most frames)
+            self._factor = factor
             rungs = tuple(
                 Rung(r.size_bytes * factor, r.quality, r.scale, r.jpeg_quality) for r in measured
             )
@@ -239,6 +251,11 @@ class ManagedCamera:
             frame, self._offered = self._offered, None
         if frame is not None:
             self._measure(frame)
+
+    @property
+    def probe_seconds(self) -> float:
+        """How long the last probe of the ladder took (its thread's wall time)."""
+        return self._probe_took_s
 
     @property
     def ladder(self) -> tuple[Rung, ...] | None:

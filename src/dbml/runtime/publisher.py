@@ -460,7 +460,7 @@ class ManagedPublisher:
 
     def publish(
         self,
-        payload: bytes,
+        payload: bytes | Callable[[], bytes],
         *,
         encode: Callable[[], bytes] | None = None,
         size_bytes: int | None = None,
@@ -470,14 +470,23 @@ class ManagedPublisher:
         Each variant numbers its own messages, so a receiver's sequence gaps are losses, never
         the throttling. A camera gives ``encode``: what its managed copy carries instead of
         ``payload`` (the frame at the rung in force), called only for a frame that goes; and
-        ``size_bytes``, the size the optimizer is told (its frame at the default rung).
+        ``size_bytes``, the size the optimizer is told (its frame at the default rung); its
+        ``payload`` may be a callable, then called only when ``[topic]`` has a subscriber.
         """
+        managed: bytes | None = None
+        """What the managed copy carries: ``payload``, or ``encode()`` once it is needed."""
+        if encode is None:
+            if callable(payload):
+                raise ValueError("a payload made on demand needs encode and size_bytes")
+            managed = payload
+        if size_bytes is None and managed is None:
+            raise ValueError("a payload made on demand needs encode and size_bytes")
         now = self._now()
         rate, until = self._steady
         steady = now <= until  # the common case: the limiter runs at the allocation already
         if not steady:
             rate = self._rate_in_force(now)  # before a new size moves the deadline
-        size = len(payload) if size_bytes is None else size_bytes
+        size = size_bytes if size_bytes is not None else len(managed or b"")
         if size != self._sizes.known_bytes:
             self._track_size(size)
         if self._qos_stale:
@@ -485,13 +494,19 @@ class ManagedPublisher:
         full = self._full
         if full is not None and full.has_subscribers:
             self._full_seq += 1
-            full.put(payload, attachment=pack_meta(self._full_seq, self._wall_clock_ns(), rate))
+            whole = payload() if callable(payload) else payload
+            full.put(whole, attachment=pack_meta(self._full_seq, self._wall_clock_ns(), rate))
+        if not steady and managed is None and encode is not None:
+            # The outage gate may hold this message and release it later: the managed copy's
+            # own bytes, made outside the lock (off the common path: steady publishes skip it).
+            managed = encode()
         expired = False
         with self._lock:
             if steady:
                 allowed = self._limiter.allow(now)
             else:
-                allowed, expired = self._admit_locked(now, rate, payload)
+                assert managed is not None
+                allowed, expired = self._admit_locked(now, rate, managed)
             if allowed:  # numbered under the lock: a release may put from the beacon's thread
                 self._optimized_seq += 1
                 seq = self._optimized_seq
@@ -504,7 +519,9 @@ class ManagedPublisher:
             )
         if not allowed:
             return False
-        managed = payload if encode is None else encode()
+        if managed is None:
+            assert encode is not None
+            managed = encode()
         self._switch.publisher.put(managed, attachment=pack_meta(seq, self._wall_clock_ns(), rate))
         return True
 
