@@ -149,6 +149,11 @@ def testbed_document(result: TestbedResult) -> dict[str, Any]:
     options, summary = result.options, result.summary()
     summary_document: dict[str, Any] = {
         "steps": summary.steps,
+        "frames": options.frames.value,
+        "ladder": options.ladder if options.frames.value == "photos" else None,
+        "worst_window_bytes": None if result.wire is None else result.wire.worst_bytes,
+        "windows_over_share": None if result.wire is None else result.wire.over_share,
+        "limit_bytes": result.limit_bytes,
         "max_rate_error": summary.max_rate_error,
         "latency_p50_ms_max": summary.latency_p50_ms_max,
         "latency_p95_ms_max": summary.latency_p95_ms_max,

@@ -500,7 +500,11 @@ def _cmd_testbed(args: argparse.Namespace) -> int:
         topology=args.topology,
         transport=args.transport,
         view=_view_target(args, pick_port=True),
+        frames=args.frames,
+        rate_only=args.rate_only,
     )
+    if options.frames.value == "photos":
+        require("simplejpeg", extra="quality", what="--frames photos")
     _announce(options.view)
     console = Console(stderr=args.json)
     with render.ExperimentView(

@@ -310,6 +310,19 @@ def build_parser() -> argparse.ArgumentParser:
         help="zenoh (default): dbml's roles over zenoh; rclpy: real ROS 2 (Fast DDS), plain "
         "rclpy cameras and operator, a dbml bridge per camera, dbml's optimizer",
     )
+    testbed_cmd.add_argument(
+        "--frames",
+        choices=["synthetic", "photos"],
+        default="synthetic",
+        help="synthetic (default): frames of the paper's sizes; photos: cameras over real "
+        "photographs as JPEG, rate and quality chosen together (the quality extra)",
+    )
+    testbed_cmd.add_argument(
+        "--rate-only",
+        action="store_true",
+        help="with --frames photos: no ladder, every frame at the one JPEG quality whose frames "
+        "are the paper's 84,000 B (the baseline the ladder is compared with)",
+    )
     testbed_cmd.add_argument("--json", action="store_true", help="one JSON object on stdout")
     testbed_cmd.add_argument("--plot", metavar="FILE.png", help="rates, latency and budget")
     _view_options(testbed_cmd)

@@ -309,7 +309,9 @@ def testbed_table(result: TestbedResult) -> Table:
         title += f", {options.robots} robots, topology {options.topology}"
     table = Table(title=title)
     expected = result.expected_hz
+    photos = options.frames.value == "photos"
     columns = ["step", "robot", *(["allocate()"] if expected else []), "alloc", "deliv"]
+    columns += ["SSIM", "rung"] if photos else []
     for name in (*columns, "p50", "p95", "lost", "goodput", "budget"):
         table.add_column(name, justify="right", no_wrap=True)
     table.add_column("link", justify="right", no_wrap=True)
@@ -324,6 +326,7 @@ def testbed_table(result: TestbedResult) -> Table:
                 *([f"{expected[k][i]:.2f}"] if expected else []),
                 _fmt(robot.allocated_hz, ".2f"),
                 _fmt(robot.delivered_hz, ".2f"),
+                *([_fmt(robot.ssim, ".3f"), robot.encoding or "-"] if photos else []),
                 _fmt(robot.latency_p50_ms, ".0f"),
                 _fmt(robot.latency_p95_ms, ".0f"),
                 str(robot.lost),
@@ -347,6 +350,12 @@ def testbed_table(result: TestbedResult) -> Table:
         f"p95 latency at most {_fmt(summary.latency_p95_ms_max, '.0f')} ms, "
         f"{summary.lost} frames lost",
     ]
+    if result.wire is not None and result.limit_bytes is not None:
+        lines.append(
+            f"the worst 1-s window of what arrived: {result.wire.worst_bytes:,} B against "
+            f"{result.limit_bytes:,.0f} B (the budget and one frame), "
+            f"{result.wire.over_share:.1%} of windows over"
+        )
     for change in result.changes:
         link = f"link {change.from_mbit:g} -> {change.to_mbit:g} Mbit/s at {change.t_s:g} s"
         share = f"goodput {_fmt(change.goodput_share_after, '.0%')} of it from 3 s on"

@@ -111,6 +111,8 @@ def base_spec(options: TestbedOptions) -> RoleSpec:
         uplinks_mbit=dict(options.uplinks_mbit),
         peer_wait_s=PEER_WAIT_S,
         robots=options.robots,
+        frames=options.frames,
+        ladder=options.ladder,
     )
 
 

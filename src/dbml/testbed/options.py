@@ -14,6 +14,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 from dbml.core.allocation import Strategy
+from dbml.experiment.spec import Frames
 from dbml.scenarios.fleet import MAX_ROBOTS, MIN_ROBOTS, fleet_cameras
 from dbml.scenarios.teleop import ROBOTS
 from dbml.testbed.netns import TestbedError
@@ -205,6 +206,10 @@ class TestbedOptions:
     """``zenoh``, or ``rclpy``: real ROS 2 (see ``rclpy_layout``)."""
     view: ViewTarget | None = None
     """``--foxglove``/``--record``: the operator's live view, its server reached from here."""
+    frames: Frames = Frames.SYNTHETIC
+    """``--frames photos``: cameras over real photographs, as JPEG (``dbml.runtime.camera``)."""
+    ladder: bool = True
+    """With photos: rate and quality together (False, ``--rate-only``: one JPEG quality)."""
 
     @classmethod
     def from_flags(
@@ -224,8 +229,18 @@ class TestbedOptions:
         topology: str = TOPOLOGIES[0],
         transport: str = TRANSPORTS[0],
         view: ViewTarget | None = None,
+        frames: str = Frames.SYNTHETIC.value,
+        rate_only: bool = False,
     ) -> TestbedOptions:
         """The options of the command line's flags; a bad one raises naming the flag."""
+        if frames not in {f.value for f in Frames}:
+            raise TestbedError(f"--frames={frames!r} is not one of: synthetic, photos")
+        if Frames(frames) is Frames.PHOTOS and (transport != "zenoh" or policy != "dbml"):
+            raise TestbedError(
+                "--frames photos runs dbml's own roles: --transport zenoh and --policy dbml"
+            )
+        if rate_only and Frames(frames) is not Frames.PHOTOS:
+            raise TestbedError("--rate-only compares real frames: it needs --frames photos")
         if policy not in POLICIES:
             raise TestbedError(f"--policy={policy!r} is not one of: {', '.join(POLICIES)}")
         if transport not in TRANSPORTS:
@@ -275,6 +290,8 @@ class TestbedOptions:
             topology=Topology(topology),
             transport=entry,
             view=view,
+            frames=Frames(frames),
+            ladder=not rate_only,
         )
         both = sorted(set(common.uplinks_mbit) & set(common.robot_schedules))
         if both:

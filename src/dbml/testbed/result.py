@@ -29,6 +29,7 @@ from dbml.experiment.analysis import (
     StepResult,
     StreamLatency,
 )
+from dbml.harness.sniffer import WindowStats
 from dbml.scenarios.fleet import fleet_cameras, fleet_steps, urgent_robot
 from dbml.testbed.options import Policy, TestbedOptions
 
@@ -128,6 +129,10 @@ class TestbedResult:
     """Over rclpy: the Fast DDS shared-memory files the run's processes owned while running."""
     shm_removed: tuple[Path, ...] = ()
     """Of those, what a killed process left and the testbed removed (a graceful end: none)."""
+    wire: WindowStats | None = None
+    """What arrived at the operator in sliding 1-s windows, from the first step's settling, on
+    a steady link (None otherwise): ``limit_bytes`` is the budget plus the largest frame."""
+    limit_bytes: float | None = None
 
     def summary(self) -> Summary:
         """The run in a few numbers."""

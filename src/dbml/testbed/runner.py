@@ -23,11 +23,14 @@ from collections.abc import Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
 
+from dbml.core.spec import mbit_to_bytes_per_s
 from dbml.experiment.analysis import StepResult, link_at, outages, recoveries, stream_latency
+from dbml.experiment.analysis.windows import settle_s
 from dbml.experiment.plan import bridge_name
 from dbml.experiment.report import PublishTiming
 from dbml.experiment.runner import Observer, Recording, run_experiment, sigterm_as_interrupt
 from dbml.experiment.spec import URGENT_STREAMS
+from dbml.harness.sniffer import window_stats
 from dbml.scenarios.fleet import fleet_allocation, fleet_cameras, fleet_steps, urgent_robot
 from dbml.testbed.layout import LayoutFactory, Leftovers
 from dbml.testbed.netns import OPERATOR, Network, TestbedError, privilege_problem
@@ -221,6 +224,13 @@ def run_teleop_testbed(
         schedule=options.link_schedule,
         robots=[camera.robot for camera in cameras],
     )
+    if options.steady and options.utilization is not None:
+        start = recording.t0 + settle_s(options.step_seconds)
+        arrived = [(a.arrival_s, a.size_bytes) for a in recording.arrivals if a.arrival_s >= start]
+        limit = mbit_to_bytes_per_s(options.link_mbit * options.utilization) + max(
+            (size for _, size in arrived), default=0
+        )
+        result = replace(result, wire=window_stats(arrived, limit_bytes=limit), limit_bytes=limit)
     return replace(
         result,
         steps=analysis.steps,
