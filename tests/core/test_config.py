@@ -4,7 +4,7 @@ from pathlib import Path
 import pytest
 
 from dbml.core import ConfigError, Strategy, parse_config
-from dbml.core.config import load_config
+from dbml.core.config import load_config, parse_bridge_channels
 
 VALID = """
 dbm:
@@ -209,3 +209,14 @@ def test_frame_headroom_is_read_and_checked() -> None:
             "dbm: {max_bandwidth_in_mbit: 11, frame_headroom: 'yes'}\nchannels: []\n",
             require_channels=False,
         )
+
+
+def test_a_laddered_bridge_channel_is_an_image_and_says_so_otherwise() -> None:
+    base = "channels:\n  - topic: /r1/camera\n    frequency: {min: 1, max: 16}\n"
+    (channel,) = parse_bridge_channels(base + "    ladder: true\n")
+    assert channel.ladder is True
+    assert channel.msg_type == "sensor_msgs/msg/Image"
+    with pytest.raises(ConfigError, match=r"^channels\[0\] '/r1/camera': ladder='yes' must be"):
+        parse_bridge_channels(base + '    ladder: "yes"\n')
+    with pytest.raises(ConfigError, match="type='std_msgs/msg/String' cannot be laddered"):
+        parse_bridge_channels(base + "    ladder: true\n    type: std_msgs/msg/String\n")

@@ -419,12 +419,12 @@ def _bridge_channel(index: int, value: object) -> BridgeChannel:
     if priority is not None:
         priority = _number(where, "priority", priority)
     msg_type = data.get("type")
+    ladder = data.get("ladder", False)
+    if not isinstance(ladder, bool):
+        raise ConfigError(f"{where}: ladder={ladder!r} must be true or false")
     try:
         if msg_type is not None:
             check_msg_type(msg_type)
-        ladder = data.get("ladder", False)
-        if not isinstance(ladder, bool):
-            raise ConfigError(f"{where}: ladder={ladder!r} must be true or false")
         return BridgeChannel(topic, fmin, fmax, priority, msg_type, ladder)
     except SpecError as err:
         raise ConfigError(f"{where}: {err}") from None

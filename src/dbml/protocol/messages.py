@@ -485,8 +485,6 @@ class ChannelRound:
     def as_json(self) -> dict[str, Any]:
         """The channel as a round report carries it (and the live view shows it)."""
         return {
-            "encoding": self.encoding,
-            "quality": self.quality,
             "topic": self.topic,
             "priority": self.priority,
             "normalized_priority": self.normalized_priority,
@@ -497,6 +495,8 @@ class ChannelRound:
             "size_bytes": self.size_bytes,
             "share": self.share,
             "managed": self.managed,
+            "encoding": self.encoding,  # last: viewers' tables keep the columns they had
+            "quality": self.quality,
         }
 
     @classmethod

@@ -90,10 +90,14 @@ class ManagedCamera:
         republish_full: bool = True,
         failsafe_periods: float = FAILSAFE_PERIODS,
     ) -> None:
+        scale, quality = default_encoding
+        if quality is None:
+            raise SpecError(f"default_encoding={default_encoding!r}: a camera sends JPEG")
         self.topic = topic
         self._transport = transport
         self._laddered = ladder
         self._default = default_encoding
+        self._default_jpeg = (scale, quality)
         self.publisher = ManagedPublisher(
             transport,
             topic,
@@ -123,7 +127,6 @@ class ManagedCamera:
         """Recent frames' bytes over what the ladder said of their rung."""
         self._bad = LogOnce(log)
         self._probe_interval_s = probe_interval_s
-        self._next_probe_s = 0.0
         self._probe = PeriodicWorker(
             self._probe_once,
             interval_s=self._probe_wait,
@@ -159,16 +162,14 @@ class ManagedCamera:
                 lambda: encode_image(frame)  # made only when a local subscriber takes it
             )
         )
-        encoding = self.publisher.encoding or self._default
-        if encoding[1] is None:  # a raw rung: a camera's ladder has none; keep to JPEG
-            encoding = self._default
+        scale, quality = self.publisher.encoding or self._default_jpeg
+        if quality is None:  # a raw rung: a camera's ladder has none; keep to JPEG
+            scale, quality = self._default_jpeg
+        encoding: Encoding = (scale, quality)
         sent: list[int] = []
 
         def compress() -> bytes:
-            scale, quality = encoding
-            data = encode_jpeg(
-                frame.pixels, encoding=frame.encoding, quality=quality or 1, scale=scale
-            )
+            data = encode_jpeg(frame.pixels, encoding=frame.encoding, quality=quality, scale=scale)
             sent.append(len(data))
             message = encode_compressed(frame, data, format=compressed_format(frame.encoding))
             self._last_bytes = len(message)

@@ -19,6 +19,7 @@ past a bound a new name is refused and the flood logged once, with a count.
 
 from __future__ import annotations
 
+import functools
 import logging
 import threading
 import weakref
@@ -138,7 +139,7 @@ class ChannelParams:
         """The channel's ladder with its quality floor and preference (None: no ladder)."""
         if self.rungs is None:
             return None
-        return Ladder(self.rungs, min_quality=self.min_quality, preference=self.preference)
+        return _ladder(self.rungs, self.min_quality, self.preference)
 
     @property
     def bounded(self) -> bool:
@@ -161,6 +162,12 @@ class ChannelParams:
         return ChannelSpec(
             self.topic, self.floor_hz, self.max_rate_hz or 0.0, self.size_bytes, self.priority
         )
+
+
+@functools.lru_cache(maxsize=1024)
+def _ladder(rungs: tuple[Rung, ...], min_quality: float, preference: Preference) -> Ladder:
+    """A ladder, made once per distinct value: the optimizer asks every channel every round."""
+    return Ladder(rungs, min_quality=min_quality, preference=preference)
 
 
 def write_settings(store: ParamStore, settings: DbmSettings) -> None:
