@@ -203,14 +203,18 @@ def _choose(
     return cols, rates[np.arange(len(cols)), cols]
 
 
-def _dual(table: _Table, price: float, budget: float) -> float:
-    """The Lagrangian dual at ``price``: no choice within the budget is worth more."""
+def _dual(table: _Table, price: float, budget: float) -> tuple[float, IntArray]:
+    """The Lagrangian dual at ``price``, and the choice it is made of.
+
+    No choice within the budget is worth more than the dual.
+    """
     cols, rates = _choose(table, price)
     rows = np.arange(len(cols))
     size, coef = table.size[rows, cols], table.coef[rows, cols]
-    return price * budget + float(
+    value = price * budget + float(
         (coef * np.log1p(rates / table.knee) - price * size * rates).sum()
     )
+    return value, cols
 
 
 def _picked(table: _Table, cols: IntArray) -> tuple[FloatArray, FloatArray]:
@@ -320,7 +324,8 @@ def _priced(table: _Table, budget: float) -> tuple[IntArray, FloatArray, float]:
     Only the channels whose rung differs at the bracket's two ends are chosen again at each
     step; the others keep their rung and only their rate follows the price.
     """
-    cols, _ = _choose(table, 0.0)
+    # Free: every rate at its maximum, so each channel's best rung is its most valuable.
+    cols = np.argmax(np.where(table.valid, table.coef, -np.inf), axis=1)
     size = _picked(table, cols)[1]
     if float(size @ table.hi) <= budget:
         return cols, table.hi.copy(), _value(table, cols, table.hi)
@@ -362,10 +367,11 @@ def _priced(table: _Table, budget: float) -> tuple[IntArray, FloatArray, float]:
             high, cols_high, spend_high = mid, cols_mid, spend
             pull_low, pull_high = (pull_low / 2, 1.0) if side == 1 else (1.0, 1.0)
             side = 1
-    bound = min(_dual(table, low, budget), _dual(table, high, budget))
+    # The dual at the feasible end bounds the optimum; its choice is that end's, exactly.
+    bound, cols_high = _dual(table, high, budget)
     # The bracket's two ends differ in one channel's rung at most: each, water-filled; the best.
     best: tuple[float, IntArray, FloatArray] | None = None
-    for cols in (_choose(table, high)[0], cols_low):
+    for cols in (cols_high, cols_low):
         if float(_picked(table, cols)[1] @ lo) > budget * (1 + _BUDGET_REL_TOL):
             continue
         rates = _water_fill(table, cols, budget)
