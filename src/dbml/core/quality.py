@@ -367,8 +367,11 @@ def _priced(table: _Table, budget: float) -> tuple[IntArray, FloatArray, float]:
             high, cols_high, spend_high = mid, cols_mid, spend
             pull_low, pull_high = (pull_low / 2, 1.0) if side == 1 else (1.0, 1.0)
             side = 1
-    # The dual at the feasible end bounds the optimum; its choice is that end's, exactly.
-    bound, cols_high = _dual(table, high, budget)
+    # The dual at either end bounds the optimum (the nearer, the tighter); each one's choice is
+    # that end's, exactly.
+    bound_high, cols_high = _dual(table, high, budget)
+    bound_low, cols_low = _dual(table, low, budget)
+    bound = min(bound_low, bound_high)
     # The bracket's two ends differ in one channel's rung at most: each, water-filled; the best.
     best: tuple[float, IntArray, FloatArray] | None = None
     for cols in (cols_high, cols_low):
