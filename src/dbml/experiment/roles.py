@@ -24,7 +24,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 
 from dbml.core.config import DbmSettings
 from dbml.core.errors import SpecError
@@ -54,7 +54,7 @@ from dbml.runtime.publisher import ManagedPublisher
 from dbml.runtime.rate import Rate
 from dbml.runtime.serve import Lifetime, run_optimizer
 from dbml.scenarios.fleet import fleet_cameras, fleet_steps
-from dbml.scenarios.teleop import MAX_RATE_HZ, MIN_RATE_HZ, ROBOTS
+from dbml.scenarios.teleop import MAX_RATE_HZ, MIN_RATE_HZ, ROBOTS, RobotEvent
 from dbml.transports.base import Transport, Variant
 from dbml.transports.memory import MemoryNetwork
 from dbml.transports.registry import open_transport
@@ -96,6 +96,46 @@ def _optimizer(transport: Transport, t0: float, spec: RoleSpec, stop: threading.
     )
 
 
+def _drive(
+    robot: str,
+    index: int,
+    t0: float,
+    spec: RoleSpec,
+    stop: threading.Event,
+    *,
+    life: Lifetime,
+    rate: Rate,
+    send: Callable[[], object],
+    on_event: Callable[[RobotEvent], object],
+) -> None:
+    """A managed robot's run: its events replayed step by step, ``send()`` at every tick.
+
+    The first ``send`` goes before step 1 (the size, and a camera's ladder, known by then).
+    """
+    # The robot's own end, not ``stop``: threads over the memory transport share ``stop``, and a
+    # robot done with its last frame must not end the operator before its last report.
+    finished = threading.Event()
+
+    def replay_events() -> None:
+        for k, step in enumerate(fleet_steps(spec.robots)):
+            if not wait_until(t0 + k * spec.step_s, finished) or stop.is_set():
+                return
+            on_event(step.events[index])
+
+    events = BackgroundThread(replay_events, name=f"events-{robot}", log=log)
+    try:
+        send()
+        events.start()
+        wait_until(t0 + fleet_phase_s(index, spec.robots), stop)
+        rate.reset()
+        while not life.over() and time.time() < t0 + spec.duration_s:
+            rate.sleep()
+            send()
+    finally:
+        finished.set()
+        events.join(2.0)
+
+
 def _managed_robot(
     transport: Transport,
     index: int,
@@ -111,29 +151,19 @@ def _managed_robot(
         transport, camera.topic, min_rate_hz=MIN_RATE_HZ, max_rate_hz=MAX_RATE_HZ
     )
     priority = collision_priority_source(transport, camera.topic)
-    # The robot's own end, not ``stop``: threads over the memory transport share ``stop``, and a
-    # robot done with its last frame must not end the operator before its last report.
-    finished = threading.Event()
-
-    def replay_events() -> None:
-        for k, step in enumerate(fleet_steps(spec.robots)):
-            if not wait_until(t0 + k * spec.step_s, finished) or stop.is_set():
-                return
-            event = step.events[index]
-            priority.update(event.distance_m, event.speed_m_per_s)
-
-    events = BackgroundThread(replay_events, name=f"events-{camera.robot}", log=log)
     try:
-        publisher.publish(frame)  # the first frame makes the size known before step 1
-        events.start()
-        wait_until(t0 + fleet_phase_s(index, spec.robots), stop)
-        publisher.rate.reset()
-        while not life.over() and time.time() < t0 + spec.duration_s:
-            publisher.rate.sleep()
-            publisher.publish(frame)
+        _drive(
+            camera.robot,
+            index,
+            t0,
+            spec,
+            stop,
+            life=life,
+            rate=publisher.rate,
+            send=lambda: publisher.publish(frame),
+            on_event=lambda e: priority.update(e.distance_m, e.speed_m_per_s),
+        )
     finally:
-        finished.set()
-        events.join(2.0)
         publisher.close()
 
 
@@ -178,36 +208,34 @@ def _camera_robot(
         default_encoding=(1.0, quality),
     )
     priority = collision_priority_source(transport, camera.topic)
-    finished = threading.Event()
+    preference: list[Preference] = []
 
-    def replay_events() -> None:
-        preference = None
-        for k, step in enumerate(fleet_steps(spec.robots)):
-            if not wait_until(t0 + k * spec.step_s, finished) or stop.is_set():
-                return
-            event = step.events[index]
-            priority.update(event.distance_m, event.speed_m_per_s)
-            wanted = Preference.KEEP_RATE if event.priority > 0 else Preference.BALANCED
-            if wanted is not preference:
-                transport.params.set(names.preference(camera.topic), wanted.value)
-                preference = wanted
+    def on_event(event: RobotEvent) -> None:
+        priority.update(event.distance_m, event.speed_m_per_s)
+        wanted = Preference.KEEP_RATE if event.priority > 0 else Preference.BALANCED
+        if preference[-1:] != [wanted]:
+            transport.params.set(names.preference(camera.topic), wanted.value)
+            preference.append(wanted)
 
-    def capture() -> Frame:
+    def capture() -> bool:
         x = eye.at(time.time() - t0)
-        return Frame(eye.window(x), "rgb8", time.time_ns(), position_frame_id(x))
+        return publisher.publish_frame(
+            Frame(eye.window(x), "rgb8", time.time_ns(), position_frame_id(x))
+        )
 
-    events = BackgroundThread(replay_events, name=f"events-{camera.robot}", log=log)
     try:
-        publisher.publish_frame(capture())  # the ladder and the size known before step 1
-        events.start()
-        wait_until(t0 + fleet_phase_s(index, spec.robots), stop)
-        publisher.rate.reset()
-        while not life.over() and time.time() < t0 + spec.duration_s:
-            publisher.rate.sleep()
-            publisher.publish_frame(capture())
+        _drive(
+            camera.robot,
+            index,
+            t0,
+            spec,
+            stop,
+            life=life,
+            rate=publisher.rate,
+            send=capture,
+            on_event=on_event,
+        )
     finally:
-        finished.set()
-        events.join(2.0)
         publisher.close()
 
 

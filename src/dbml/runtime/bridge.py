@@ -120,7 +120,7 @@ class Bridge:
                 "(is its publisher running on this host?)"
             )
         channel = self.channel
-        if channel.ladder:
+        if channel.ladder:  # a camera: its publisher is the one the bridge paces
             self._camera = ManagedCamera(
                 self._transport,
                 channel.topic,
