@@ -32,7 +32,7 @@ from dbml.core.errors import SpecError
 from dbml.core.ladder import Preference
 from dbml.core.spec import LinkSpec
 from dbml.protocol import names
-from dbml.runtime.camera import ManagedCamera
+from dbml.runtime.camera import PROBE_INTERVAL_S, ManagedCamera
 from dbml.runtime.failsafe import FAILSAFE_PERIODS
 from dbml.runtime.optimizer import ACK_TIMEOUT_S, OptimizerNode, Round
 from dbml.runtime.publisher import ManagedPublisher
@@ -161,6 +161,7 @@ class Fleet:
         priority: float | None = None,
         preference: Preference | None = None,
         ladder: bool = True,
+        probe_interval_s: float = PROBE_INTERVAL_S,
     ) -> ManagedCamera:
         """A managed camera of ``topic`` on ``host`` (JPEG and a ladder: the ``quality`` extra).
 
@@ -175,6 +176,7 @@ class Fleet:
             priority=priority,
             preference=preference,
             ladder=ladder,
+            probe_interval_s=probe_interval_s,
         )
         self._closing.append(camera)
         return camera

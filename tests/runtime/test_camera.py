@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import time
 from collections.abc import Iterator
 
 import numpy as np
@@ -15,7 +16,7 @@ from dbml.media.images import Frame, decode_compressed, encode_image
 from dbml.media.jpeg import decode_jpeg
 from dbml.media.photos import PanCamera
 from dbml.protocol import names
-from dbml.protocol.ladders import decode_rungs, encoding_label
+from dbml.protocol.ladders import decode_rungs, encode_rungs, encoding_label
 from dbml.runtime.camera import ManagedCamera
 from dbml.testing import Fleet
 from dbml.transports.base import Variant
@@ -111,3 +112,20 @@ def test_a_bad_ladder_from_the_network_is_reported_and_the_last_good_one_stands(
     assert "size_bytes=0" in result.message
     assert result.encodings == good.encodings
     assert result.rates_hz == good.rates_hz
+
+
+def test_the_ladder_follows_the_scene_as_the_probe_measures_it_again(fleet: Fleet) -> None:
+    camera = fleet.camera("/r1/camera", probe_interval_s=0.05)
+    busy = PanCamera(640, 480, offset_px=1400).frame()  # the astronaut and the cat: detail
+    camera.publish_frame(Frame(busy, "rgb8"))
+    first = decode_rungs(fleet.get(names.ladder("/r1/camera")))
+    flat = Frame(np.full((480, 640, 3), 128, np.uint8), "rgb8")  # a grey wall: no detail
+    deadline = time.monotonic() + 10.0
+    while fleet.get(names.ladder("/r1/camera")) == encode_rungs(first):
+        assert time.monotonic() < deadline, "the probe never wrote the new scene's ladder"
+        camera.publish_frame(flat)  # offered to the probe, which runs on its own thread
+        time.sleep(0.02)
+    second = decode_rungs(fleet.get(names.ladder("/r1/camera")))
+    best = {r.jpeg_quality: r.size_bytes for r in first if r.scale == 1.0}
+    after = {r.jpeg_quality: r.size_bytes for r in second if r.scale == 1.0}
+    assert after[95] < best[95] / 4  # a flat frame is a fraction of the detailed one's bytes

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -215,6 +216,7 @@ class ManagedCamera:
         with self._lock:
             self._measured = rungs
             self._sent.clear()  # what ran over the old measurement says nothing of this one
+            self._factor = math.nan  # a new measurement: compared with what was written
             if not self._laddered:
                 self._written = rungs  # the size told comes from it; nothing is published
         if self._laddered:
