@@ -104,6 +104,7 @@ class _Scorer:
         self._record = record
         self._queue: queue.Queue[tuple[Arrival, bytes] | None] = queue.Queue(SCORE_QUEUE)
         self._bad = LogOnce(log)
+        self._closed = False
         self._thread = BackgroundThread(self._run, name="operator-ssim", log=log).start()
 
     def offer(self, row: Arrival, payload: bytes) -> None:
@@ -141,8 +142,14 @@ class _Scorer:
             return None
 
     def close(self) -> None:
-        """Score what is queued, then stop (bounded)."""
-        self._queue.put(None)
+        """Score what is queued, then stop (bounded; a second call returns at once)."""
+        if self._closed:
+            return
+        self._closed = True
+        try:  # bounded: a scorer that died takes nothing off the queue
+            self._queue.put(None, timeout=_SCORE_JOIN_S)
+        except queue.Full:
+            return
         self._thread.join(_SCORE_JOIN_S)
 
 
@@ -241,3 +248,5 @@ def run_operator(
             handle.close()
         if reporter is not None:
             reporter.close()
+        if scorer is not None:  # again, harmlessly, when the run ended on an error
+            scorer.close()

@@ -62,6 +62,9 @@ PROBE_CPU_SHARE = 0.05
 LADDER_RISE = 0.02
 """A rung's bytes risen by this much are written at once (fallen: by ``SIZE_CHANGE``): the
 allocation fills the budget, so a ladder that says too little overspends it by as much."""
+_FACTOR_STEP = 0.005
+"""A correction within this of the last one's makes no new ladder (a quarter of
+``LADDER_RISE``, so a rise is still seen): each frame would otherwise build 21 rungs."""
 SENT_WINDOW = 32
 """Frames whose bytes against the ladder's correct it (two seconds at 16 Hz)."""
 
@@ -229,8 +232,8 @@ class ManagedCamera:
             if measured is None:
                 return
             factor = max((*self._sent, 1.0))  # how far recent frames ran above the ladder
-            if written is not None and factor == self._factor:
-                return  # nothing moved since the last look (most frames)
+            if written is not None and abs(factor - self._factor) <= _FACTOR_STEP * self._factor:
+                return  # nothing moved since the last look (most frames): no rung is made
             self._factor = factor
             rungs = tuple(
                 Rung(r.size_bytes * factor, r.quality, r.scale, r.jpeg_quality) for r in measured
