@@ -32,7 +32,7 @@ from tests.integration.procs import ROOT
 
 pytest.importorskip("simplejpeg")
 
-pytestmark = pytest.mark.browser  # judges no rate: beside other tests, as the server's are
+pytestmark = [pytest.mark.browser, pytest.mark.alone]  # Chromium and a run: CPU for two
 
 READY_TIMEOUT_S = 90.0
 RUN_TIMEOUT_S = 120.0
