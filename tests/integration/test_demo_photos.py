@@ -60,4 +60,9 @@ def test_the_ladder_keeps_every_camera_at_10_hz_within_the_budget_on_real_frames
     # The same frames: rate only must give up frames where the ladder gives up detail.
     assert ladder["utility"] > rate_only["utility"]
     assert document["utility_gain"] == pytest.approx(ladder["utility"] / rate_only["utility"] - 1)
+    # The ceiling: every camera at 16 Hz with SSIM 1; neither run can exceed it.
+    weights = sum(r["weight"] for s in ladder["steps"] for r in s["robots"])
+    assert document["utility_ceiling"] == pytest.approx(weights)
+    assert max(ladder["utility"], rate_only["utility"]) <= weights
+    assert document["gain_ceiling"] >= document["utility_gain"]
     assert result.returncode == (0 if document["ok"] else 1)

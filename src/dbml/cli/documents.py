@@ -100,6 +100,8 @@ def photo_demo_document(result: PhotoDemoResult) -> dict[str, Any]:
         "ladder": _photo_run(result.ladder),
         "rate_only": None if result.rate_only is None else _photo_run(result.rate_only),
         "utility_gain": result.gain,
+        "utility_ceiling": result.ladder.ceiling,
+        "gain_ceiling": result.gain_ceiling,
         "checks": result.checks,
         "ok": result.ok,
     }

@@ -292,7 +292,10 @@ def photo_demo_table(result: PhotoDemoResult) -> Table:
         f"{verdict}{': ' + ', '.join(failed) if failed else ''}. Utility "
         f"{result.ladder.utility:.3f} with the ladder, "
         f"{_fmt(result.rate_only.utility if result.rate_only else None, '.3f')} rate only "
-        f"({_fmt(None if gain is None else gain * 100, '+.1f')} %); the worst 1-s window "
+        f"({_fmt(None if gain is None else gain * 100, '+.1f')} %; every camera at its maximum "
+        f"rate with SSIM 1 would reach {result.ladder.ceiling:.3f}, "
+        f"{_fmt(None if result.gain_ceiling is None else result.gain_ceiling * 100, '+.1f')} %); "
+        "the worst 1-s window "
         f"{wire.worst_bytes:,} B against {result.ladder.limit_bytes:,.0f} B (the budget and one "
         "frame). fps and SSIM as the operator decoded them."
     )

@@ -21,9 +21,10 @@ with a continuous rate. A channel without a ladder is one rung (its declared siz
 Solver: for a price ``lam`` per byte, each rung's best rate is closed-form,
 ``r = w Q^gamma / (L lam s) - k`` clipped to its bounds, and each channel takes the rung of
 largest ``u - lam * cost`` (the Lagrangian relaxation). The price is searched until the choice
-fits; the rungs are then fixed and the rates water-filled exactly to the budget. With few
-channels (at most ``EXACT_COMBINATIONS`` rung combinations) every combination is water-filled
-and the best kept: exact. The dual value bounds the optimum from above (``upper_bound``).
+fits; the rungs are then fixed and the rates water-filled exactly to the budget (one sort of
+the rates' breakpoints). With few channels (at most ``EXACT_COMBINATIONS`` rung combinations)
+every combination is water-filled instead and the best kept: exact. The dual value bounds the
+optimum from above (``upper_bound``).
 Infeasibility is a status: when the floors do not fit on the cheapest rungs, the floors are
 pulled back toward the minimums as ``allocate`` does, on the cheapest rungs.
 """
@@ -67,12 +68,19 @@ PREFERENCE_TERMS: Mapping[Preference, tuple[float, float | None]] = {
 }
 """Per preference: ``gamma`` (the quality's exponent) and the rate's knee ``k`` in Hz (None: the
 channel's maximum rate)."""
+_TERMS: Mapping[Preference | None, tuple[float, float]] = {
+    **{p: (g, math.nan if k is None else k) for p, (g, k) in PREFERENCE_TERMS.items()},
+    None: (1.0, 1.0),  # a channel without a ladder
+}
 EXACT_COMBINATIONS = 1024
 """Up to this many rung combinations, every one is tried (exact); beyond, the Lagrangian price."""
 LOCAL_SEARCH_CHANNELS = 16
 """Up to this many channels, the price's choice is improved one channel's rung at a time: with
 few channels one rung is a large share of the whole, and the price alone may miss by percents."""
 _LOCAL_PASSES = 8
+_TIGHT_BOUND_CHANNELS = 64
+"""Up to this many channels, the duals at the price bracket's ends are computed too: with few
+channels the Lagrangian's gap is wider, and two more choices cost little."""
 _PRICE_STEPS = 100
 """Bound on the price search's steps (each halves the bracket or closes on its end)."""
 _PRICE_REL_TOL = 1e-9
@@ -95,8 +103,9 @@ class QualityAllocation:
     """A rung and a rate per channel (declaration order), with its status and utility.
 
     ``rung[i]`` indexes the channel's ladder (-1 for a channel without one); ``size_bytes`` and
-    ``quality`` are the chosen rung's. ``upper_bound`` is the Lagrangian dual's value: no choice
-    within the budget is worth more (None when the status is infeasible).
+    ``quality`` are the chosen rung's. ``upper_bound``: no choice within the budget is worth
+    more (the Lagrangian dual's value; the utility itself when every combination was tried;
+    None when the status is infeasible).
     """
 
     status: QualityStatus
@@ -137,6 +146,9 @@ class _Table:
     rung: IntArray  # (n, m) index in the channel's ladder; -1 for a channel without one
     quality: FloatArray  # (n, m)
     valid: npt.NDArray[np.bool_]  # (n, m)
+    per_byte: FloatArray  # (n, m) coef / size; 0 where masked
+    spend_size: FloatArray  # (n, m) size; 0 where masked
+    penalty: FloatArray  # (n, m) 0; -inf where masked
     knee: FloatArray  # (n,) k
     lo: FloatArray  # (n,) floor
     hi: FloatArray  # (n,) fmax
@@ -152,7 +164,7 @@ def _table(problem: Problem, ladders: Mapping[str, Ladder], floors: FloatArray) 
         np.array([[arrays.size_bytes[i]], [1.0], [-1.0]]) if lad is None else lad.choice_table
         for i, lad in enumerate(found)
     ]
-    counts = np.fromiter((p.shape[1] for p in parts), np.intp, n)
+    counts = np.array([p.shape[1] for p in parts])
     m = int(counts.max())
     filled = np.arange(m) < counts[:, None]  # row-major: each channel's rungs in order
     flat = np.concatenate(parts, axis=1)
@@ -161,16 +173,28 @@ def _table(problem: Problem, ladders: Mapping[str, Ladder], floors: FloatArray) 
     quality = np.zeros((n, m))
     quality[filled] = flat[1]
     rung = np.full((n, m), -1, dtype=np.intp)
-    rung[filled] = flat[2].astype(np.intp)
-    terms = [PREFERENCE_TERMS[lad.preference] if lad else (1.0, 1.0) for lad in found]
-    gamma = np.fromiter((g for g, _ in terms), float, n)
-    knee = np.array([k for _, k in terms], dtype=float)  # None (nan): the maximum rate
+    rung[filled] = flat[2]
+    terms = np.array([_TERMS[lad.preference] if lad else _TERMS[None] for lad in found])
+    gamma, knee = terms[:, 0], terms[:, 1]
     hi = arrays.max_rate_hz
-    knee = np.where(np.isnan(knee), hi, knee)
+    knee = np.where(np.isnan(knee), hi, knee)  # nan: the maximum rate
     weight = WEIGHT_BASE + normalize_priorities(arrays.priority, arrays.size_bytes)
     span = np.log1p(hi / knee)
     coef = np.where(filled, weight[:, None] * quality ** gamma[:, None] / span[:, None], 0.0)
-    return _Table(size, coef, rung, quality, filled, knee, floors, hi, arrays.min_rate_hz)
+    return _Table(
+        size=size,
+        coef=coef,
+        rung=rung,
+        quality=quality,
+        valid=filled,
+        per_byte=coef / size,  # a masked rung: 0 / inf = 0
+        spend_size=np.where(filled, size, 0.0),
+        penalty=np.where(filled, 0.0, -np.inf),
+        knee=knee,
+        lo=floors,
+        hi=hi,
+        fmin=arrays.min_rate_hz,
+    )
 
 
 def _rates(
@@ -194,11 +218,15 @@ def _choose(
 ) -> tuple[IntArray, FloatArray]:
     """The rung (column) of each channel (of ``rows``) at ``price``, and its rate there."""
     sel = slice(None) if rows is None else rows
-    coef, size, knee = table.coef[sel], table.size[sel], table.knee[sel][:, None]
-    valid = table.valid[sel]
-    rates = _rates(coef, size, price, knee, lo=table.lo[sel][:, None], hi=table.hi[sel][:, None])
-    spend = np.where(valid, size, 0.0) * rates
-    value = np.where(valid, coef * np.log1p(rates / knee) - price * spend, -np.inf)
+    knee = table.knee[sel][:, None]
+    # _rates with the division done once in the table: c / (price s) = (c / s) / price.
+    rates = np.minimum(
+        np.maximum(table.per_byte[sel] * (1.0 / price) - knee, table.lo[sel][:, None]),
+        table.hi[sel][:, None],
+    )
+    value = table.coef[sel] * np.log1p(rates / knee)
+    value -= price * table.spend_size[sel] * rates
+    value += table.penalty[sel]
     cols = np.argmax(value, axis=1)
     return cols, rates[np.arange(len(cols)), cols]
 
@@ -223,45 +251,96 @@ def _picked(table: _Table, cols: IntArray) -> tuple[FloatArray, FloatArray]:
 
 
 def _water_fill(table: _Table, cols: IntArray, budget: float) -> FloatArray:
+    """The best rates for the chosen rungs within ``budget`` (``_fill``'s rates)."""
+    return _fill(table, cols, budget)[0]
+
+
+def _fill(table: _Table, cols: IntArray, budget: float) -> tuple[FloatArray, float]:
     """The best rates for the chosen rungs within ``budget`` (their floors must fit): exact.
 
-    ``r_i(lam) = clip(c_i / (lam s_i) - k_i, lo_i, hi_i)`` is continuous and decreasing in the
-    price; between two of its breakpoints the spend is ``fixed + sum(c_i / lam - s_i k_i)`` over
-    the channels inside their bounds, solved for ``lam`` in closed form.
+    Also the price at which they spend it (0: every rate at its maximum fits).
     """
     coef, size = _picked(table, cols)
     lo, hi, knee = table.lo, table.hi, table.knee
-    if float(size @ hi) <= budget * (1 + _BUDGET_REL_TOL):
-        return hi.copy()
-    with np.errstate(divide="ignore", invalid="ignore"):
-        at_hi = coef / (size * (hi + knee))  # at or below this price: the maximum
-        at_lo = coef / (size * (lo + knee))  # at or above this price: the floor
-    marks = np.unique(np.concatenate([at_hi, at_lo, [0.0]]))
+    price = float(_fill_prices(coef[None], size[None], lo=lo, hi=hi, knee=knee, budget=budget)[0])
+    if price == 0:
+        return hi.copy(), 0.0
+    return _within(table, size, _rates(coef, size, price, knee, lo=lo, hi=hi), budget), price
 
-    def spend(price: float) -> float:
-        return float(size @ _rates(coef, size, price, knee, lo=lo, hi=hi))
 
-    # The last breakpoint at which the spend still exceeds the budget, and the next one.
-    low, high = 0, len(marks) - 1
-    while high - low > 1:
-        mid = (low + high) // 2
-        if spend(float(marks[mid])) > budget:
-            low = mid
-        else:
-            high = mid
-    inside = (at_hi <= marks[low]) & (marks[high] <= at_lo)
-    probe = _rates(coef, size, float(marks[high]), knee, lo=lo, hi=hi)
-    fixed = float(size[~inside] @ probe[~inside])
-    left = budget - fixed + float(size[inside] @ knee[inside])
-    price = float(marks[high])
-    if inside.any() and left > 0:
-        price = min(max(float(coef[inside].sum()) / left, float(marks[low])), price)
-    rates = _rates(coef, size, price, knee, lo=lo, hi=hi)
+def _within(table: _Table, size: FloatArray, rates: FloatArray, budget: float) -> FloatArray:
+    """``rates`` with what rounding put above the budget taken from those above their floors."""
+    lo, hi = table.lo, table.hi
     over = float(size @ rates) - budget
-    if over > 0:  # rounding: taken from the channels above their floors, in proportion
-        room = (rates - lo) * size
-        rates = rates - room / max(float(room.sum()), 1e-300) * over / size
+    if over > 0:
+        room_bytes = (rates - lo) * size
+        rates = rates - room_bytes / max(float(room_bytes.sum()), 1e-300) * over / size
     return np.clip(rates, lo, hi)
+
+
+def _best_fill(
+    table: _Table, candidates: IntArray, budget: float
+) -> tuple[IntArray, FloatArray, float] | None:
+    """Of the rung choices ``candidates`` (rows) whose floors fit, the best water-filled.
+
+    Its columns, its exact rates and the price at which they spend the budget; None if no
+    candidate's floors fit. Every candidate is filled at once (``_fill_prices``).
+    """
+    rows = np.arange(candidates.shape[1])
+    coef, size = table.coef[rows, candidates], table.size[rows, candidates]
+    lo, hi, knee = table.lo, table.hi, table.knee
+    fits = size @ lo <= budget * (1 + _BUDGET_REL_TOL)
+    if not fits.any():
+        return None
+    candidates, coef, size = candidates[fits], coef[fits], size[fits]
+    price = _fill_prices(coef, size, lo=lo, hi=hi, knee=knee, budget=budget)
+    with np.errstate(divide="ignore"):  # price 0: every rate at its maximum
+        rates = np.where(
+            price[:, None] > 0, _rates(coef, size, price[:, None], knee, lo=lo, hi=hi), hi
+        )
+    k = int(np.argmax((coef * np.log1p(rates / knee)).sum(axis=1)))
+    return candidates[k], _within(table, size[k], rates[k], budget), float(price[k])
+
+
+def _fill_prices(
+    coef: FloatArray,
+    size: FloatArray,
+    *,
+    lo: FloatArray,
+    hi: FloatArray,
+    knee: FloatArray,
+    budget: float,
+) -> FloatArray:
+    """Per row of rungs (``coef``, ``size``: rows x channels), the price that spends ``budget``.
+
+    ``r_i(lam) = clip(c_i / (lam s_i) - k_i, lo_i, hi_i)`` is continuous and decreasing in the
+    price. Sorted by price, each channel's two breakpoints (where it leaves its maximum, where
+    it reaches its floor) change the spend ``A / lam + C`` by known amounts: cumulative sums
+    give the spend at every breakpoint at once, and the price between the two that bracket the
+    budget is ``A / (budget - C)``. 0 where every maximum fits; the floors must fit.
+    """
+    full = size @ hi
+    prices = np.concatenate([coef / (size * (hi + knee)), coef / (size * (lo + knee))], axis=1)
+    # Passing its first breakpoint a channel's spend goes from s hi to c / lam - s k; its
+    # second, to s lo.
+    d_a = np.concatenate([coef, -coef], axis=1)
+    d_c = np.concatenate([-size * (hi + knee), size * (lo + knee)], axis=1)
+    order = np.argsort(prices, axis=1, kind="stable")
+    prices = np.take_along_axis(prices, order, axis=1)
+    a = np.cumsum(np.take_along_axis(d_a, order, axis=1), axis=1)
+    c = full[:, None] + np.cumsum(np.take_along_axis(d_c, order, axis=1), axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        spend = np.where(prices > 0, a / prices, 0.0) + c  # at each breakpoint
+    # The first breakpoint whose spend is within the budget; the price lies just before it.
+    t = np.argmax(spend <= budget, axis=1)
+    rows = np.arange(len(t))
+    before = np.maximum(t - 1, 0)
+    a_t, c_t = a[rows, before], c[rows, before]
+    room = budget - c_t
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inside = np.where((room > 0) & (a_t > 0), a_t / room, prices[rows, t])
+    price = np.minimum(np.maximum(inside, prices[rows, before]), prices[rows, t])
+    return np.where(full <= budget * (1 + _BUDGET_REL_TOL), 0.0, price)
 
 
 def _value(table: _Table, cols: IntArray, rates: FloatArray) -> float:
@@ -273,25 +352,10 @@ def _exact(table: _Table, budget: float) -> tuple[IntArray, FloatArray]:
     """Every combination of rungs whose floors fit, water-filled together (by price); the best."""
     counts = [int(c) for c in table.valid.sum(axis=1)]
     combos = np.array(list(np.ndindex(*counts)), dtype=np.intp)  # (K, n)
-    rows = np.arange(combos.shape[1])
-    coef, size = table.coef[rows, combos], table.size[rows, combos]
-    lo, hi, knee = table.lo, table.hi, table.knee
-    fits = size @ lo <= budget * (1 + _BUDGET_REL_TOL)
-    combos, coef, size = combos[fits], coef[fits], size[fits]
-    # Per combination, the price at which its rates spend the budget (bisection in log price).
-    low = np.full(len(combos), float((coef / (size * (hi + knee))).min()) / 2)
-    high = np.full(len(combos), float((coef / (size * (lo + knee))).max()) * 2)
-    for _ in range(_PRICE_STEPS):
-        mid = np.sqrt(low * high)
-        over = (size * _rates(coef, size, mid[:, None], knee, lo=lo, hi=hi)).sum(axis=1) > budget
-        low, high = np.where(over, mid, low), np.where(over, high, mid)
-        if float((high / low).max()) <= 1 + _PRICE_REL_TOL:
-            break
-    value = (coef * np.log1p(_rates(coef, size, high[:, None], knee, lo=lo, hi=hi) / knee)).sum(
-        axis=1
-    )
-    best = combos[int(np.argmax(value))]
-    return best, _water_fill(table, best, budget)
+    found = _best_fill(table, combos, budget)
+    if found is None:  # not expected: the caller checked the cheapest rungs' floors
+        raise AssertionError("no rung combination fits its floors")
+    return found[0], found[1]
 
 
 def _improve(
@@ -367,24 +431,27 @@ def _priced(table: _Table, budget: float) -> tuple[IntArray, FloatArray, float]:
             high, cols_high, spend_high = mid, cols_mid, spend
             pull_low, pull_high = (pull_low / 2, 1.0) if side == 1 else (1.0, 1.0)
             side = 1
-    # The dual at either end bounds the optimum (the nearer, the tighter); each one's choice is
-    # that end's, exactly.
-    bound_high, cols_high = _dual(table, high, budget)
-    bound_low, cols_low = _dual(table, low, budget)
-    bound = min(bound_low, bound_high)
+    few = len(cols_high) <= _TIGHT_BOUND_CHANNELS
+    bound = math.inf
+    if few:  # cheap here: each end's exact choice, and the tighter of their duals
+        bound_high, cols_high = _dual(table, high, budget)
+        bound_low, cols_low = _dual(table, low, budget)
+        bound = min(bound_low, bound_high)
     # The bracket's two ends differ in one channel's rung at most: each, water-filled; the best.
-    best: tuple[float, IntArray, FloatArray] | None = None
-    for cols in (cols_high, cols_low):
-        if float(_picked(table, cols)[1] @ lo) > budget * (1 + _BUDGET_REL_TOL):
-            continue
-        rates = _water_fill(table, cols, budget)
-        gained = _value(table, cols, rates)
-        if best is None or gained > best[0]:
-            best = (gained, cols, rates)
-    if best is None:  # not expected: the high end's choice fits at its price
+    found = _best_fill(table, np.stack([cols_high, cols_low]), budget)
+    if found is None:  # not expected: the high end's choice fits at its price
         cols = np.argmin(table.size, axis=1)
-        return cols, _water_fill(table, cols, budget), bound
-    return best[1], best[2], bound
+        return cols, _water_fill(table, cols, budget), _dual(table, high, budget)[0]
+    cols, rates, price = found
+    if not few:
+        # The dual at the price that spends the budget bounds the optimum tightly; its own
+        # choice (exact at that price) is one more candidate.
+        bound, exact = _dual(table, price if price > 0 else high, budget)
+        if (exact != cols).any():
+            found = _best_fill(table, np.stack([cols, exact]), budget)
+            assert found is not None  # cols fit
+            cols, rates, _ = found
+    return cols, rates, bound
 
 
 def _interpolate(
@@ -487,13 +554,12 @@ def allocate_quality(problem: Problem, ladders: Mapping[str, Ladder]) -> Quality
             )
         status = QualityStatus.INFEASIBLE
     else:
-        cols, rates, upper = _priced(table, budget)
-        if len(cols) <= LOCAL_SEARCH_CHANNELS:
-            cols, rates = _improve(table, cols, rates, budget)
         if float(np.log(table.valid.sum(axis=1)).sum()) <= math.log(EXACT_COMBINATIONS) + 1e-9:
-            exact_cols, exact_rates = _exact(table, budget)
-            if _value(table, exact_cols, exact_rates) >= _value(table, cols, rates):
-                cols, rates = exact_cols, exact_rates
+            cols, rates = _exact(table, budget)  # every combination: its value is the bound
+        else:
+            cols, rates, upper = _priced(table, budget)
+            if len(cols) <= LOCAL_SEARCH_CHANNELS:
+                cols, rates = _improve(table, cols, rates, budget)
         message = ""
     chosen_size = table.size[rows, cols]
     used = float(chosen_size @ rates)

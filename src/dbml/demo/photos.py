@@ -138,6 +138,11 @@ class PhotoRun:
         return sum(s.utility for s in self.steps)
 
     @property
+    def ceiling(self) -> float:
+        """The utility of every camera at its maximum rate with SSIM 1: no allocation exceeds it."""
+        return sum(r.weight for s in self.steps for r in s.robots)
+
+    @property
     def within_budget(self) -> bool:
         """No 1-s window above the budget plus one frame."""
         return self.wire.windows > 0 and self.wire.worst_bytes <= self.limit_bytes
@@ -163,6 +168,17 @@ class PhotoDemoResult:
         if self.rate_only is None or self.rate_only.utility <= 0:
             return None
         return self.ladder.utility / self.rate_only.utility - 1
+
+    @property
+    def gain_ceiling(self) -> float | None:
+        """The most any allocation could gain over this run's rate only (``PhotoRun.ceiling``).
+
+        Where both cameras fit at their maximum rate without the ladder, there is little left
+        to gain: this says how much the 10 % target leaves possible in this run.
+        """
+        if self.rate_only is None or self.rate_only.utility <= 0:
+            return None
+        return self.ladder.ceiling / self.rate_only.utility - 1
 
     @property
     def checks(self) -> dict[str, bool]:
