@@ -223,19 +223,26 @@ def testbed_document(result: TestbedResult) -> dict[str, Any]:
             }
             for b in result.bridges
         ]
+    if result.link_timing is not None:
+        summary_document["link_timing"] = asdict(result.link_timing)
     summary_document["targets"] = dict(summary.targets)
+    trace = options.link_trace
     return {
         "policy": options.policy,
         "transport": options.transport.name,
         "strategy": options.strategy,
         "link_mbit": options.link_mbit,
         "link_schedule": [list(entry) for entry in options.link_schedule],
+        "link_trace": None
+        if trace is None
+        else {"name": trace.name, "duration_s": trace.duration_s, "clamped": trace.clamped},
         "uplinks_mbit": dict(options.uplinks_mbit),
         "uplink_schedules": {
             robot: [list(entry) for entry in schedule]
             for robot, schedule in options.robot_schedules.items()
         },
         "estimate": options.estimate,
+        "estimator_design": options.estimator_design.value if options.estimate else None,
         "utilization": options.utilization,
         "urgent_stream": options.urgent_stream,
         "step_seconds": options.step_seconds,

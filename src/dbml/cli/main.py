@@ -28,6 +28,7 @@ from dbml.core.config import BridgeChannel, DbmSettings, load_bridge_channels, l
 from dbml.core.errors import DbmlError
 from dbml.core.extras import require
 from dbml.core.spec import LinkSpec
+from dbml.estimator.designs import Design
 from dbml.experiment.analysis import SeriesPoint
 from dbml.harness.child import stop_on_signals
 from dbml.harness.processes import free_port
@@ -221,6 +222,7 @@ def _cmd_optimizer(args: argparse.Namespace) -> int:
             stop=stop,
             duration_s=args.duration,
             estimate=args.estimate,
+            design=Design(args.estimator_design),
             write_defaults=entry.params_complete_at_start,
         ),
         view=view,
@@ -372,6 +374,8 @@ class ExperimentPlot:
     step_s: float
     title: str
     budget_label: str = "budget"
+    capacity: Sequence[tuple[float, float]] = ()
+    """A recorded trace's capacity, ``(seconds, Mbit/s)`` at each change, drawn as it is."""
 
 
 def _show_run(
@@ -391,6 +395,7 @@ def _show_run(
             step_s=plot.step_s,
             title=plot.title,
             budget_label=plot.budget_label,
+            capacity=plot.capacity,
         )
 
     _show(args, console, document, table, draw)
@@ -490,7 +495,9 @@ def _cmd_testbed(args: argparse.Namespace) -> int:
         link_mbit=args.link_mbit,
         step_seconds=args.step_seconds,
         link_schedule=args.link_schedule,
+        link_trace=args.link_trace,
         estimate=args.estimate,
+        estimator_design=args.estimator_design,
         uplinks=args.uplink,
         uplink_schedules=args.uplink_schedule,
         strategy=args.strategy,
@@ -528,6 +535,7 @@ def _cmd_testbed(args: argparse.Namespace) -> int:
             f"dbml testbed teleop: policy {options.policy} over {options.transport.name} "
             "on a tc-shaped link",
             budget_label="budget (estimate)" if options.estimate else "budget",
+            capacity=options.link_schedule if options.link_trace is not None else (),
         ),
     )
     return EXIT_INTERRUPTED if result.interrupted else EXIT_OK

@@ -9,6 +9,7 @@ from typing import NoReturn
 from dbml.core.allocation import Strategy
 from dbml.core.errors import SpecError
 from dbml.core.spec import check_number
+from dbml.estimator.designs import DEFAULT_DESIGN, Design
 from dbml.runtime.qos import parse_transport_priority
 from dbml.secure import DEFAULT_BASE_PORT, DEFAULT_DAYS
 from dbml.testbed.options import POLICIES, TOPOLOGIES
@@ -28,6 +29,15 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> NoReturn:
         sys.stderr.write(f"{self.prog}: error: {message}\n")
         raise SystemExit(EXIT_USAGE)
+
+
+def _design_option(command: argparse.ArgumentParser) -> None:
+    command.add_argument(
+        "--estimator-design",
+        choices=[d.value for d in Design],
+        default=DEFAULT_DESIGN.value,
+        help=f"how --estimate reads overuse (default {DEFAULT_DESIGN.value}; docs/estimator.md)",
+    )
 
 
 def _transport_options(parser: argparse.ArgumentParser) -> None:
@@ -143,6 +153,7 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="estimate the usable bandwidth from what subscribers receive (at most the budget)",
     )
+    _design_option(optimizer_cmd)
     _transport_options(optimizer_cmd)
     _view_options(optimizer_cmd)
 
@@ -261,8 +272,16 @@ def build_parser() -> argparse.ArgumentParser:
         help='change the link rate: "0:11,20:5,40:11" (s:Mbit; 0: the link is down)',
     )
     testbed_cmd.add_argument(
+        "--link-trace",
+        metavar="FILE",
+        help="the link follows a recorded trace: OpenNetLab gym's JSON "
+        '({"uplink": {"trace_pattern": [{"capacity": kbps, "duration": ms}, ...]}}) or '
+        "SECONDS:MBIT lines",
+    )
+    testbed_cmd.add_argument(
         "--estimate", action="store_true", help="estimate the bandwidth instead of assuming it"
     )
+    _design_option(testbed_cmd)
     testbed_cmd.add_argument(
         "--uplink",
         metavar="ROBOT=MBIT",

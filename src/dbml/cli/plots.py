@@ -19,11 +19,13 @@ def plot_series(
     step_s: float,
     title: str,
     budget_label: str = "budget",
+    capacity: Sequence[tuple[float, float]] = (),
 ) -> None:
     """Write a PNG of the run to ``path`` (nothing without data).
 
     Every robot's allocated and delivered rate, its p95 latency (when the frames carry send
-    times), and the goodput against the link and the budget.
+    times), and the goodput against the link and the budget. ``capacity``: a recorded trace's
+    every change, drawn in place of the link as the windows sampled it.
     """
     if not series:
         return
@@ -56,7 +58,17 @@ def plot_series(
         axes[1].axhline(MAX_P95_MS, color="grey", linestyle=":", linewidth=1)
         axes[1].legend(loc="upper right", fontsize=8)
     bandwidth.plot(times, [p.goodput_mbit for p in series], label=f"goodput ({window})")
-    bandwidth.step(times, [p.link_mbit for p in series], where="post", color="red", label="link")
+    if capacity:
+        end = times[-1]
+        at = [t for t, _ in capacity if t <= end]
+        link = [mbit for t, mbit in capacity if t <= end]
+        bandwidth.step(
+            [*at, end], [*link, link[-1]], where="post", color="red", lw=0.8, label="link (trace)"
+        )
+    else:
+        bandwidth.step(
+            times, [p.link_mbit for p in series], where="post", color="red", label="link"
+        )
     budgets = [p.budget_mbit for p in series]
     if any(b is not None for b in budgets):
         bandwidth.step(times, budgets, where="post", color="green", label=budget_label)

@@ -18,7 +18,7 @@ from dbml.estimator.delivery_rate import DeliveryRateSettings
 from dbml.estimator.queue import QueueSettings
 from dbml.estimator.trendline import TrendlineSettings
 
-__all__ = ["DESIGNS", "Design", "design_of", "settings_of"]
+__all__ = ["DEFAULT_DESIGN", "DESIGNS", "Design", "design_of", "settings_of"]
 
 
 class Design(enum.StrEnum):
@@ -28,6 +28,9 @@ class Design(enum.StrEnum):
     TRENDLINE = "trendline"
     DELIVERY_RATE = "delivery-rate"
 
+
+DEFAULT_DESIGN = Design.QUEUE
+"""What ``--estimate`` runs unless told otherwise (``EstimatorSettings``' default detector)."""
 
 DESIGNS: Mapping[Design, Callable[..., DetectorSettings]] = {
     Design.QUEUE: QueueSettings,

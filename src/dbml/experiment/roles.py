@@ -93,6 +93,7 @@ def _optimizer(transport: Transport, t0: float, spec: RoleSpec, stop: threading.
         stop=stop,
         duration_s=t0 + spec.duration_s + TAIL_S - time.time(),
         estimate=spec.estimate,
+        design=spec.estimator_design,
     )
 
 

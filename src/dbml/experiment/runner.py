@@ -116,6 +116,7 @@ class Recording:
         link_mbit: float,
         schedule: Sequence[tuple[float, float]] = (),
         robots: Sequence[str] | None = None,
+        link_events: bool = True,
     ) -> Analysis:
         """Every step the operator saw, the time series and the link changes (see ``analyse``).
 
@@ -132,6 +133,7 @@ class Recording:
             steps=self.steps_done(step_s),
             link_mbit=link_mbit,
             schedule=schedule,
+            link_events=link_events,
         )
 
 

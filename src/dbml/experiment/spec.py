@@ -19,6 +19,7 @@ from typing import Any
 
 from dbml.core.allocation import Strategy
 from dbml.core.errors import DbmlError
+from dbml.estimator.designs import DEFAULT_DESIGN, Design
 from dbml.scenarios.teleop import LINK_MBIT, MIN_RATE_HZ, ROBOTS, STEPS
 from dbml.transports import registry
 from dbml.transports.registry import TRANSPORTS, TransportEntry
@@ -121,6 +122,8 @@ class RoleSpec:
     utilization: float = 1.0
     strategy: Strategy = Strategy.PAPER
     estimate: bool = False
+    estimator_design: Design = DEFAULT_DESIGN
+    """With ``estimate``: how the optimizer's estimator reads overuse."""
     uplinks_mbit: Mapping[str, float] = field(default_factory=dict)
     peer_wait_s: float = PEER_WAIT_S
     urgent_stream: bool = False
@@ -149,6 +152,7 @@ class RoleSpec:
         document["transport"] = self.transport.name
         document["uplinks_mbit"] = dict(self.uplinks_mbit)
         document["frames"] = self.frames.value
+        document["estimator_design"] = self.estimator_design.value
         return json.dumps(document)
 
     @classmethod
@@ -165,6 +169,11 @@ class RoleSpec:
             document["strategy"] = Strategy(strategy)
         except ValueError:
             raise DbmlError(f"spec strategy={strategy!r} is not a strategy") from None
+        design = document.get("estimator_design", DEFAULT_DESIGN.value)
+        try:
+            document["estimator_design"] = Design(design)
+        except ValueError:
+            raise DbmlError(f"spec estimator_design={design!r} is not a design") from None
         frames = document.get("frames", Frames.SYNTHETIC.value)
         try:
             document["frames"] = Frames(frames)

@@ -18,6 +18,8 @@ from typing import Protocol
 from dbml.core.config import BridgeChannel, DbmSettings
 from dbml.core.errors import TransportError
 from dbml.core.spec import LinkSpec
+from dbml.estimator import EstimatorSettings
+from dbml.estimator.designs import DEFAULT_DESIGN, Design, settings_of
 from dbml.protocol import names
 from dbml.runtime.bridge import FIRST_MESSAGE_TIMEOUT_S, Bridge
 from dbml.runtime.estimator import LinkEstimator
@@ -91,13 +93,18 @@ def run_optimizer(
     stop: threading.Event,
     duration_s: float | None = None,
     estimate: bool = False,
+    design: Design = DEFAULT_DESIGN,
     write_defaults: bool = False,
 ) -> int:
-    """``dbml optimizer``: the optimizer node (and the estimator with ``estimate``)."""
+    """``dbml optimizer``: the optimizer node (with ``estimate``, the estimator of ``design``)."""
     transport.wait_for_peers(PEER_WAIT_S)
     if settings is None and transport.params.get(names.BANDWIDTH) is None:
         log.warning("no budget yet: waiting for %s (or pass --config)", names.BANDWIDTH)
-    estimator = LinkEstimator(transport) if estimate else None
+    estimator = (
+        LinkEstimator(transport, settings=EstimatorSettings(detector=settings_of(design)))
+        if estimate
+        else None
+    )
     node = OptimizerNode(
         transport,
         settings=settings,
@@ -108,7 +115,10 @@ def run_optimizer(
     if estimator is not None:
         estimator.on_change = node.poke
         estimator.start()
-        log.info("estimating the bandwidth from reception reports (at most the configured)")
+        log.info(
+            "estimating the bandwidth from reception reports (design %s, at most the configured)",
+            design.value,
+        )
     node.start()
     log.info("optimizer running on host %s", transport.host)
     life = Lifetime(stop, duration_s, watching=(node,) if estimator is None else (node, estimator))

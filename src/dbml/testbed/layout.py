@@ -108,6 +108,7 @@ def base_spec(options: TestbedOptions) -> RoleSpec:
         utilization=options.utilization or 1.0,
         strategy=options.strategy or Strategy.PAPER,
         estimate=options.estimate,
+        estimator_design=options.estimator_design,
         uplinks_mbit=dict(options.uplinks_mbit),
         peer_wait_s=PEER_WAIT_S,
         robots=options.robots,

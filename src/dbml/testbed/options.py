@@ -14,9 +14,12 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 from dbml.core.allocation import Strategy
+from dbml.core.errors import ConfigError
+from dbml.estimator.designs import DEFAULT_DESIGN, Design
 from dbml.experiment.spec import Frames
 from dbml.scenarios.fleet import MAX_ROBOTS, MIN_ROBOTS, fleet_cameras
 from dbml.scenarios.teleop import ROBOTS
+from dbml.scenarios.traces import LinkTrace, load_trace
 from dbml.testbed.netns import TestbedError
 from dbml.transports.registry import TRANSPORTS as REGISTRY
 from dbml.transports.registry import Discovery, TransportEntry
@@ -140,6 +143,26 @@ def parse_schedule(text: str) -> tuple[tuple[float, float], ...]:
     return tuple(entries)
 
 
+def _trace(path: str | None, schedule: str | None) -> LinkTrace | None:
+    """``--link-trace``'s trace, checked for what the testbed can replay."""
+    if path is None:
+        return None
+    if schedule:
+        raise TestbedError("--link-trace and --link-schedule both set the link: give one")
+    try:
+        trace = load_trace(path)
+    except ConfigError as err:
+        raise TestbedError(f"--link-trace={path!r}: {err}") from None
+    if trace.impaired:
+        raise TestbedError(
+            f"--link-trace={path!r}: its entries ask for loss, delay or jitter, which need "
+            "netem (sch_netem); the testbed replays capacity only"
+        )
+    if trace.first_up_mbit is None:
+        raise TestbedError(f"--link-trace={path!r}: the link is never up")
+    return trace
+
+
 def parse_robot_schedules(
     items: Sequence[str], robots: Sequence[str]
 ) -> dict[str, tuple[tuple[float, float], ...]]:
@@ -189,7 +212,10 @@ class TestbedOptions:
     link_mbit: float = 11.0
     step_seconds: float = 6.0
     link_schedule: tuple[tuple[float, float], ...] = ()
+    link_trace: LinkTrace | None = None
+    """``--link-trace``: the recorded trace ``link_schedule`` was made of (its every change)."""
     estimate: bool = False
+    estimator_design: Design = DEFAULT_DESIGN
     uplinks_mbit: Mapping[str, float] = field(default_factory=dict)
     robot_schedules: Mapping[str, tuple[tuple[float, float], ...]] = field(default_factory=dict)
     """Per robot, its own radio's schedule (``--uplink-schedule R1=SPEC``): 0 takes only that
@@ -219,7 +245,9 @@ class TestbedOptions:
         link_mbit: float = 11.0,
         step_seconds: float = 6.0,
         link_schedule: str | None = None,
+        link_trace: str | None = None,
         estimate: bool = False,
+        estimator_design: str = DEFAULT_DESIGN.value,
         uplinks: Sequence[str] = (),
         uplink_schedules: Sequence[str] = (),
         strategy: str | None = None,
@@ -273,14 +301,28 @@ class TestbedOptions:
             raise TestbedError(f"--urgent-stream needs --topology {TOPOLOGIES[0]}, not {topology}")
         if not link_mbit > 0:
             raise TestbedError(f"--link-mbit={link_mbit!r} must be > 0")
+        if estimator_design not in {d.value for d in Design}:
+            raise TestbedError(
+                f"--estimator-design={estimator_design!r} is not one of: "
+                f"{', '.join(d.value for d in Design)}"
+            )
+        trace = _trace(link_trace, link_schedule)
         if not step_seconds >= MIN_STEP_S:
             raise TestbedError(f"--step-seconds={step_seconds!r} must be >= 1")
         common = cls(
             policy=Policy(policy),
             link_mbit=link_mbit,
             step_seconds=step_seconds,
-            link_schedule=parse_schedule(link_schedule) if link_schedule else (),
+            link_schedule=(
+                trace.schedule
+                if trace is not None
+                else parse_schedule(link_schedule)
+                if link_schedule
+                else ()
+            ),
+            link_trace=trace,
             estimate=estimate,
+            estimator_design=Design(estimator_design),
             uplinks_mbit=parse_uplinks(uplinks, [c.robot for c in fleet_cameras(robots)]),
             robot_schedules=parse_robot_schedules(
                 uplink_schedules, [c.robot for c in fleet_cameras(robots)]

@@ -37,6 +37,7 @@ __all__ = [
     "ALLOCATION_TOLERANCE_HZ",
     "URGENT_P95_MS",
     "BridgePublish",
+    "LinkTiming",
     "Summary",
     "TestbedResult",
     "UplinkUse",
@@ -99,6 +100,30 @@ def _mean(values: Sequence[float]) -> float | None:
 
 
 @dataclass(frozen=True, slots=True)
+class LinkTiming:
+    """How the run's link changes went: each ``tc`` call's time and how late it started.
+
+    A recorded trace changes the link every 200 ms: a change that takes a share of that, or
+    starts late, moves the link off the trace.
+    """
+
+    changes: int
+    call_ms_p50: float
+    call_ms_max: float
+    late_ms_p50: float
+    late_ms_max: float
+
+    @classmethod
+    def of(cls, calls: Sequence[tuple[float, float]]) -> LinkTiming | None:
+        """From ``(late_s, call_s)`` per change; None without a change."""
+        if not calls:
+            return None
+        late = sorted(max(0.0, lag) * 1e3 for lag, _ in calls)
+        took = sorted(call * 1e3 for _, call in calls)
+        return cls(len(calls), _median(took), took[-1], _median(late), late[-1])
+
+
+@dataclass(frozen=True, slots=True)
 class TestbedResult:
     """A testbed run: what it measured per step, over time and after each link change."""
 
@@ -133,6 +158,8 @@ class TestbedResult:
     """What arrived at the operator in sliding 1-s windows, from the first step's settling, on
     a steady link (None otherwise): ``limit_bytes`` is the budget plus the largest frame."""
     limit_bytes: float | None = None
+    link_timing: LinkTiming | None = None
+    """The link's changes as applied (None: it never changed)."""
 
     def summary(self) -> Summary:
         """The run in a few numbers."""
@@ -255,3 +282,8 @@ class TestbedResult:
                     share is not None and share >= GOODPUT_AFTER_FRACTION
                 )
         return targets
+
+
+def _median(ordered: Sequence[float]) -> float:
+    n = len(ordered)
+    return ordered[n // 2] if n % 2 else (ordered[n // 2 - 1] + ordered[n // 2]) / 2

@@ -36,7 +36,7 @@ from dbml.testbed.layout import LayoutFactory, Leftovers
 from dbml.testbed.netns import OPERATOR, Network, TestbedError, privilege_problem
 from dbml.testbed.options import Policy, TestbedOptions
 from dbml.testbed.rclpy_layout import RclpyLayout
-from dbml.testbed.result import BridgePublish, TestbedResult
+from dbml.testbed.result import BridgePublish, LinkTiming, TestbedResult
 from dbml.testbed.zenoh_layout import ZenohLayout
 from dbml.transports.registry import Discovery
 
@@ -52,17 +52,26 @@ LAYOUTS: Mapping[Discovery, LayoutFactory] = {
 
 
 def _change_link(
-    network: Network, options: TestbedOptions, t0: float, stop: threading.Event
+    network: Network,
+    options: TestbedOptions,
+    t0: float,
+    stop: threading.Event,
+    timing: list[tuple[float, float]],
 ) -> None:
-    """Apply the shared link's schedule and each robot's own, in time order, until ``stop``."""
+    """Apply the shared link's schedule and each robot's own, in time order, until ``stop``.
+
+    Appends each change's lateness and the time its ``tc`` call took (seconds) to ``timing``.
+    A change at 0 s is the rate the link was built at, but for a trace that starts down.
+    """
     changes = [(at, OPERATOR, mbit) for at, mbit in options.link_schedule]
     for robot, schedule in options.robot_schedules.items():
         changes += [(at, robot.lower(), mbit) for at, mbit in schedule]
     for at, host, mbit in sorted(changes):
-        if at <= 0:
+        if at <= 0 and mbit > 0:
             continue
         if stop.wait(max(0.0, t0 + at - time.time())):
             return
+        started = time.time()
         try:
             if mbit == 0:
                 network.take_link_down(host=host)
@@ -71,6 +80,7 @@ def _change_link(
         except TestbedError:
             if not stop.is_set():  # else the network is being torn down
                 raise
+        timing.append((started - (t0 + at), time.time() - started))
 
 
 def _expected_hz(
@@ -109,7 +119,7 @@ def _bridges(
     options: TestbedOptions, publishes: Mapping[str, Sequence[PublishTiming]]
 ) -> tuple[BridgePublish, ...]:
     """What each bridge said of its publishes on ``[topic]/optimized`` (none: not known)."""
-    first = link_at(options.link_schedule, 0.0, options.link_mbit)
+    first = _built_mbit(options)
     slowest = min([first, *(mbit for _, mbit in options.link_schedule if mbit > 0)])
     cameras = fleet_cameras(options.robots)
     frame_ms = _frame_ms(max(c.size_bytes for c in cameras), slowest)
@@ -133,11 +143,19 @@ def _bridges(
     return tuple(found)
 
 
+def _built_mbit(options: TestbedOptions) -> float:
+    """The shared link's first rate: the schedule's at 0 s, a trace's first one above 0."""
+    first = link_at(options.link_schedule, 0.0, options.link_mbit)
+    if first == 0 and options.link_trace is not None:  # down at 0 s: up before, to meet
+        return options.link_trace.first_up_mbit or options.link_mbit
+    return first
+
+
 def _network(options: TestbedOptions) -> Network:
     """The run's network (not built yet): a namespace per robot, every link at its first rate."""
     return Network(
         robots=tuple(camera.robot.lower() for camera in fleet_cameras(options.robots)),
-        link_mbit=link_at(options.link_schedule, 0.0, options.link_mbit),
+        link_mbit=_built_mbit(options),
         uplinks_mbit={
             robot.lower(): mbit
             for robot, mbit in {
@@ -171,6 +189,7 @@ def run_teleop_testbed(
     network = _network(options)
     recording = Recording(None, (), (), interrupted=True)
     leftovers = Leftovers()
+    timing: list[tuple[float, float]] = []
     with (
         sigterm_as_interrupt(),
         contextlib.suppress(KeyboardInterrupt),
@@ -188,7 +207,7 @@ def run_teleop_testbed(
                     target=layout.during, args=(network, stop), name="during", daemon=True
                 )
                 watch.start()
-                _change_link(network, options, t0, stop)
+                _change_link(network, options, t0, stop, timing)
                 watch.join()
 
             recording = run_experiment(
@@ -215,14 +234,17 @@ def run_teleop_testbed(
         run_dir=run_dir,
         shm_files=leftovers.seen,
         shm_removed=leftovers.removed,
+        link_timing=LinkTiming.of(timing),
     )
     if recording.t0 is None:
         return result
+    traced = options.link_trace is not None  # every 200 ms a change: none judged alone
     analysis = recording.analyse(
         step_s=options.step_seconds,
         link_mbit=options.link_mbit,
         schedule=options.link_schedule,
         robots=[camera.robot for camera in cameras],
+        link_events=not traced,
     )
     if options.steady and options.utilization is not None:
         start = recording.t0 + settle_s(options.step_seconds)
@@ -237,7 +259,9 @@ def run_teleop_testbed(
         series=analysis.series,
         changes=analysis.changes,
         phases=analysis.phases,
-        outages=outages(
+        outages=()
+        if traced
+        else outages(
             recording.arrivals,
             recording.ticks,
             robots=[camera.robot for camera in cameras],
@@ -245,7 +269,9 @@ def run_teleop_testbed(
             schedule=options.link_schedule,
             urgent_at=lambda t_s: _urgent_index(options, t_s),
         ),
-        recoveries=recoveries(
+        recoveries=()
+        if traced
+        else recoveries(
             recording.arrivals,
             recording.ticks,
             robots=[camera.robot for camera in cameras],

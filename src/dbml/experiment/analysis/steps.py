@@ -9,7 +9,7 @@ from dataclasses import replace
 from dbml.experiment.analysis.link import link_changes, link_phases
 from dbml.experiment.analysis.records import Analysis, Arrival, SeriesPoint, StepResult, Tick
 from dbml.experiment.analysis.thresholds import WINDOW_S, WINDOW_STEP_S
-from dbml.experiment.analysis.windows import EDGE_S, RobotFrames, link_at, settle_s
+from dbml.experiment.analysis.windows import EDGE_S, RobotFrames, link_at, link_mean, settle_s
 
 __all__ = ["analyse"]
 
@@ -24,8 +24,14 @@ def analyse(
     steps: int,
     link_mbit: float,
     schedule: Sequence[tuple[float, float]] = (),
+    link_events: bool = True,
 ) -> Analysis:
-    """Steps, time series and the recovery after every link change."""
+    """Steps, time series and the recovery after every link change.
+
+    ``link_events=False``: no change or phase of the schedule is judged on its own (a recorded
+    trace changes every 200 ms); a step carries the rate's mean over it, the series the rate in
+    force.
+    """
     streams = [RobotFrames(name, i, frames) for i, name in enumerate(robots)]
     ordered = sorted(ticks, key=lambda t: t.t_s)
     tick_times = [t.t_s for t in ordered]
@@ -59,7 +65,9 @@ def analyse(
                 robots=tuple(rows),
                 budget_mbit=None if tick is None else tick.budget_mbit,
                 estimate_mbit=None if tick is None else tick.estimate_mbit,
-                link_mbit=link_at(schedule, end - t0 - EDGE_S, link_mbit),
+                link_mbit=link_at(schedule, end - t0 - EDGE_S, link_mbit)
+                if link_events
+                else link_mean(schedule, start - t0, end - t0, link_mbit),
             )
         )
 
@@ -81,6 +89,8 @@ def analyse(
             )
         )
         t += WINDOW_STEP_S
+    if not link_events:
+        return Analysis(tuple(step_rows), tuple(series), (), ())
     changes = link_changes(
         series, ordered, streams, schedule, t0=t0, end_s=steps * step_s, link_mbit=link_mbit
     )

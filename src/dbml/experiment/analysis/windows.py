@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import bisect
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -46,6 +47,21 @@ def link_at(schedule: Sequence[tuple[float, float]], t_s: float, default: float)
         if at <= t_s:
             rate = mbit
     return rate
+
+
+def link_mean(
+    schedule: Sequence[tuple[float, float]], start_s: float, end_s: float, default: float
+) -> float:
+    """The shaped rate's mean over ``[start_s, end_s)`` (a recorded trace's, over a step)."""
+    if end_s <= start_s:
+        return link_at(schedule, start_s, default)
+    rates = link_rates(schedule, default)
+    total = 0.0
+    for (at, mbit), (until, _) in zip(rates, [*rates[1:], (math.inf, 0.0)], strict=True):
+        lo, hi = max(at, start_s), min(until, end_s)
+        if hi > lo:
+            total += mbit * (hi - lo)
+    return total / (end_s - start_s)
 
 
 def link_rates(
