@@ -9,10 +9,10 @@ import math
 from dataclasses import asdict
 from typing import Any
 
-from dbml.demo.photos import PhotoDemoResult, PhotoRun
+from dbml.demo.photos import PhotoDemoResult, PhotoRun, photo_steps
 from dbml.demo.runner import DemoResult
 from dbml.experiment.analysis import LinkChange, SeriesPoint, StepResult, Window
-from dbml.scenarios.teleop import LINK_MBIT
+from dbml.scenarios.teleop import LINK_MBIT, ROBOTS
 from dbml.testbed.result import TestbedResult
 
 __all__ = ["demo_document", "photo_demo_document", "testbed_document"]
@@ -225,6 +225,9 @@ def testbed_document(result: TestbedResult) -> dict[str, Any]:
         ]
     if result.link_timing is not None:
         summary_document["link_timing"] = asdict(result.link_timing)
+    if options.frames.value == "photos" and options.robots == len(ROBOTS):
+        # judged as the loopback demo is: dbml.core.quality's utility of what arrived
+        summary_document["utility"] = sum(s.utility for s in photo_steps(result.steps))
     summary_document["targets"] = dict(summary.targets)
     trace = options.link_trace
     return {

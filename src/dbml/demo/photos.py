@@ -15,7 +15,7 @@ stays within the budget plus one frame, and the utility is 10 % or more above ra
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -46,6 +46,7 @@ __all__ = [
     "PhotoStep",
     "check_photo_options",
     "mean_ssim",
+    "photo_steps",
     "preference_of",
     "run_photo",
     "run_photo_demo",
@@ -209,13 +210,13 @@ def _weights(step_index: int) -> list[float]:
     return [WEIGHT_BASE + float(p) for p in normalized]
 
 
-def _run(recording: Recording, *, step_s: float, ladder: bool) -> PhotoRun:
-    budget_bytes = mbit_to_bytes_per_s(LINK_MBIT)
-    if recording.t0 is None:
-        return PhotoRun(ladder, (), WindowStats(0, 0, 0.0), budget_bytes, interrupted=True)
-    analysis = recording.analyse(step_s=step_s, link_mbit=LINK_MBIT)
+def photo_steps(results: Sequence[StepResult]) -> tuple[PhotoStep, ...]:
+    """The paper's two robots in each step, with their events' weights: the utility's terms.
+
+    Also how a testbed run on real frames is judged (``dbml testbed teleop --frames photos``).
+    """
     steps = []
-    for result in analysis.steps:
+    for result in results[: len(STEPS)]:
         weights = _weights(result.step - 1)
         events = STEPS[result.step - 1].events
         steps.append(
@@ -229,6 +230,15 @@ def _run(recording: Recording, *, step_s: float, ladder: bool) -> PhotoRun:
                 ),
             )
         )
+    return tuple(steps)
+
+
+def _run(recording: Recording, *, step_s: float, ladder: bool) -> PhotoRun:
+    budget_bytes = mbit_to_bytes_per_s(LINK_MBIT)
+    if recording.t0 is None:
+        return PhotoRun(ladder, (), WindowStats(0, 0, 0.0), budget_bytes, interrupted=True)
+    analysis = recording.analyse(step_s=step_s, link_mbit=LINK_MBIT)
+    steps = photo_steps(analysis.steps)
     start = recording.t0 + settle_s(step_s)
     arrived = [(a.arrival_s, a.size_bytes) for a in recording.arrivals if a.arrival_s >= start]
     largest = max((size for _, size in arrived), default=0)
