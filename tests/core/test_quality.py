@@ -293,3 +293,38 @@ def test_a_channels_utility_is_the_documented_formula() -> None:
         weight=1.0, quality=1.0, rate_hz=8.0, max_rate_hz=16.0, preference=Preference.KEEP_RATE
     )
     assert rate == pytest.approx(math.log(1.5) / math.log(2))
+
+
+def test_a_rung_worth_nothing_keeps_its_floor_and_the_budget_holds() -> None:
+    # A's only rung has quality 0: any byte it spends is worth nothing. With 15,000 B/s, B
+    # (1,000 B a frame) can run at its 10 Hz maximum only if A stays at its 1-Hz floor.
+    channels = (
+        ChannelSpec("/a", 1.0, 10.0, 1_000.0, 0.0),
+        ChannelSpec("/b", 1.0, 10.0, 1_000.0, 0.0),
+    )
+    problem = Problem(channels, 15_000 * 8 / 1e6)
+    ladders = {
+        "/a": Ladder((Rung(1_000.0, 0.0),)),
+        "/b": Ladder((Rung(1_000.0, 0.9),)),
+    }
+    allocation = allocate_quality(problem, ladders)
+    assert allocation.status is QualityStatus.OPTIMAL
+    assert allocation.rate_hz.tolist() == pytest.approx([1.0, 10.0])
+    assert allocation.total_bytes_per_s <= problem.budget_bytes_per_s * (1 + 1e-9)
+
+
+@pytest.mark.parametrize("cameras", [3, 30])
+def test_a_budget_exactly_at_the_floors_keeps_every_channel_at_its_floor(cameras: int) -> None:
+    # Every camera prioritised alike: eq. 4's floors; the budget is what they need on the
+    # cheapest rung, to the byte. The priced search (30) and the exhaustive one (3) agree.
+    channels = tuple(ChannelSpec(f"/r{i}/camera", 1.0, 16.0, 84_000.0, 0.5) for i in range(cameras))
+    ladder = photo_ladder()
+    floors = floors_of(Problem(channels, 1.0))
+    cheapest = min(r.size_bytes for r in ladder.rungs)
+    budget_mbit = float(floors.sum()) * cheapest * 8 / 1e6
+    problem = Problem(channels, budget_mbit)
+    allocation = allocate_quality(problem, {c.topic: ladder for c in channels})
+    assert allocation.status is QualityStatus.OPTIMAL
+    assert allocation.size_bytes.tolist() == pytest.approx([cheapest] * cameras)
+    assert allocation.rate_hz.tolist() == pytest.approx(floors.tolist(), rel=1e-6)
+    assert allocation.total_bytes_per_s <= problem.budget_bytes_per_s * (1 + 1e-9)

@@ -96,6 +96,12 @@ def test_loss_and_rtt_are_kept_as_impairments() -> None:
         (gym({"capacity": 1, "duration": 9, "loss": 1.5}), "loss=1.5 must be >= 0 and <= 1"),
         (gym({"capacity": 1, "duration": 1e12}), "lasts past"),
         (gym(5), "uplink.trace_pattern[0]=5 must be an object"),
+        (gym({"capacity": None, "duration": 200}), "capacity=None must be >= 0"),
+        (
+            '{"uplink": {"trace_pattern": [{"capacity": 1' + "0" * 400 + ', "duration": 1}]}}',
+            "capacity=1000",
+        ),
+        ('{"uplink": {"trace_pattern": [{"capacity": 1' + "0" * 5000 + "}]}}", "not JSON"),
     ],
 )
 def test_a_bad_gym_trace_names_the_entry_and_the_value(document: str, names: str) -> None:
@@ -147,6 +153,10 @@ def test_a_file_is_read_by_its_content(tmp_path: Path) -> None:
     (tmp_path / "bin").write_bytes(b"\xff\xfe\x00")
     with pytest.raises(ConfigError, match="not UTF-8"):
         load_trace(tmp_path / "bin")
+    (tmp_path / "bom.json").write_bytes(
+        b"\xef\xbb\xbf" + gym({"capacity": 800, "duration": 9}).encode()
+    )
+    assert load_trace(tmp_path / "bom.json").entries[0].mbit == 0.8  # read as JSON, not as text
 
 
 @given(
@@ -166,9 +176,12 @@ def test_the_integral_adds_up_over_any_split(
     trace: LinkTrace = parse_gym_trace(
         gym(*({"capacity": kbps, "duration": ms} for kbps, ms in steps)), name="h"
     )
-    lo, hi = sorted((a, b))
-    whole = trace.megabits(0, trace.duration_s)
-    assert trace.megabits(0, lo) + trace.megabits(lo, hi) + trace.megabits(hi, 1e9) >= whole - 1e-6
+    end = trace.duration_s
+    lo, hi = sorted((min(a, end), min(b, end)))
+    whole = trace.megabits(0, end)
+    assert trace.megabits(0, lo) + trace.megabits(lo, hi) + trace.megabits(hi, end) == (
+        pytest.approx(whole, rel=1e-9, abs=1e-9)
+    )
     assert trace.megabits(0, trace.duration_s) == pytest.approx(
         sum(kbps / 1e3 * (ms / 1e3) for kbps, ms in steps), rel=1e-9
     )
@@ -184,3 +197,14 @@ def test_a_recorded_outlier_is_clamped_to_the_largest_capacity_that_is_not() -> 
     assert trace.clamped == 2
     # A plain trace is taken as written: a jump of 50 times is the user's own.
     assert parse_plain_trace("0:1,1:1,2:1,3:50", name="p").entries[-1].mbit == 50.0
+
+
+def test_a_file_past_the_bound_is_refused_without_reading_it_whole(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from dbml.scenarios import traces
+
+    monkeypatch.setattr(traces, "MAX_TRACE_BYTES", 64)
+    (tmp_path / "long.txt").write_text("0:11\n" * 20)  # 100 bytes
+    with pytest.raises(ConfigError, match="more than 64 bytes"):
+        load_trace(tmp_path / "long.txt")

@@ -264,8 +264,13 @@ def _fill(table: _Table, cols: IntArray, budget: float) -> tuple[FloatArray, flo
     lo, hi, knee = table.lo, table.hi, table.knee
     price = float(_fill_prices(coef[None], size[None], lo=lo, hi=hi, knee=knee, budget=budget)[0])
     if price == 0:
-        return hi.copy(), 0.0
+        return _free(coef, lo=lo, hi=hi), 0.0
     return _within(table, size, _rates(coef, size, price, knee, lo=lo, hi=hi), budget), price
+
+
+def _free(coef: FloatArray, *, lo: FloatArray, hi: FloatArray) -> FloatArray:
+    """The rates when bytes cost nothing: the maximum, but for a rung worth nothing its floor."""
+    return np.where(coef > 0, hi, lo)
 
 
 def _within(table: _Table, size: FloatArray, rates: FloatArray, budget: float) -> FloatArray:
@@ -294,9 +299,11 @@ def _best_fill(
         return None
     candidates, coef, size = candidates[fits], coef[fits], size[fits]
     price = _fill_prices(coef, size, lo=lo, hi=hi, knee=knee, budget=budget)
-    with np.errstate(divide="ignore"):  # price 0: every rate at its maximum
+    with np.errstate(divide="ignore", invalid="ignore"):  # price 0: bytes are free
         rates = np.where(
-            price[:, None] > 0, _rates(coef, size, price[:, None], knee, lo=lo, hi=hi), hi
+            price[:, None] > 0,
+            _rates(coef, size, price[:, None], knee, lo=lo, hi=hi),
+            _free(coef, lo=lo, hi=hi),
         )
     k = int(np.argmax((coef * np.log1p(rates / knee)).sum(axis=1)))
     return candidates[k], _within(table, size[k], rates[k], budget), float(price[k])
@@ -317,22 +324,26 @@ def _fill_prices(
     price. Sorted by price, each channel's two breakpoints (where it leaves its maximum, where
     it reaches its floor) change the spend ``A / lam + C`` by known amounts: cumulative sums
     give the spend at every breakpoint at once, and the price between the two that bracket the
-    budget is ``A / (budget - C)``. 0 where every maximum fits; the floors must fit.
+    budget is ``A / (budget - C)``. 0 where every maximum fits; the floors must fit. A rung worth
+    nothing (quality 0) stays at its floor at any price (``_free``).
     """
-    full = size @ hi
+    worth = coef > 0
+    full = (size * _free(coef, lo=lo, hi=hi)).sum(axis=1)
     prices = np.concatenate([coef / (size * (hi + knee)), coef / (size * (lo + knee))], axis=1)
     # Passing its first breakpoint a channel's spend goes from s hi to c / lam - s k; its
     # second, to s lo.
     d_a = np.concatenate([coef, -coef], axis=1)
-    d_c = np.concatenate([-size * (hi + knee), size * (lo + knee)], axis=1)
+    d_c = np.concatenate([-size * (hi + knee) * worth, size * (lo + knee) * worth], axis=1)
     order = np.argsort(prices, axis=1, kind="stable")
     prices = np.take_along_axis(prices, order, axis=1)
     a = np.cumsum(np.take_along_axis(d_a, order, axis=1), axis=1)
     c = full[:, None] + np.cumsum(np.take_along_axis(d_c, order, axis=1), axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):
         spend = np.where(prices > 0, a / prices, 0.0) + c  # at each breakpoint
-    # The first breakpoint whose spend is within the budget; the price lies just before it.
-    t = np.argmax(spend <= budget, axis=1)
+    # The first breakpoint whose spend is within the budget; the price lies just before it
+    # (none within, as rounding may leave floors that just fit: the last, every rate at its floor).
+    within = spend <= budget
+    t = np.where(within.any(axis=1), np.argmax(within, axis=1), spend.shape[1] - 1)
     rows = np.arange(len(t))
     before = np.maximum(t - 1, 0)
     a_t, c_t = a[rows, before], c[rows, before]

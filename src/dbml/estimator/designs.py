@@ -16,6 +16,7 @@ from dbml.core.spec import short_repr
 from dbml.estimator.base import DetectorSettings
 from dbml.estimator.delivery_rate import DeliveryRateSettings
 from dbml.estimator.queue import QueueSettings
+from dbml.estimator.shared import EstimatorSettings
 from dbml.estimator.trendline import TrendlineSettings
 
 __all__ = ["DEFAULT_DESIGN", "DESIGNS", "Design", "design_of", "settings_of"]
@@ -28,9 +29,6 @@ class Design(enum.StrEnum):
     TRENDLINE = "trendline"
     DELIVERY_RATE = "delivery-rate"
 
-
-DEFAULT_DESIGN = Design.QUEUE
-"""What ``--estimate`` runs unless told otherwise (``EstimatorSettings``' default detector)."""
 
 DESIGNS: Mapping[Design, Callable[..., DetectorSettings]] = {
     Design.QUEUE: QueueSettings,
@@ -51,3 +49,7 @@ def design_of(settings: DetectorSettings) -> Design:
         if type(settings) is kind:
             return design
     raise SpecError(f"estimator detector={short_repr(settings)} is not one of {', '.join(Design)}")
+
+
+DEFAULT_DESIGN = design_of(EstimatorSettings().detector)
+"""What ``--estimate`` runs unless told otherwise: ``EstimatorSettings``' default detector."""

@@ -10,7 +10,7 @@ Two formats, both read from untrusted files and checked entry by entry:
 
 A capacity of 0 (or below tc's 1 kbit/s) takes the link down until the next entry. Recorded
 traces carry outliers (OpenNetLab's 4G_3mbps, of median 2.76 Mbit/s, has 200-ms steps of 80.1
-and 8,039,999 Mbit/s): in a gym trace a capacity above ``OUTLIER_FACTOR`` times the trace's
+and 8,040 Mbit/s): in a gym trace a capacity above ``OUTLIER_FACTOR`` times the trace's
 median is clamped to the largest one that is not, and any above ``MAX_TRACE_MBIT`` to that; each
 clamp is counted (``LinkTrace.clamped``). A plain trace is taken as written (but the bound).
 """
@@ -20,7 +20,7 @@ from __future__ import annotations
 import bisect
 import json
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -84,7 +84,11 @@ class LinkTrace:
     entries: tuple[TraceEntry, ...]
     duration_s: float
     clamped: int = 0
-    """Entries whose capacity was above ``MAX_TRACE_MBIT`` in the file."""
+    """Entries whose capacity was clamped: above ``MAX_TRACE_MBIT``, or a recording's outlier."""
+    _times: tuple[float, ...] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "_times", tuple(e.at_s for e in self.entries))
 
     @property
     def schedule(self) -> tuple[tuple[float, float], ...]:
@@ -107,7 +111,7 @@ class LinkTrace:
 
     def mbit_at(self, t_s: float) -> float:
         """The capacity in force ``t_s`` seconds after the start (the last one past the end)."""
-        index = bisect.bisect_right([e.at_s for e in self.entries], t_s) - 1
+        index = bisect.bisect_right(self._times, t_s) - 1
         return self.entries[max(index, 0)].mbit
 
     def megabits(self, start_s: float, end_s: float) -> float:
@@ -125,8 +129,8 @@ def parse_gym_trace(text: str, *, name: str) -> LinkTrace:
     """OpenNetLab gym's JSON (module docstring); ``ConfigError`` naming the entry and value."""
     try:
         document = json.loads(text)
-    except (json.JSONDecodeError, RecursionError) as exc:
-        raise ConfigError(f"trace {name!r}: not JSON ({exc})") from None
+    except (ValueError, RecursionError) as exc:  # ValueError: also an integer of 4,300 digits
+        raise ConfigError(f"trace {name!r}: not JSON ({str(exc)[:80]})") from None
     pattern = _field(document, "uplink", name=name, where="")
     pattern = _field(pattern, "trace_pattern", name=name, where="uplink.")
     if not isinstance(pattern, list) or not pattern:
@@ -200,10 +204,11 @@ def load_trace(path: Path | str) -> LinkTrace:
     """A trace file: OpenNetLab's JSON if it parses as JSON, else ``SECONDS:MBIT`` text."""
     path = Path(path)
     try:
-        size = path.stat().st_size
-        if size > MAX_TRACE_BYTES:
-            raise ConfigError(f"trace {str(path)!r}: {size:,} bytes, more than {MAX_TRACE_BYTES:,}")
-        text = path.read_text(encoding="utf-8")
+        with path.open("rb") as file:  # bounded: a FIFO or a device tells no size
+            data = file.read(MAX_TRACE_BYTES + 1)
+        if len(data) > MAX_TRACE_BYTES:
+            raise ConfigError(f"trace {str(path)!r}: more than {MAX_TRACE_BYTES:,} bytes")
+        text = data.decode("utf-8-sig")  # a byte-order mark is not content
     except OSError as exc:
         raise ConfigError(f"trace {str(path)!r}: {exc.strerror or exc}") from None
     except UnicodeDecodeError:
@@ -247,20 +252,22 @@ def _number(
     positive: bool = False,
     default: float | None = None,
 ) -> float:
-    value = step.get(key, default)
-    if value is None:
+    if key not in step and default is None:
         raise ConfigError(f"trace {name!r}: {where}.{key} is missing")
-    ok = isinstance(value, int | float) and not isinstance(value, bool)
-    if ok:
-        number = float(value)
-        ok = math.isfinite(number) and (number > 0 if positive else number >= 0)
-        ok = ok and number <= maximum
-    if not ok:
+    value: object = step.get(key, default)
+    number = math.nan
+    if isinstance(value, int | float) and not isinstance(value, bool):
+        try:
+            number = float(value)
+        except OverflowError:  # an integer past any float
+            number = math.inf
+    ok = math.isfinite(number) and (number > 0 if positive else number >= 0)
+    if not (ok and number <= maximum):
         bound = "> 0" if positive else ">= 0"
         if maximum < math.inf:
             bound += f" and <= {maximum:g}"
         raise ConfigError(f"trace {name!r}: {where}.{key}={short_repr(value)} must be {bound}")
-    return float(value)
+    return number
 
 
 def _check_count(count: int, name: str) -> None:

@@ -10,6 +10,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from statistics import median
 
 from dbml.experiment.analysis import (
     BUDGET_BACK_S,
@@ -118,9 +119,9 @@ class LinkTiming:
         """From ``(late_s, call_s)`` per change; None without a change."""
         if not calls:
             return None
-        late = sorted(max(0.0, lag) * 1e3 for lag, _ in calls)
-        took = sorted(call * 1e3 for _, call in calls)
-        return cls(len(calls), _median(took), took[-1], _median(late), late[-1])
+        late = [max(0.0, lag) * 1e3 for lag, _ in calls]
+        took = [call * 1e3 for _, call in calls]
+        return cls(len(calls), median(took), max(took), median(late), max(late))
 
 
 @dataclass(frozen=True, slots=True)
@@ -282,8 +283,3 @@ class TestbedResult:
                     share is not None and share >= GOODPUT_AFTER_FRACTION
                 )
         return targets
-
-
-def _median(ordered: Sequence[float]) -> float:
-    n = len(ordered)
-    return ordered[n // 2] if n % 2 else (ordered[n // 2 - 1] + ordered[n // 2]) / 2
