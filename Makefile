@@ -77,8 +77,9 @@ typecheck: $(STAMP)
 # that start real processes (integration, browser) mostly wait on the clock of their scenario
 # (0.7 of a core for two at a time, measured), so they run apart from the CPU-bound unit tests;
 # those marked alone run last, one at a time: eight robots' processes judged on latency (p95
-# 228-339 ms beside another test, under 200 alone) and Chromium drawing the live demo (the demo's
-# measured rates missed Table 2's in 2 of 4 runs beside another test).
+# 228-339 ms beside another test, under 200 alone), Chromium drawing the live demo (the demo's
+# measured rates missed Table 2's in 2 of 4 runs beside another test) and the demo on real frames
+# (beside the ROS 2 demo both missed their rates, once).
 UNIT := not ros1 and not integration and not browser and not alone
 pytest: $(STAMP) $(if $(HAVE_NPM),$(STUDIO_DIST))
 	$(BIN)/pytest -m "$(UNIT)" -n 2 --dist loadfile

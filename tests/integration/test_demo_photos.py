@@ -15,7 +15,10 @@ import pytest
 
 pytest.importorskip("simplejpeg")
 
-pytestmark = pytest.mark.integration
+pytestmark = [pytest.mark.integration, pytest.mark.alone]
+"""Alone: eight processes encoding, decoding and scoring JPEG at 16 Hz on 1.5-s steps; beside the
+ROS 2 demo in CI's parallel phase, both missed their rates (R1 under 10 Hz in a step, Table 2's
+rates beyond 5 %)."""
 
 MIN_SSIM = 0.9
 """Below this a 640x480 frame is visibly degraded (../shared/QUALITY.md: 320x240 q50 is 0.83)."""
