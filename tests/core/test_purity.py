@@ -14,6 +14,7 @@ PURE_IMPORTS = {
     "heapq",
     "itertools",
     "math",
+    "statistics",
     "typing",
 }
 """What the estimator may import besides dbml's pure core and itself: no I/O, threads, clocks."""
