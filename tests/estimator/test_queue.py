@@ -6,7 +6,6 @@ The bottleneck is ``dbml.estimator.simulation``'s.
 from __future__ import annotations
 
 import math
-import statistics
 from typing import Any
 
 import pytest
@@ -14,7 +13,7 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from dbml.core.errors import SpecError
-from dbml.estimator import Arrival, BandwidthEstimator, EstimatorSettings, Phase, QueueSettings
+from dbml.estimator import Arrival, BandwidthEstimator, Phase, QueueSettings
 from dbml.estimator.simulation import CAP_MBIT, WIRE_EFFICIENCY, drop_and_rise, simulate
 
 DEMAND_MAX_MBIT = 16 * (84_000 + 21_000) * 8e-6  # both cameras at their maximum
@@ -40,23 +39,6 @@ def test_rise_is_found_within_ten_seconds() -> None:
     trace = simulate(BandwidthEstimator(max_mbit=CAP_MBIT), drop_and_rise, duration_s=52)
     assert trace.estimate_at(39.9) < 6.0
     assert trace.estimate_at(50) >= 0.9 * 11.0
-
-
-def _fading(t: float) -> float:
-    """A 5G uplink's pattern: 13 Mbit/s, down to 10 kbit/s for 0.3 s every 4 s."""
-    return 0.01 if t % 4.0 >= 3.7 else 13.0
-
-
-def _mean_estimate_on_fades(detector: QueueSettings) -> float:
-    estimator = BandwidthEstimator(max_mbit=CAP_MBIT, settings=EstimatorSettings(detector=detector))
-    trace = simulate(estimator, _fading, duration_s=60)
-    return statistics.fmean(e.estimate_mbit for e in trace.estimates if e.t_s >= 10)
-
-
-def test_a_fading_link_is_not_taken_for_a_full_one() -> None:
-    assert _mean_estimate_on_fades(QueueSettings()) >= 0.85 * CAP_MBIT
-    # the reference: without regrowing, each fade's cut is climbed back at 25 % a second
-    assert _mean_estimate_on_fades(QueueSettings(regrow_ratio=1e9)) < 0.8 * CAP_MBIT
 
 
 def test_without_estimation_the_drop_builds_an_ever_growing_queue() -> None:

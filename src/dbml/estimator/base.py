@@ -12,7 +12,6 @@ from __future__ import annotations
 import enum
 import itertools
 import math
-import statistics
 from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -22,7 +21,6 @@ from dbml.core.errors import SpecError
 from dbml.core.spec import bytes_per_s_to_mbit
 
 __all__ = [
-    "FADE_RATIO",
     "RATE_FRAMES",
     "Arrival",
     "Decision",
@@ -37,15 +35,12 @@ __all__ = [
     "busy_rate_mbit",
     "check_positive",
     "check_shares",
-    "pair_rate_mbit",
     "receive_rate_mbit",
     "slope",
 ]
 
 RATE_FRAMES = 4
 """A rate needs this many frames: fewer in a window, and the last few stand in for it."""
-FADE_RATIO = 2.0
-"""A packet pair served this many times slower than the pairs' median spans a fade."""
 _MIN_SLOPE_POINTS = 3
 """A trend needs at least this many points."""
 _MIN_SPREAD_S2 = 1e-6
@@ -240,27 +235,6 @@ def busy_rate_mbit(ordered: list[Sample], queued_s: float) -> float | None:
             size += frame
             gap += t - t_prev
     return bytes_per_s_to_mbit(size / gap) if gap > 0 else None
-
-
-def pair_rate_mbit(ordered: list[Sample], queued_s: float) -> float | None:
-    """The link's rate by its packet pairs, without those that span a fade.
-
-    Each frame that waited arrived as soon as the one before it had, so its size over that gap
-    is the rate the link served it at: the bytes over the time of every such pair is the link's
-    rate (robust to frames whose packets interleave on the link). On a radio link one pair spans
-    a fade (a gap of no capacity) and would pull that to near nothing, so a pair served below
-    ``1 / FADE_RATIO`` of the pairs' median rate is left out.
-    """
-    pairs = [
-        (frame, t - t_prev)
-        for (t_prev, _, _), (t, queue, frame) in itertools.pairwise(ordered)
-        if queue > queued_s and t > t_prev
-    ]
-    if not pairs:
-        return None
-    floor = statistics.median(frame / gap for frame, gap in pairs) / FADE_RATIO
-    kept = [(frame, gap) for frame, gap in pairs if frame >= floor * gap]
-    return bytes_per_s_to_mbit(sum(f for f, _ in kept) / sum(g for _, g in kept))
 
 
 def receive_rate_mbit(ordered: list[Sample], now_s: float, window_s: float) -> float:

@@ -6,15 +6,8 @@ the queue within ``drain_s``, then a hold while the queue drains; an increase ot
 near the capacity last measured, fast away from it. The default because the other designs'
 probing costs frames after a drop on a drop-tail link (docs/estimator.md).
 
-The link's rate is its packet pairs' bytes over their time, less the pairs that span a radio
-fade (``pair_rate_mbit``). When the pairs of the last ``regrow_window_s`` say the link serves
-``regrow_ratio`` times the estimate or more (a cut on a fade, a capacity back) and the queue is
-gone, the estimate regrows at once to ``regrow_share`` of that rate: a radio link fades a dozen
-times a minute, and climbing back from each cut at ``fast_increase_per_s`` kept the estimate
-far below it.
-
 It reads, per stream that speaks for the link, its newest and least queueing and their slope,
-the packet pairs of the last ``window_s`` and ``regrow_window_s``, and the frames lost.
+the packet pairs of the last ``window_s``, and the frames lost.
 """
 
 from __future__ import annotations
@@ -29,9 +22,9 @@ from dbml.estimator.base import (
     Phase,
     SharedSettings,
     View,
+    busy_rate_mbit,
     check_positive,
     check_shares,
-    pair_rate_mbit,
 )
 
 __all__ = ["QueueDetector", "QueueSettings", "increase"]
@@ -55,12 +48,6 @@ class QueueSettings:
     fast_increase_per_s: float = 0.25
     near_band: tuple[float, float] = (0.8, 1.1)
     """Around the capacity last measured under overuse (as fractions), increase slowly."""
-    regrow_ratio: float = 1.5
-    """Packet pairs at this many times the estimate or more: the link has room, regrow."""
-    regrow_share: float = 0.8
-    """A regrowth is to this share of the pairs' rate."""
-    regrow_window_s: float = 2.0
-    """The pairs a regrowth reads: those of this much recent time."""
 
     def __post_init__(self) -> None:
         check_positive(
@@ -72,11 +59,9 @@ class QueueSettings:
                 "drain_s",
                 "slow_increase_per_s",
                 "fast_increase_per_s",
-                "regrow_ratio",
-                "regrow_window_s",
             ),
         )
-        check_shares("estimator", self, ("backoff", "regrow_share"))
+        check_shares("estimator", self, ("backoff",))
 
     def detector(self, shared: SharedSettings) -> QueueDetector:
         """A fresh ``queue`` detector."""
@@ -118,7 +103,7 @@ class QueueDetector:
             # wait until what is sent after it has had time to arrive.
             backlog = _backlog_s(judged, shared.response_s)
             capacity = (
-                pair_rate_mbit(view.pairs(shared.window_s), s.overuse_delay_s / 2) or view.cut_rate
+                busy_rate_mbit(view.pairs(shared.window_s), s.overuse_delay_s / 2) or view.cut_rate
             )
             if capacity > 0:
                 self._capacity_mbit = capacity
@@ -129,12 +114,6 @@ class QueueDetector:
             return Decision(Phase.DECREASE, estimate)
         if overuse or draining or view.now_s < self._frozen_until:
             return Decision(Phase.HOLD, estimate)  # still draining, or the cut not yet seen
-        # Regrow once the queue is gone (a cut below the link drains it first).
-        empty = all(j.latest_s <= s.overuse_delay_s / 2 for j in judged)
-        link = pair_rate_mbit(view.pairs(s.regrow_window_s), s.overuse_delay_s / 2)
-        if empty and link is not None and link >= s.regrow_ratio * estimate:
-            self._capacity_mbit = link  # the link as measured now: near it, increase slowly
-            return Decision(Phase.INCREASE, s.regrow_share * link)
         return increase(
             view,
             self._capacity_mbit,

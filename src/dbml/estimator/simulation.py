@@ -1,8 +1,5 @@
 """A bottleneck link in simulation: FIFO, one frame at a time, capacity changing over time.
 
-A frame's service integrates the capacity over its time on the link (a millisecond at a time),
-so a fade in the middle of a frame holds it, as a radio's does.
-
 Closed loop (open without an estimator): senders share ``utilization * estimate`` by bytes
 (80/20, or ``shares`` at each time; each capped at its maximum rate), the estimate reaches them
 ``reaction_s`` late, the estimator sees each frame once it has arrived (``report_lag_s`` later,
@@ -14,7 +11,6 @@ the bottleneck (a stream's frames stay in order), as the testbed's traces measur
 from __future__ import annotations
 
 import heapq
-import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
@@ -31,10 +27,6 @@ CAP_MBIT = 11.0 * 0.92
 """The testbed's budget on its 11-Mbit/s link: the estimate's cap."""
 
 
-_SERVICE_STEP_S = 0.001
-"""A frame's service integrates the capacity in steps of this long."""
-_SERVICE_MAX_S = 60.0
-"""A frame not served within this long never leaves (the link stays down)."""
 _DROP_S, _RISE_S = 20.0, 40.0
 _FULL_MBIT, _DROPPED_MBIT = 11.0, 5.0
 _P95 = 0.95
@@ -119,7 +111,7 @@ def simulate(
             if sent >= tick_end:
                 break
             start = max(sent + propagation_s, link_free_s)
-            link_free_s = _served(start, size * 8e-6, link_mbit, wire_efficiency)
+            link_free_s = start + size * 8e-6 / (link_mbit(start) * wire_efficiency)
             extra = 0.0 if jitter_s is None else jitter_s(name, seqs[name])
             arrived_s = max(link_free_s + extra, last_arrival[name])
             last_arrival[name] = arrived_s
@@ -144,17 +136,3 @@ def simulate(
         trace.sent_mbit.append((tick_end, offered))
         t = tick_end
     return trace
-
-
-def _served(
-    start_s: float, mbit: float, link_mbit: Callable[[float], float], efficiency: float
-) -> float:
-    """When ``mbit`` that start on the link at ``start_s`` have left it (infinity: never)."""
-    t = start_s
-    while t < start_s + _SERVICE_MAX_S:
-        rate = link_mbit(t) * efficiency
-        if rate * _SERVICE_STEP_S >= mbit:
-            return t + mbit / rate
-        mbit -= rate * _SERVICE_STEP_S
-        t += _SERVICE_STEP_S
-    return math.inf
