@@ -55,6 +55,23 @@ def assert_matches_table2(document: dict[str, Any]) -> list[dict[str, Any]]:
     return steps
 
 
+def why_failed(stdout: str, stderr: str) -> str:
+    """A failed demo's stderr, then each step's allocated and measured rates if it printed them."""
+    try:
+        steps = json.loads(stdout)["steps"]
+        rates = [
+            f"step {s['step']}: "
+            + ", ".join(
+                f"{r['robot']} allocated {r['allocated_hz']:.3f} Hz, got {r['measured_hz']:.3f}"
+                for r in s["robots"]
+            )
+            for s in steps
+        ]
+    except (ValueError, KeyError, TypeError):
+        return stderr
+    return "\n".join([stderr, *rates])
+
+
 def children_of(pid: int) -> set[int]:
     found: set[int] = set()
     for task in Path(f"/proc/{pid}/task").glob("*"):

@@ -19,7 +19,13 @@ import pytest
 
 from dbml.harness.ros2env import fastdds_shm_files
 from dbml.harness.supervisor import Supervisor
-from tests.integration.test_demo import alive, assert_matches_table2, children_of, stdout_of
+from tests.integration.test_demo import (
+    alive,
+    assert_matches_table2,
+    children_of,
+    stdout_of,
+    why_failed,
+)
 
 pytestmark = [pytest.mark.integration, pytest.mark.alone]
 
@@ -54,7 +60,7 @@ def test_demo_over_rclpy_matches_table2_and_leaves_nothing(tmp_path: Path) -> No
                         os.kill(pid, signal.SIGKILL)
         stdout = stdout_of(demo, timeout_s=10)
         code, stderr = demo.wait(10), demo.log_tail(3000)
-    assert code == 0, stderr
+    assert code == 0, why_failed(stdout, stderr)
     assert len(started) >= 6, "2 bridges, optimizer, operator and 2 robots"
     assert not [pid for pid in started if alive(pid)], "every process ended by the demo"
     assert shm, "the processes' Fast DDS shared memory was seen while they ran"

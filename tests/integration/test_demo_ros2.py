@@ -14,7 +14,13 @@ import pytest
 
 from dbml.cli.main import main
 from dbml.harness.supervisor import Supervisor
-from tests.integration.test_demo import alive, assert_matches_table2, children_of, stdout_of
+from tests.integration.test_demo import (
+    alive,
+    assert_matches_table2,
+    children_of,
+    stdout_of,
+    why_failed,
+)
 
 pytestmark = pytest.mark.integration
 
@@ -33,7 +39,7 @@ def test_demo_over_ros2_matches_table2_and_ends_every_process() -> None:
             time.sleep(0.1)
         stdout = stdout_of(demo, timeout_s=max(1.0, deadline - time.monotonic()))
         code, stderr = demo.wait(1.0), demo.log_tail(3000)
-    assert code == 0, stderr
+    assert code == 0, why_failed(stdout, stderr)
     assert len(started) >= 7, "router, 2 bridges, optimizer, operator and 2 robots"
     assert not [pid for pid in started if alive(pid)], "every process ended by the demo"
     assert_matches_table2(json.loads(stdout))

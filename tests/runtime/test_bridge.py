@@ -308,3 +308,27 @@ def test_a_dead_pacing_thread_makes_the_bridge_not_alive(
     wait_for(lambda: not bridge.alive, what="the pacing thread's death")
     wait_for(lambda: death_count() == deaths + 1, what="the death counted")
     bridge.close()
+
+
+def test_a_refused_message_goes_when_the_limiter_allows_not_a_period_later(
+    network: MemoryNetwork, clock: ManualClock
+) -> None:
+    """The pacing thread's waits, driven by hand: a message offered early goes on time."""
+    received = optimized_reader(network)
+    bridge = started(network, clock)  # 2 Hz
+    original = MemoryTransport(network, host="r1b").declare_publisher(CAMERA)
+    original.put(b"a")
+    assert bridge.forward()
+    sent_at = clock()
+    clock.advance(0.49)  # the source's next frame, 10 ms before the limiter has earned one
+    original.put(b"b")
+    assert not bridge.forward()
+    waits = 0
+    while not bridge.forward():
+        wait_s = bridge.retry_s()
+        assert 0 < wait_s <= 0.05
+        clock.advance(wait_s)
+        waits += 1
+        assert waits < 10
+    assert clock() - sent_at == pytest.approx(0.5, abs=1e-6)
+    assert [s.payload for s in received] == [b"a", b"b"]

@@ -17,7 +17,6 @@ from dbml.core.config import BridgeChannel
 from dbml.core.errors import TransportError
 from dbml.runtime.camera import ManagedCamera
 from dbml.runtime.publisher import FAILSAFE_PERIODS, ManagedPublisher
-from dbml.runtime.rate import Rate
 from dbml.transports.base import Handle, Sample, Transport, Variant
 from dbml.transports.worker import BackgroundThread
 
@@ -29,12 +28,14 @@ FIRST_MESSAGE_TIMEOUT_S = 10.0
 """How long ``start`` waits for the bridged topic's first message before giving up."""
 _STOP_POLL_S = 0.1
 """How often the pacing thread, waiting for a message, looks whether it should stop."""
+_RETRY_POLL_S = 0.05
+"""The longest wait before a refused message is offered again: a new allocation applies."""
 _JOIN_TIMEOUT_S = 5.0
 """How long ``close`` waits for the pacing thread before it says so (and waits for its send)."""
 
 
 class _StoppedError(Exception):
-    """The bridge is closing: leave the pacing loop from inside ``Rate.sleep``."""
+    """The bridge is closing: leave the pacing loop from inside its sleep."""
 
 
 class Bridge:
@@ -178,21 +179,37 @@ class Bridge:
         self._put_back(payload)
         return False
 
+    def retry_s(self) -> float:
+        """How long the pacing thread waits before offering a refused message again.
+
+        Until the limiter has earned a frame, polled every ``_RETRY_POLL_S`` so a new
+        allocation applies within that; a message refused for another reason (held through an
+        outage, no first allocation yet) is offered again after ``_RETRY_POLL_S``.
+        """
+        publisher = self._publisher
+        if publisher is None:
+            return _RETRY_POLL_S
+        wait_s = publisher.wait_s()
+        return min(wait_s, _RETRY_POLL_S) if wait_s > 0 else _RETRY_POLL_S
+
     def _sleep(self, seconds: float) -> None:
         if self._stop.wait(seconds):
             raise _StoppedError
 
     def _run(self) -> None:
-        publisher = self._publisher
-        assert publisher is not None
-        rate = Rate(publisher.current_rate_hz, clock=self._transport.now, sleep=self._sleep)
+        """Forward each new message as soon as the limiter allows it.
+
+        The publisher's limiter is the one schedule. A second one at the same rate (a pacer
+        ticking once a period) drifts from it by how long each tick waits for its source: a
+        message it hands over a little early is refused and waits a whole period more.
+        """
         try:  # an exception out of here is the thread's death, said by ``BackgroundThread``
             while not self._stop.is_set():
-                rate.sleep()  # one tick at the rate in force
-                while not self._arrived.wait(_STOP_POLL_S):  # the tick waits for a message
+                while not self._arrived.wait(_STOP_POLL_S):  # wait for a message to send
                     if self._stop.is_set():
                         return
-                self.forward()
+                if not self.forward():
+                    self._sleep(self.retry_s())
         except _StoppedError:
             return
         finally:

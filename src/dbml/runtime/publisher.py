@@ -324,6 +324,17 @@ class ManagedPublisher:
             )
         return rate
 
+    def wait_s(self) -> float:
+        """Seconds until the limiter lets a message go at the rate it runs at (0: now).
+
+        What a caller whose message was refused waits before offering it again (the bridge);
+        a message refused for another reason (held through an outage, no first allocation
+        yet) finds 0 here.
+        """
+        now = self._now()
+        with self._lock:
+            return self._limiter.wait_s(now)
+
     @property
     def failsafe(self) -> bool:
         """Whether no allocation was heard for ``failsafe_periods`` periods."""

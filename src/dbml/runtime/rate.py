@@ -11,6 +11,7 @@ the lower of the old and the new rate, so a late-seen decrease never earns at th
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 
@@ -33,10 +34,17 @@ class _Credit:
         """When credit was last earned up to."""
 
     def look(self, now: float, rate_hz: float | None = None) -> None:
-        """Earn up to ``now``; a new rate counts from the last look at the lower of the two."""
+        """Earn up to ``now``; a new rate counts from the last look at the lower of the two.
+
+        Credit beyond one frame is how late the source has been, so a decrease keeps it as
+        time: 0.9 frames banked at 16 Hz (56 ms) are 0.08 at 1.48 Hz, not a second frame at
+        once when the optimizer has just handed that bandwidth to another stream.
+        """
         earning = self.rate_hz if rate_hz is None else min(self.rate_hz, rate_hz)
         self._earn(now, earning)
         if rate_hz is not None:
+            if 0 < rate_hz < self.rate_hz and self.frames > 1.0:
+                self.frames = 1.0 + (self.frames - 1.0) * rate_hz / self.rate_hz
             self.rate_hz = rate_hz
 
     def _earn(self, now: float, earning_hz: float) -> None:
@@ -59,8 +67,11 @@ class _Credit:
         return self.spend()
 
     def wait_s(self) -> float:
-        """Seconds until one frame is earned at the rate in force."""
-        return max(0.0, (1.0 - self.frames) / self.rate_hz)
+        """Seconds until one frame is earned at the rate in force (infinite at 0 Hz)."""
+        missing = 1.0 - self.frames
+        if missing <= 0.0:
+            return 0.0
+        return missing / self.rate_hz if self.rate_hz > 0 else math.inf
 
 
 class RateLimiter:
@@ -103,6 +114,11 @@ class RateLimiter:
     def allow(self, now: float) -> bool:
         """Whether a message may go out at ``now``; if so it counts as sent."""
         return self._credit.take(now)
+
+    def wait_s(self, now: float) -> float:
+        """Seconds from ``now`` until a message may go at the rate in force (0: at once)."""
+        self._credit.look(now)
+        return self._credit.wait_s()
 
 
 class Rate:
