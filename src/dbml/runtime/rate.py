@@ -34,17 +34,10 @@ class _Credit:
         """When credit was last earned up to."""
 
     def look(self, now: float, rate_hz: float | None = None) -> None:
-        """Earn up to ``now``; a new rate counts from the last look at the lower of the two.
-
-        Credit beyond one frame is how late the source has been, so a decrease keeps it as
-        time: 0.9 frames banked at 16 Hz (56 ms) are 0.08 at 1.48 Hz, not a second frame at
-        once when the optimizer has just handed that bandwidth to another stream.
-        """
+        """Earn up to ``now``; a new rate counts from the last look at the lower of the two."""
         earning = self.rate_hz if rate_hz is None else min(self.rate_hz, rate_hz)
         self._earn(now, earning)
         if rate_hz is not None:
-            if 0 < rate_hz < self.rate_hz and self.frames > 1.0:
-                self.frames = 1.0 + (self.frames - 1.0) * rate_hz / self.rate_hz
             self.rate_hz = rate_hz
 
     def _earn(self, now: float, earning_hz: float) -> None:
