@@ -66,8 +66,8 @@ demo-ros1: $(ROS1_STAMP)
 test: lint typecheck pytest pytest-ros1
 
 lint: $(STAMP)
-	$(BIN)/ruff check src tests bench
-	$(BIN)/ruff format --check src tests bench
+	$(BIN)/ruff check src tests bench ros2
+	$(BIN)/ruff format --check src tests bench ros2
 
 typecheck: $(STAMP)
 	$(BIN)/mypy src tests bench

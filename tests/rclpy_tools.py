@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from rcl_interfaces.srv import SetParameters
+from rcl_interfaces.srv import DescribeParameters, SetParameters
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
@@ -32,5 +32,20 @@ def param_set(
         wait_for(future.done, timeout_s=CALL_TIMEOUT_S, what="the SetParameters reply")
         response: Any = future.result()
         return response.results[0]
+    finally:
+        node.destroy_client(client)
+
+
+def param_describe(
+    node: Node, target: str, names: list[str], *, wait_s: float = CALL_TIMEOUT_S
+) -> list[Any]:
+    """What ``ros2 param describe TARGET NAME...`` does: one DescribeParameters call."""
+    client: Any = node.create_client(DescribeParameters, f"{target}/describe_parameters")
+    try:
+        assert client.wait_for_service(timeout_sec=wait_s), f"{target} never answered"
+        future = client.call_async(DescribeParameters.Request(names=names))
+        wait_for(future.done, timeout_s=CALL_TIMEOUT_S, what="the DescribeParameters reply")
+        response: Any = future.result()
+        return list(response.descriptors)
     finally:
         node.destroy_client(client)

@@ -192,7 +192,14 @@ def test_every_extra_is_in_pyproject_and_dev_brings_them_all() -> None:
     ]
     every = f"dbml[{','.join(EXTRAS)}]"
     assert set(EXTRAS) <= set(extras)
-    # dev is the ROS 1 environment's "test" (every extra but rclpy, which breaks rospy) and rclpy.
-    assert extras["dev"] == ["dbml[rclpy,test]"]
+    # dev is the ROS 1 environment's "test" (every extra but rclpy, which breaks rospy) and
+    # rclpy, and colcon for the ROS 2 package (ros2/dbml_ros).
+    assert extras["dev"][0] == "dbml[rclpy,test]"
+    assert {d.split(">")[0] for d in extras["dev"][1:]} == {
+        "colcon-core",
+        "colcon-ros",
+        "colcon-python-setup-py",
+        "ros-ament-package",
+    }
     assert f"dbml[{','.join(e for e in EXTRAS if e != 'rclpy')}]" in extras["test"]
     assert extras["all"] == [every]

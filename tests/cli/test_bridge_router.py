@@ -25,6 +25,16 @@ from dbml.core.errors import ConfigError
         ),
         (["bridge", "/r1/camera", "--config", "x.yaml"], r"--config='x.yaml' and topic="),
         (["router", "--listen", "tcp/nonsense"], r"endpoint='tcp/nonsense'"),
+        (
+            ["bridge", "/a", "--min-hz", "1", "--max-hz", "2", "--ros-args", "-r", "__ns:=/r1"],
+            r"--ros-args \(--ros-args -r __ns:=/r1\): only a node's command over --transport "
+            r"rclpy takes them",
+        ),
+        (["reproduce", "table2", "--ros-args", "-p", "a:=1"], r"only a node.s command over"),
+        (
+            ["bridge", "--transport", "rclpy", "--ros-args", "-r", "__ns:=/r9"],
+            r"no channel under namespace='/r9' with frequency.min and frequency.max",
+        ),
     ],
 )
 def test_bad_command_lines_exit_2_with_one_line(
@@ -84,3 +94,16 @@ def test_parse_bridge_channels() -> None:
 def test_parse_bridge_channels_rejects(text: str, message: str) -> None:
     with pytest.raises(ConfigError, match=message):
         parse_bridge_channels(text)
+
+
+def test_a_bridge_over_rclpy_takes_its_namespaces_channels_from_a_params_file(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Checked before any network opens: a bad value exits 2 naming it."""
+    path = tmp_path / "teleop.yaml"
+    path.write_text("/r1/camera/dbm:\n  ros__parameters:\n    frequency: {min: 1.0, max: 0.5}\n")
+    argv = ["bridge", "--transport", "rclpy", "--ros-args", "--params-file", str(path)]
+    assert main([*argv, "-r", "__ns:=/r1"]) == 2
+    assert "channel '/r1/camera': frequency.min=1.0 exceeds frequency.max=0.5" in (
+        capsys.readouterr().err
+    )

@@ -19,6 +19,7 @@ from hypothesis import strategies as st
 from dbml.core.errors import TransportError
 from dbml.protocol.keys import encode_batch
 from dbml.protocol.metadata import MessageMeta
+from dbml.protocol.schema import PARAMETERS, Kind, Scope, Writer
 from dbml.runtime.priority import PRIORITY_INTERVAL_S, PriorityTopic
 from dbml.transports.base import Role, Sample, Variant
 from dbml.transports.rclpy.params import UNATTRIBUTED_S
@@ -39,7 +40,7 @@ from dbml.transports.rclpy.transport import (  # noqa: E402
     sample_meta,
     unframe_bytes,
 )
-from tests.rclpy_tools import param_set  # noqa: E402
+from tests.rclpy_tools import param_describe, param_set  # noqa: E402
 
 
 @given(st.from_regex(r"[A-Za-z0-9_\-.~]{1,40}", fullmatch=True))
@@ -101,6 +102,57 @@ def test_ros2_param_set_on_the_optimizers_node(ros_domain: int) -> None:
         assert observer.params.get("/dbm/status") == "optimal"
     finally:
         observer.close()
+        optimizer.close()
+
+
+@pytest.mark.integration
+def test_every_parameter_is_described_as_the_schema_says(ros_domain: int) -> None:
+    """``ros2 param describe``: each parameter's range, description and writers; rclpy's range."""
+    optimizer = RclpyTransport(host="ground", domain_id=ros_domain)
+    robot = RclpyTransport(host="r1", domain_id=ros_domain)
+    try:
+        optimizer.params.set("/dbm/status", "optimal")  # it hosts /dbm
+        robot.params.set("/r1/camera/dbm/frequency/max", 16.0)  # it hosts /r1/camera/dbm
+        with private_node("operator", domain_id=ros_domain) as operator:
+            for node, scope in (("/dbm", Scope.GLOBAL), ("/r1/camera/dbm", Scope.CHANNEL)):
+                parameters = [p for p in PARAMETERS if p.scope is scope]
+                described = param_describe(operator, node, [p.ros2_name for p in parameters])
+                assert [d.name for d in described] == [p.ros2_name for p in parameters]
+                for parameter, found in zip(parameters, described, strict=True):
+                    assert found.description == parameter.doc
+                    assert found.dynamic_typing
+                    writers = [w.value for w in Writer if w in parameter.writers]
+                    assert f"written by: {', '.join(writers)}" in found.additional_constraints
+                    if parameter.kind is Kind.NUMBER:
+                        (bounds,) = found.floating_point_range
+                        (integers,) = found.integer_range
+                        if parameter.minimum is not None:  # the least integer in the range
+                            assert bounds.from_value == parameter.minimum
+                            least, low = integers.from_value, parameter.minimum
+                            if parameter.exclusive_minimum:
+                                assert low < least <= low + 1
+                            else:
+                                assert low <= least < low + 1
+                        if parameter.maximum is not None:  # the greatest
+                            assert bounds.to_value == parameter.maximum
+                            assert parameter.maximum - 1 < integers.to_value <= parameter.maximum
+                    else:
+                        assert not found.floating_point_range
+                        assert not found.integer_range
+            refused = param_set(operator, "/r1/camera/dbm", "priority", 1.5)
+            assert not refused.successful
+            assert "out of range" in refused.reason  # rclpy's own check of the float range
+            refused = param_set(operator, "/r1/camera/dbm", "priority", 2)  # an integer
+            assert not refused.successful
+            assert "out of range" in refused.reason
+            refused = param_set(operator, "/dbm", "max_bandwidth_in_mbit", 0.0)
+            assert not refused.successful  # in the float range; the schema's minimum is exclusive
+            assert "max_bandwidth_in_mbit=0" in refused.reason
+            taken = param_set(operator, "/r1/camera/dbm", "priority", 1)  # an integer, in range
+            assert taken.successful, taken.reason
+            wait_for(lambda: robot.params.get("/r1/camera/dbm/priority") == 1.0, what="1.0")
+    finally:
+        robot.close()
         optimizer.close()
 
 

@@ -36,6 +36,7 @@ from dbml.protocol.schema import Writer
 from dbml.runtime.monitor import MonitorView
 from dbml.scenarios.reproduce import RobotRow, reproduce_table2
 from dbml.transports.base import Transport
+from dbml.transports.rclpy.rosargs import channel_bounds, namespace_of, overrides, split_ros_args
 from dbml.transports.registry import TRANSPORTS, open_transport
 from dbml.view.target import ViewTarget
 
@@ -131,6 +132,7 @@ def _open(args: argparse.Namespace, *, follow_all_params: bool = True) -> Transp
         ros_distro=args.ros_distro,
         msg_paths=args.msg_path,
         priority_links=args.priority_links,
+        ros_args=args.ros_args,
     )
 
 
@@ -270,13 +272,33 @@ def _bridge_channels(args: argparse.Namespace) -> tuple[BridgeChannel, ...]:
             what = f"topic={args.topic!r}" if args.topic is not None else given[0]
             raise DbmlError(f"--config={args.config!r} and {what}: give one or the other")
         return load_bridge_channels(args.config)
+    if args.topic is None and args.ros_args:
+        return _ros_bridge_channels(args)
     if args.topic is None:
-        raise DbmlError("topic=None: give TOPIC --min-hz A --max-hz B, or --config FILE")
+        raise DbmlError(
+            "topic=None: give TOPIC --min-hz A --max-hz B, --config FILE, or (rclpy) "
+            "--ros-args --params-file FILE"
+        )
     for name, value in flags.items():
         if value is None:
             raise DbmlError(f"{name}=None: required with topic={args.topic!r}")
     return (
         BridgeChannel(args.topic, args.min_hz, args.max_hz, args.priority, args.type, args.ladder),
+    )
+
+
+def _ros_bridge_channels(args: argparse.Namespace) -> tuple[BridgeChannel, ...]:
+    """The channels a params file declares under the bridge's namespace (``-r __ns:=/r1``)."""
+    namespace = namespace_of(args.ros_args)
+    bounds = channel_bounds(overrides(args.ros_args), namespace=namespace)
+    if not bounds:
+        raise DbmlError(
+            f"--ros-args ({' '.join(args.ros_args)}): no channel under namespace={namespace!r} "
+            "with frequency.min and frequency.max in a params file ([topic]/dbm)"
+        )
+    return tuple(
+        BridgeChannel(topic, low, high, priority, ladder=args.ladder)
+        for topic, (low, high, priority) in sorted(bounds.items())
     )
 
 
@@ -599,10 +621,29 @@ _HANDLERS: dict[str, Callable[[argparse.Namespace], int]] = {
 }
 
 
+_ROS_COMMANDS = frozenset(
+    {"optimizer", "publish", "subscribe", "priority", "budget", "monitor", "bridge"}
+)
+"""The commands that run one node, which ``--ros-args`` configures over ``--transport rclpy``."""
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run ``dbml`` with ``argv`` (default: the process's arguments); the exit code."""
-    args = build_parser().parse_args(argv)
+    """Run ``dbml`` with ``argv`` (default: the process's arguments); the exit code.
+
+    ROS 2's own arguments (``--ros-args ... [--]``) are set apart first, as rcl does, and given
+    to rclpy by the commands that run a node over ``--transport rclpy``.
+    """
+    own, ros_args = split_ros_args(sys.argv[1:] if argv is None else argv)
+    args = build_parser().parse_args(own)
+    args.ros_args = ros_args
     try:
+        if ros_args and (
+            args.command not in _ROS_COMMANDS or getattr(args, "transport", None) != "rclpy"
+        ):
+            raise DbmlError(
+                f"--ros-args ({' '.join(ros_args)}): only a node's command over --transport "
+                f"rclpy takes them ({', '.join(sorted(_ROS_COMMANDS))})"
+            )
         return _HANDLERS[args.command](args)
     except DbmlError as err:
         sys.stderr.write(f"dbml: error: {err}\n")

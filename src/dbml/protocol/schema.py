@@ -142,6 +142,23 @@ class Parameter:
     """A text's own rule (a ladder, an encoding's label): raises ``SpecError`` naming it."""
 
     @property
+    def values(self) -> str:
+        """Its values in words: ``(0, 1000]``, ``[0, 1]``, ``optimal / infeasible``, ``text``."""
+        if self.kind is Kind.CHOICE:
+            return " / ".join(self.choices)
+        if self.kind is not Kind.NUMBER:
+            return self.kind.value
+        low = "-" if self.minimum is None else f"{self.minimum:g}"
+        high = "" if self.maximum is None else f"{self.maximum:g}"
+        opening = "(" if self.exclusive_minimum else "["
+        return f"{opening}{low}, {high or 'inf'}{']' if high else ')'}"
+
+    @property
+    def writers_text(self) -> str:
+        """Who writes it, in ``Writer``'s order: ``operator, publisher``."""
+        return ", ".join(w.value for w in Writer if w in self.writers)
+
+    @property
     def relative(self) -> str:
         """``dbm/<field>``: the name without its leading slash (global) or topic (channel)."""
         return f"{GLOBAL_PREFIX[1:]}/{self.field}"
@@ -476,18 +493,6 @@ def check_param(name: str, value: ParamValue) -> ParamValue:
     return found[0].check(value, name=name)
 
 
-def _range(parameter: Parameter) -> str:
-    if parameter.kind is Kind.CHOICE:
-        return " / ".join(parameter.choices)
-    if parameter.kind is not Kind.NUMBER:
-        return parameter.kind.value
-    low = "-" if parameter.minimum is None else f"{parameter.minimum:g}"
-    high = "" if parameter.maximum is None else f"{parameter.maximum:g}"
-    return (
-        f"{'(' if parameter.exclusive_minimum else '['}{low}, {high or 'inf'}{']' if high else ')'}"
-    )
-
-
 def ownership_table() -> str:
     """Every parameter as a Markdown table: name, values, who writes it (the README's)."""
     lines = ["| parameter | values | written by |", "|---|---|---|"]
@@ -495,6 +500,5 @@ def ownership_table() -> str:
         name = (
             parameter.name if parameter.scope is Scope.GLOBAL else f"[topic]/{parameter.relative}"
         )
-        writers = ", ".join(w.value for w in Writer if w in parameter.writers)
-        lines.append(f"| `{name}` | {_range(parameter)} | {writers} |")
+        lines.append(f"| `{name}` | {parameter.values} | {parameter.writers_text} |")
     return "\n".join(lines)

@@ -60,6 +60,7 @@ class TransportOptions:
     ros_distro: str | None = None
     msg_paths: tuple[str | Path, ...] = ()
     priority_links: bool = False
+    ros_args: tuple[str, ...] = ()
 
 
 class TransportFactory(Protocol):
@@ -151,6 +152,14 @@ def _no_ros2_options(name: str, options: TransportOptions) -> None:
             )
 
 
+def _no_ros_args(name: str, options: TransportOptions) -> None:
+    if options.ros_args:
+        raise TransportError(
+            f"transport={name!r} takes no --ros-args ({' '.join(options.ros_args)}): "
+            "only 'rclpy' runs ROS 2 nodes in this process"
+        )
+
+
 def _no_priority_links(name: str, options: TransportOptions) -> None:
     if options.priority_links:
         raise TransportError(f"transport={name!r} has no priority links: only zenoh's do")
@@ -163,6 +172,7 @@ def _no_endpoints(name: str, options: TransportOptions, why: str) -> None:
 
 def _open_ros2(options: TransportOptions) -> Transport:
     _no_network("ros2", options)
+    _no_ros_args("ros2", options)
     module = importlib.import_module("dbml.transports.ros2")
     transport: Transport = module.Ros2Transport(
         host=options.host,
@@ -199,13 +209,14 @@ def _open_rclpy(options: TransportOptions) -> Transport:
     except ImportError as err:
         raise TransportError(str(err)) from err
     domain_id = None if options.domain_id is None else check_domain_id(options.domain_id)
-    transport: Transport = cls(host=options.host, domain_id=domain_id)
+    transport: Transport = cls(host=options.host, domain_id=domain_id, ros_args=options.ros_args)
     return transport
 
 
 def _open_zenoh(options: TransportOptions) -> Transport:
     _no_network("zenoh", options)
     _no_ros2_options("zenoh", options)
+    _no_ros_args("zenoh", options)
     module = importlib.import_module("dbml.transports.zenoh")
     transport: Transport = module.ZenohTransport(
         host=options.host,
@@ -222,6 +233,7 @@ def _open_ros1(options: TransportOptions) -> Transport:
     _no_endpoints("ros1", options, ": it uses ROS_MASTER_URI")
     _no_network("ros1", options)
     _no_ros2_options("ros1", options)
+    _no_ros_args("ros1", options)
     _no_priority_links("ros1", options)
     try:
         cls = importlib.import_module("dbml.transports.ros1").Ros1Transport
@@ -234,6 +246,7 @@ def _open_ros1(options: TransportOptions) -> Transport:
 def _open_memory(options: TransportOptions) -> Transport:
     _no_endpoints("memory", options, "")
     _no_ros2_options("memory", options)
+    _no_ros_args("memory", options)
     _no_priority_links("memory", options)
     return MemoryTransport(options.network, host=options.host)
 
@@ -313,6 +326,7 @@ def open_transport(
     ros_distro: str | None = None,
     msg_paths: Sequence[str | Path] = (),
     priority_links: bool = False,
+    ros_args: Sequence[str] = (),
 ) -> Transport:
     """Open a transport by name.
 
@@ -329,6 +343,8 @@ def open_transport(
     files under ``msg_paths``; the other transports refuse these options. ``priority_links``
     (zenoh, ros2) opens a link per range of priorities to each ``connect`` endpoint, so urgent
     classes never wait behind bulk bytes in one TCP connection; the listening side needs it too.
+    ``ros_args`` (rclpy): ROS 2's own arguments, every ``--ros-args`` block
+    (``dbml.transports.rclpy.rosargs``).
     """
     return entry(name).factory(
         TransportOptions(
@@ -342,6 +358,7 @@ def open_transport(
             ros_distro=ros_distro,
             msg_paths=tuple(msg_paths),
             priority_links=priority_links,
+            ros_args=tuple(ros_args),
         )
     )
 

@@ -37,6 +37,8 @@ first.
 from __future__ import annotations
 
 import logging
+import math
+import sys
 import threading
 import time
 from collections import OrderedDict, deque
@@ -51,6 +53,7 @@ from dbml.protocol.schema import (
     GLOBAL_PREFIX,
     PARAMETERS,
     ROUND,
+    Kind,
     ParamError,
     Parameter,
     Scope,
@@ -90,9 +93,13 @@ __all__ = [
     "UNATTRIBUTED_S",
     "RclpyHost",
     "RclpyParams",
+    "descriptor",
 ]
 
 log = logging.getLogger("dbml.rclpy")
+
+_INT64_MIN, _INT64_MAX = -(2**63), 2**63 - 1
+"""An ``IntegerRange``'s bounds are int64."""
 
 MAX_PARAM_NODES = 8_192
 """The most parameter nodes remembered (met, fetched); beyond, new ones are ignored (logged)."""
@@ -302,7 +309,6 @@ class RclpyParams:
 
     def _host(self, node: str, *, provisional: bool) -> _Hosted | None:
         """Create node ``node`` here, declaring its scope's parameters with the view's values."""
-        from rcl_interfaces.msg import ParameterDescriptor
         from rclpy.node import Node
 
         scope = scope_of(node)
@@ -312,6 +318,7 @@ class RclpyParams:
             namespace=namespace,
             context=self._transport.context,
             start_parameter_services=True,
+            use_global_arguments=False,  # the paper's names, whatever remapping moves
         )
         ros_node.add_on_set_parameters_callback(lambda parameters: self._on_set(node, parameters))
         hosted = _Hosted(ros_node, provisional)
@@ -323,14 +330,7 @@ class RclpyParams:
                     continue
                 name = parameter.name if scope is Scope.GLOBAL else f"{node}/{parameter.field}"
                 ros_node.declare_parameter(
-                    parameter.ros2_name,
-                    self.replica.get(name),
-                    ParameterDescriptor(
-                        dynamic_typing=True,
-                        description=f"{parameter.doc} Written by: "
-                        + ", ".join(sorted(w.value for w in parameter.writers))
-                        + ".",
-                    ),
+                    parameter.ros2_name, self.replica.get(name), descriptor(parameter)
                 )
         finally:
             self._internal = False
@@ -362,12 +362,14 @@ class RclpyParams:
         self._internal = True
         try:
             for ros2_name, value in writes.items():
+                found = lookup(f"{node}/{ros2_name.replace('.', '/')}")
+                assert found is not None, ros2_name  # the view holds dbml's parameters only
                 if not hosted.node.has_parameter(ros2_name):
-                    hosted.node.declare_parameter(ros2_name, None, _dynamic())
+                    hosted.node.declare_parameter(ros2_name, None, descriptor(found[0]))
                 if value is None:
                     # Unset, and declared again with no value: ``ros2 param list`` still shows it.
                     hosted.node.set_parameters([RosParameter(ros2_name, RosParameter.Type.NOT_SET)])
-                    hosted.node.declare_parameter(ros2_name, None, _dynamic())
+                    hosted.node.declare_parameter(ros2_name, None, descriptor(found[0]))
                     continue
                 results = hosted.node.set_parameters([RosParameter(ros2_name, value=value)])
                 if not results[0].successful:
@@ -756,7 +758,31 @@ class RclpyParams:
         self._clients.clear()
 
 
-def _dynamic() -> Any:
-    from rcl_interfaces.msg import ParameterDescriptor
+def descriptor(parameter: Parameter) -> Any:
+    """Its ROS 2 descriptor, from the schema: what ``ros2 param describe`` and rqt show.
 
-    return ParameterDescriptor(dynamic_typing=True)
+    A number's range is a ``FloatingPointRange`` and, for an integer (which dynamic typing lets
+    in where a float is expected), an ``IntegerRange`` of the integers within it: rclpy refuses
+    a value outside either with its own message. An exclusive minimum is the schema's, checked
+    in the node's set callback. Who writes it is said in its constraints: SetParameters refuses
+    what only dbml writes.
+    """
+    from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+
+    constraints = f"values: {parameter.values}; written by: {parameter.writers_text}"
+    if Writer.OPERATOR not in parameter.writers:
+        constraints += " (not settable through SetParameters)"
+    described = ParameterDescriptor(
+        dynamic_typing=True, description=parameter.doc, additional_constraints=constraints
+    )
+    if parameter.kind is Kind.NUMBER:
+        low = -sys.float_info.max if parameter.minimum is None else parameter.minimum
+        high = sys.float_info.max if parameter.maximum is None else parameter.maximum
+        described.floating_point_range = [FloatingPointRange(from_value=low, to_value=high)]
+        lowest = math.floor(low) + 1 if parameter.exclusive_minimum else math.ceil(low)
+        described.integer_range = [
+            IntegerRange(
+                from_value=max(lowest, _INT64_MIN), to_value=min(math.floor(high), _INT64_MAX)
+            )
+        ]
+    return described

@@ -34,7 +34,7 @@ import re
 import struct
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -43,7 +43,7 @@ from dbml.core.extras import require
 from dbml.protocol import keys
 from dbml.protocol.metadata import pack_meta
 from dbml.protocol.names import check_topic
-from dbml.protocol.schema import GLOBAL_PREFIX
+from dbml.protocol.schema import GLOBAL_PREFIX, Writer, lookup
 from dbml.transports.base import (
     COMPRESSED_TYPE,
     GraphEntry,
@@ -63,6 +63,7 @@ from dbml.transports.rclpy.nodes import (
     python_value,
 )
 from dbml.transports.rclpy.params import RclpyParams
+from dbml.transports.rclpy.rosargs import overrides
 from dbml.transports.replica import Replica
 from dbml.transports.worker import FLUSH_TIMEOUT_S, BackgroundThread
 
@@ -78,6 +79,7 @@ from rclpy.event_handler import (  # noqa: E402
     UnsupportedEventTypeError,
 )
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.qos import (  # noqa: E402
     DurabilityPolicy,
@@ -406,13 +408,29 @@ class RclpyTransport(TransportBase):
     ``domain_id`` (else ``ROS_DOMAIN_ID``) picks the ROS 2 domain of this transport's context.
     """
 
-    def __init__(self, host: str | None = None, *, domain_id: int | None = None) -> None:
+    def __init__(
+        self,
+        host: str | None = None,
+        *,
+        domain_id: int | None = None,
+        ros_args: Sequence[str] = (),
+    ) -> None:
         self._host = resolve_host(host)
+        self.ros_args = tuple(ros_args)
+        self.ros_values = overrides(self.ros_args)  # checked before anything starts
+        """dbml's parameters given in ``ros_args`` (a params file, ``-p``), by full name."""
         self.context = Context()
         options: dict[str, Any] = {"signal_handler_options": SignalHandlerOptions.NO}
         if domain_id is not None:
             options["domain_id"] = domain_id
-        rclpy.init(context=self.context, **options)
+        if self.ros_args:
+            options["args"] = ["dbml", *self.ros_args]
+        try:
+            rclpy.init(context=self.context, **options)
+        except _rclpy.UnknownROSArgsError as err:
+            raise TransportError(f"--ros-args: rclpy does not know {err}") from None
+        except _rclpy.RCLError as err:
+            raise TransportError(f"--ros-args: {err}") from None
         self._lock = threading.Lock()
         self._closed = False
         self._soon: collections.deque[Callable[[], None]] = collections.deque()
@@ -429,7 +447,10 @@ class RclpyTransport(TransportBase):
         self._graph = Graph()
         self._polled = threading.Event()
         try:
-            self.node = Node(node_name_for(self._host), context=self.context)
+            # Its name says dbml's host to every peer: no remapping moves it.
+            self.node = Node(
+                node_name_for(self._host), context=self.context, use_global_arguments=False
+            )
             self._executor = SingleThreadedExecutor(context=self.context)
             self._executor.add_node(self.node)
             self._wake = self.node.create_guard_condition(self._run_soon)
@@ -451,6 +472,10 @@ class RclpyTransport(TransportBase):
             rclpy.try_shutdown(context=self.context)
             raise
         self._thread = BackgroundThread(self._spin, name="dbml-rclpy", log=log).start()
+        for name, value in self.ros_values.items():  # as ``dbml budget`` would write them
+            found = lookup(name)
+            if found is not None and Writer.OPERATOR in found[0].writers:
+                self.params.set(name, value)
 
     # -- the executor thread -------------------------------------------------------------------
 

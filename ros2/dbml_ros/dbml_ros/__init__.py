@@ -1,0 +1,1 @@
+"""dbml as a ROS 2 package: its executables run the dbml Python package over rclpy."""

@@ -1,0 +1,245 @@
+"""The ROS 2 package ``ros2/dbml_ros``: built by colcon, started as ``ros2 run`` starts it.
+
+ros2cli and launch are not installable here, so the test does what they do: it sources the
+colcon install's ``setup.sh`` and runs ``install/dbml_ros/lib/dbml_ros/<executable>`` with the
+``--ros-args`` a launch file would give (``-r __node:=``, ``-r __ns:=``, ``--params-file``);
+and it checks each launch file against what is installed. Two plain rclpy cameras publish the
+paper's frame sizes; a plain rclpy subscriber measures the optimized topics: the params file's
+Table 1 gives Table 2's first step.
+"""
+
+from __future__ import annotations
+
+import ast
+import shutil
+import subprocess
+import sys
+import threading
+import time
+import xml.etree.ElementTree as ET
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from dbml.harness.ros2env import claim_domain, ros2_child_env
+from dbml.harness.supervisor import Supervisor
+from dbml.protocol.schema import GLOBAL_PREFIX
+from dbml.scenarios.teleop import MAX_RATE_HZ, MIN_RATE_HZ, ROBOTS, STEPS
+from dbml.transports.rclpy.rosargs import channel_bounds, overrides
+from tests.conftest import wait_for
+from tests.integration.procs import ROOT
+from tests.integration.test_demo import RATE_TOLERANCE, TABLE2_HZ
+
+pytest.importorskip("rclpy")
+pytest.importorskip("colcon_core")
+
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+from dbml.harness.ros2node import private_node
+
+pytestmark = pytest.mark.integration
+
+PACKAGE = "dbml_ros"
+SOURCE = ROOT / "ros2" / PACKAGE
+EXECUTABLES = ("optimizer", "bridge", "monitor")
+BUILD_TIMEOUT_S = 120.0
+SETTLE_S = 4.0
+"""From the first frame on both optimized topics: the first allocations took effect."""
+MEASURE_S = 4.0
+START_TIMEOUT_S = 60.0
+
+
+@pytest.fixture(scope="module")
+def install(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The package built by colcon, as ``colcon build`` in a workspace would."""
+    base = tmp_path_factory.mktemp("colcon")
+    colcon = shutil.which("colcon", path=str(Path(sys.executable).parent))
+    assert colcon is not None, "colcon is installed with the dev extra"
+    build = subprocess.run(
+        [
+            colcon,
+            "--log-base",
+            str(base / "log"),
+            "build",
+            "--base-paths",
+            str(SOURCE),
+            "--build-base",
+            str(base / "build"),
+            "--install-base",
+            str(base / "install"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=BUILD_TIMEOUT_S,
+        check=False,
+    )
+    assert build.returncode == 0, build.stdout + build.stderr
+    return base / "install"
+
+
+def test_colcon_installs_the_executables_launch_files_and_params(install: Path) -> None:
+    share = install / PACKAGE / "share" / PACKAGE
+    for executable in EXECUTABLES:
+        assert (install / PACKAGE / "lib" / PACKAGE / executable).is_file()
+    assert (install / PACKAGE / "share/ament_index/resource_index/packages" / PACKAGE).exists()
+    assert {p.name for p in (share / "launch").iterdir()} == {
+        "teleop.launch.xml",
+        "teleop.launch.py",
+    }
+    assert (share / "config" / "teleop.yaml").is_file()
+
+
+def _xml_nodes(path: Path) -> Iterator[tuple[str, str, str]]:
+    """Each ``<node>`` of an XML launch file: package, executable, namespace."""
+    for node in ET.parse(path).getroot().iter("node"):
+        yield node.get("pkg", ""), node.get("exec", ""), node.get("namespace", "")
+
+
+def _python_nodes(path: Path) -> Iterator[tuple[str, str, list[str]]]:
+    """Each ``Node(...)`` of a Python launch file: package, executable, namespaces it takes."""
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    robots: list[str] = []
+    for statement in tree.body:  # ROBOTS = ("r1", "r2"): the namespaces a comprehension gives
+        if isinstance(statement, ast.Assign) and isinstance(statement.value, ast.Tuple):
+            robots = [ast.literal_eval(e) for e in statement.value.elts]
+    for call in ast.walk(tree):
+        if isinstance(call, ast.Call) and getattr(call.func, "id", "") == "Node":
+            words = {k.arg: k.value for k in call.keywords}
+            package = ast.literal_eval(words["package"])
+            executable = ast.literal_eval(words["executable"])
+            namespace = words.get("namespace")
+            if namespace is None:
+                yield package, executable, [""]
+            elif isinstance(namespace, ast.Constant):
+                yield package, executable, [str(namespace.value)]
+            else:
+                yield package, executable, robots
+
+
+def test_every_launch_file_starts_what_is_installed_with_the_schemas_parameters(
+    install: Path,
+) -> None:
+    """What ``ros2 launch`` would check at run time, checked here (ros2 launch is not here)."""
+    share = install / PACKAGE / "share" / PACKAGE
+    params = share / "config" / "teleop.yaml"
+    values = overrides(["--params-file", str(params)])  # every key one the schema declares
+    started: dict[str, list[tuple[str, str]]] = {}
+    xml = [(p, e, [ns]) for p, e, ns in _xml_nodes(share / "launch" / "teleop.launch.xml")]
+    for name, nodes in (
+        ("teleop.launch.xml", xml),
+        ("teleop.launch.py", list(_python_nodes(share / "launch" / "teleop.launch.py"))),
+    ):
+        started[name] = []
+        for package, executable, namespaces in nodes:
+            assert package == PACKAGE
+            assert (install / PACKAGE / "lib" / PACKAGE / executable).is_file(), executable
+            started[name] += [(executable, ns) for ns in namespaces]
+            if executable == "bridge":  # each bridge finds its robot's channels in the file
+                for namespace in namespaces:
+                    assert channel_bounds(values, namespace=f"/{namespace}")
+    expected = [("optimizer", ""), ("bridge", "r1"), ("bridge", "r2")]
+    assert started == {"teleop.launch.xml": expected, "teleop.launch.py": expected}
+    # The file is the paper's Table 1 and the priorities of Table 2's first step (eq. 7).
+    assert values[f"{GLOBAL_PREFIX}/max_bandwidth_in_mbit"] == 11.0
+    for camera, event in zip(ROBOTS, STEPS[0].events, strict=True):
+        assert values[f"{camera.topic}/dbm/frequency/min"] == MIN_RATE_HZ
+        assert values[f"{camera.topic}/dbm/frequency/max"] == MAX_RATE_HZ
+        assert values[f"{camera.topic}/dbm/priority"] == pytest.approx(event.priority)
+
+
+def _ros2_run(
+    children: Supervisor,
+    name: str,
+    *,
+    install: Path,
+    executable: str,
+    ros_args: list[str],
+    env: dict[str, str],
+) -> None:
+    """What ``ros2 run dbml_ros EXECUTABLE --ros-args ...`` starts, after sourcing the install."""
+    script = f'. "{install}/setup.sh" && exec "{install}/{PACKAGE}/lib/{PACKAGE}/$0" "$@"'
+    argv = ["bash", "-c", script, executable, "--ros-args", *ros_args]
+    children.start(name, argv, env=env, stdin=False)
+
+
+def test_ros2_run_with_the_params_file_gives_table_2s_first_step(
+    install: Path, tmp_path: Path
+) -> None:
+    params = str(install / PACKAGE / "share" / PACKAGE / "config" / "teleop.yaml")
+    with claim_domain() as domain_id, Supervisor(logs=tmp_path / "logs") as children:
+        env = ros2_child_env(domain_id=domain_id, log_dir=tmp_path / "ros")
+        for camera in ROBOTS:
+            children.start(
+                f"camera-{camera.robot}",
+                [
+                    sys.executable,
+                    "-m",
+                    "tests.integration.rclpy_camera",
+                    camera.topic,
+                    str(MAX_RATE_HZ),
+                    str(camera.size_bytes),
+                ],
+                env=env,
+                cwd=ROOT,
+                stdin=False,
+            )
+        _ros2_run(
+            children,
+            "optimizer",
+            install=install,
+            executable="optimizer",
+            ros_args=["-r", "__node:=dbml_optimizer", "--params-file", params],
+            env=env,
+        )
+        for camera in ROBOTS:
+            namespace = camera.topic.rsplit("/", 1)[0]
+            _ros2_run(
+                children,
+                f"bridge-{camera.robot}",
+                install=install,
+                executable="bridge",
+                ros_args=[
+                    *("-r", "__node:=dbml_bridge", "--params-file", params),
+                    *("-r", f"__ns:={namespace}"),
+                ],
+                env=env,
+            )
+        rates = _measure(domain_id, [f"{c.topic}/optimized" for c in ROBOTS], children)
+    for measured, table2_hz in zip(rates, TABLE2_HZ[0], strict=True):
+        assert measured == pytest.approx(table2_hz, rel=RATE_TOLERANCE), rates
+
+
+def _measure(domain_id: int, topics: list[str], children: Supervisor) -> list[float]:
+    """Each topic's rate over ``MEASURE_S``, once all have sent frames for ``SETTLE_S``."""
+    from sensor_msgs.msg import Image
+
+    lock = threading.Lock()
+    arrivals: dict[str, list[float]] = {topic: [] for topic in topics}
+
+    def heard(topic: str) -> None:
+        with lock:
+            arrivals[topic].append(time.monotonic())
+
+    qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
+    with private_node("operator", domain_id=domain_id) as operator:
+        for topic in topics:
+            operator.create_subscription(
+                Image, topic, lambda _m, topic=topic: heard(topic), qos, raw=True
+            )
+
+        def all_flowing() -> bool:
+            for child in children.children.values():
+                assert child.poll() is None, f"{child.name} ended: {child.log_tail()}"
+            with lock:
+                return all(arrivals.values())
+
+        wait_for(all_flowing, timeout_s=START_TIMEOUT_S, what="frames on every optimized topic")
+        start = time.monotonic() + SETTLE_S
+        end = start + MEASURE_S
+        wait_for(lambda: time.monotonic() > end + 0.5, timeout_s=SETTLE_S + MEASURE_S + 5)
+    with lock:
+        return [
+            (len(window) - 1) / (window[-1] - window[0])
+            for window in ([t for t in arrivals[topic] if start <= t < end] for topic in topics)
+        ]
