@@ -244,3 +244,61 @@ def test_a_publisher_hears_its_own_channel_not_every_write(
     optimizer.params.set(names.ROUND, 1)  # the heartbeat, a global name, still reaches it
     clock.advance(2.0)
     assert publisher.current_rate_hz() == 4.0
+
+
+def test_says_the_rate_it_sent_when_it_moves_or_stops(
+    network: MemoryNetwork, clock: ManualClock
+) -> None:
+    """Between two heartbeats of the optimizer: steady writes nothing, a stop is said."""
+    publisher = robot(network, clock)
+    optimizer = MemoryTransport(network, host="base", clock=clock).params
+    params = MemoryTransport(network, host="op").params
+    optimizer.set(names.current_value("/r1/camera"), 10.0)
+    written: list[float] = []
+    params.watch(
+        lambda name, value: (
+            written.append(value)  # type: ignore[arg-type]
+            if name == names.sent("/r1/camera")
+            else None
+        )
+    )
+
+    def period(frames: int, heartbeat: float, seconds: float = 1.0) -> None:
+        for _ in range(frames):  # ``frames`` sent over ``seconds``, then a heartbeat
+            clock.advance(seconds / frames)
+            assert publisher.publish(b"x")
+        if not frames:
+            clock.advance(seconds)
+        optimizer.set(names.ROUND, float(heartbeat))
+
+    period(10, 1)  # the first heartbeat only marks
+    assert written == []
+    period(10, 2)
+    assert written == [pytest.approx(10.0)]
+    period(10, 3)  # steady: nothing written
+    period(10, 4, seconds=1.05)  # 9.5 Hz, within a tenth: nothing written
+    assert written == [pytest.approx(10.0)]
+    period(5, 5)
+    assert written == [pytest.approx(10.0), pytest.approx(5.0)]
+    period(0, 6)  # the driver died
+    assert written[-1] == 0.0
+    period(10, 7)
+    period(10, 8)
+    assert written[-1] == pytest.approx(10.0)
+    clock.advance(0.02)  # an extra round, 20 ms after the last: too short to measure
+    optimizer.set(names.ROUND, 8.5)
+    assert written[-1] == pytest.approx(10.0)
+    optimizer.set(names.current_value("/r1/camera"), 1.0)  # a cut: fewer frames, not a stop
+    clock.advance(0.5)
+    optimizer.set(names.ROUND, 8.7)
+    assert written[-1] == pytest.approx(10.0)
+    optimizer.set(names.current_value("/r1/camera"), 10.0)
+    period(10, 8.8)
+    assert written[-1] > 0
+    for _ in range(4):  # it dies 0.6 s before the heartbeat: stopped, not 4 Hz
+        clock.advance(0.1)
+        assert publisher.publish(b"x")
+    clock.advance(0.6)
+    optimizer.set(names.ROUND, 9.0)
+    assert written[-1] == 0.0
+    assert params.get(names.sent("/r1/camera")) == 0.0

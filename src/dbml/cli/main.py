@@ -32,8 +32,10 @@ from dbml.estimator.designs import Design
 from dbml.experiment.analysis import SeriesPoint
 from dbml.harness.child import stop_on_signals
 from dbml.harness.processes import free_port
+from dbml.protocol import names
 from dbml.protocol.schema import Writer
 from dbml.runtime.monitor import MonitorView
+from dbml.runtime.optimizer import Round
 from dbml.scenarios.reproduce import RobotRow, reproduce_table2
 from dbml.transports.base import Transport
 from dbml.transports.rclpy.rosargs import channel_bounds, namespace_of, overrides, split_ros_args
@@ -226,10 +228,32 @@ def _cmd_optimizer(args: argparse.Namespace) -> int:
             estimate=args.estimate,
             design=Design(args.estimator_design),
             write_defaults=entry.params_complete_at_start,
+            on_round=_diagnostics(t) if args.transport == "rclpy" else None,
         ),
         view=view,
         writers=frozenset({Writer.OPTIMIZER, Writer.ESTIMATOR}),  # what the optimizer's node runs
     )
+
+
+def _diagnostics(transport: Transport) -> Callable[[Round], None]:
+    """Each round's statuses on ``/diagnostics`` (ROS 2's health topic), from the optimizer."""
+    from dbml.runtime.diagnostics import statuses
+    from dbml.transports.rclpy.diagnostics import DiagnosticsPublisher
+    from dbml.transports.rclpy.transport import RclpyTransport
+
+    assert isinstance(transport, RclpyTransport)
+    publisher = DiagnosticsPublisher(transport)
+
+    def publish(result: Round) -> None:
+        estimate = transport.params.get(names.ESTIMATE)
+        publisher.publish(
+            statuses(
+                result.report(),
+                estimate_mbit=estimate if isinstance(estimate, float) else None,
+            )
+        )
+
+    return publish
 
 
 def _cmd_publish(args: argparse.Namespace) -> int:

@@ -481,6 +481,8 @@ class ChannelRound:
     """A laddered channel's rung (``x0.5 q80``); its bytes are ``size_bytes``."""
     quality: float | None = None
     """The rung's quality score in [0, 1] (None: no ladder)."""
+    sent_hz: float | None = None
+    """The rate its publisher last said it sent (None: not said yet)."""
 
     def as_json(self) -> dict[str, Any]:
         """The channel as a round report carries it (and the live view shows it)."""
@@ -497,6 +499,7 @@ class ChannelRound:
             "managed": self.managed,
             "encoding": self.encoding,  # last: viewers' tables keep the columns they had
             "quality": self.quality,
+            "sent_hz": self.sent_hz,
         }
 
     @classmethod
@@ -527,6 +530,7 @@ class ChannelRound:
                 share=_round_optional(document, "share"),
                 encoding=_round_encoding(document.get("encoding")),
                 quality=_round_optional(document, "quality", maximum=1.0),
+                sent_hz=_round_optional(document, "sent_hz", maximum=MAX_RATE_HZ),
             )
         except TransportError as err:
             raise TransportError(f"{topic}: {err}") from None

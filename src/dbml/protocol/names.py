@@ -46,6 +46,7 @@ __all__ = [
     "min_rate",
     "preference",
     "priority",
+    "sent",
     "size",
     "topic_of",
 ]
@@ -118,6 +119,11 @@ def current_value(topic: str) -> str:
 def applied(topic: str) -> str:
     """The rate the publisher is applying: its acknowledgement of ``current_value``."""
     return schema.APPLIED.key(topic)
+
+
+def sent(topic: str) -> str:
+    """``[topic]/dbm/frequency/sent_value``: the rate the publisher sent, as it last said."""
+    return schema.SENT.key(topic)
 
 
 def encoding(topic: str) -> str:

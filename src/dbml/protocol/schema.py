@@ -51,6 +51,7 @@ __all__ = [
     "PREFERENCE",
     "PRIORITY",
     "ROUND",
+    "SENT",
     "SIZE",
     "STATUS",
     "STATUS_MESSAGE",
@@ -361,6 +362,17 @@ APPLIED = Parameter(
     exclusive_minimum=True,
     maximum=MAX_RATE_HZ,
 )
+SENT = Parameter(
+    "frequency/sent_value",
+    Scope.CHANNEL,
+    Kind.NUMBER,
+    _PUBLISHER,
+    "The rate the publisher sent on ``[topic]/optimized`` over the optimizer's last period, "
+    "written when it moves by a tenth or stops: what reaches the link (0: nothing, a driver "
+    "that died).",
+    minimum=0.0,
+    maximum=MAX_RATE_HZ,
+)
 PREFERENCE = Parameter(
     "preference",
     Scope.CHANNEL,
@@ -432,6 +444,7 @@ PARAMETERS: tuple[Parameter, ...] = (
     SIZE,
     CURRENT,
     APPLIED,
+    SENT,
     PREFERENCE,
     MIN_QUALITY,
     LADDER,

@@ -135,6 +135,11 @@ class FailSafe:
         if self.allocated_hz is not None:
             self._wait_noted = False
 
+    @property
+    def period_s(self) -> float:
+        """The optimizer's period, as last heard."""
+        return self._period_s
+
     def set_period(self, period_s: float) -> None:
         """A new optimisation period: the deadline counts from the last word in it."""
         self._period_s = period_s

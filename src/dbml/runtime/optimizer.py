@@ -199,6 +199,7 @@ class Round:
                     share=share,
                     encoding=None if encoding is None else encoding_label(*encoding),
                     quality=score,
+                    sent_hz=params.sent_rate_hz,
                 )
             )
         return RoundReport(
@@ -247,7 +248,9 @@ class OptimizerNode:
     ``budget_mbit`` is the hook a bandwidth estimator uses: when it returns a number, that is the
     estimate, the usable budget in place of bandwidth times utilization. With ``write_defaults``
     the defaults of unset parameters (utilization 1, period 1 s) are written, so ``rosparam get``
-    shows every one; only for stores whose reads are complete at start (ROS's).
+    shows every one; only for stores whose reads are complete at start (ROS's). ``on_round``
+    sees each round on the optimizer's thread (``/diagnostics`` over rclpy); its failure is
+    logged, never the allocation's.
     """
 
     def __init__(
@@ -261,8 +264,11 @@ class OptimizerNode:
         budget_mbit: Callable[[], float | None] | None = None,
         write_defaults: bool = False,
         report_interval_s: float = REPORT_INTERVAL_S,
+        on_round: Callable[[Round], None] | None = None,
     ) -> None:
         self._transport = transport
+        self._on_round = on_round
+        self._watcher_failed = False
         self._links = tuple(links)
         self._report_interval_s = report_interval_s
         self._reported_s = -math.inf
@@ -511,6 +517,13 @@ class OptimizerNode:
         )
         self.last_round = result
         self._report(result)
+        if self._on_round is not None:
+            try:
+                self._on_round(result)
+            except Exception:  # a watcher's failure never stops the allocation
+                if not self._watcher_failed:
+                    log.exception("a round's watcher failed (further failures not logged)")
+                self._watcher_failed = True
         return result
 
     def _report(self, result: Round) -> None:

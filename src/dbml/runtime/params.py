@@ -125,6 +125,8 @@ class ChannelParams:
     """The allocation the optimizer pushed."""
     applied_rate_hz: float | None = None
     """The rate the publisher acknowledged applying."""
+    sent_rate_hz: float | None = None
+    """The rate the publisher last said it sent (None: it has not said)."""
     managed: bool | None = None
     rungs: tuple[Rung, ...] | None = None
     """The ladder the publisher measured (None: the channel has none)."""
@@ -438,6 +440,7 @@ def _channel(topic: str, values: ByParameter) -> ChannelParams:
         priority=_float(values.get(schema.PRIORITY)) or 0.0,
         current_rate_hz=_float(values.get(schema.CURRENT)),
         applied_rate_hz=_float(values.get(schema.APPLIED)),
+        sent_rate_hz=_float(values.get(schema.SENT)),
         managed=managed if isinstance(managed, bool) else None,
         rungs=_rungs(_text(values, schema.LADDER)),
         preference=Preference(preference) if preference is not None else Preference.BALANCED,

@@ -31,7 +31,7 @@ import time
 from collections.abc import Callable
 
 from dbml.core.errors import TransportError
-from dbml.core.spec import ChannelSpec, check_number
+from dbml.core.spec import MAX_RATE_HZ, ChannelSpec, check_number
 from dbml.protocol import keys, names
 from dbml.protocol.ladders import Encoding, parse_encoding
 from dbml.protocol.messages import LinkBeacon
@@ -72,13 +72,38 @@ __all__ = [
     "LINK_SILENCE_S",
     "OWED_WINDOW_S",
     "PROBE_INTERVAL_S",
+    "SENT_ALIVE_FRAMES",
+    "SENT_CHANGE",
+    "SENT_SPAN_PERIODS",
+    "SENT_STALL_INTERVALS",
     "SIZE_CHANGE",
     "ManagedPublisher",
+    "worth_saying",
 ]
 
 log = logging.getLogger("dbml.publisher")
 
 _UNSTEADY = (0.0, -math.inf)
+SENT_CHANGE = 0.1
+"""A sent rate this far (relative) from the one last said is said again: a steady channel
+writes nothing, a driver that stops is said at the next heartbeat."""
+
+
+SENT_STALL_INTERVALS = 2.0
+"""A source silent this many of its mean intervals at a heartbeat is said to send nothing."""
+SENT_ALIVE_FRAMES = 3
+"""From this many frames in a span, the rate while the source ran is timed to its last one."""
+SENT_SPAN_PERIODS = 0.9
+"""The sent rate is measured over at least this much of the optimizer's period."""
+
+
+def worth_saying(said_hz: float | None, sent_hz: float) -> bool:
+    """Whether ``sent_hz`` differs enough from what was last said (``SENT_CHANGE``, or a stop)."""
+    if said_hz is None or (said_hz == 0) != (sent_hz == 0):
+        return True
+    return abs(sent_hz - said_hz) > SENT_CHANGE * max(said_hz, sent_hz)
+
+
 """``ManagedPublisher._steady`` without an allocation: every ``publish`` takes the long way."""
 
 
@@ -153,6 +178,11 @@ class ManagedPublisher:
         fresh and the link up, and ``publish`` asks nothing else (set under the lock)."""
         self._closed = False
         self._beacon_warned = False
+        self._sent_mark: tuple[float, int] | None = None
+        """(time, messages sent) at the last heartbeat: the sent rate is measured between two."""
+        self._sent_said: float | None = None
+        self._sent_s = -math.inf
+        """When the last message went on ``[topic]/optimized``."""
         # The loop keeps its own phase across rate changes: one push reaches every publisher at
         # once, and loops that all restarted from it would send their frames together.
         self.rate = Rate(self.current_rate_hz, clock=transport.now, keep_phase=True)
@@ -255,6 +285,46 @@ class ManagedPublisher:
                 self._apply_locked(now)
             if recovered and rate is not None:
                 self._log_recovery(rate)
+            self._say_sent(now)
+
+    def _say_sent(self, now: float) -> None:
+        """At a heartbeat: the rate sent, written if it moved by ``SENT_CHANGE`` or stopped.
+
+        Measured over at least ``SENT_SPAN_PERIODS`` of the optimizer's period (a change of
+        parameters brings extra rounds, milliseconds apart). A source silent for more than
+        ``SENT_STALL_INTERVALS`` of its intervals (at its rate, or the limit's if slower: a
+        decrease is not a stop) has stopped: 0 at once, at any heartbeat.
+        """
+        with self._lock:
+            sent, last_s = self._optimized_seq, self._sent_s
+            period_s = self._allocation.period_s
+            limit_hz = self._limiter.rate_hz
+
+        def stalled(rate_hz: float) -> bool:  # at the slower of its own rate and the limit's
+            slowest = min(rate_hz, limit_hz)
+            return slowest > 0 and now - last_s > SENT_STALL_INTERVALS / slowest
+
+        said = self._sent_said
+        mark = self._sent_mark
+        if said is not None and said > 0 and stalled(said):
+            rate = 0.0
+        elif mark is None or now - mark[0] < SENT_SPAN_PERIODS * period_s:
+            if mark is None:
+                self._sent_mark = (now, sent)
+            return
+        else:
+            frames = sent - mark[1]
+            rate = min(frames / (now - mark[0]), MAX_RATE_HZ)
+            # Judged at the rate it ran while it ran: a driver that died early in the span
+            # sent a few frames at its own rate, not a few over the whole span.
+            trusted = frames >= SENT_ALIVE_FRAMES and last_s > mark[0]
+            alive_hz = frames / (last_s - mark[0]) if trusted else rate
+            if rate > 0 and stalled(alive_hz):
+                rate = 0.0
+        self._sent_mark = (now, sent)
+        if worth_saying(said, rate):
+            self._sent_said = rate
+            self._transport.params.set(names.sent(self.topic), rate)  # non-blocking
 
     def _log_recovery(self, rate: float) -> None:
         log.warning("%s: allocation heard again; running at %.3f Hz", self.topic, rate)
@@ -382,6 +452,7 @@ class ManagedPublisher:
             if held is None or not self._limiter.allow(now):
                 return
             self._optimized_seq += 1
+            self._sent_s = now
             seq = self._optimized_seq
         # A slow source may not publish again soon: the held message goes now, outside the lock.
         self._switch.publisher.put(held, attachment=pack_meta(seq, self._wall_clock_ns(), rate))
@@ -520,6 +591,7 @@ class ManagedPublisher:
                 allowed, expired = self._admit_locked(now, rate, managed)
             if allowed:  # numbered under the lock: a release may put from the beacon's thread
                 self._optimized_seq += 1
+                self._sent_s = now
                 seq = self._optimized_seq
         if expired:
             log.warning(

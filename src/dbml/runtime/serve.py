@@ -23,7 +23,7 @@ from dbml.estimator.designs import DEFAULT_DESIGN, Design, settings_of
 from dbml.protocol import names
 from dbml.runtime.bridge import FIRST_MESSAGE_TIMEOUT_S, Bridge
 from dbml.runtime.estimator import LinkEstimator
-from dbml.runtime.optimizer import OptimizerNode
+from dbml.runtime.optimizer import OptimizerNode, Round
 from dbml.transports.base import Transport, Variant
 from dbml.transports.worker import death_count
 
@@ -95,8 +95,12 @@ def run_optimizer(
     estimate: bool = False,
     design: Design = DEFAULT_DESIGN,
     write_defaults: bool = False,
+    on_round: Callable[[Round], None] | None = None,
 ) -> int:
-    """``dbml optimizer``: the optimizer node (with ``estimate``, the estimator of ``design``)."""
+    """``dbml optimizer``: the optimizer node (with ``estimate``, the estimator of ``design``).
+
+    ``on_round`` sees each round (``OptimizerNode``'s).
+    """
     transport.wait_for_peers(PEER_WAIT_S)
     if settings is None and transport.params.get(names.BANDWIDTH) is None:
         log.warning("no budget yet: waiting for %s (or pass --config)", names.BANDWIDTH)
@@ -111,6 +115,7 @@ def run_optimizer(
         links=links,
         budget_mbit=None if estimator is None else estimator.budget_mbit,
         write_defaults=write_defaults,
+        on_round=on_round,
     )
     if estimator is not None:
         estimator.on_change = node.poke

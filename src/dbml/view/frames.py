@@ -85,6 +85,7 @@ _CHANNEL_SCHEMA: dict[str, Any] = {
         "managed": {"type": "boolean"},
         "encoding": {"type": "string", "description": "a laddered channel's rung; else null"},
         "quality": _NULLABLE_NUMBER,
+        "sent_hz": _NULLABLE_NUMBER,
     },
 }
 ALLOCATION_SCHEMA: dict[str, Any] = {
