@@ -52,11 +52,19 @@ class Statuses:
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._levels: dict[str, tuple[Level, str]] = {}
+        self._sent: dict[str, str] = {}
 
     def heard(self, array: Any) -> None:
         with self._lock:
             for status in array.status:
                 self._levels[status.name] = (Level(status.level[0]), status.message)
+                values = {v.key: v.value for v in status.values}
+                self._sent[status.name] = values.get("sent_hz", "")
+
+    def sent_said(self, name: str) -> bool:
+        """Whether the channel's publisher has said what it sends (steady state)."""
+        with self._lock:
+            return bool(self._sent.get(name))
 
     def level(self, name: str) -> Level | None:
         with self._lock:
@@ -130,9 +138,9 @@ def test_diagnostics_say_ok_then_warn_then_error_for_a_dead_driver(tmp_path: Pat
             result = param_set(operator, "/dbm", "max_bandwidth_in_mbit", 11.0)
             assert result.successful, result.reason
             wait_for(
-                lambda: all_at(Level.OK, *names),
+                lambda: all_at(Level.OK, *names) and all(map(statuses.sent_said, names[1:])),
                 timeout_s=CHANGE_TIMEOUT_S,
-                what="every status OK again",
+                what="every status OK again, each channel's sent rate said",
             )
             dead = ROBOTS[1].topic
             driver = cameras.pop(dead)

@@ -332,3 +332,27 @@ def test_a_refused_message_goes_when_the_limiter_allows_not_a_period_later(
         assert waits < 10
     assert clock() - sent_at == pytest.approx(0.5, abs=1e-6)
     assert [s.payload for s in received] == [b"a", b"b"]
+
+
+def test_a_driver_gone_silent_is_said_before_the_next_heartbeat(
+    network: MemoryNetwork, clock: ManualClock
+) -> None:
+    bridge = started(network, clock)  # 2 Hz
+    publisher = bridge.publisher
+    assert publisher is not None
+    original = MemoryTransport(network, host="r1b").declare_publisher(CAMERA)
+    optimizer = MemoryTransport(network, host="base", clock=clock).params
+    params = MemoryTransport(network, host="op").params
+    for beat in range(3):  # two heartbeats a second apart: 2 Hz said
+        for _ in range(2):
+            clock.advance(0.5)
+            original.put(b"frame")
+            assert bridge.forward()
+        optimizer.set(names.ROUND, float(beat))
+    assert params.get(names.sent(CAMERA)) == pytest.approx(2.0)
+    clock.advance(0.9)  # under two intervals of silence: still running
+    publisher.say_if_stopped()
+    assert params.get(names.sent(CAMERA)) == pytest.approx(2.0)
+    clock.advance(0.2)
+    publisher.say_if_stopped()
+    assert params.get(names.sent(CAMERA)) == 0.0

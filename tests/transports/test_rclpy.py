@@ -92,7 +92,7 @@ def test_ros2_param_set_on_the_optimizers_node(ros_domain: int) -> None:
 
             refused = param_set(operator, "/dbm", "max_bandwidth_in_mbit", -3)
             assert not refused.successful
-            assert "max_bandwidth_in_mbit=-3" in refused.reason
+            assert "out of range" in refused.reason  # rclpy's, by the descriptor's range
 
             owned = param_set(operator, "/dbm", "status", "infeasible")
             assert not owned.successful

@@ -203,11 +203,14 @@ class Bridge:
         ticking once a period) drifts from it by how long each tick waits for its source: a
         message it hands over a little early is refused and waits a whole period more.
         """
+        publisher = self._publisher
+        assert publisher is not None  # started before the thread
         try:  # an exception out of here is the thread's death, said by ``BackgroundThread``
             while not self._stop.is_set():
                 while not self._arrived.wait(_STOP_POLL_S):  # wait for a message to send
                     if self._stop.is_set():
                         return
+                    publisher.say_if_stopped()  # a driver gone silent: said before a heartbeat
                 if not self.forward():
                     self._sleep(self.retry_s())
         except _StoppedError:

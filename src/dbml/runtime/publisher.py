@@ -84,11 +84,10 @@ __all__ = [
 log = logging.getLogger("dbml.publisher")
 
 _UNSTEADY = (0.0, -math.inf)
+"""``ManagedPublisher._steady`` without an allocation: every ``publish`` takes the long way."""
 SENT_CHANGE = 0.1
 """A sent rate this far (relative) from the one last said is said again: a steady channel
 writes nothing, a driver that stops is said at the next heartbeat."""
-
-
 SENT_STALL_INTERVALS = 2.0
 """A source silent this many of its mean intervals at a heartbeat is said to send nothing."""
 SENT_ALIVE_FRAMES = 3
@@ -102,9 +101,6 @@ def worth_saying(said_hz: float | None, sent_hz: float) -> bool:
     if said_hz is None or (said_hz == 0) != (sent_hz == 0):
         return True
     return abs(sent_hz - said_hz) > SENT_CHANGE * max(said_hz, sent_hz)
-
-
-"""``ManagedPublisher._steady`` without an allocation: every ``publish`` takes the long way."""
 
 
 class ManagedPublisher:
@@ -307,7 +303,7 @@ class ManagedPublisher:
         said = self._sent_said
         mark = self._sent_mark
         if said is not None and said > 0 and stalled(said):
-            rate = 0.0
+            rate = 0.0  # (said at once, unless ``say_if_stopped`` said it already)
         elif mark is None or now - mark[0] < SENT_SPAN_PERIODS * period_s:
             if mark is None:
                 self._sent_mark = (now, sent)
@@ -322,9 +318,30 @@ class ManagedPublisher:
             if rate > 0 and stalled(alive_hz):
                 rate = 0.0
         self._sent_mark = (now, sent)
-        if worth_saying(said, rate):
-            self._sent_said = rate
+        with self._lock:  # ``say_if_stopped`` may have said 0 meanwhile
+            say = worth_saying(self._sent_said, rate)
+            if say:
+                self._sent_said = rate
+        if say:
             self._transport.params.set(names.sent(self.topic), rate)  # non-blocking
+
+    def say_if_stopped(self) -> None:
+        """Say at once that nothing is sent, if the source has stopped (no heartbeat waited for).
+
+        For a caller that sees its source idle (the bridge, waiting for a message): a source
+        that said a rate and has been silent ``SENT_STALL_INTERVALS`` of it (or of the limit,
+        if slower) has stopped. Cheap when it has not; said once.
+        """
+        now = self._now()
+        with self._lock:  # the heartbeat's thread says too: one decides at a time
+            said = self._sent_said
+            if said is None or said <= 0:
+                return
+            slowest = min(said, self._limiter.rate_hz)
+            if slowest <= 0 or now - self._sent_s <= SENT_STALL_INTERVALS / slowest:
+                return
+            self._sent_said = 0.0
+        self._transport.params.set(names.sent(self.topic), 0.0)  # non-blocking
 
     def _log_recovery(self, rate: float) -> None:
         log.warning("%s: allocation heard again; running at %.3f Hz", self.topic, rate)
