@@ -10,6 +10,7 @@ import math
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -27,6 +28,7 @@ from tests.conftest import wait_for
 
 rclpy = pytest.importorskip("rclpy")  # before dbml's rclpy module: the ROS 1 environment lacks it
 
+from rclpy.qos import ReliabilityPolicy  # noqa: E402
 from std_msgs.msg import Float64, String  # noqa: E402
 
 from dbml.harness.ros2node import private_node  # noqa: E402
@@ -154,6 +156,41 @@ def test_every_parameter_is_described_as_the_schema_says(ros_domain: int) -> Non
     finally:
         robot.close()
         optimizer.close()
+
+
+@pytest.mark.integration
+def test_the_optimized_copys_qos_follows_the_params_files_overrides(
+    ros_domain: int, tmp_path: Path
+) -> None:
+    """``qos_overrides.<topic>.publisher.*`` for the command's node, as any ROS 2 publisher's."""
+    params = tmp_path / "qos.yaml"
+    params.write_text(
+        "/r1/dbml_bridge:\n  ros__parameters:\n    qos_overrides:\n"
+        "      /r1/camera/optimized:\n        publisher: {reliability: best_effort, depth: 1}\n"
+    )
+    ros_args = ("--ros-args", "-r", "__ns:=/r1", "-r", "__node:=dbml_bridge")
+    robot = RclpyTransport(
+        host="r1", domain_id=ros_domain, ros_args=(*ros_args, "--params-file", str(params))
+    )
+    try:
+        robot.declare_publisher("/r1/camera", Variant.OPTIMIZED)
+        robot.declare_publisher("/r1/scan", Variant.OPTIMIZED)  # no override: dbml's own QoS
+        with private_node("observer", domain_id=ros_domain) as observer:
+
+            def reliability(topic: str) -> Any:
+                found = observer.get_publishers_info_by_topic(topic)
+                return found[0].qos_profile.reliability if found else None
+
+            wait_for(lambda: reliability("/r1/camera/optimized") is not None, what="camera")
+            wait_for(lambda: reliability("/r1/scan/optimized") is not None, what="scan")
+            assert reliability("/r1/camera/optimized") == ReliabilityPolicy.BEST_EFFORT
+            assert reliability("/r1/scan/optimized") == ReliabilityPolicy.RELIABLE
+        assert (
+            robot.node.get_parameter("qos_overrides./r1/camera/optimized.publisher.depth").value
+            == 1
+        )
+    finally:
+        robot.close()
 
 
 @pytest.mark.integration

@@ -11,6 +11,7 @@ from dbml.transports.rclpy.rosargs import (
     channel_bounds,
     namespace_of,
     overrides,
+    qos_overrides,
     split_ros_args,
 )
 
@@ -136,3 +137,57 @@ def test_a_missing_params_file_is_named(tmp_path: Path) -> None:
     missing = str(tmp_path / "nope.yaml")
     with pytest.raises(TransportError, match=r"^--params-file='.*nope\.yaml': "):
         overrides(("--ros-args", "--params-file", missing))
+
+
+QOS = """\
+/**:
+  ros__parameters:
+    qos_overrides:
+      /r1/camera/optimized:
+        publisher: {depth: 5}
+/r1/dbml_bridge:
+  ros__parameters:
+    qos_overrides:
+      /r1/camera/optimized:
+        publisher:
+          reliability: best_effort
+          depth: 1
+/r2/dbml_bridge:
+  ros__parameters:
+    qos_overrides:
+      /r2/camera/optimized:
+        publisher: {reliability: best_effort}
+"""
+
+
+def test_qos_overrides_are_the_commands_nodes_and_the_wildcards(tmp_path: Path) -> None:
+    path = params_file(tmp_path, QOS)
+    bridge = ("--ros-args", "--params-file", path, "-r", "__ns:=/r1", "-r", "__node:=dbml_bridge")
+    assert qos_overrides(bridge) == {
+        "qos_overrides./r1/camera/optimized.publisher.depth": 1,  # the node's, after /**
+        "qos_overrides./r1/camera/optimized.publisher.reliability": "best_effort",
+    }
+    assert qos_overrides(("--ros-args", "--params-file", path)) == {  # /dbml: the wildcard's
+        "qos_overrides./r1/camera/optimized.publisher.depth": 5,
+    }
+    p = ("-p", "qos_overrides./r1/camera/optimized.publisher.history:=keep_all")
+    assert qos_overrides(("--ros-args", *p))[
+        "qos_overrides./r1/camera/optimized.publisher.history"
+    ] == ("keep_all")
+
+
+@pytest.mark.parametrize(
+    ("setting", "error"),
+    [
+        ("publisher: {reliability: sometimes}", r"reliability='sometimes' must be one of"),
+        ("publisher: {depth: -1}", r"depth=-1 must be an integer >= 0"),
+        ("publisher: {deadline: 3}", r"no such QoS policy"),
+        ("subscription: {depth: 3}", r"dbml's QoS overrides are its publishers'"),
+    ],
+)
+def test_a_bad_qos_override_is_refused_naming_it(tmp_path: Path, setting: str, error: str) -> None:
+    text = (
+        f"/dbml:\n  ros__parameters:\n    qos_overrides:\n      /a/optimized:\n        {setting}\n"
+    )
+    with pytest.raises(TransportError, match=error):
+        qos_overrides(("--ros-args", "--params-file", params_file(tmp_path, text)))

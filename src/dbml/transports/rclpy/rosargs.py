@@ -7,7 +7,8 @@ file (keyed ``/dbm`` or ``[topic]/dbm``, or ``/**`` for every one), or a ``-p na
 naming a global, are read here and checked against the schema before any network is opened.
 What an operator may set is then written as ``dbml budget`` or ``dbml priority`` would; a
 channel's bounds are what ``dbml bridge`` bridges. A value only dbml writes (an allocation, a
-status) is refused.
+status) is refused. The command's own node (``-r __ns:=``, ``-r __node:=``) may carry rclpy's
+``qos_overrides.*`` for its ``[topic]/optimized`` publishers.
 
 Pure: PyYAML and the schema, no rclpy (the CLI checks a file before a transport opens).
 """
@@ -35,12 +36,16 @@ from dbml.protocol.schema import (
 from dbml.transports.rclpy.nodes import full_name
 
 __all__ = [
+    "DEFAULT_NODE_NAME",
     "END_FLAG",
+    "QOS_PREFIX",
     "ROS_ARGS_FLAG",
     "WILDCARD_NODE",
     "channel_bounds",
     "namespace_of",
+    "node_name_of",
     "overrides",
+    "qos_overrides",
     "split_ros_args",
 ]
 
@@ -49,6 +54,15 @@ END_FLAG = "--"
 """Ends a ``--ros-args`` block: what follows is the program's again (rcl's rule)."""
 WILDCARD_NODE = "/**"
 """A params file's key for every node."""
+DEFAULT_NODE_NAME = "dbml"
+"""The command's node name in a params file when no ``-r __node:=`` names it."""
+QOS_PREFIX = "qos_overrides."
+"""rclpy's QoS override parameters: ``qos_overrides.<topic>.publisher.<policy>``."""
+_QOS_VALUES: dict[str, frozenset[str]] = {
+    "reliability": frozenset({"reliable", "best_effort", "system_default", "best_available"}),
+    "history": frozenset({"keep_last", "keep_all", "system_default"}),
+}
+"""The policies ``QoSOverridingOptions.with_default_policies`` declares, depth aside."""
 _PARAMS_KEY = "ros__parameters"
 _PARAM_FLAGS = frozenset({"-p", "--param"})
 _REMAP_FLAGS = frozenset({"-r", "--remap"})
@@ -88,6 +102,59 @@ def namespace_of(ros_args: Sequence[str]) -> str:
         if sep and source == "__ns":
             namespace = target if target.startswith("/") else f"/{target}"
     return namespace.rstrip("/") or "/"
+
+
+def node_name_of(ros_args: Sequence[str]) -> str:
+    """The name ``-r __node:=NAME`` gives the command's node (the last one wins)."""
+    name = DEFAULT_NODE_NAME
+    for rule in _flagged(ros_args, _REMAP_FLAGS):
+        source, sep, target = rule.partition(":=")
+        if sep and source in {"__node", "__name"}:
+            name = target
+    return name
+
+
+def _check_qos(name: str, value: object, *, origin: str) -> None:
+    """A ``qos_overrides.<topic>.publisher.<policy>`` rclpy will take, else naming it."""
+    policy = name.rpartition(".")[2]
+    if ".publisher." not in name:
+        raise TransportError(f"{origin}: {name}: dbml's QoS overrides are its publishers'")
+    if policy == "depth":
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise TransportError(f"{origin}: {name}={short_repr(value)} must be an integer >= 0")
+    elif policy in _QOS_VALUES:
+        if value not in _QOS_VALUES[policy]:
+            allowed = ", ".join(sorted(_QOS_VALUES[policy]))
+            raise TransportError(f"{origin}: {name}={short_repr(value)} must be one of {allowed}")
+    else:
+        raise TransportError(f"{origin}: {name}: no such QoS policy (depth, history, reliability)")
+
+
+def qos_overrides(ros_args: Sequence[str]) -> dict[str, object]:
+    """The ``qos_overrides.*`` for the command's node in ``ros_args``, checked (later win).
+
+    From a params file's entry for the node (``-r __ns:=`` and ``-r __node:=``, default
+    ``/dbml``) or ``/**``, and from ``-p``: what rclpy's ``QoSOverridingOptions`` reads when
+    dbml declares a ``[topic]/optimized`` publisher.
+    """
+    namespace = namespace_of(ros_args)
+    node = f"{'' if namespace == '/' else namespace}/{node_name_of(ros_args)}"
+    found: dict[str, object] = {}
+    for flag, value in itertools.pairwise(ros_args):
+        if flag == _FILE_FLAG:
+            files = _load(value)
+            for key in (WILDCARD_NODE, node):
+                for name, item in files.get(key, {}).items():
+                    if name.startswith(QOS_PREFIX):
+                        _check_qos(name, item, origin=value)
+                        found[name] = item
+        elif flag in _PARAM_FLAGS:
+            name, sep, text = value.partition(":=")
+            if sep and name.startswith(QOS_PREFIX):
+                item = yaml.safe_load(text)
+                _check_qos(name, item, origin=f"-p {value}")
+                found[name] = item
+    return found
 
 
 def _flatten(values: Mapping[str, Any], prefix: str = "") -> Iterator[tuple[str, Any]]:

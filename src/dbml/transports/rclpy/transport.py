@@ -63,7 +63,7 @@ from dbml.transports.rclpy.nodes import (
     python_value,
 )
 from dbml.transports.rclpy.params import RclpyParams
-from dbml.transports.rclpy.rosargs import overrides
+from dbml.transports.rclpy.rosargs import overrides, qos_overrides
 from dbml.transports.replica import Replica
 from dbml.transports.worker import FLUSH_TIMEOUT_S, BackgroundThread
 
@@ -81,6 +81,7 @@ from rclpy.event_handler import (  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy  # noqa: E402
 from rclpy.node import Node  # noqa: E402
+from rclpy.parameter import Parameter as RosParameter  # noqa: E402
 from rclpy.qos import (  # noqa: E402
     DurabilityPolicy,
     HistoryPolicy,
@@ -88,6 +89,7 @@ from rclpy.qos import (  # noqa: E402
     ReliabilityPolicy,
     qos_profile_parameter_events,
 )
+from rclpy.qos_overriding_options import QoSOverridingOptions  # noqa: E402
 from rclpy.signals import SignalHandlerOptions  # noqa: E402
 
 __all__ = [
@@ -243,19 +245,26 @@ class _RclpyPublisher:
             reliability=ReliabilityPolicy.RELIABLE,
             durability=DurabilityPolicy.VOLATILE,
         )
+        # The managed copy's QoS may be overridden as any ROS 2 publisher's
+        # (``qos_overrides.<topic>.publisher.reliability`` and so on, from the params file).
+        overriding = QoSOverridingOptions.with_default_policies() if variant.managed else None
         try:
             self._publisher: Any = transport.node.create_publisher(
                 message_class(self._type),
                 variant.key(topic),
                 qos,
                 event_callbacks=PublisherEventCallbacks(matched=self._on_matched),
+                qos_overriding_options=overriding,
             )
             count = self._publisher.get_subscription_count()
             if self._matched is None:  # a matched event since is newer than this count
                 self._matched = count
         except UnsupportedEventTypeError:
             self._publisher = transport.node.create_publisher(
-                message_class(self._type), variant.key(topic), qos
+                message_class(self._type),
+                variant.key(topic),
+                qos,
+                qos_overriding_options=overriding,
             )
         self.dropped = 0
         """Messages the middleware refused (a link full for longer than its queue)."""
@@ -419,6 +428,7 @@ class RclpyTransport(TransportBase):
         self.ros_args = tuple(ros_args)
         self.ros_values = overrides(self.ros_args)  # checked before anything starts
         """dbml's parameters given in ``ros_args`` (a params file, ``-p``), by full name."""
+        qos_overrides(self.ros_args)  # checked too, before anything starts
         self.context = Context()
         options: dict[str, Any] = {"signal_handler_options": SignalHandlerOptions.NO}
         if domain_id is not None:
@@ -449,7 +459,13 @@ class RclpyTransport(TransportBase):
         try:
             # Its name says dbml's host to every peer: no remapping moves it.
             self.node = Node(
-                node_name_for(self._host), context=self.context, use_global_arguments=False
+                node_name_for(self._host),
+                context=self.context,
+                use_global_arguments=False,
+                parameter_overrides=[
+                    RosParameter(name, value=value)
+                    for name, value in qos_overrides(self.ros_args).items()
+                ],
             )
             self._executor = SingleThreadedExecutor(context=self.context)
             self._executor.add_node(self.node)
