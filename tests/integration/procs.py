@@ -13,11 +13,36 @@ from typing import Any
 
 from dbml.harness.processes import free_port
 from dbml.harness.supervisor import ProcessChild, Supervisor
+from dbml.scenarios.teleop import MAX_RATE_HZ, ROBOTS
 from dbml.transports.zenoh import ZenohTransport
 
 ROOT = Path(__file__).resolve().parents[2]
 STOP_S = 10.0
 """How long a process told to end may take before it is killed."""
+
+
+def start_rclpy_cameras(children: Supervisor, env: Mapping[str, str]) -> dict[str, ProcessChild]:
+    """The paper's two cameras as plain rclpy drivers (``rclpy_camera``), by topic.
+
+    Images serialising to each robot's size, at the cameras' 16 Hz maximum.
+    """
+    return {
+        camera.topic: children.start(
+            f"camera-{camera.robot}",
+            [
+                sys.executable,
+                "-m",
+                "tests.integration.rclpy_camera",
+                camera.topic,
+                str(MAX_RATE_HZ),
+                str(camera.size_bytes),
+            ],
+            env=env,
+            cwd=ROOT,
+            stdin=False,
+        )
+        for camera in ROBOTS
+    }
 
 
 def publish_argv(topic: str, size_bytes: int, *more: str) -> list[str]:

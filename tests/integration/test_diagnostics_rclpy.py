@@ -18,11 +18,11 @@ from typing import Any
 import pytest
 
 from dbml.harness.ros2env import claim_domain, ros2_child_env
-from dbml.harness.supervisor import ProcessChild, Supervisor
+from dbml.harness.supervisor import Supervisor
 from dbml.runtime.diagnostics import OPTIMIZER_NAME, Level, channel_name
-from dbml.scenarios.teleop import MAX_RATE_HZ, ROBOTS
+from dbml.scenarios.teleop import ROBOTS
 from tests.conftest import wait_for
-from tests.integration.procs import ROOT
+from tests.integration.procs import ROOT, start_rclpy_cameras
 
 pytest.importorskip("rclpy")
 pytest.importorskip("diagnostic_msgs")
@@ -79,22 +79,7 @@ class Statuses:
 def test_diagnostics_say_ok_then_warn_then_error_for_a_dead_driver(tmp_path: Path) -> None:
     with claim_domain() as domain_id, Supervisor(logs=tmp_path / "logs") as children:
         env = ros2_child_env(domain_id=domain_id, log_dir=tmp_path / "ros")
-        cameras: dict[str, ProcessChild] = {}
-        for camera in ROBOTS:
-            cameras[camera.topic] = children.start(
-                f"camera-{camera.robot}",
-                [
-                    sys.executable,
-                    "-m",
-                    "tests.integration.rclpy_camera",
-                    camera.topic,
-                    str(MAX_RATE_HZ),
-                    str(camera.size_bytes),
-                ],
-                env=env,
-                cwd=ROOT,
-                stdin=False,
-            )
+        cameras = start_rclpy_cameras(children, env)
         dbml = [sys.executable, "-m", "dbml"]
         ros = ["--ros-args", "--params-file", str(PARAMS)]
         children.start(
@@ -144,7 +129,7 @@ def test_diagnostics_say_ok_then_warn_then_error_for_a_dead_driver(tmp_path: Pat
             )
             dead = ROBOTS[1].topic
             driver = cameras.pop(dead)
-            driver.send_signal(signal.SIGKILL)
+            driver.send_signal(signal.SIGTERM)  # a driver that ends (and cleans up after itself)
             died = time.monotonic()
             assert driver.wait(5.0) is not None
             wait_for(

@@ -28,7 +28,7 @@ from dbml.protocol.schema import GLOBAL_PREFIX
 from dbml.scenarios.teleop import MAX_RATE_HZ, MIN_RATE_HZ, ROBOTS, STEPS
 from dbml.transports.rclpy.rosargs import channel_bounds, overrides
 from tests.conftest import wait_for
-from tests.integration.procs import ROOT
+from tests.integration.procs import ROOT, start_rclpy_cameras
 from tests.integration.test_demo import RATE_TOLERANCE, TABLE2_HZ
 
 pytest.importorskip("rclpy")
@@ -169,21 +169,7 @@ def test_ros2_run_with_the_params_file_gives_table_2s_first_step(
     params = str(install / PACKAGE / "share" / PACKAGE / "config" / "teleop.yaml")
     with claim_domain() as domain_id, Supervisor(logs=tmp_path / "logs") as children:
         env = ros2_child_env(domain_id=domain_id, log_dir=tmp_path / "ros")
-        for camera in ROBOTS:
-            children.start(
-                f"camera-{camera.robot}",
-                [
-                    sys.executable,
-                    "-m",
-                    "tests.integration.rclpy_camera",
-                    camera.topic,
-                    str(MAX_RATE_HZ),
-                    str(camera.size_bytes),
-                ],
-                env=env,
-                cwd=ROOT,
-                stdin=False,
-            )
+        start_rclpy_cameras(children, env)
         _ros2_run(
             children,
             "optimizer",

@@ -435,3 +435,24 @@ def test_rounds_are_published_to_whoever_follows_them() -> None:
     assert rounds.latest() == second
     assert second.round == first.round + 1
     rounds.close()
+
+
+def test_a_forged_sent_rate_is_refused_or_only_reported_never_allocated() -> None:
+    """``frequency/sent_value`` from the network: out of range refused, in range only shown."""
+    fleet = two_robots()
+    fleet.watch(R1)
+    fleet.watch(R2)
+    fleet.priority(R2, 10 / 17)
+    before = fleet.optimizer.optimize()
+    rates = fleet.rates()
+    for bad in (-1.0, 1e12, "fast", float("nan"), True):
+        fleet.network.forge({names.sent(R1): bad}, writer="rogue")
+        result = fleet.optimizer.optimize()
+        channel = result.report().channel(R1)
+        assert channel is not None
+        assert channel.sent_hz is None, bad  # never taken in
+    fleet.network.forge({names.sent(R1): 0.0, names.sent(R2): 1000.0}, writer="rogue")
+    result = fleet.optimizer.optimize()
+    assert {c.topic: c.sent_hz for c in result.report().channels} == {R1: 0.0, R2: 1000.0}
+    assert fleet.rates() == rates  # the allocation reads no sent rate
+    assert result.status is before.status
