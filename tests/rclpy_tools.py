@@ -9,6 +9,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from lifecycle_msgs.msg import Transition
+from lifecycle_msgs.srv import ChangeState, GetState
 from rcl_interfaces.srv import DescribeParameters, SetParameters
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -47,5 +49,33 @@ def param_describe(
         wait_for(future.done, timeout_s=CALL_TIMEOUT_S, what="the DescribeParameters reply")
         response: Any = future.result()
         return list(response.descriptors)
+    finally:
+        node.destroy_client(client)
+
+
+def lifecycle_state(node: Node, target: str, *, wait_s: float = CALL_TIMEOUT_S) -> str:
+    """What ``ros2 lifecycle get TARGET`` says: the managed node's state label."""
+    client: Any = node.create_client(GetState, f"{target}/get_state")
+    try:
+        assert client.wait_for_service(timeout_sec=wait_s), f"{target} never answered"
+        future = client.call_async(GetState.Request())
+        wait_for(future.done, timeout_s=CALL_TIMEOUT_S, what="the GetState reply")
+        response: Any = future.result()
+        return str(response.current_state.label)
+    finally:
+        node.destroy_client(client)
+
+
+def lifecycle_change(
+    node: Node, target: str, transition_id: int, *, timeout_s: float = CALL_TIMEOUT_S
+) -> bool:
+    """One ChangeState call by transition id, as Nav2's lifecycle manager makes: its success."""
+    client: Any = node.create_client(ChangeState, f"{target}/change_state")
+    try:
+        assert client.wait_for_service(timeout_sec=CALL_TIMEOUT_S), f"{target} never answered"
+        future = client.call_async(ChangeState.Request(transition=Transition(id=transition_id)))
+        wait_for(future.done, timeout_s=timeout_s, what=f"the reply to transition {transition_id}")
+        response: Any = future.result()
+        return bool(response.success)
     finally:
         node.destroy_client(client)

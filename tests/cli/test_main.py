@@ -246,6 +246,7 @@ HZ = ("--min-hz", "1", "--max-hz", "16")
         (["foxglove", "layout", "--channel", "r1"], "topic='r1'"),
         (["monitor", "--foxglove", "host:"], "--foxglove='host:' must be [HOST:]PORT"),
         (["optimizer", "--foxglove", "70000"], "--foxglove='70000': the port must be in"),
+        (["optimizer", "--lifecycle"], "--lifecycle: a ROS 2 managed node, over --transport rclpy"),
         (["monitor", "--record", "/nonexistent/dir/v.mcap"], "directory '/nonexistent/dir'"),
         (["demo", "teleop", "--record", "/"], "--record='/' is a directory"),
         (

@@ -5,7 +5,9 @@ colcon install's ``setup.sh`` and runs ``install/dbml_ros/lib/dbml_ros/<executab
 ``--ros-args`` a launch file would give (``-r __node:=``, ``-r __ns:=``, ``--params-file``);
 and it checks each launch file against what is installed. Two plain rclpy cameras publish the
 paper's frame sizes; a plain rclpy subscriber measures the optimized topics: the params file's
-Table 1 gives Table 2's first step.
+Table 1 gives Table 2's first step while the optimizer, a managed node, is active, and each
+channel's minimum while it is inactive; its transitions are the ``lifecycle_msgs`` calls Nav2's
+lifecycle manager makes.
 """
 
 from __future__ import annotations
@@ -19,12 +21,15 @@ import time
 import xml.etree.ElementTree as ET
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
+from dbml.experiment.analysis import RATE_TOLERANCE_HZ
 from dbml.harness.ros2env import claim_domain, ros2_child_env
 from dbml.harness.supervisor import Supervisor
 from dbml.protocol.schema import GLOBAL_PREFIX
+from dbml.runtime.failsafe import FAILSAFE_PERIODS
 from dbml.scenarios.teleop import MAX_RATE_HZ, MIN_RATE_HZ, ROBOTS, STEPS
 from dbml.transports.rclpy.rosargs import channel_bounds, overrides
 from tests.conftest import wait_for
@@ -34,9 +39,11 @@ from tests.integration.test_demo import RATE_TOLERANCE, TABLE2_HZ
 pytest.importorskip("rclpy")
 pytest.importorskip("colcon_core")
 
+from lifecycle_msgs.msg import Transition
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from dbml.harness.ros2node import private_node
+from tests.rclpy_tools import lifecycle_change, lifecycle_state
 
 pytestmark = pytest.mark.integration
 
@@ -47,7 +54,10 @@ BUILD_TIMEOUT_S = 120.0
 SETTLE_S = 4.0
 """From the first frame on both optimized topics: the first allocations took effect."""
 MEASURE_S = 4.0
+FAILSAFE_SETTLE_S = FAILSAFE_PERIODS * 1.0 + 1.5
+"""After a deactivation: the fail-safe's periods of silence (the file's 1 s), and a frame."""
 START_TIMEOUT_S = 60.0
+OPTIMIZER_NODE = "dbml_optimizer"
 
 
 @pytest.fixture(scope="module")
@@ -156,17 +166,24 @@ def _ros2_run(
     executable: str,
     ros_args: list[str],
     env: dict[str, str],
+    own: tuple[str, ...] = (),
 ) -> None:
-    """What ``ros2 run dbml_ros EXECUTABLE --ros-args ...`` starts, after sourcing the install."""
+    """What ``ros2 run dbml_ros EXECUTABLE [OWN] --ros-args ...`` starts, the install sourced."""
     script = f'. "{install}/setup.sh" && exec "{install}/{PACKAGE}/lib/{PACKAGE}/$0" "$@"'
-    argv = ["bash", "-c", script, executable, "--ros-args", *ros_args]
+    argv = ["bash", "-c", script, executable, *own, "--ros-args", *ros_args]
     children.start(name, argv, env=env, stdin=False)
 
 
-def test_ros2_run_with_the_params_file_gives_table_2s_first_step(
+def test_ros2_run_with_the_params_file_gives_table_2s_first_step_while_active(
     install: Path, tmp_path: Path
 ) -> None:
+    """The optimizer as a managed node, driven as Nav2's lifecycle manager drives one.
+
+    Active, the params file's Table 1 gives Table 2's first step; inactive, every channel runs
+    at its minimum, as it does with no optimizer at all (the fail-safe); shut down, it exits 0.
+    """
     params = str(install / PACKAGE / "share" / PACKAGE / "config" / "teleop.yaml")
+    topics = [f"{c.topic}/optimized" for c in ROBOTS]
     with claim_domain() as domain_id, Supervisor(logs=tmp_path / "logs") as children:
         env = ros2_child_env(domain_id=domain_id, log_dir=tmp_path / "ros")
         start_rclpy_cameras(children, env)
@@ -175,7 +192,8 @@ def test_ros2_run_with_the_params_file_gives_table_2s_first_step(
             "optimizer",
             install=install,
             executable="optimizer",
-            ros_args=["-r", "__node:=dbml_optimizer", "--params-file", params],
+            own=("--lifecycle",),
+            ros_args=["-r", f"__node:={OPTIMIZER_NODE}", "--params-file", params],
             env=env,
         )
         for camera in ROBOTS:
@@ -191,41 +209,62 @@ def test_ros2_run_with_the_params_file_gives_table_2s_first_step(
                 ],
                 env=env,
             )
-        rates = _measure(domain_id, [f"{c.topic}/optimized" for c in ROBOTS], children)
-    for measured, table2_hz in zip(rates, TABLE2_HZ[0], strict=True):
-        assert measured == pytest.approx(table2_hz, rel=RATE_TOLERANCE), rates
+        target = f"/{OPTIMIZER_NODE}"
+        with private_node("operator", domain_id=domain_id) as operator:
+            meter = _Meter(operator, topics, children)
+            assert lifecycle_state(operator, target, wait_s=START_TIMEOUT_S) == "unconfigured"
+            assert lifecycle_change(operator, target, Transition.TRANSITION_CONFIGURE)
+            assert lifecycle_state(operator, target) == "inactive"
+            assert lifecycle_change(operator, target, Transition.TRANSITION_ACTIVATE)
+            active = meter.rates(settle_s=SETTLE_S)
+            assert lifecycle_change(operator, target, Transition.TRANSITION_DEACTIVATE)
+            inactive = meter.rates(settle_s=FAILSAFE_SETTLE_S)
+            assert lifecycle_change(operator, target, Transition.TRANSITION_INACTIVE_SHUTDOWN)
+            optimizer = children.children["optimizer"]
+            wait_for(
+                lambda: optimizer.poll() is not None, timeout_s=10, what="the optimizer's exit"
+            )
+            assert optimizer.poll() == 0, optimizer.log_tail()
+    for measured, table2_hz in zip(active, TABLE2_HZ[0], strict=True):
+        assert measured == pytest.approx(table2_hz, rel=RATE_TOLERANCE), active
+    for measured in inactive:  # no allocation heard: each channel's fail-safe minimum
+        assert measured == pytest.approx(MIN_RATE_HZ, abs=RATE_TOLERANCE_HZ), inactive
 
 
-def _measure(domain_id: int, topics: list[str], children: Supervisor) -> list[float]:
-    """Each topic's rate over ``MEASURE_S``, once all have sent frames for ``SETTLE_S``."""
-    from sensor_msgs.msg import Image
+class _Meter:
+    """A plain rclpy subscriber of each topic, timing its frames."""
 
-    lock = threading.Lock()
-    arrivals: dict[str, list[float]] = {topic: [] for topic in topics}
+    def __init__(self, node: Any, topics: list[str], children: Supervisor) -> None:
+        from sensor_msgs.msg import Image
 
-    def heard(topic: str) -> None:
-        with lock:
-            arrivals[topic].append(time.monotonic())
-
-    qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
-    with private_node("operator", domain_id=domain_id) as operator:
+        self._topics = topics
+        self._children = children
+        self._lock = threading.Lock()
+        self._arrivals: dict[str, list[float]] = {topic: [] for topic in topics}
+        qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
         for topic in topics:
-            operator.create_subscription(
-                Image, topic, lambda _m, topic=topic: heard(topic), qos, raw=True
+            node.create_subscription(
+                Image, topic, lambda _m, topic=topic: self._heard(topic), qos, raw=True
             )
 
-        def all_flowing() -> bool:
-            for child in children.children.values():
-                assert child.poll() is None, f"{child.name} ended: {child.log_tail()}"
-            with lock:
-                return all(arrivals.values())
+    def _heard(self, topic: str) -> None:
+        with self._lock:
+            self._arrivals[topic].append(time.monotonic())
 
-        wait_for(all_flowing, timeout_s=START_TIMEOUT_S, what="frames on every optimized topic")
-        start = time.monotonic() + SETTLE_S
+    def _flowing(self) -> bool:
+        for child in self._children.children.values():
+            assert child.poll() is None, f"{child.name} ended: {child.log_tail()}"
+        with self._lock:
+            return all(self._arrivals.values())
+
+    def rates(self, *, settle_s: float) -> list[float]:
+        """Each topic's rate over ``MEASURE_S``, from ``settle_s`` after all have sent frames."""
+        wait_for(self._flowing, timeout_s=START_TIMEOUT_S, what="frames on every topic")
+        start = time.monotonic() + settle_s
         end = start + MEASURE_S
-        wait_for(lambda: time.monotonic() > end + 0.5, timeout_s=SETTLE_S + MEASURE_S + 5)
-    with lock:
-        return [
-            (len(window) - 1) / (window[-1] - window[0])
-            for window in ([t for t in arrivals[topic] if start <= t < end] for topic in topics)
-        ]
+        wait_for(lambda: time.monotonic() > end + 0.5, timeout_s=settle_s + MEASURE_S + 5)
+        with self._lock:
+            windows = [
+                [t for t in self._arrivals[topic] if start <= t < end] for topic in self._topics
+            ]
+        return [(len(w) - 1) / (w[-1] - w[0]) if len(w) > 1 else 0.0 for w in windows]

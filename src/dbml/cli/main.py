@@ -34,8 +34,10 @@ from dbml.harness.child import stop_on_signals
 from dbml.harness.processes import free_port
 from dbml.protocol import names
 from dbml.protocol.schema import Writer
+from dbml.runtime.lifecycle import run_managed_optimizer
 from dbml.runtime.monitor import MonitorView
 from dbml.runtime.optimizer import Round
+from dbml.runtime.serve import OptimizerRun, serve_optimizer
 from dbml.scenarios.reproduce import RobotRow, reproduce_table2
 from dbml.transports.base import Transport
 from dbml.transports.rclpy.rosargs import channel_bounds, namespace_of, overrides, split_ros_args
@@ -211,25 +213,46 @@ def _cmd_optimizer(args: argparse.Namespace) -> int:
             "--estimate needs per-message send times and sequence numbers, which "
             f"--transport {args.transport} messages do not carry: use --transport zenoh or rclpy"
         )
+    if args.lifecycle and args.transport != "rclpy":
+        raise DbmlError(
+            f"--lifecycle: a ROS 2 managed node, over --transport rclpy only (not {args.transport})"
+        )
     view = _view_target(args)
     settings: DbmSettings | None = None
     links: tuple[LinkSpec, ...] = ()
     if args.config:
         config = load_config(args.config, require_channels=False)
         settings, links = config.dbm, config.links
-    return _run_node(
-        args,
-        lambda t, stop: commands.run_optimizer(
+
+    def build(t: Transport) -> OptimizerRun:
+        return OptimizerRun(
             t,
             settings=settings,
             links=links,
-            stop=stop,
-            duration_s=args.duration,
             estimate=args.estimate,
             design=Design(args.estimator_design),
             write_defaults=entry.params_complete_at_start,
             on_round=_diagnostics(t) if args.transport == "rclpy" else None,
-        ),
+        )
+
+    def body(t: Transport, stop: threading.Event) -> int:
+        if not args.lifecycle:
+            return serve_optimizer(t, build=lambda: build(t), stop=stop, duration_s=args.duration)
+        from dbml.transports.rclpy.lifecycle import LifecycleServer
+        from dbml.transports.rclpy.transport import RclpyTransport
+
+        assert isinstance(t, RclpyTransport)  # --lifecycle is refused on every other
+        return run_managed_optimizer(
+            t,
+            build=lambda: build(t),
+            serve=lambda lifecycle: LifecycleServer(t, lifecycle),
+            stop=stop,
+            duration_s=args.duration,
+        )
+
+    return _run_node(
+        args,
+        body,
         view=view,
         writers=frozenset({Writer.OPTIMIZER, Writer.ESTIMATOR}),  # what the optimizer's node runs
     )

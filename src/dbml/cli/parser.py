@@ -153,6 +153,11 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="estimate the usable bandwidth from what subscribers receive (at most the budget)",
     )
+    optimizer_cmd.add_argument(
+        "--lifecycle",
+        action="store_true",
+        help="a ROS 2 managed node (rclpy): start unconfigured, allocate only while active",
+    )
     _design_option(optimizer_cmd)
     _transport_options(optimizer_cmd)
     _view_options(optimizer_cmd)

@@ -292,6 +292,10 @@ class OptimizerNode:
         self._channels_full = Overflow("channels tracked", MAX_CHANNELS, log=log)
         self._acks = threading.Condition()
         self.last_round: Round | None = None
+        self._active = threading.Event()
+        self._active.set()
+        self._resumed = threading.Event()
+        """Set by ``resume``: the next round pushes every rate again, as a first round would."""
         # Telemetry, not control: it never goes ahead of an allocation on a saturated link.
         self._reports = transport.declare_publisher(
             ROUND_TOPIC, priority=TransportPriority.DATA_LOW
@@ -320,7 +324,34 @@ class OptimizerNode:
         ]
 
     def _round(self) -> None:
+        if not self._active.is_set():
+            return
+        if self._resumed.is_set():
+            self._resumed.clear()
+            self._pushed = {}
+            self._pushed_at = {}
         self.optimize()  # looked up per round, so a wrapped ``optimize`` is the one that runs
+
+    # -- pausing (a lifecycle's inactive state) -----------------------------------------------
+
+    @property
+    def active(self) -> bool:
+        """Whether rounds run (until ``pause``)."""
+        return self._active.is_set()
+
+    def pause(self) -> None:
+        """Allocate nothing from the next round on: no rate, no status, no heartbeat.
+
+        Without the heartbeat every publisher falls back, ``failsafe_periods`` later, to what it
+        does with no optimizer at all. A round under way finishes.
+        """
+        self._active.clear()
+
+    def resume(self) -> None:
+        """Run rounds again, the first one now, pushing every rate as if for the first time."""
+        self._resumed.set()
+        self._active.set()
+        self.poke()
 
     # -- triggers -----------------------------------------------------------------------------
 

@@ -27,7 +27,15 @@ from dbml.runtime.optimizer import OptimizerNode, Round
 from dbml.transports.base import Transport, Variant
 from dbml.transports.worker import death_count
 
-__all__ = ["PEER_WAIT_S", "Lifetime", "Running", "run_bridge", "run_optimizer"]
+__all__ = [
+    "PEER_WAIT_S",
+    "Lifetime",
+    "OptimizerRun",
+    "Running",
+    "run_bridge",
+    "run_optimizer",
+    "serve_optimizer",
+]
 
 log = logging.getLogger("dbml")
 
@@ -85,6 +93,78 @@ class Lifetime:
         return 1
 
 
+class OptimizerRun:
+    """The optimizer node and its estimator (with ``estimate``), built together, run as one.
+
+    Built idle: ``start`` runs both, ``pause`` and ``resume`` hold and restart the allocation
+    (the estimator keeps measuring), ``close`` ends both. ``alive`` is False once a thread of
+    theirs died. A lifecycle drives these; ``run_optimizer`` starts at once.
+    """
+
+    def __init__(
+        self,
+        transport: Transport,
+        *,
+        settings: DbmSettings | None,
+        links: tuple[LinkSpec, ...],
+        estimate: bool = False,
+        design: Design = DEFAULT_DESIGN,
+        write_defaults: bool = False,
+        on_round: Callable[[Round], None] | None = None,
+    ) -> None:
+        if settings is None and transport.params.get(names.BANDWIDTH) is None:
+            log.warning("no budget yet: waiting for %s (or pass --config)", names.BANDWIDTH)
+        self.estimator = (
+            LinkEstimator(transport, settings=EstimatorSettings(detector=settings_of(design)))
+            if estimate
+            else None
+        )
+        self._design = design
+        self.node = OptimizerNode(
+            transport,
+            settings=settings,
+            links=links,
+            budget_mbit=None if self.estimator is None else self.estimator.budget_mbit,
+            write_defaults=write_defaults,
+            on_round=on_round,
+        )
+        self._host = transport.host
+        self._started = False
+
+    @property
+    def alive(self) -> bool:
+        """False once the optimizer's or the estimator's thread died."""
+        return self.node.alive and (self.estimator is None or self.estimator.alive)
+
+    def start(self) -> None:
+        """Run the estimator and the optimizer (the first round now); after a pause, resume."""
+        if self._started:
+            self.node.resume()
+            return
+        self._started = True
+        if self.estimator is not None:
+            self.estimator.on_change = self.node.poke
+            self.estimator.start()
+            log.info(
+                "estimating the bandwidth from reception reports (design %s, at most the "
+                "configured)",
+                self._design.value,
+            )
+        self.node.start()
+        log.info("optimizer running on host %s", self._host)
+
+    def pause(self) -> None:
+        """Allocate nothing until ``start``: the publishers fall back as with no optimizer."""
+        self.node.pause()
+        log.info("optimizer paused: no allocation until it is activated")
+
+    def close(self) -> None:
+        """End both (bounded waits)."""
+        self.node.stop()
+        if self.estimator is not None:
+            self.estimator.close()
+
+
 def run_optimizer(
     transport: Transport,
     *,
@@ -101,39 +181,39 @@ def run_optimizer(
 
     ``on_round`` sees each round (``OptimizerNode``'s).
     """
-    transport.wait_for_peers(PEER_WAIT_S)
-    if settings is None and transport.params.get(names.BANDWIDTH) is None:
-        log.warning("no budget yet: waiting for %s (or pass --config)", names.BANDWIDTH)
-    estimator = (
-        LinkEstimator(transport, settings=EstimatorSettings(detector=settings_of(design)))
-        if estimate
-        else None
-    )
-    node = OptimizerNode(
+    return serve_optimizer(
         transport,
-        settings=settings,
-        links=links,
-        budget_mbit=None if estimator is None else estimator.budget_mbit,
-        write_defaults=write_defaults,
-        on_round=on_round,
+        build=lambda: OptimizerRun(
+            transport,
+            settings=settings,
+            links=links,
+            estimate=estimate,
+            design=design,
+            write_defaults=write_defaults,
+            on_round=on_round,
+        ),
+        stop=stop,
+        duration_s=duration_s,
     )
-    if estimator is not None:
-        estimator.on_change = node.poke
-        estimator.start()
-        log.info(
-            "estimating the bandwidth from reception reports (design %s, at most the configured)",
-            design.value,
-        )
-    node.start()
-    log.info("optimizer running on host %s", transport.host)
-    life = Lifetime(stop, duration_s, watching=(node,) if estimator is None else (node, estimator))
+
+
+def serve_optimizer(
+    transport: Transport,
+    *,
+    build: Callable[[], OptimizerRun],
+    stop: threading.Event,
+    duration_s: float | None = None,
+) -> int:
+    """Wait for peers, build the optimizer with ``build`` and run it until the run is over."""
+    transport.wait_for_peers(PEER_WAIT_S)
+    run = build()
+    run.start()
+    life = Lifetime(stop, duration_s, watching=(run,))
     try:
         while not life.over():
             stop.wait(0.1)
     finally:
-        node.stop()
-        if estimator is not None:
-            estimator.close()
+        run.close()
     return life.exit_code()
 
 
