@@ -33,7 +33,7 @@ STUDIO := web/studio
 STUDIO_DIST := $(STUDIO)/dist/index.html
 HAVE_NPM := $(shell command -v npm >/dev/null 2>&1 && echo yes)
 
-.PHONY: run run-ros1 demo-ros1 ros1 test lint typecheck pytest pytest-ros1 bench studio screenshot clean
+.PHONY: run run-ros1 demo-ros1 ros1 setup test lint typecheck pytest pytest-ros1 bench studio screenshot clean
 
 $(STAMP): pyproject.toml
 	rm -rf $(VENV)
@@ -63,7 +63,12 @@ run-ros1: ros1
 demo-ros1: $(ROS1_STAMP)
 	$(ROS1_BIN)/dbml demo teleop --transport ros1
 
-test: lint typecheck pytest pytest-ros1
+# Both environments and the browser test's page at once: they share nothing, and each pip spends
+# a core while npm mostly waits on the registry.
+setup:
+	$(MAKE) -j3 $(STAMP) $(if $(HAVE_ROS1),$(ROS1_STAMP)) $(if $(HAVE_NPM),$(STUDIO_DIST))
+
+test: setup lint typecheck pytest pytest-ros1
 
 lint: $(STAMP)
 	$(BIN)/ruff check src tests bench ros2
@@ -73,17 +78,22 @@ typecheck: $(STAMP)
 	$(BIN)/mypy src tests bench
 
 # Without npm the browser tests skip (under CI=true they fail: the page must be there).
-# Two files at a time (pytest-xdist, a file per worker: a module's fixtures run once). The tests
-# that start real processes (integration, browser) mostly wait on the clock of their scenario
-# (0.7 of a core for two at a time, measured), so they run apart from the CPU-bound unit tests;
-# those marked alone run last, one at a time: eight robots' processes judged on latency (p95
-# 228-339 ms beside another test, under 200 alone), Chromium drawing the live demo (the demo's
-# measured rates missed Table 2's in 2 of 4 runs beside another test) and the demo on real frames
-# (beside the ROS 2 demo both missed their rates, once).
+# The CPU-bound unit tests first, two files at a time (pytest-xdist, a file per worker: a module's
+# fixtures run once). Then the tests that start real processes (integration, browser), which
+# mostly wait on the clock of their scenario (0.7 of a core for two at a time, measured), in two
+# lanes at once, one test at a time in each: the testbed's (one at a time anyway: each holds
+# /tmp/dbml-testbed.lock) and every other. Split by files, two workers often both held a testbed
+# file and one waited for the lock. Those marked alone run last, one at a time: eight robots'
+# processes judged on latency (p95 228-339 ms beside another test, under 200 alone), Chromium
+# drawing the live demo (the demo's measured rates missed Table 2's in 2 of 4 runs beside another
+# test) and the demo on real frames (beside the ROS 2 demo both missed their rates, once).
 UNIT := not ros1 and not integration and not browser and not alone
+PROCESSES := not ros1 and (integration or browser) and not alone
 pytest: $(STAMP) $(if $(HAVE_NPM),$(STUDIO_DIST))
 	$(BIN)/pytest -m "$(UNIT)" -n 2 --dist loadfile
-	$(BIN)/pytest -m "not ros1 and (integration or browser) and not alone" -n 2 --dist loadfile
+	scripts/pytest-lanes \
+		testbed '$(BIN)/pytest -m "$(PROCESSES)" tests/testbed' \
+		processes '$(BIN)/pytest -m "$(PROCESSES)" --ignore=tests/testbed'
 	$(BIN)/pytest -m "not ros1 and alone"
 
 $(STUDIO_DIST): $(STUDIO)/package.json $(STUDIO)/package-lock.json $(STUDIO)/build.mjs $(STUDIO)/index.html $(STUDIO)/page.js
