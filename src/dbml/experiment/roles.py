@@ -32,6 +32,7 @@ from dbml.core.ladder import Preference
 from dbml.core.spec import LinkSpec
 from dbml.experiment.operator import run_operator
 from dbml.experiment.spec import (
+    LADDER_MIN_QUALITY,
     PERIOD_S,
     ROLES,
     TAIL_S,
@@ -206,6 +207,7 @@ def _camera_robot(
         min_rate_hz=MIN_RATE_HZ,
         max_rate_hz=MAX_RATE_HZ,
         ladder=spec.ladder,
+        min_quality=LADDER_MIN_QUALITY if spec.ladder else None,
         default_encoding=(1.0, quality),
     )
     priority = collision_priority_source(transport, camera.topic)

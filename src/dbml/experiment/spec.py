@@ -26,6 +26,7 @@ from dbml.transports.registry import TRANSPORTS, TransportEntry
 
 __all__ = [
     "HOSTS",
+    "LADDER_MIN_QUALITY",
     "PEER_WAIT_S",
     "PERIOD_S",
     "ROLES",
@@ -49,6 +50,10 @@ ROLES = ("operator", "optimizer", *(camera.robot.lower() for camera in ROBOTS))
 """Every role, in the order they start: listeners before those that connect to them."""
 HOSTS = {"operator": "operator", "optimizer": "base-station", "r1": "robot-r1", "r2": "robot-r2"}
 """Each role's host identity: four hosts, so every robot-to-operator stream is managed."""
+LADDER_MIN_QUALITY = 0.9
+"""A laddered camera's quality floor (SSIM on its probe frame). Below it a 640x480 frame is
+visibly degraded (../shared/QUALITY.md: 320x240 q50 scores 0.83); without it a camera nobody
+prioritises was left q30 (SSIM 0.851) beside a prioritised one: frames go first instead."""
 TICK_S = 0.2
 """How often the operator reports what arrived."""
 TAIL_S = 1.0
