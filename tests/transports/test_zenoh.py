@@ -327,3 +327,28 @@ def test_a_cdr_float64_on_the_priority_topic_sets_the_priority_and_a_flood_keeps
     finally:
         heard.close()
         close_all(sessions)
+
+
+def test_a_peer_mesh_past_the_sessions_it_completes_with_says_so_once(
+    caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The no-flags mesh names the router topology once it holds more sessions than it can."""
+    import dbml.transports.zenoh.transport as transport_module
+
+    monkeypatch.setattr(transport_module, "PEER_MESH_SESSIONS", 2)
+    port = free_port()
+    with caplog.at_level(logging.WARNING, logger="dbml.zenoh"):
+        sessions = mesh(port, "base", "r1")
+        try:
+            wait_for(lambda: all(len(s._sync._live) == 1 for s in sessions), timeout_s=10)
+            assert "peer mesh" not in caplog.text  # two sessions: within what it completes
+            sessions += mesh(port, "r2", "r3")
+            wait_for(lambda: all(len(s._sync._live) == 3 for s in sessions), timeout_s=10)
+            said = [r.getMessage() for r in caplog.records if "peer mesh" in r.getMessage()]
+            assert len(said) == len(sessions)  # once per session, however many it meets
+            assert all("past 2" in line and "dbml router" in line for line in said)
+        finally:
+            close_all(sessions)
+    routed = ZenohTransport(host="r9", connect=[f"tcp/127.0.0.1:{port}"])  # not a mesh member
+    routed.close()
+    assert routed._sync._mesh_sessions is None

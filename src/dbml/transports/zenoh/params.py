@@ -98,8 +98,12 @@ class ParamSync:
         host: str,
         follow_all: bool,
         priority: zenoh.Priority,
+        mesh_sessions: int | None = None,
     ) -> None:
         self.session = session
+        self._mesh_sessions = mesh_sessions
+        """In zenoh's peer mesh: past this many sessions it is said once (else None)."""
+        self._mesh_said = False
         self.node_id = node_id
         self._priority = priority
         self._closed = False
@@ -285,6 +289,22 @@ class ParamSync:
             apart = not (self._follow_all or follows_all)
             if not apart:
                 self._zids[zid] = node
+            sessions = len(self._live) + 1
+            crowded = (
+                self._mesh_sessions is not None
+                and sessions > self._mesh_sessions
+                and not self._mesh_said
+            )
+            self._mesh_said |= crowded
+        if crowded:
+            log.warning(
+                "%d dbml sessions in zenoh's peer mesh (no --connect): past %d it did not "
+                "complete on a 2-core machine, and peers send only over direct links; run "
+                "`dbml router` and give every process --connect tcp/ROUTER:7447 "
+                "(docs/benchmarks.md)",
+                sessions,
+                self._mesh_sessions,
+            )
         self._peers.set()
         if not apart:  # two sessions that follow only their own hold nothing for each other
             self._meet(node)

@@ -119,6 +119,11 @@ OPEN_TIMEOUT_MS = 2000
 outage is sent again by TCP after 1, 3 and 7 s: an attempt given up after 2 s starts over with
 a fresh SYN, so a returning link is found within about ``OPEN_TIMEOUT_MS`` + ``RETRY_MAX_MS``
 instead of up to 4 s. A handshake takes a few round trips; 2 s leaves a radio link its due."""
+PEER_MESH_SESSIONS = 82
+"""At 83 sessions zenoh's peer mesh (dbml with no ``--connect``) never completed on a 2-core
+machine: after 60 s the robots held 0 to 74 of their 82 links (docs/benchmarks.md), and peers
+send only over direct links. A session that meets more than this says so once, naming the
+router topology, whose clients need one link each."""
 RETRY_MAX_MS = 500
 """The longest pause between two attempts to reach a ``connect`` endpoint."""
 RUNTIME_ENV = "ZENOH_RUNTIME"
@@ -446,6 +451,7 @@ class ZenohTransport(TransportBase):
     ) -> None:
         self.host = resolve_host(host)
         self.node_id = keys.new_node_id()
+        connect, listen = tuple(connect), tuple(listen)
         if port is None:
             port = int(os.environ.get("DBML_ZENOH_PORT", DEFAULT_PORT))
         config = _config(
@@ -471,6 +477,7 @@ class ZenohTransport(TransportBase):
             host=self.host,
             follow_all=follow_all_params,
             priority=_CONTROL,
+            mesh_sessions=None if connect or listen or config_file else PEER_MESH_SESSIONS,
         )
         self.params = self._sync.params
         self.graph = _ZenohGraph(self)
