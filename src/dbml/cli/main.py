@@ -224,27 +224,30 @@ def _cmd_optimizer(args: argparse.Namespace) -> int:
         config = load_config(args.config, require_channels=False)
         settings, links = config.dbm, config.links
 
-    def build(t: Transport) -> OptimizerRun:
-        return OptimizerRun(
-            t,
-            settings=settings,
-            links=links,
-            estimate=args.estimate,
-            design=Design(args.estimator_design),
-            write_defaults=entry.params_complete_at_start,
-            on_round=_diagnostics(t) if args.transport == "rclpy" else None,
-        )
-
     def body(t: Transport, stop: threading.Event) -> int:
+        on_round = _diagnostics(t) if args.transport == "rclpy" else None  # one publisher
+
+        def build() -> OptimizerRun:
+            return OptimizerRun(
+                t,
+                settings=settings,
+                links=links,
+                estimate=args.estimate,
+                design=Design(args.estimator_design),
+                write_defaults=entry.params_complete_at_start,
+                on_round=on_round,
+            )
+
         if not args.lifecycle:
-            return serve_optimizer(t, build=lambda: build(t), stop=stop, duration_s=args.duration)
+            return serve_optimizer(t, build=build, stop=stop, duration_s=args.duration)
         from dbml.transports.rclpy.lifecycle import LifecycleServer
         from dbml.transports.rclpy.transport import RclpyTransport
 
-        assert isinstance(t, RclpyTransport)  # --lifecycle is refused on every other
+        if not isinstance(t, RclpyTransport):  # refused above: a lifecycle is ROS 2's
+            raise DbmlError(f"--lifecycle: over --transport rclpy only (not {args.transport})")
         return run_managed_optimizer(
             t,
-            build=lambda: build(t),
+            build=build,
             serve=lambda lifecycle: LifecycleServer(t, lifecycle),
             stop=stop,
             duration_s=args.duration,

@@ -20,19 +20,12 @@ from dbml.runtime.publisher import FAILSAFE_PERIODS, ManagedPublisher
 from dbml.transports.base import Handle, Sample, Transport, Variant
 from dbml.transports.worker import BackgroundThread
 
-__all__ = ["BANKED_FRAMES", "FIRST_MESSAGE_TIMEOUT_S", "Bridge"]
+__all__ = ["FIRST_MESSAGE_TIMEOUT_S", "Bridge"]
 
 log = logging.getLogger("dbml.bridge")
 
 FIRST_MESSAGE_TIMEOUT_S = 10.0
 """How long ``start`` waits for the bridged topic's first message before giving up."""
-BANKED_FRAMES = 1.0
-"""The bridge's limiter keeps one frame of credit at most, so a 1-s window by send time holds
-the rate's frames and no more. A refused message is offered again once a frame is earned, so
-below the driver's rate nothing is lost; at its rate a late frame loses its lateness (61-62
-frames in 4 s of a 16-Hz ROS 2 driver allocated 16 Hz, against 63). With a publisher's two, that
-driver's jitter let 17 frames into a second: 405,543 B of JPEG against a 375,000-B budget and
-its one message of 25,114 B."""
 _STOP_POLL_S = 0.1
 """How often the pacing thread, waiting for a message, looks whether it should stop."""
 _RETRY_POLL_S = 0.05
@@ -137,7 +130,6 @@ class Bridge:
                 priority=channel.priority,
                 failsafe_periods=self._failsafe_periods,
                 republish_full=False,
-                banked_frames=BANKED_FRAMES,
             )
             self._publisher = self._camera.publisher
         else:
@@ -149,7 +141,6 @@ class Bridge:
                 priority=channel.priority,
                 failsafe_periods=self._failsafe_periods,
                 republish_full=False,
-                banked_frames=BANKED_FRAMES,
             )
         if pace:
             self._thread = BackgroundThread(

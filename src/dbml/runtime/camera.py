@@ -36,7 +36,6 @@ from dbml.media.ladder import measure_ladder
 from dbml.protocol import names
 from dbml.protocol.ladders import Encoding, encode_rungs
 from dbml.runtime.publisher import FAILSAFE_PERIODS, ManagedPublisher
-from dbml.runtime.rate import RateLimiter
 from dbml.runtime.size import SIZE_CHANGE
 from dbml.transports.base import Transport, Variant
 from dbml.transports.overflow import LogOnce
@@ -94,7 +93,6 @@ class ManagedCamera:
         probe_interval_s: float = PROBE_INTERVAL_S,
         republish_full: bool = True,
         failsafe_periods: float = FAILSAFE_PERIODS,
-        banked_frames: float = RateLimiter.BANKED_FRAMES,
     ) -> None:
         scale, quality = default_encoding
         if quality is None:
@@ -114,7 +112,6 @@ class ManagedCamera:
             failsafe_periods=failsafe_periods,
             variant=Variant.COMPRESSED,
             encoding=default_encoding,
-            banked_frames=banked_frames,
         )
         params = transport.params
         if preference is not None:

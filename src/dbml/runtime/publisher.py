@@ -120,7 +120,7 @@ class ManagedPublisher:
     rate above the declared maximum is clamped to it, and a size written by anyone else is
     overwritten by the real one: the publisher is the authority on its own bounds and size.
     ``republish_full=False`` (a bridge, whose ``[topic]`` has its own publisher) sends only
-    ``[topic]/optimized``. ``banked_frames`` is its limiter's most credit (``RateLimiter``).
+    ``[topic]/optimized``.
     """
 
     def __init__(
@@ -138,7 +138,6 @@ class ManagedPublisher:
         map_transport_priority: bool = True,
         variant: Variant = Variant.OPTIMIZED,
         encoding: Encoding | None = None,
-        banked_frames: float = RateLimiter.BANKED_FRAMES,
     ) -> None:
         names.check_channel(topic)
         # Validates the bounds with the same rules and messages as the allocation core.
@@ -168,7 +167,7 @@ class ManagedPublisher:
             period_s=self._view.dbm().period_s,
         )
         self._gate = OutageGate(topic, min_rate_hz=self.min_rate_hz)
-        self._limiter = RateLimiter(self._limit_hz(transport.now()), banked_frames=banked_frames)
+        self._limiter = RateLimiter(self._limit_hz(transport.now()))
         self._sizes = SizeTracker()
         self._steady = _UNSTEADY
         """(rate, until): while the clock is not past ``until`` an allocation of ``rate`` is

@@ -75,15 +75,10 @@ class RateLimiter:
     """
 
     BANKED_FRAMES = 2.0
-    """The most credit kept: a source that called late may catch up one message, no more.
+    """The most credit kept: a source that called late may catch up one message, no more."""
 
-    A 1-s window then holds the rate and up to two messages more. ``banked_frames=1`` keeps it
-    to one more, for a caller that offers a refused message again once a frame is earned (so
-    it loses nothing to a late source): the bridge.
-    """
-
-    def __init__(self, rate_hz: float, *, banked_frames: float = BANKED_FRAMES) -> None:
-        self._credit = _Credit(rate_hz, cap_frames=banked_frames)
+    def __init__(self, rate_hz: float) -> None:
+        self._credit = _Credit(rate_hz, cap_frames=self.BANKED_FRAMES)
 
     @property
     def rate_hz(self) -> float:

@@ -96,9 +96,9 @@ class Lifetime:
 class OptimizerRun:
     """The optimizer node and its estimator (with ``estimate``), built together, run as one.
 
-    Built idle: ``start`` runs both, ``pause`` and ``resume`` hold and restart the allocation
-    (the estimator keeps measuring), ``close`` ends both. ``alive`` is False once a thread of
-    theirs died. A lifecycle drives these; ``run_optimizer`` starts at once.
+    Built idle: ``start`` runs both (after a ``pause``, it resumes the allocation; the
+    estimator measured throughout), ``close`` ends both. ``alive`` is False once a thread of
+    theirs died. A lifecycle drives these; ``serve_optimizer`` starts at once.
     """
 
     def __init__(
