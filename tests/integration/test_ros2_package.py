@@ -19,7 +19,7 @@ import sys
 import threading
 import time
 import xml.etree.ElementTree as ET
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -29,7 +29,6 @@ from dbml.experiment.analysis import RATE_TOLERANCE_HZ
 from dbml.harness.ros2env import claim_domain, ros2_child_env
 from dbml.harness.supervisor import Supervisor
 from dbml.protocol.schema import GLOBAL_PREFIX
-from dbml.runtime.failsafe import FAILSAFE_PERIODS
 from dbml.scenarios.teleop import MAX_RATE_HZ, MIN_RATE_HZ, ROBOTS, STEPS
 from dbml.transports.rclpy.rosargs import channel_bounds, overrides
 from tests.conftest import wait_for
@@ -51,11 +50,11 @@ PACKAGE = "dbml_ros"
 SOURCE = ROOT / "ros2" / PACKAGE
 EXECUTABLES = ("optimizer", "bridge", "monitor")
 BUILD_TIMEOUT_S = 120.0
-SETTLE_S = 4.0
-"""From the first frame on both optimized topics: the first allocations took effect."""
+SETTLE_S = 3.0
+"""From when the rates moved (the allocation or the fail-safe took effect) to the measurement."""
 MEASURE_S = 4.0
-FAILSAFE_SETTLE_S = FAILSAFE_PERIODS * 1.0 + 1.5
-"""After a deactivation: the fail-safe's periods of silence (the file's 1 s), and a frame."""
+RECENT_S = 2.0
+"""The span whose frames say a topic's rate of the moment (two frames at the 1-Hz minimum)."""
 START_TIMEOUT_S = 60.0
 OPTIMIZER_NODE = "dbml_optimizer"
 
@@ -216,9 +215,12 @@ def test_ros2_run_with_the_params_file_gives_table_2s_first_step_while_active(
             assert lifecycle_change(operator, target, Transition.TRANSITION_CONFIGURE)
             assert lifecycle_state(operator, target) == "inactive"
             assert lifecycle_change(operator, target, Transition.TRANSITION_ACTIVATE)
+            # the first allocations took effect: each topic well above its minimum
+            meter.wait(lambda hz: all(h > 2 * MIN_RATE_HZ for h in hz), what="the allocation")
             active = meter.rates(settle_s=SETTLE_S)
             assert lifecycle_change(operator, target, Transition.TRANSITION_DEACTIVATE)
-            inactive = meter.rates(settle_s=FAILSAFE_SETTLE_S)
+            meter.wait(lambda hz: all(h < 2 * MIN_RATE_HZ for h in hz), what="the fail-safe")
+            inactive = meter.rates(settle_s=SETTLE_S)
             assert lifecycle_change(operator, target, Transition.TRANSITION_INACTIVE_SHUTDOWN)
             optimizer = children.children["optimizer"]
             wait_for(
@@ -256,6 +258,19 @@ class _Meter:
             assert child.poll() is None, f"{child.name} ended: {child.log_tail()}"
         with self._lock:
             return all(self._arrivals.values())
+
+    def wait(self, done: Callable[[list[float]], bool], *, what: str) -> None:
+        """Wait until ``done`` holds of each topic's frames a second over the last ``RECENT_S``."""
+
+        def recent() -> list[float]:
+            now = time.monotonic()
+            with self._lock:
+                return [
+                    sum(1 for t in self._arrivals[topic] if t > now - RECENT_S) / RECENT_S
+                    for topic in self._topics
+                ]
+
+        wait_for(lambda: self._flowing() and done(recent()), timeout_s=START_TIMEOUT_S, what=what)
 
     def rates(self, *, settle_s: float) -> list[float]:
         """Each topic's rate over ``MEASURE_S``, from ``settle_s`` after all have sent frames."""
