@@ -218,8 +218,15 @@ def test_ros2_run_with_the_params_file_gives_table_2s_first_step_while_active(
             assert lifecycle_change(operator, target, Transition.TRANSITION_CONFIGURE)
             assert lifecycle_state(operator, target) == "inactive"
             assert lifecycle_change(operator, target, Transition.TRANSITION_ACTIVATE)
-            # the first allocations took effect: each topic well above its minimum
-            meter.wait(lambda hz: all(h > 2 * MIN_RATE_HZ for h in hz), what="the allocation")
+            # the allocation took effect: each topic within 10 % of step 1 over the last 2 s (in
+            # three CI runs R1 read 8.1-8.5 Hz of 12.37 over a window from 5-7 s after the
+            # activation; why is not known, so this waits for the rate itself)
+            meter.wait(
+                lambda hz: all(
+                    abs(h - t) <= 0.1 * t for h, t in zip(hz, TABLE2_HZ[0], strict=True)
+                ),
+                what="Table 2's step 1",
+            )
             active = meter.rates(settle_s=SETTLE_S)
             assert lifecycle_change(operator, target, Transition.TRANSITION_DEACTIVATE)
             meter.wait(lambda hz: all(h < 2 * MIN_RATE_HZ for h in hz), what="the fail-safe")
