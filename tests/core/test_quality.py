@@ -134,7 +134,8 @@ def random_instance(rng: np.random.Generator, n: int) -> tuple[Problem, dict[str
 
 @pytest.mark.parametrize(
     ("seed", "n"),
-    [(seed, n) for n in (1, 2, 3, 5, 8, 12) for seed in range(4)] + [(0, 24), (1, 40)],
+    [(seed, n) for n in (1, 2, 3, 5, 8, 12) for seed in range(4)]
+    + [(0, 24), (1, 40), (0, 72), (1, 96)],  # past 64 channels: the fixed point's path
 )
 def test_within_half_a_percent_of_milp_on_random_fleets(seed: int, n: int) -> None:
     rng = np.random.default_rng(seed * 100 + n)
@@ -197,6 +198,30 @@ def test_the_budget_the_floors_and_the_quality_floors_hold(
         assert rung in allowed(ladder, size)
         assert allocation.size_bytes[i] == rung.size_bytes
         assert allocation.quality[i] == rung.quality
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    n=st.integers(65, 160),
+    seed=st.integers(0, 2**32 - 1),
+    headroom=st.floats(1.0, 4.0),
+)
+def test_a_large_fleet_keeps_the_budget_and_the_floors_and_meets_its_bound(
+    n: int, seed: int, headroom: float
+) -> None:
+    """Past 64 channels the price is found by choosing and filling in turn (a fixed point)."""
+    problem, ladders = random_instance(np.random.default_rng(seed), n)
+    problem = Problem(problem.channels, problem.bandwidth_mbit * headroom)
+    allocation = allocate_quality(problem, ladders)
+    assert allocation.status is QualityStatus.OPTIMAL, allocation.message
+    assert allocation.total_bytes_per_s <= problem.budget_bytes_per_s * (1 + 1e-9)
+    assert np.all(allocation.rate_hz >= floors_of(problem) - 1e-9)
+    assert np.all(allocation.rate_hz <= problem.arrays.max_rate_hz + 1e-9)
+    ours = achieved(problem, ladders, allocation)
+    assert ours == pytest.approx(allocation.utility, rel=1e-9)
+    assert allocation.upper_bound is not None
+    assert ours <= allocation.upper_bound * (1 + 1e-9)
+    assert ours >= allocation.upper_bound * (1 - GAP)  # the Lagrangian's bound: within 0.5 %
 
 
 def test_infeasible_floors_take_the_cheapest_rungs_and_keep_the_budget() -> None:

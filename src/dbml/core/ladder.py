@@ -10,6 +10,8 @@ the budget is short: an event chooses it, as it chooses the priority.
 from __future__ import annotations
 
 import enum
+import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -21,6 +23,7 @@ from dbml.core.spec import MAX_SIZE_BYTES, check_number
 __all__ = [
     "MAX_JPEG_QUALITY",
     "MAX_RUNGS",
+    "PREFERENCE_TERMS",
     "Ladder",
     "Preference",
     "Rung",
@@ -43,6 +46,15 @@ class Preference(enum.StrEnum):
     BALANCED = "balanced"
     KEEP_RATE = "keep_rate"
     KEEP_DETAIL = "keep_detail"
+
+
+PREFERENCE_TERMS: Mapping[Preference, tuple[float, float | None]] = {
+    Preference.BALANCED: (1.0, 1.0),
+    Preference.KEEP_RATE: (1.0, None),
+    Preference.KEEP_DETAIL: (8.0, 0.25),
+}
+"""Per preference, the utility's terms (``dbml.core.quality``): ``gamma``, the quality's
+exponent, and the rate's knee ``k`` in Hz (None: the channel's maximum rate)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -97,7 +109,8 @@ class Ladder:
     choice_sizes: tuple[float, ...] = field(init=False, repr=False, compare=False)
     choice_qualities: tuple[float, ...] = field(init=False, repr=False, compare=False)
     choice_table: npt.NDArray[np.float64] = field(init=False, repr=False, compare=False)
-    """The choices as one read-only array: rows size, quality and rung index (the solver's)."""
+    """The choices as one read-only array, the solver's (``TABLE_ROWS``): size, quality, rung
+    index, quality ** gamma, the rate's knee (NaN: the maximum rate) and position."""
 
     def __post_init__(self) -> None:
         rungs = tuple(self.rungs)
@@ -125,8 +138,17 @@ class Ladder:
         object.__setattr__(self, "choices", choices)
         object.__setattr__(self, "choice_sizes", tuple(rungs[j].size_bytes for j in choices))
         object.__setattr__(self, "choice_qualities", tuple(rungs[j].quality for j in choices))
+        gamma, knee = PREFERENCE_TERMS[preference]
         table = np.array(
-            [self.choice_sizes, self.choice_qualities, [float(j) for j in choices]], dtype=float
+            [
+                self.choice_sizes,
+                self.choice_qualities,
+                [float(j) for j in choices],
+                [q**gamma for q in self.choice_qualities],
+                [math.nan if knee is None else knee] * len(choices),
+                [float(i) for i in range(len(choices))],
+            ],
+            dtype=float,
         )
         table.flags.writeable = False
         object.__setattr__(self, "choice_table", table)

@@ -20,8 +20,10 @@ with a continuous rate. A channel without a ladder is one rung (its declared siz
 
 Solver: for a price ``lam`` per byte, each rung's best rate is closed-form,
 ``r = w Q^gamma / (L lam s) - k`` clipped to its bounds, and each channel takes the rung of
-largest ``u - lam * cost`` (the Lagrangian relaxation). The price is searched until the choice
-fits; the rungs are then fixed and the rates water-filled exactly to the budget (one sort of
+largest ``u - lam * cost`` (the Lagrangian relaxation). Above 64 channels the price is first
+sought as a fixed point (choose at a price, fill the choice's rates to the budget, take the price
+that needs, again): where the choice stays it is exact. Else the price is searched until the
+choice fits; the rungs are then fixed and the rates water-filled exactly to the budget (one sort of
 the rates' breakpoints). With few channels (at most ``EXACT_COMBINATIONS`` rung combinations)
 every combination is water-filled instead and the best kept: exact. The dual value bounds the
 optimum from above (``upper_bound``).
@@ -40,7 +42,7 @@ import numpy as np
 import numpy.typing as npt
 
 from dbml.core.errors import SpecError
-from dbml.core.ladder import Ladder, Preference
+from dbml.core.ladder import PREFERENCE_TERMS, Ladder, Preference
 from dbml.core.priority import normalize_priorities
 from dbml.core.spec import BYTES_PER_S_PER_MBIT, Problem
 
@@ -61,17 +63,6 @@ IntArray = npt.NDArray[np.intp]
 
 WEIGHT_BASE = 0.1
 """What a channel without priority weighs beside a fully prioritised one (1 + 0.1)."""
-PREFERENCE_TERMS: Mapping[Preference, tuple[float, float | None]] = {
-    Preference.BALANCED: (1.0, 1.0),
-    Preference.KEEP_RATE: (1.0, None),
-    Preference.KEEP_DETAIL: (8.0, 0.25),
-}
-"""Per preference: ``gamma`` (the quality's exponent) and the rate's knee ``k`` in Hz (None: the
-channel's maximum rate)."""
-_TERMS: Mapping[Preference | None, tuple[float, float]] = {
-    **{p: (g, math.nan if k is None else k) for p, (g, k) in PREFERENCE_TERMS.items()},
-    None: (1.0, 1.0),  # a channel without a ladder
-}
 EXACT_COMBINATIONS = 1024
 """Up to this many rung combinations, every one is tried (exact); beyond, the Lagrangian price."""
 LOCAL_SEARCH_CHANNELS = 16
@@ -81,6 +72,14 @@ _LOCAL_PASSES = 8
 _TIGHT_BOUND_CHANNELS = 64
 """Up to this many channels, the duals at the price bracket's ends are computed too: with few
 channels the Lagrangian's gap is wider, and two more choices cost little."""
+_FIXED_POINT_STEPS = 8
+"""Bound on the choose-then-fill rounds tried before the bracketed price search, which starts
+from the prices they tried (1-5 rounds settle the bench's fleets of 80-320 cameras)."""
+_SETTLING = 2 / 3
+"""A round must move at most this share of the channels the one before moved, else the
+rounds stop: a choice that settles this slowly is found sooner by the bracket."""
+_STEP_OUT = 4.0
+"""How far a bracket's missing end is sought from the nearest price tried (a factor)."""
 _PRICE_STEPS = 100
 """Bound on the price search's steps (each halves the bracket or closes on its end)."""
 _PRICE_REL_TOL = 1e-9
@@ -158,29 +157,34 @@ class _Table:
 def _table(problem: Problem, ladders: Mapping[str, Ladder], floors: FloatArray) -> _Table:
     arrays = problem.arrays
     n = len(problem.topics)
-    found = [ladders.get(topic) for topic in problem.topics]
-    # One array per channel (size, quality, rung index), concatenated: no loop per rung.
+    # Every channel's choices (``Ladder.choice_table``) concatenated: what varies per rung is
+    # read from the rows, with no loop per channel but the gathering. A channel without a
+    # ladder is one rung of its declared size, quality 1, knee 1 Hz.
     parts = [
-        np.array([[arrays.size_bytes[i]], [1.0], [-1.0]]) if lad is None else lad.choice_table
-        for i, lad in enumerate(found)
+        lad.choice_table
+        if (lad := ladders.get(topic)) is not None
+        else np.array([[arrays.size_bytes[i]], [1.0], [-1.0], [1.0], [1.0], [0.0]])
+        for i, topic in enumerate(problem.topics)
     ]
-    counts = np.array([p.shape[1] for p in parts])
+    flat = np.concatenate(parts, axis=1)
+    starts = np.flatnonzero(flat[5] == 0)  # each channel's first choice
+    counts = np.diff(np.append(starts, flat.shape[1]))
     m = int(counts.max())
     filled = np.arange(m) < counts[:, None]  # row-major: each channel's rungs in order
-    flat = np.concatenate(parts, axis=1)
     size = np.full((n, m), np.inf)
     size[filled] = flat[0]
     quality = np.zeros((n, m))
     quality[filled] = flat[1]
     rung = np.full((n, m), -1, dtype=np.intp)
     rung[filled] = flat[2]
-    terms = np.array([_TERMS[lad.preference] if lad else _TERMS[None] for lad in found])
-    gamma, knee = terms[:, 0], terms[:, 1]
+    valued = np.zeros((n, m))
+    valued[filled] = flat[3]  # Q ** gamma
     hi = arrays.max_rate_hz
+    knee = flat[4][starts]
     knee = np.where(np.isnan(knee), hi, knee)  # nan: the maximum rate
     weight = WEIGHT_BASE + normalize_priorities(arrays.priority, arrays.size_bytes)
     span = np.log1p(hi / knee)
-    coef = np.where(filled, weight[:, None] * quality ** gamma[:, None] / span[:, None], 0.0)
+    coef = (weight / span)[:, None] * valued  # 0 where masked
     return _Table(
         size=size,
         coef=coef,
@@ -262,7 +266,7 @@ def _fill(table: _Table, cols: IntArray, budget: float) -> tuple[FloatArray, flo
     """
     coef, size = _picked(table, cols)
     lo, hi, knee = table.lo, table.hi, table.knee
-    price = float(_fill_prices(coef[None], size[None], lo=lo, hi=hi, knee=knee, budget=budget)[0])
+    price = _fill_price(coef, size, lo=lo, hi=hi, knee=knee, budget=budget)
     if price == 0:
         return _free(coef, lo=lo, hi=hi), 0.0
     return _within(table, size, _rates(coef, size, price, knee, lo=lo, hi=hi), budget), price
@@ -307,6 +311,49 @@ def _best_fill(
         )
     k = int(np.argmax((coef * np.log1p(rates / knee)).sum(axis=1)))
     return candidates[k], _within(table, size[k], rates[k], budget), float(price[k])
+
+
+def _fill_price(
+    coef: FloatArray,
+    size: FloatArray,
+    *,
+    lo: FloatArray,
+    hi: FloatArray,
+    knee: FloatArray,
+    budget: float,
+) -> float:
+    """``_fill_prices`` for one choice of rungs, in fewer steps (the price search's inner loop).
+
+    In ``mu = 1 / price`` a channel spends ``clip(c mu - s k, s lo, s hi)``: flat at its floor
+    until ``mu = s (lo + k) / c``, then rising at slope ``c`` until ``s (hi + k) / c``, then flat.
+    The total is piecewise linear: sorted, the breakpoints give it at every corner, and the
+    budget is met on the segment between the two that bracket it.
+    """
+    floor = float(size @ lo)
+    worth = coef > 0
+    if worth.all():  # the common case: no rung worth nothing, no copies
+        full = float(size @ hi)
+        c, sized, low, high, k = coef, size, lo, hi, knee
+    else:
+        full = float(size @ np.where(worth, hi, lo))
+        c, sized, low, high, k = coef[worth], size[worth], lo[worth], hi[worth], knee[worth]
+    if full <= budget * (1 + _BUDGET_REL_TOL):
+        return 0.0
+    per_worth = sized / c
+    corners = np.concatenate([per_worth * (low + k), per_worth * (high + k)])
+    order = np.argsort(corners, kind="stable")
+    mu = corners[order]
+    slope = np.cumsum(np.concatenate([c, -c])[order])  # after each corner
+    spend = np.empty_like(mu)
+    spend[0] = floor
+    np.cumsum(slope[:-1] * np.diff(mu), out=spend[1:])
+    spend[1:] += floor
+    t = int(np.searchsorted(spend, budget, side="left"))  # first corner spending the budget
+    if t == 0:  # only rounding: the floors are the budget
+        return float(1.0 / mu[0])
+    t = min(t, len(mu) - 1)
+    mu_star = mu[t - 1] + (budget - spend[t - 1]) / slope[t - 1] if slope[t - 1] > 0 else mu[t]
+    return float(1.0 / min(max(mu_star, mu[t - 1]), mu[t]))
 
 
 def _fill_prices(
@@ -407,15 +454,34 @@ def _priced(table: _Table, budget: float) -> tuple[IntArray, FloatArray, float]:
     finite = table.valid & (table.coef > 0)
     if not finite.any():  # nothing is worth anything: every channel at its floor, cheapest rung
         return np.argmin(table.size, axis=1), table.lo.copy(), 0.0
+    ends: list[tuple[float, IntArray, float]] = []
+    if len(table.lo) > _TIGHT_BOUND_CHANNELS:
+        found = _fixed_point(table, budget, ends)
+        if found is not None:
+            return found
+    # The bracket: the tightest of the fixed point's prices on each side (a side it never
+    # reached: stepped out from the nearest price tried), else a wide one.
+    over = [end for end in ends if end[2] > budget]
+    within = [end for end in ends if end[2] <= budget]
     per_byte = table.coef / np.where(finite, table.size, 1.0)
-    knee = table.knee[:, None]
-    low = float((per_byte / (table.hi[:, None] + knee))[finite].min()) / 2
-    high = max(float((per_byte / (table.lo[:, None] + knee))[finite].max()) * 2, low * 4)
-
-    cols_low, rates_low = _choose(table, low)
-    spend_low = float(_picked(table, cols_low)[1] @ rates_low)
-    cols_high, rates_high = _choose(table, high)
-    spend_high = float(_picked(table, cols_high)[1] @ rates_high)
+    widest_low = float((per_byte / (table.hi + table.knee)[:, None])[finite].min()) / 2
+    widest_high = float((per_byte / (table.lo + table.knee)[:, None])[finite].max()) * 2
+    if over:
+        low, cols_low, spend_low = max(over, key=lambda end: end[0])
+    else:
+        low = max(min((end[0] for end in within), default=widest_low) / _STEP_OUT, widest_low)
+        for _ in range(_PRICE_STEPS):  # a price low enough that the choice overspends
+            cols_low, rates_low = _choose(table, low)
+            spend_low = float(_picked(table, cols_low)[1] @ rates_low)
+            if spend_low > budget or low <= widest_low:
+                break
+            low = max(low / _STEP_OUT, widest_low)
+    if within:
+        high, cols_high, spend_high = min(within, key=lambda end: end[0])
+    else:
+        high = low * _STEP_OUT if over else max(widest_high, low * 4)
+        cols_high, rates_high = _choose(table, high)
+        spend_high = float(_picked(table, cols_high)[1] @ rates_high)
     for _ in range(_PRICE_STEPS):  # the cheapest rungs win at a price high enough
         if spend_high <= budget:
             break
@@ -463,6 +529,54 @@ def _priced(table: _Table, budget: float) -> tuple[IntArray, FloatArray, float]:
             assert found is not None  # cols fit
             cols, rates, _ = found
     return cols, rates, bound
+
+
+def _fixed_point(
+    table: _Table, budget: float, ends: list[tuple[float, IntArray, float]]
+) -> tuple[IntArray, FloatArray, float] | None:
+    """The rungs chosen at the very price at which their own rates spend the budget: exact.
+
+    From the most valuable rungs (or the cheapest, if those floors do not fit): fill their
+    rates to the budget, choose every channel's rung at the price that takes, and again, until
+    the choice stays. There the rates are each rung's best
+    at that price and spend the budget whole, so the Lagrangian's bound is met: nothing within
+    the budget is worth more. Where one channel's rung flips back and forth (the relaxation's
+    gap), the better of its two fills, bounded by the dual at that price. None when the choice
+    settles slowly (``_SETTLING``) or a choice's floors do not fit; the bracketed search follows,
+    from the prices tried: each with its choice and what that spends is added to ``ends``.
+    """
+    lo, hi, knee = table.lo, table.hi, table.knee
+    # From the most valuable rungs (the caller found they do not fit at their maximum rates,
+    # so they spend the budget at a positive price), or the cheapest if their floors do not fit.
+    cols = np.argmax(np.where(table.valid, table.coef, -np.inf), axis=1)
+    if float(_picked(table, cols)[1] @ lo) > budget * (1 + _BUDGET_REL_TOL):
+        cols = np.argmin(table.size, axis=1)
+    moved = len(cols)  # how many channels the last round moved to another rung
+    for _ in range(_FIXED_POINT_STEPS):
+        coef, size = _picked(table, cols)
+        if float(size @ lo) > budget * (1 + _BUDGET_REL_TOL):
+            return None
+        price = _fill_price(coef, size, lo=lo, hi=hi, knee=knee, budget=budget)
+        if price == 0:
+            return None  # every rate at its maximum fits: the caller's free case
+        chosen, rates = _choose(table, price)
+        chosen_size = _picked(table, chosen)[1]
+        ends.append((price, chosen, float(chosen_size @ rates)))
+        if np.array_equal(chosen, cols):
+            value = float((coef * np.log1p(rates / knee)).sum())
+            spend = float(size @ rates)
+            bound = value + price * (budget - spend)  # the dual at this price
+            return cols, _within(table, size, rates, budget), max(bound, value)
+        changed = int(np.count_nonzero(chosen != cols))
+        if changed == moved == 1:  # one channel's rung in doubt, twice: each way, the better
+            found = _best_fill(table, np.stack([cols, chosen]), budget)
+            if found is None:
+                return None
+            return found[0], found[1], _dual(table, price, budget)[0]
+        if changed > moved * _SETTLING:
+            return None  # not settling (or a cycle): the bracket's ends are in ``ends``
+        cols, moved = chosen, changed
+    return None
 
 
 def _interpolate(
