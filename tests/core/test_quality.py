@@ -224,6 +224,35 @@ def test_a_large_fleet_keeps_the_budget_and_the_floors_and_meets_its_bound(
     assert ours >= allocation.upper_bound * (1 - GAP)  # the Lagrangian's bound: within 0.5 %
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_the_next_round_from_the_last_price_finds_what_a_cold_solve_finds(seed: int) -> None:
+    """``price_hint`` only moves where the search starts: a priority event, then both ways."""
+    rng = np.random.default_rng(seed)
+    problem, ladders = random_instance(rng, 120)
+    first = allocate_quality(problem, ladders)
+    assert first.price_per_byte > 0  # the budget binds: a price was paid
+    channels = list(problem.channels)
+    for i in rng.choice(len(channels), size=3, replace=False):
+        c = channels[i]
+        channels[i] = ChannelSpec(c.topic, c.min_rate_hz, c.max_rate_hz, c.size_bytes, 0.9)
+    moved = Problem(tuple(channels), problem.bandwidth_mbit)
+    cold = allocate_quality(moved, ladders)
+    for hint in (first.price_per_byte, first.price_per_byte * 100, first.price_per_byte / 100):
+        warm = allocate_quality(moved, ladders, price_hint=hint)
+        assert warm.utility == pytest.approx(cold.utility, rel=1e-9)
+        assert warm.total_bytes_per_s <= moved.budget_bytes_per_s * (1 + 1e-9)
+
+
+def test_the_price_is_zero_when_every_maximum_fits_and_nan_when_floors_do_not() -> None:
+    ladders = {"/r1/camera": photo_ladder()}
+    roomy = Problem((ChannelSpec("/r1/camera", 1, 16, 84_000, 0.0),), 100.0)
+    assert allocate_quality(roomy, ladders).price_per_byte == 0.0
+    short = Problem((ChannelSpec("/r1/camera", 10, 16, 84_000, 0.0),), 0.1)
+    allocation = allocate_quality(short, ladders)
+    assert allocation.status is QualityStatus.INFEASIBLE
+    assert math.isnan(allocation.price_per_byte)
+
+
 def test_infeasible_floors_take_the_cheapest_rungs_and_keep_the_budget() -> None:
     problem = Problem(
         (ChannelSpec("/a", 10, 16, 84_000, 1.0), ChannelSpec("/b", 10, 16, 84_000, 1.0)), 0.5

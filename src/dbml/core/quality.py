@@ -21,12 +21,13 @@ with a continuous rate. A channel without a ladder is one rung (its declared siz
 Solver: for a price ``lam`` per byte, each rung's best rate is closed-form,
 ``r = w Q^gamma / (L lam s) - k`` clipped to its bounds, and each channel takes the rung of
 largest ``u - lam * cost`` (the Lagrangian relaxation). Above 64 channels the price is first
-sought as a fixed point (choose at a price, fill the choice's rates to the budget, take the price
-that needs, again): where the choice stays it is exact. Else the price is searched until the
-choice fits; the rungs are then fixed and the rates water-filled exactly to the budget (one sort of
-the rates' breakpoints). With few channels (at most ``EXACT_COMBINATIONS`` rung combinations)
-every combination is water-filled instead and the best kept: exact. The dual value bounds the
-optimum from above (``upper_bound``).
+sought as a fixed point (choose at a price, fill the choice's rates to the budget, take the
+price that needs, again; from the last allocation's price when the caller gives it): where the
+choice stays it is exact. Else the price is searched until the choice fits; the rungs are then
+fixed and the rates water-filled exactly to the budget (one sort of the rates' breakpoints).
+With few channels (at most ``EXACT_COMBINATIONS`` rung combinations) every combination is
+water-filled instead and the best kept: exact. The dual value bounds the optimum from above
+(``upper_bound``).
 Infeasibility is a status: when the floors do not fit on the cheapest rungs, the floors are
 pulled back toward the minimums as ``allocate`` does, on the cheapest rungs.
 """
@@ -119,6 +120,10 @@ class QualityAllocation:
     quality: FloatArray
     utility: float
     upper_bound: float | None
+    price_per_byte: float = math.nan
+    """The utility a byte a second is worth at the margin: the Lagrangian price at which the
+    rates spend the budget (0: every rate at its maximum fits; NaN: infeasible). The next
+    round's ``price_hint``."""
 
     @property
     def success(self) -> bool:
@@ -440,25 +445,28 @@ def _improve(
     return cols, rates
 
 
-def _priced(table: _Table, budget: float) -> tuple[IntArray, FloatArray, float]:
-    """The Lagrangian price search, then the exact rates for its rungs; and the dual's bound.
+def _priced(
+    table: _Table, budget: float, hint: float | None = None
+) -> tuple[IntArray, FloatArray, float, float]:
+    """The Lagrangian price search; the exact rates for its rungs, the bound and the price.
 
-    Only the channels whose rung differs at the bracket's two ends are chosen again at each
-    step; the others keep their rung and only their rate follows the price.
+    ``hint``: a price to start from (the last round's). Only the channels whose rung differs at
+    the bracket's two ends are chosen again at each step; the others keep their rung and only
+    their rate follows the price.
     """
     # Free: every rate at its maximum, so each channel's best rung is its most valuable.
     cols = np.argmax(np.where(table.valid, table.coef, -np.inf), axis=1)
     size = _picked(table, cols)[1]
     if float(size @ table.hi) <= budget:
-        return cols, table.hi.copy(), _value(table, cols, table.hi)
+        return cols, table.hi.copy(), _value(table, cols, table.hi), 0.0
     finite = table.valid & (table.coef > 0)
     if not finite.any():  # nothing is worth anything: every channel at its floor, cheapest rung
-        return np.argmin(table.size, axis=1), table.lo.copy(), 0.0
+        return np.argmin(table.size, axis=1), table.lo.copy(), 0.0, 0.0
     ends: list[tuple[float, IntArray, float]] = []
     if len(table.lo) > _TIGHT_BOUND_CHANNELS:
-        found = _fixed_point(table, budget, ends)
-        if found is not None:
-            return found
+        settled = _fixed_point(table, budget, ends, hint)
+        if settled is not None:
+            return settled
     # The bracket: the tightest of the fixed point's prices on each side (a side it never
     # reached: stepped out from the nearest price tried), else a wide one.
     over = [end for end in ends if end[2] > budget]
@@ -518,7 +526,8 @@ def _priced(table: _Table, budget: float) -> tuple[IntArray, FloatArray, float]:
     found = _best_fill(table, np.stack([cols_high, cols_low]), budget)
     if found is None:  # not expected: the high end's choice fits at its price
         cols = np.argmin(table.size, axis=1)
-        return cols, _water_fill(table, cols, budget), _dual(table, high, budget)[0]
+        rates, price = _fill(table, cols, budget)
+        return cols, rates, _dual(table, high, budget)[0], price
     cols, rates, price = found
     if not few:
         # The dual at the price that spends the budget bounds the optimum tightly; its own
@@ -527,16 +536,20 @@ def _priced(table: _Table, budget: float) -> tuple[IntArray, FloatArray, float]:
         if (exact != cols).any():
             found = _best_fill(table, np.stack([cols, exact]), budget)
             assert found is not None  # cols fit
-            cols, rates, _ = found
-    return cols, rates, bound
+            cols, rates, price = found
+    return cols, rates, bound, price
 
 
 def _fixed_point(
-    table: _Table, budget: float, ends: list[tuple[float, IntArray, float]]
-) -> tuple[IntArray, FloatArray, float] | None:
+    table: _Table,
+    budget: float,
+    ends: list[tuple[float, IntArray, float]],
+    hint: float | None = None,
+) -> tuple[IntArray, FloatArray, float, float] | None:
     """The rungs chosen at the very price at which their own rates spend the budget: exact.
 
-    From the most valuable rungs (or the cheapest, if those floors do not fit): fill their
+    From the rungs chosen at ``hint`` (the last round's price: one round when little moved),
+    else the most valuable rungs (or the cheapest, if those floors do not fit): fill their
     rates to the budget, choose every channel's rung at the price that takes, and again, until
     the choice stays. There the rates are each rung's best
     at that price and spend the budget whole, so the Lagrangian's bound is met: nothing within
@@ -549,6 +562,8 @@ def _fixed_point(
     # From the most valuable rungs (the caller found they do not fit at their maximum rates,
     # so they spend the budget at a positive price), or the cheapest if their floors do not fit.
     cols = np.argmax(np.where(table.valid, table.coef, -np.inf), axis=1)
+    if hint is not None and math.isfinite(hint) and hint > 0:
+        cols = _choose(table, hint)[0]
     if float(_picked(table, cols)[1] @ lo) > budget * (1 + _BUDGET_REL_TOL):
         cols = np.argmin(table.size, axis=1)
     moved = len(cols)  # how many channels the last round moved to another rung
@@ -566,13 +581,13 @@ def _fixed_point(
             value = float((coef * np.log1p(rates / knee)).sum())
             spend = float(size @ rates)
             bound = value + price * (budget - spend)  # the dual at this price
-            return cols, _within(table, size, rates, budget), max(bound, value)
+            return cols, _within(table, size, rates, budget), max(bound, value), price
         changed = int(np.count_nonzero(chosen != cols))
         if changed == moved == 1:  # one channel's rung in doubt, twice: each way, the better
             found = _best_fill(table, np.stack([cols, chosen]), budget)
             if found is None:
                 return None
-            return found[0], found[1], _dual(table, price, budget)[0]
+            return found[0], found[1], _dual(table, price, budget)[0], found[2]
         if changed > moved * _SETTLING:
             return None  # not settling (or a cycle): the bracket's ends are in ``ends``
         cols, moved = chosen, changed
@@ -634,11 +649,15 @@ def utility(
     return _value(table, cols, np.asarray(rate_hz, dtype=float))
 
 
-def allocate_quality(problem: Problem, ladders: Mapping[str, Ladder]) -> QualityAllocation:
+def allocate_quality(
+    problem: Problem, ladders: Mapping[str, Ladder], *, price_hint: float | None = None
+) -> QualityAllocation:
     """A rung and a rate for every channel (see the module docstring); infeasible is a status.
 
     ``ladders`` by topic; a topic not in the problem is an error, a channel without a ladder
     keeps its declared size. Per-link limits are not supported yet (``SpecError``).
+    ``price_hint``: the last allocation's ``price_per_byte``, where a large fleet's search
+    starts (the answer does not depend on it, only how soon it is found).
     """
     unknown = sorted(set(ladders) - set(problem.topics))
     if unknown:
@@ -656,7 +675,7 @@ def allocate_quality(problem: Problem, ladders: Mapping[str, Ladder]) -> Quality
     rows = np.arange(len(problem.topics))
     cheapest = np.argmin(table.size, axis=1)
     cheap_size = table.size[rows, cheapest]
-    status, upper = QualityStatus.OPTIMAL, None
+    status, upper, price = QualityStatus.OPTIMAL, None, math.nan
     need = float(cheap_size @ floors)
     if need > budget * (1 + _BUDGET_REL_TOL):
         cols = cheapest
@@ -681,10 +700,12 @@ def allocate_quality(problem: Problem, ladders: Mapping[str, Ladder]) -> Quality
     else:
         if float(np.log(table.valid.sum(axis=1)).sum()) <= math.log(EXACT_COMBINATIONS) + 1e-9:
             cols, rates = _exact(table, budget)  # every combination: its value is the bound
+            price = _fill(table, cols, budget)[1]
         else:
-            cols, rates, upper = _priced(table, budget)
+            cols, rates, upper, price = _priced(table, budget, price_hint)
             if len(cols) <= LOCAL_SEARCH_CHANNELS:
                 cols, rates = _improve(table, cols, rates, budget)
+                price = _fill(table, cols, budget)[1]
         message = ""
     chosen_size = table.size[rows, cols]
     used = float(chosen_size @ rates)
@@ -708,6 +729,7 @@ def allocate_quality(problem: Problem, ladders: Mapping[str, Ladder]) -> Quality
         quality=_frozen(table.quality[rows, cols]),
         utility=value,
         upper_bound=upper,
+        price_per_byte=price,
     )
 
 

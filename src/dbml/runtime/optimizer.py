@@ -228,9 +228,11 @@ class _Outcome:
     """The rate-and-quality allocation's result, when it ran."""
 
 
-def _quality_outcome(problem: Problem, ladders: Mapping[str, Ladder]) -> _Outcome:
+def _quality_outcome(
+    problem: Problem, ladders: Mapping[str, Ladder], price_hint: float | None
+) -> _Outcome:
     """A rung and a rate for every channel (``allocate_quality``): the laddered ones' rungs."""
-    quality = allocate_quality(problem, ladders)
+    quality = allocate_quality(problem, ladders, price_hint=price_hint)
     rates = {t: float(r) for t, r in zip(quality.topics, quality.rate_hz, strict=True)}
     encodings: dict[str, Encoding] = {}
     for i, topic in enumerate(quality.topics):
@@ -270,6 +272,8 @@ class OptimizerNode:
         self._on_round = on_round
         self._watcher_failed = False
         self._links = tuple(links)
+        self._price_hint: float | None = None
+        """The last quality allocation's price: the next one's search starts there."""
         self._report_interval_s = report_interval_s
         self._reported_s = -math.inf
         self._ack_timeout_s = ack_timeout_s
@@ -489,7 +493,10 @@ class OptimizerNode:
         )
         ladders = {c.topic: ladder for c in managed if c.topic in topics and (ladder := c.ladder())}
         if ladders and dbm.strategy is Strategy.PAPER and not links:
-            return _quality_outcome(problem, ladders)
+            outcome = _quality_outcome(problem, ladders, self._price_hint)
+            assert outcome.quality is not None
+            self._price_hint = outcome.quality.price_per_byte  # where the next round starts
+            return outcome
         allocation = allocate(problem, strategy=dbm.strategy)
         return _Outcome(
             allocation.status, allocation.message, allocation.rates_by_topic(), allocation
