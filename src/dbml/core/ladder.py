@@ -109,7 +109,7 @@ class Ladder:
     choice_sizes: tuple[float, ...] = field(init=False, repr=False, compare=False)
     choice_qualities: tuple[float, ...] = field(init=False, repr=False, compare=False)
     choice_table: npt.NDArray[np.float64] = field(init=False, repr=False, compare=False)
-    """The choices as one read-only array, the solver's (``TABLE_ROWS``): size, quality, rung
+    """The choices as one read-only array, the solver's rows: size, quality, rung
     index, quality ** gamma, the rate's knee (NaN: the maximum rate) and position."""
 
     def __post_init__(self) -> None:
