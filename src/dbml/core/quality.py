@@ -411,14 +411,14 @@ def _value(table: _Table, cols: IntArray, rates: FloatArray) -> float:
     return float((coef * np.log1p(rates / table.knee)).sum())
 
 
-def _exact(table: _Table, budget: float) -> tuple[IntArray, FloatArray]:
-    """Every combination of rungs whose floors fit, water-filled together (by price); the best."""
+def _exact(table: _Table, budget: float) -> tuple[IntArray, FloatArray, float]:
+    """Every combination of rungs whose floors fit, filled together; the best and its price."""
     counts = [int(c) for c in table.valid.sum(axis=1)]
     combos = np.array(list(np.ndindex(*counts)), dtype=np.intp)  # (K, n)
     found = _best_fill(table, combos, budget)
     if found is None:  # not expected: the caller checked the cheapest rungs' floors
         raise AssertionError("no rung combination fits its floors")
-    return found[0], found[1]
+    return found
 
 
 def _improve(
@@ -699,8 +699,7 @@ def allocate_quality(
         status = QualityStatus.INFEASIBLE
     else:
         if float(np.log(table.valid.sum(axis=1)).sum()) <= math.log(EXACT_COMBINATIONS) + 1e-9:
-            cols, rates = _exact(table, budget)  # every combination: its value is the bound
-            price = _fill(table, cols, budget)[1]
+            cols, rates, price = _exact(table, budget)  # every combination: value is the bound
         else:
             cols, rates, upper, price = _priced(table, budget, price_hint)
             if len(cols) <= LOCAL_SEARCH_CHANNELS:
