@@ -75,7 +75,10 @@ def why_failed(stdout: str, stderr: str) -> str:
 def children_of(pid: int) -> set[int]:
     found: set[int] = set()
     for task in Path(f"/proc/{pid}/task").glob("*"):
-        children = (task / "children").read_text().split()
+        try:
+            children = (task / "children").read_text().split()
+        except FileNotFoundError:  # the thread ended between the listing and the read
+            continue
         found.update(int(c) for c in children)
     return found
 
