@@ -11,7 +11,13 @@ from hypothesis import strategies as st
 from dbml.core.errors import SpecError
 from dbml.core.ladder import MAX_RUNGS, Rung
 from dbml.protocol import names
-from dbml.protocol.ladders import decode_rungs, encode_rungs, encoding_label, parse_encoding
+from dbml.protocol.ladders import (
+    decode_rungs,
+    encode_rungs,
+    encoding_label,
+    parse_encoding,
+    parse_rung_label,
+)
 from dbml.protocol.schema import ParamError, check_param
 
 rungs = st.builds(
@@ -36,6 +42,16 @@ def test_a_ladder_survives_its_text(ladder: list[Rung]) -> None:
 @given(st.sampled_from([1.0, 0.5, 0.25, 0.75]), st.one_of(st.none(), st.integers(1, 100)))
 def test_an_encoding_survives_its_label(scale: float, quality: int | None) -> None:
     assert parse_encoding(encoding_label(scale, quality)) == (scale, quality)
+    assert parse_rung_label(encoding_label(scale, quality)) == ((scale, quality), None)
+
+
+@given(st.sampled_from([1.0, 0.5, 0.25]), st.integers(1, 100), st.floats(0.5, 1e9))
+def test_the_bytes_a_rung_was_counted_at_survive_its_label(
+    scale: float, quality: int, size_bytes: float
+) -> None:
+    label = encoding_label(scale, quality, size_bytes=size_bytes)
+    assert parse_rung_label(label) == ((scale, quality), max(round(size_bytes), 1))
+    assert parse_encoding(label) == (scale, quality)
 
 
 @pytest.mark.parametrize(
@@ -60,7 +76,11 @@ def test_a_bad_ladder_is_refused_naming_its_value(text: str, named: str) -> None
     assert "\n" not in message
 
 
-@pytest.mark.parametrize("label", ["x2 q50", "x1 q0", "x1 q101", "1 q50", "x0.5", "", "x0 raw"])
+_BAD_LABELS = ["x2 q50", "x1 q0", "x1 q101", "1 q50", "x0.5", "", "x0 raw"]
+_BAD_BYTES = ["x1 q50 0B", "x1 q50 12", "x1 q50 -3B", "x1 q50 9999999999B", "x1 q50 1.5B"]
+
+
+@pytest.mark.parametrize("label", [*_BAD_LABELS, *_BAD_BYTES])
 def test_a_bad_encoding_is_refused_naming_it(label: str) -> None:
     with pytest.raises(SpecError, match="encoding="):
         parse_encoding(label)

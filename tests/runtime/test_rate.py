@@ -5,6 +5,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from dbml.runtime import Rate, RateLimiter
+from dbml.runtime.rate import ByteWindow
 from dbml.transports import ManualClock
 
 
@@ -201,3 +202,63 @@ def test_the_limiters_wait_is_the_time_to_its_next_frame() -> None:
     assert not limiter.allow(0.2)  # asking did not spend
     assert limiter.wait_s(0.5) == 0.0
     assert limiter.allow(0.5)
+
+
+# -- the byte window ---------------------------------------------------------------------------
+
+
+def _window_bytes(sent: list[tuple[float, int]]) -> int:
+    """The most bytes sent in any 1-s window [t, t + 1) opened by a send."""
+    return max(sum(n for u, n in sent if t <= u < t + 1.0) for t, _ in sent)
+
+
+def test_frames_that_keep_to_their_count_are_never_refused() -> None:
+    window = ByteWindow()
+    assert all(window.admit(i / 16, 20_000 - i % 7, 20_000, rate_hz=16) for i in range(160))
+    assert window.refused == 0
+
+
+def test_frames_over_their_count_cost_later_frames_not_the_budget() -> None:
+    window, sent = ByteWindow(), []
+    for i in range(320):  # 16 Hz, every frame 10 % over what it was counted at
+        now = i / 16
+        if window.admit(now, 22_000, 20_000, rate_hz=16):
+            sent.append((now, 22_000))
+    assert _window_bytes(sent) <= 16 * 20_000 + 20_000  # the rate's bytes and one frame
+    assert 16 / 1.1 <= len(sent) / 20 < 16  # what those bytes carry of the larger frames
+    assert window.refused == 320 - len(sent)
+
+
+@settings(max_examples=200)
+@given(
+    st.floats(0.5, 30),
+    st.lists(
+        st.tuples(st.floats(0.001, 0.2), st.integers(1, 50_000), st.integers(1, 50_000)),
+        min_size=1,
+        max_size=200,
+    ),
+)
+def test_no_window_sends_more_than_the_rates_frames_and_one_or_what_was_offered(
+    rate_hz: float, frames: list[tuple[float, int, int]]
+) -> None:
+    window, now = ByteWindow(), 0.0
+    offered: list[tuple[float, int]] = []
+    sent: list[tuple[float, int, int]] = []
+    for gap_s, size, counted in frames:
+        now += gap_s
+        offered.append((now, counted))
+        if window.admit(now, size, counted, rate_hz=rate_hz):
+            sent.append((now, size, counted))
+    for t, _, counted in sent:  # every window closed by a send
+        went = sum(n for u, n, _ in sent if t - 1.0 < u <= t)
+        share = (rate_hz + 1) * counted
+        assert went <= max(share, sum(c for u, c in offered if t - 1.0 < u <= t)) + 1e-6
+
+
+def test_the_window_remembers_a_bounded_number_of_frames() -> None:
+    # Five refused frames leave room for a large one, unless the window forgot them.
+    whole, bounded = ByteWindow(), ByteWindow(max_frames=2)
+    for window in (whole, bounded):
+        assert not any(window.admit(i * 1e-3, 100, 10, rate_hz=0) for i in range(5))
+    assert whole.admit(0.01, 55, 10, rate_hz=0)
+    assert not bounded.admit(0.01, 55, 10, rate_hz=0)

@@ -5,8 +5,10 @@ JSON, one ``[size_bytes, quality, scale, jpeg_quality]`` a rung (``jpeg_quality`
 frame sent as it is). The optimizer pushes the rung it chose to
 ``[topic]/dbm/encoding/current_value`` as a label, ``x0.5 q80`` (half resolution, JPEG quality
 80) or ``x1 raw``: the encoder's setting itself, not an index, so a ladder measured again
-between the two cannot make a publisher encode what was not meant. Both arrive from the
-network: every error names the value.
+between the two cannot make a publisher encode what was not meant. The label may end with the
+bytes a frame of the rung was counted at, ``x0.5 q80 31234B``: the ladder the allocation used,
+which a camera holds its frames to (the ladder may have been written again since). Both arrive
+from the network: every error names the value.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ import re
 
 from dbml.core.errors import SpecError
 from dbml.core.ladder import MAX_JPEG_QUALITY, MAX_RUNGS, Rung
-from dbml.core.spec import short_repr
+from dbml.core.spec import MAX_SIZE_BYTES, short_repr
 
 __all__ = [
     "MAX_LADDER_CHARS",
@@ -27,6 +29,7 @@ __all__ = [
     "encode_rungs",
     "encoding_label",
     "parse_encoding",
+    "parse_rung_label",
 ]
 
 MAX_LADDER_CHARS = 64 * MAX_RUNGS
@@ -35,20 +38,32 @@ MAX_LADDER_CHARS = 64 * MAX_RUNGS
 Encoding = tuple[float, int | None]
 """An encoder's setting: the resolution's scale and the JPEG quality (None: sent as it is)."""
 
-_LABEL = re.compile(r"^x(?P<scale>[0-9.]+(?:e-?[0-9]+)?) (?:q(?P<q>[0-9]{1,3})|raw)$")
+_LABEL = re.compile(
+    r"^x(?P<scale>[0-9.]+(?:e-?[0-9]+)?) (?:q(?P<q>[0-9]{1,3})|raw)(?: (?P<bytes>[0-9]{1,10})B)?$"
+)
 _RUNG_FIELDS = 4
 
 
-def encoding_label(scale: float, jpeg_quality: int | None) -> str:
-    """``x0.5 q80``: the label of an encoding (``x1 raw`` for a frame sent as it is)."""
-    return f"x{scale:g} {'raw' if jpeg_quality is None else f'q{jpeg_quality}'}"
+def encoding_label(
+    scale: float, jpeg_quality: int | None, *, size_bytes: float | None = None
+) -> str:
+    """``x0.5 q80`` (``x1 raw`` for a frame sent as it is), ``x0.5 q80 31234B`` with a size."""
+    label = f"x{scale:g} {'raw' if jpeg_quality is None else f'q{jpeg_quality}'}"
+    return label if size_bytes is None else f"{label} {max(round(size_bytes), 1)}B"
 
 
 def parse_encoding(label: object) -> Encoding:
     """``(scale, jpeg_quality)`` of a label; ``SpecError`` naming it if it is not one."""
+    return parse_rung_label(label)[0]
+
+
+def parse_rung_label(label: object) -> tuple[Encoding, int | None]:
+    """The encoding of a label and the bytes it was counted at (None: not said)."""
     found = _LABEL.match(label) if isinstance(label, str) else None
     if found is None:
-        raise SpecError(f"encoding={short_repr(label)} must look like 'x0.5 q80' or 'x1 raw'")
+        raise SpecError(
+            f"encoding={short_repr(label)} must look like 'x0.5 q80', 'x1 raw' or 'x1 q80 31234B'"
+        )
     try:
         scale = float(found["scale"])
     except ValueError:
@@ -59,7 +74,12 @@ def parse_encoding(label: object) -> Encoding:
             f"encoding={short_repr(label)}: the scale must be within (0, 1] and the quality within "
             f"[1, {MAX_JPEG_QUALITY}]"
         )
-    return scale, quality
+    size = None if found["bytes"] is None else int(found["bytes"])
+    if size is not None and not 1 <= size <= MAX_SIZE_BYTES:
+        raise SpecError(
+            f"encoding={short_repr(label)}: the bytes must be within [1, {MAX_SIZE_BYTES:.0f}]"
+        )
+    return (scale, quality), size
 
 
 def encode_rungs(rungs: tuple[Rung, ...]) -> str:

@@ -406,8 +406,8 @@ ENCODING = Parameter(
     Scope.CHANNEL,
     Kind.TEXT,
     _OPTIMIZER,
-    "The rung chosen for a laddered channel, pushed with its rate: ``x0.5 q80`` (scale, JPEG "
-    "quality) or ``x1 raw``.",
+    "The rung chosen for a laddered channel, pushed with its rate: ``x0.5 q80 31234B`` (scale, "
+    "JPEG quality, the bytes a frame may carry) or ``x1 raw``.",
     parse=parse_encoding,
     column=Column("encoding", "", optional=True),
 )

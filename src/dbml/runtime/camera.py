@@ -13,7 +13,9 @@ a probe took long) and holds one frame (the newest offered). The bytes actually 
 the ladder: when the last ``SENT_WINDOW`` frames ran above what the ladder said of their rung
 (a scene busier than the probed frame), every rung's bytes are scaled up by that much, so the
 budget holds on the wire as the scene changes. The ladder is written to ``[topic]/dbm/ladder``
-when a rung's bytes rose by ``LADDER_RISE`` or fell by ``SIZE_CHANGE``.
+when a rung's bytes rose by ``LADDER_RISE`` or fell by ``SIZE_CHANGE``. Until the optimizer
+allocates on it, frames are held to the bytes their rung was counted at (the pushed label's,
+``ByteWindow``): one that would take a 1-s window past them is dropped.
 
 With ``ladder=False`` it publishes no ladder: the optimizer allocates its rate alone, on frames
 at the one ``default_encoding`` (the rate-only baseline, on the same frames).
@@ -36,6 +38,7 @@ from dbml.media.ladder import measure_ladder
 from dbml.protocol import names
 from dbml.protocol.ladders import Encoding, encode_rungs
 from dbml.runtime.publisher import FAILSAFE_PERIODS, ManagedPublisher
+from dbml.runtime.rate import ByteWindow
 from dbml.runtime.size import SIZE_CHANGE
 from dbml.transports.base import Transport, Variant
 from dbml.transports.overflow import LogOnce
@@ -138,6 +141,8 @@ class ManagedCamera:
             log=log,
         )
         self._probe_took_s = 0.0
+        self._window = ByteWindow()
+        """Frames held to the bytes the allocation counted them at (a busier scene's lag)."""
         self.rate = self.publisher.rate
 
     # -- publishing ---------------------------------------------------------------------------
@@ -166,9 +171,10 @@ class ManagedCamera:
                 lambda: encode_image(frame)  # made only when a local subscriber takes it
             )
         )
-        scale, quality = self.publisher.encoding or self._default_jpeg
+        pushed = self.publisher.rung  # read once: the rung and the bytes it was counted at
+        (scale, quality), counted = pushed or (self._default_jpeg, None)
         if quality is None:  # a raw rung: a camera's ladder has none; keep to JPEG
-            scale, quality = self._default_jpeg
+            (scale, quality), counted = self._default_jpeg, None
         encoding: Encoding = (scale, quality)
         sent: list[int] = []
 
@@ -179,7 +185,14 @@ class ManagedCamera:
             self._last_bytes = len(message)
             return message
 
-        went = self.publisher.publish(payload, encode=compress, size_bytes=self._size_bytes())
+        def admit(_message: bytes, rate_hz: float) -> bool:  # the JPEG against its count
+            if counted is None or not sent:
+                return True
+            return self._window.admit(self._transport.now(), sent[0], counted, rate_hz=rate_hz)
+
+        went = self.publisher.publish(
+            payload, encode=compress, size_bytes=self._size_bytes(), admit=admit
+        )
         if sent:
             self._account(encoding, sent[0])
         return went
@@ -267,6 +280,11 @@ class ManagedCamera:
     def ladder(self) -> tuple[Rung, ...] | None:
         """The ladder as last written (or measured, without ``ladder``)."""
         return self._written
+
+    @property
+    def refused_frames(self) -> int:
+        """Frames the rate let through that went over the bytes they were counted at (dropped)."""
+        return self._window.refused
 
     @property
     def alive(self) -> bool:

@@ -39,7 +39,7 @@ from dbml.core.quality import QualityAllocation, QualityStatus, allocate_quality
 from dbml.core.spec import LinkSpec, Problem, mbit_to_bytes_per_s, short_repr
 from dbml.protocol import keys, names, schema
 from dbml.protocol.keys import ROUND_TOPIC
-from dbml.protocol.ladders import Encoding, encoding_label, parse_encoding
+from dbml.protocol.ladders import Encoding, encoding_label, parse_rung_label
 from dbml.protocol.messages import MAX_REPORTED_CHANNELS, ChannelRound, RoundReport
 from dbml.protocol.schema import Parameter
 from dbml.runtime.graph import summarize
@@ -114,8 +114,10 @@ def _writes(topic: str, wanted: _Wanted) -> dict[str, ParamValue]:
 
 
 def _rung_bytes(channel: ChannelParams, label: str) -> float:
-    """The bytes a frame of the rung ``label`` names, by the channel's ladder (else its size)."""
-    encoding = parse_encoding(label)
+    """The bytes a frame of the rung ``label`` names: as counted in it, else by the ladder."""
+    encoding, counted = parse_rung_label(label)
+    if counted is not None:
+        return counted
     for rung in channel.rungs or ():
         if (rung.scale, rung.jpeg_quality) == encoding:
             return rung.size_bytes
@@ -224,6 +226,9 @@ class _Outcome:
     """The allocator's result, when it ran."""
     encodings: Mapping[str, Encoding] = field(default_factory=dict)
     """The laddered channels' rungs."""
+    counted_bytes: Mapping[str, float] = field(default_factory=dict)
+    """The bytes a frame of each laddered channel may carry: its rung's by the ladder, with the
+    budget's room the allocation left shared in proportion (what its camera holds frames to)."""
     quality: QualityAllocation | None = None
     """The rate-and-quality allocation's result, when it ran."""
 
@@ -235,13 +240,20 @@ def _quality_outcome(
     quality = allocate_quality(problem, ladders, price_hint=price_hint)
     rates = {t: float(r) for t, r in zip(quality.topics, quality.rate_hz, strict=True)}
     encodings: dict[str, Encoding] = {}
+    counted: dict[str, float] = {}
+    # Rungs are steps, so an allocation may leave part of the budget: a frame may take its share
+    # of it (a scene busier than the ladder's word costs frames only when the budget is spent).
+    spent = quality.total_bytes_per_s
+    room = quality.budget_bytes_per_s / spent if quality.success and spent > 0 else 1.0
+    room = max(room, 1.0) if math.isfinite(room) else 1.0
     for i, topic in enumerate(quality.topics):
         ladder = ladders.get(topic)
         if ladder is not None and quality.rung[i] >= 0:
             rung = ladder.rungs[int(quality.rung[i])]
             encodings[topic] = (rung.scale, rung.jpeg_quality)
+            counted[topic] = rung.size_bytes * room
     status = Status.OPTIMAL if quality.status is QualityStatus.OPTIMAL else Status.INFEASIBLE
-    return _Outcome(status, quality.message, rates, None, encodings, quality)
+    return _Outcome(status, quality.message, rates, None, encodings, counted, quality)
 
 
 class OptimizerNode:
@@ -536,7 +548,12 @@ class OptimizerNode:
                 log.warning("infeasible: %s", message)
             else:
                 log.info("%s", message)
-        encodings = {t: encoding_label(*e) for t, e in outcome.encodings.items() if t in rates}
+        # The label says the bytes the rung was counted at: the camera holds its frames to them.
+        encodings = {
+            t: encoding_label(*e, size_bytes=outcome.counted_bytes.get(t))
+            for t, e in outcome.encodings.items()
+            if t in rates
+        }
         self._owned = {name: v for values in owned.values() for name, v in values.items()}
         self._owned |= {names.current_value(t): r for t, r in rates.items()}
         self._owned |= {names.encoding(t): e for t, e in encodings.items()}

@@ -33,7 +33,7 @@ from collections.abc import Callable
 from dbml.core.errors import TransportError
 from dbml.core.spec import MAX_RATE_HZ, ChannelSpec, check_number
 from dbml.protocol import keys, names
-from dbml.protocol.ladders import Encoding, parse_encoding
+from dbml.protocol.ladders import Encoding, parse_rung_label
 from dbml.protocol.messages import LinkBeacon
 from dbml.protocol.metadata import pack_meta
 from dbml.runtime.failsafe import FAILSAFE_PERIODS, FailSafe
@@ -147,8 +147,11 @@ class ManagedPublisher:
             raise ValueError(f"variant={variant.value!r}: the managed copy is not the full one")
         self.topic = topic
         self._variant = variant
-        self._encoding = encoding
-        """The rung in force (a camera's): the optimizer's last push, else the default."""
+        self._rung: tuple[Encoding, int | None] | None = (
+            None if encoding is None else (encoding, None)
+        )
+        """The rung in force (a camera's) and the bytes its frame was counted at: the
+        optimizer's last push, else the default (counted at nothing)."""
         self.min_rate_hz = float(min_rate_hz)
         self.max_rate_hz = float(max_rate_hz)
         self._transport = transport
@@ -218,7 +221,7 @@ class ManagedPublisher:
                 self._on_allocation(value)
             return
         if field == names.ENCODING_FIELD:
-            if isinstance(value, str) and self._encoding is not None:
+            if isinstance(value, str) and self._rung is not None:
                 self._on_encoding(value)
             return
         if field == names.SIZE_FIELD:
@@ -257,13 +260,19 @@ class ManagedPublisher:
 
     def _on_encoding(self, label: str) -> None:
         """Apply a pushed rung (the view checked it) and acknowledge it, as a rate is."""
-        self._encoding = parse_encoding(label)  # one reference swapped: read without a lock
+        self._rung = parse_rung_label(label)  # one reference swapped: read without a lock
         self._transport.params.set(names.encoding_applied(self.topic), label)
 
     @property
     def encoding(self) -> Encoding | None:
         """The rung in force, ``(scale, jpeg_quality)``: a camera's (None for other channels)."""
-        return self._encoding
+        rung = self._rung
+        return None if rung is None else rung[0]
+
+    @property
+    def rung(self) -> tuple[Encoding, int | None] | None:
+        """The rung in force and the bytes the allocation counted a frame of it at (one read)."""
+        return self._rung
 
     def _on_dbm_param(self, name: str, value: ParamValue) -> None:
         """A new optimisation period, or the optimizer's heartbeat."""
@@ -468,9 +477,7 @@ class ManagedPublisher:
             held = None if release is None else release.message
             if held is None or not self._limiter.allow(now):
                 return
-            self._optimized_seq += 1
-            self._sent_s = now
-            seq = self._optimized_seq
+            seq = self._number_locked(now)
         # A slow source may not publish again soon: the held message goes now, outside the lock.
         self._switch.publisher.put(held, attachment=pack_meta(seq, self._wall_clock_ns(), rate))
 
@@ -500,6 +507,12 @@ class ManagedPublisher:
             return allowed, False
         # Open, or past the hold's bound: the allocation's and the fail-safe's rules.
         return allowed and not waiting, verdict is Admission.EXPIRED
+
+    def _number_locked(self, now: float) -> int:
+        """The sequence number of a message on ``[topic]/optimized`` that goes at ``now``."""
+        self._optimized_seq += 1
+        self._sent_s = now
+        return self._optimized_seq
 
     # -- transport class ----------------------------------------------------------------------
 
@@ -563,6 +576,7 @@ class ManagedPublisher:
         *,
         encode: Callable[[], bytes] | None = None,
         size_bytes: int | None = None,
+        admit: Callable[[bytes, float], bool] | None = None,
     ) -> bool:
         """Send ``payload``; True if it went to ``[topic]/optimized`` (within the rate).
 
@@ -571,6 +585,9 @@ class ManagedPublisher:
         ``payload`` (the frame at the rung in force), called only for a frame that goes; and
         ``size_bytes``, the size the optimizer is told (its frame at the default rung); its
         ``payload`` may be a callable, then called only when ``[topic]`` has a subscriber.
+        ``admit``, asked of a managed copy the limiter let through at the allocated rate (given
+        with it), may still refuse it (a camera's frame over the bytes it was counted at); the
+        limiter's frame is spent all the same.
         """
         managed: bytes | None = None
         """What the managed copy carries: ``payload``, or ``encode()`` once it is needed."""
@@ -600,6 +617,24 @@ class ManagedPublisher:
             # own bytes, made outside the lock (off the common path: steady publishes skip it).
             managed = encode()
         expired = False
+        if steady and admit is not None:
+            # A frame the limiter lets go is made, then admitted by its bytes, then numbered:
+            # one refused after it was made leaves no gap in the sequence.
+            with self._lock:
+                allowed = self._limiter.allow(now)
+            if not allowed:
+                return False
+            if managed is None:
+                assert encode is not None
+                managed = encode()
+            if not admit(managed, rate):
+                return False
+            with self._lock:
+                seq = self._number_locked(now)
+            self._switch.publisher.put(
+                managed, attachment=pack_meta(seq, self._wall_clock_ns(), rate)
+            )
+            return True
         with self._lock:
             if steady:
                 allowed = self._limiter.allow(now)
@@ -607,9 +642,7 @@ class ManagedPublisher:
                 assert managed is not None
                 allowed, expired = self._admit_locked(now, rate, managed)
             if allowed:  # numbered under the lock: a release may put from the beacon's thread
-                self._optimized_seq += 1
-                self._sent_s = now
-                seq = self._optimized_seq
+                seq = self._number_locked(now)
         if expired:
             log.warning(
                 "%s: held for %.1f s without word of the link; fail-safe: minimum %.3f Hz",

@@ -1,26 +1,33 @@
-"""Rate control: a limiter that drops what exceeds a rate, and a loop pacer (the paper's DBMRate).
+"""Rate control: a limiter, a loop pacer (the paper's DBMRate) and a camera's byte window.
 
-Both count credit: frames earned at the rate in force over time, the integral of the rate. A
-message (or a loop tick) spends one frame. So what goes out in any window is at most what the
-rates in force over that window allowed, plus the frames banked at its start, however often the
-rate changes: a rate that is high for an instant earns an instant's worth, not a whole period's
-(a scheme that only remembers the last message's time would let every brief increase send at
-once). Where a change is seen late (at the next call), the time since the last look counts at
-the lower of the old and the new rate, so a late-seen decrease never earns at the old rate.
+The limiter drops what exceeds a rate; the pacer paces a loop at it. Both count credit: frames
+earned at the rate in force over time, the integral of the rate. A message (or a loop tick)
+spends one frame. So what goes out in any window is at most what the rates in force over that
+window allowed, plus the frames banked at its start, however often the rate changes: a rate that
+is high for an instant earns an instant's worth, not a whole period's (a scheme that only
+remembers the last message's time would let every brief increase send at once). Where a change
+is seen late (at the next call), the time since the last look counts at the lower of the old and
+the new rate, so a late-seen decrease never earns at the old rate. The byte window holds a
+camera's frames to the bytes the allocation counted them at.
 """
 
 from __future__ import annotations
 
+import collections
 import math
 import time
 from collections.abc import Callable
 
-__all__ = ["Rate", "RateLimiter"]
+__all__ = ["ByteWindow", "Rate", "RateLimiter"]
 
 _EPSILON_FRAMES = 1e-9
 """Rounding slack, so a message exactly one period later is never refused."""
 _PACER_BEHIND_FRAMES = 2.0
 """A loop this many ticks behind (a whole period late) restarts its schedule: no burst."""
+WINDOW_S = 1.0
+"""The window the budget is promised over (what a passive counter of the wire measures)."""
+MAX_WINDOW_FRAMES = 4096
+"""The most frames a ``ByteWindow`` remembers (its memory bound; far above any camera's rate)."""
 
 
 class _Credit:
@@ -199,3 +206,45 @@ class Rate:
     def reset(self) -> None:
         """Start the schedule again at the next ``sleep()``."""
         self._credit = None
+
+
+class ByteWindow:
+    """A camera's frames within the bytes the allocation counted them at, over any 1-s window.
+
+    The optimizer allocates a camera's rate on its rung's bytes as the ladder said them. A scene
+    that gets busier sends larger frames until the ladder is measured again and the next round
+    follows, and a rate that fills the budget then overspends it by as much. Each frame the rate
+    lets through is offered here with its bytes, the bytes it was counted at and the rate in
+    force; it goes only if the frames that went in the last ``window_s``, with it, are within
+    the channel's share of the promise: the rate's frames and one more at the counted bytes, or
+    what every frame offered in the window was counted at, if more (frames let through at a
+    higher rate just before a cut). So a frame over its count costs a later frame, never the
+    budget, and a camera whose frames keep to their count is never refused.
+    """
+
+    def __init__(self, *, window_s: float = WINDOW_S, max_frames: int = MAX_WINDOW_FRAMES) -> None:
+        self._window_s = window_s
+        self._frames: collections.deque[tuple[float, int, int]] = collections.deque()
+        """(time, counted bytes, bytes sent: 0 if refused) of each frame offered in the window."""
+        self._max_frames = max_frames
+        self._counted = 0
+        self._sent = 0
+        self.refused = 0
+        """Frames refused so far (a count for a monitor or a test)."""
+
+    def admit(self, now: float, size_bytes: int, counted_bytes: int, *, rate_hz: float) -> bool:
+        """Whether a frame of ``size_bytes``, counted at ``counted_bytes``, goes at ``now``."""
+        frames = self._frames
+        while frames and (frames[0][0] <= now - self._window_s or len(frames) >= self._max_frames):
+            _, counted, sent = frames.popleft()
+            self._counted -= counted
+            self._sent -= sent
+        share = (rate_hz * self._window_s + 1.0) * counted_bytes
+        fits = self._sent + size_bytes <= max(self._counted + counted_bytes, share)
+        sent = size_bytes if fits else 0
+        frames.append((now, counted_bytes, sent))
+        self._counted += counted_bytes
+        self._sent += sent
+        if not fits:
+            self.refused += 1
+        return fits
