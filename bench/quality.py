@@ -13,7 +13,10 @@ between what the floors need on the cheapest rungs and three times that. For eac
 - ``gap_to_milp``: on the first fleet, 1 - its utility / ``scipy.optimize.milp`` (HiGHS) over
   every allowed rung at ``--grid`` rates from floor to maximum (negative: the continuous rate
   beat the grid);
-- ``gap_to_bound``: the largest over the fleets of 1 - its utility / its own Lagrangian bound.
+- ``gap_to_bound``: the largest over the fleets of 1 - its utility / its own Lagrangian bound;
+- ``links``: the same fleets with their cameras dealt to uplinks of four (``--uplinks``: each
+  link's capacity 1.05-2.5 times what its floors need on the cheapest rungs), the solve's time
+  and its gap to ``milp`` with a row per link (at the sizes up to ``--links-milp-channels``);
 
 - ``encoding``: a 640x480 camera at 16 Hz through ``ManagedCamera``: the CPU of its JPEG path
   per frame and as a share of a core, against the 3 % target; the ladder's probe;
@@ -21,7 +24,7 @@ between what the floors need on the cheapest rungs and three times that. For eac
   the same frames): per step fps, SSIM, rung, utility; the worst 1-s window; the gain.
 
     python bench/quality.py [--channels 2 20 80 320] [--repeat 20] [--fleets 10] [--grid 17]
-                            [--cpu-seconds 10] [--step-seconds 3] [--json]
+                            [--uplinks] [--cpu-seconds 10] [--step-seconds 3] [--json]
 """
 
 from __future__ import annotations
@@ -40,7 +43,7 @@ from scipy.sparse import coo_array
 from dbml.core.ladder import Ladder, Preference, Rung
 from dbml.core.priority import normalize_priorities
 from dbml.core.quality import PREFERENCE_TERMS, WEIGHT_BASE, allocate_quality
-from dbml.core.spec import ChannelSpec, Problem
+from dbml.core.spec import BYTES_PER_S_PER_MBIT, ChannelSpec, LinkSpec, Problem
 from dbml.media.jpeg import encode_jpeg
 from dbml.protocol.ladders import encoding_label
 
@@ -109,14 +112,20 @@ def milp_optimum(problem: Problem, ladders: dict[str, Ladder], grid: int) -> tup
                 values.append(_value(problem, ladder, i, rung, float(rate)))
                 owners.append(i)
     k, n = len(costs), len(problem.topics)
+    constraints = [
+        LinearConstraint(coo_array((np.ones(k), (owners, np.arange(k))), shape=(n, k)), 1, 1),
+        LinearConstraint(np.array([costs]), -np.inf, problem.budget_bytes_per_s),
+    ]
+    for link in problem.links:  # the link's capacity (times the utilisation) over its channels
+        crossing = {problem.topics.index(t) for t in link.topics}
+        row = [c if owner in crossing else 0.0 for c, owner in zip(costs, owners, strict=True)]
+        cap = link.capacity_mbit * BYTES_PER_S_PER_MBIT * problem.utilization
+        constraints.append(LinearConstraint(np.array([row]), -np.inf, cap))
     result = milp(
         -np.array(values),
         integrality=np.ones(k, dtype=np.int64),
         bounds=Bounds(0, 1),
-        constraints=[
-            LinearConstraint(coo_array((np.ones(k), (owners, np.arange(k))), shape=(n, k)), 1, 1),
-            LinearConstraint(np.array([costs]), -np.inf, problem.budget_bytes_per_s),
-        ],
+        constraints=constraints,
         options={"time_limit": MILP_TIME_LIMIT_S},
     )
     if result.fun is None:
@@ -179,6 +188,78 @@ def measure(n: int, repeat: int, grid: int, seed: int, fleets: int) -> dict[str,
         "gap_to_bound": round(worst_gap_to_bound, 6),
         "budget_used": round(allocation.total_bytes_per_s / problem.budget_bytes_per_s, 6),
     }
+
+
+CAMERAS_PER_UPLINK = 4
+"""A robot's cameras behind its uplink (``--uplink``), as the fleet bench's robots carry four."""
+LINKS_MILP_CHANNELS = 20
+"""The MILP with a row per link is solved up to this many cameras (it takes seconds past)."""
+
+
+def with_uplinks(problem: Problem, ladders: dict[str, Ladder], rng: np.random.Generator) -> Problem:
+    """``problem`` with its cameras behind uplinks of ``CAMERAS_PER_UPLINK``.
+
+    Each uplink's capacity is 1.05-2.5 times what its floors need on the cheapest rungs.
+    """
+    floors = _floors(problem)
+    links = []
+    for start in range(0, len(problem.topics), CAMERAS_PER_UPLINK):
+        topics = problem.topics[start : start + CAMERAS_PER_UPLINK]
+        need = sum(floors[problem.topics.index(t)] * min(ladders[t].choice_sizes) for t in topics)
+        mbit = need * float(rng.uniform(1.05, 2.5)) / BYTES_PER_S_PER_MBIT
+        links.append(LinkSpec(f"uplink{start // CAMERAS_PER_UPLINK}", mbit, tuple(topics)))
+    return Problem(problem.channels, problem.bandwidth_mbit, links=tuple(links))
+
+
+def measure_links(n: int, repeat: int, grid: int, seed: int, fleets: int) -> dict[str, Any]:
+    """The solver with an uplink per ``CAMERAS_PER_UPLINK`` cameras; the MILP on the first."""
+    per_fleet_ms: list[float] = []
+    worst_gap_to_bound = 0.0
+    binding: list[float] = []
+    first: tuple[Problem, dict[str, Ladder], Any] | None = None
+    for k in range(fleets):
+        rng = np.random.default_rng(seed + k)
+        problem, ladders = fleet(rng, n)
+        problem = with_uplinks(problem, ladders, rng)
+        solve_ms = []
+        for _ in range(repeat):
+            started = time.perf_counter()
+            allocation = allocate_quality(problem, ladders)
+            solve_ms.append((time.perf_counter() - started) * 1e3)
+        per_fleet_ms.append(statistics.median(solve_ms))
+        spent = allocation.bytes_per_s
+        binding.append(
+            statistics.fmean(
+                float(sum(spent[problem.topics.index(t)] for t in link.topics))
+                >= link.capacity_mbit * BYTES_PER_S_PER_MBIT * (1 - 1e-6)
+                for link in problem.links
+            )
+        )
+        if allocation.upper_bound is not None:
+            gap = 1 - allocation.utility / allocation.upper_bound
+            worst_gap_to_bound = max(worst_gap_to_bound, gap)
+        if first is None:
+            first = (problem, ladders, allocation)
+    assert first is not None
+    problem, ladders, allocation = first
+    row: dict[str, Any] = {
+        "channels": n,
+        "uplinks": len(problem.links),
+        "fleets": fleets,
+        "status": allocation.status.value,
+        "solver_ms_median": round(statistics.median(per_fleet_ms), 3),
+        "solver_ms_worst_fleet": round(max(per_fleet_ms), 3),
+        "uplinks_at_capacity": round(statistics.fmean(binding), 3),
+        "gap_to_bound": round(worst_gap_to_bound, 6),
+    }
+    if n <= LINKS_MILP_CHANNELS:
+        reference, status = milp_optimum(problem, ladders, grid)
+        row |= {
+            "milp_utility": round(reference, 6),
+            "milp_status": status,
+            "gap_to_milp": round(1 - allocation.utility / reference, 6),
+        }
+    return row
 
 
 def _one_priority_moved(problem: Problem, rng: np.random.Generator) -> Problem:
@@ -277,6 +358,9 @@ def main() -> None:
     parser.add_argument("--grid", type=int, default=17, help="MILP rates per rung")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--fleets", type=int, default=10, help="fleets timed per size")
+    parser.add_argument(
+        "--uplinks", action="store_true", help="also each size with an uplink per 4 cameras"
+    )
     parser.add_argument("--cpu-seconds", type=float, default=10.0, help="0: skip")
     parser.add_argument("--step-seconds", type=float, default=3.0, help="teleop; 0: skip")
     parser.add_argument("--json", action="store_true", help="JSON only")
@@ -287,6 +371,12 @@ def main() -> None:
         "reference": "scipy.optimize.milp (HiGHS) over every allowed rung at a grid of rates",
         "results": results,
     }
+    if args.uplinks:
+        document["links"] = [
+            measure_links(n, args.repeat, args.grid, args.seed, args.fleets)
+            for n in args.channels
+            if n >= CAMERAS_PER_UPLINK
+        ]
     if args.cpu_seconds > 0:
         document["encoding"] = encoding_cpu(args.cpu_seconds)
     if args.step_seconds > 0:
@@ -299,6 +389,13 @@ def main() -> None:
                 f"the next round from the last price {row['warm_ms_median']:.3f} ms (slowest "
                 f"{row['warm_ms_worst_fleet']:.3f}); gap to milp {row['gap_to_milp']:+.2e}, to "
                 f"bound {row['gap_to_bound']:.2e}"
+            )
+        for row in document.get("links", []):
+            print(
+                f"{row['channels']:>4} channels behind {row['uplinks']} uplinks: "
+                f"{row['solver_ms_median']:.3f} ms (slowest fleet "
+                f"{row['solver_ms_worst_fleet']:.3f}); {row['uplinks_at_capacity']:.0%} of "
+                f"uplinks at capacity; gap to milp {row.get('gap_to_milp', float('nan')):+.2e}"
             )
         if "encoding" in document:
             enc = document["encoding"]

@@ -19,7 +19,7 @@ from scipy.sparse import coo_array
 from dbml.core.errors import SpecError
 from dbml.core.ladder import MAX_RUNGS, Ladder, Preference, Rung
 from dbml.core.quality import QualityStatus, allocate_quality, channel_utility
-from dbml.core.spec import ChannelSpec, Problem
+from dbml.core.spec import ChannelSpec, LinkSpec, Problem
 
 # A 640x480 photograph's JPEG ladder (../shared/QUALITY.md): (scale, quality, bytes, SSIM).
 PHOTO = (
@@ -84,14 +84,20 @@ def milp_optimum(problem: Problem, ladders: dict[str, Ladder], grid: int = 33) -
                 owners.append(i)
     k, n = len(costs), len(problem.topics)
     one = coo_array((np.ones(k), (owners, np.arange(k))), shape=(n, k))
+    constraints = [
+        LinearConstraint(one, 1, 1),
+        LinearConstraint(np.array([costs]), -np.inf, problem.budget_bytes_per_s),
+    ]
+    for link in problem.links:  # a link's capacity (times the utilisation) over its channels
+        crossing = {problem.topics.index(t) for t in link.topics}
+        row = [c if owner in crossing else 0.0 for c, owner in zip(costs, owners, strict=True)]
+        cap = link.capacity_mbit * 125_000 * problem.utilization
+        constraints.append(LinearConstraint(np.array([row]), -np.inf, cap))
     result = milp(
         -np.array(values),
         integrality=np.ones(k, dtype=np.int64),
         bounds=Bounds(0, 1),
-        constraints=[
-            LinearConstraint(one, 1, 1),
-            LinearConstraint(np.array([costs]), -np.inf, problem.budget_bytes_per_s),
-        ],
+        constraints=constraints,
     )
     assert result.success, result.message
     return float(-result.fun)
@@ -382,3 +388,110 @@ def test_a_budget_exactly_at_the_floors_keeps_every_channel_at_its_floor(cameras
     assert allocation.size_bytes.tolist() == pytest.approx([cheapest] * cameras)
     assert allocation.rate_hz.tolist() == pytest.approx(floors.tolist(), rel=1e-6)
     assert allocation.total_bytes_per_s <= problem.budget_bytes_per_s * (1 + 1e-9)
+
+
+# -- per-link capacities ---------------------------------------------------------------------
+
+
+def with_links(
+    rng: np.random.Generator, problem: Problem, ladders: dict[str, Ladder], robots: int
+) -> Problem:
+    """``problem`` with its cameras dealt to ``robots`` uplinks.
+
+    Each link's capacity is 1.05-2.5 times what its channels' floors need on the cheapest rungs.
+    """
+    floors = floors_of(problem)
+    owner = rng.integers(robots, size=len(problem.topics))
+    links = []
+    for k in range(robots):
+        members = [i for i in range(len(problem.topics)) if owner[i] == k]
+        if not members:
+            continue
+        need = sum(
+            floors[i]
+            * min(
+                r.size_bytes
+                for r in allowed(ladders.get(problem.topics[i]), problem.arrays.size_bytes[i])
+            )
+            for i in members
+        )
+        cap_bytes = need * float(rng.uniform(1.05, 2.5))
+        topics = tuple(problem.topics[i] for i in members)
+        links.append(LinkSpec(f"r{k}", cap_bytes * 8 / 1e6, topics))
+    return Problem(problem.channels, problem.bandwidth_mbit, links=tuple(links))
+
+
+def link_spend(problem: Problem, allocation: object) -> dict[str, float]:
+    used = np.asarray(allocation.rate_hz) * np.asarray(allocation.size_bytes)  # type: ignore[attr-defined]
+    return {
+        link.name: float(sum(used[problem.topics.index(t)] for t in link.topics))
+        for link in problem.links
+    }
+
+
+@pytest.mark.parametrize(("seed", "n", "robots"), [(0, 4, 2), (1, 6, 3), (2, 8, 2), (3, 10, 4)])
+def test_links_within_half_a_percent_of_milp_with_every_link_held(
+    seed: int, n: int, robots: int
+) -> None:
+    rng = np.random.default_rng(seed * 1000 + n)
+    problem, ladders = random_instance(rng, n)
+    problem = with_links(rng, problem, ladders, robots)
+    allocation = allocate_quality(problem, ladders)
+    assert allocation.status is QualityStatus.OPTIMAL, allocation.message
+    assert allocation.total_bytes_per_s <= problem.budget_bytes_per_s * (1 + 1e-9)
+    for link in problem.links:
+        assert link_spend(problem, allocation)[link.name] <= link.capacity_mbit * 125_000 * (
+            1 + 1e-9
+        )
+    ours = achieved(problem, ladders, allocation)
+    reference = milp_optimum(problem, ladders)
+    assert ours >= reference * (1 - GAP), (ours, reference)
+    assert allocation.upper_bound is not None
+    assert ours <= allocation.upper_bound * (1 + 1e-9)
+    assert reference <= allocation.upper_bound * (1 + 1e-6)  # the bound bounds the grid's best
+
+
+def test_a_tight_uplink_takes_detail_from_its_own_cameras_not_from_the_others() -> None:
+    channels = tuple(ChannelSpec(f"/r{k}/camera", 1.0, 16.0, 84_000) for k in (1, 2))
+    ladders = {c.topic: photo_ladder() for c in channels}
+    free = allocate_quality(Problem(channels, 11.0), ladders)
+    capped = allocate_quality(
+        Problem(channels, 11.0, links=(LinkSpec("r1", 2.0, ("/r1/camera",)),)), ladders
+    )
+    assert capped.status is QualityStatus.OPTIMAL
+    assert capped.rate_hz[0] * capped.size_bytes[0] <= 2.0 * 125_000 * (1 + 1e-9)
+    assert capped.rate_hz[0] * capped.size_bytes[0] < free.rate_hz[0] * free.size_bytes[0]
+    # What r1 cannot use goes to r2.
+    assert capped.rate_hz[1] * capped.size_bytes[1] > free.rate_hz[1] * free.size_bytes[1]
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**31), st.integers(2, 40), st.integers(1, 6))
+def test_every_link_and_the_budget_hold_feasible_or_not(seed: int, n: int, robots: int) -> None:
+    rng = np.random.default_rng(seed)
+    problem, ladders = random_instance(rng, n)
+    problem = with_links(rng, problem, ladders, robots)
+    if rng.uniform() < 0.3:  # caps and budgets below the floors too: infeasible is a status
+        problem = Problem(
+            problem.channels,
+            problem.bandwidth_mbit * float(rng.uniform(0.2, 1.0)),
+            links=tuple(
+                LinkSpec(link.name, link.capacity_mbit * float(rng.uniform(0.2, 1.0)), link.topics)
+                for link in problem.links
+            ),
+        )
+    allocation = allocate_quality(problem, ladders)
+    assert allocation.total_bytes_per_s <= problem.budget_bytes_per_s * (1 + 1e-9)
+    spend = link_spend(problem, allocation)
+    for link in problem.links:
+        assert spend[link.name] <= link.capacity_mbit * 125_000 * (1 + 1e-9), link.name
+    if allocation.status is QualityStatus.OPTIMAL:
+        assert (allocation.rate_hz >= allocation.floor_hz * (1 - 1e-9)).all()
+    assert (allocation.rate_hz <= problem.arrays.max_rate_hz * (1 + 1e-9)).all()
+
+
+def test_links_that_share_a_channel_are_refused_naming_both() -> None:
+    channels = (ChannelSpec("/r1/camera", 1.0, 16.0, 84_000),)
+    links = (LinkSpec("up", 5.0, ("/r1/camera",)), LinkSpec("radio", 8.0, ("/r1/camera",)))
+    with pytest.raises(SpecError, match="'/r1/camera' crosses links 'up' and 'radio'"):
+        allocate_quality(Problem(channels, 11.0, links=links), {"/r1/camera": photo_ladder()})

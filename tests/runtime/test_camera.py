@@ -11,6 +11,7 @@ import pytest
 
 pytest.importorskip("simplejpeg")
 
+from dbml.core import DbmSettings, LinkSpec, Strategy
 from dbml.core.ladder import Preference
 from dbml.media.images import Frame, decode_compressed, encode_image
 from dbml.media.jpeg import decode_jpeg
@@ -173,3 +174,24 @@ def test_frames_of_a_busier_scene_than_the_ladder_says_keep_to_the_budget(fleet:
     assert camera.refused_frames > 0  # the window did the holding: the scene outran the ladder
     late = [t for t, _ in sent if t >= 6.0]  # the ladder caught up: the rate's frames go again
     assert len(late) >= 0.9 * 16 * 2
+
+
+def test_an_uplink_under_lp_caps_a_laddered_camera_with_its_rung_chosen() -> None:
+    """``--uplink``'s links under strategy ``lp``: the rung and the rate within the link's cap."""
+    links = (LinkSpec("r1-uplink", 2.0, ("/r1/camera",)),)
+    with Fleet(settings=DbmSettings(11.0, 1.0, 1.0, Strategy.LP), links=links) as fleet:
+        eye = PanCamera(640, 480)
+        cameras = {
+            topic: fleet.camera(topic, priority=priority, preference=Preference.KEEP_RATE)
+            for topic, priority in (("/r1/camera", 1.0), ("/r2/camera", None))
+        }
+        for topic, camera in cameras.items():
+            fleet.watch(topic, remote=Variant.COMPRESSED)
+            camera.publish_frame(Frame(eye.frame(), "rgb8"))
+        result = fleet.optimize()
+    assert result.quality is not None, result.message  # the quality allocation ran, with links
+    spend = dict(zip(result.quality.topics, result.quality.bytes_per_s, strict=True))
+    assert spend["/r1/camera"] <= 2.0 * 125_000 * (1 + 1e-9)
+    assert result.rates_hz["/r1/camera"] == pytest.approx(16.0)  # keep_rate: detail went first
+    assert set(result.encodings) == {"/r1/camera", "/r2/camera"}
+    assert sum(spend.values()) <= 11.0 * 125_000 * (1 + 1e-9)

@@ -30,6 +30,10 @@ water-filled instead and the best kept: exact. The dual value bounds the optimum
 (``upper_bound``).
 Infeasibility is a status: when the floors do not fit on the cheapest rungs, the floors are
 pulled back toward the minimums as ``allocate`` does, on the cheapest rungs.
+
+Per-link capacities (a robot's uplink: links that share no channel) are a price per link: a
+link whose channels would spend more than its capacity at the budget's price takes its own
+allocation at its capacity, alone; the others share what is left (``_solve_links``).
 """
 
 from __future__ import annotations
@@ -85,6 +89,8 @@ _PRICE_STEPS = 100
 """Bound on the price search's steps (each halves the bracket or closes on its end)."""
 _PRICE_REL_TOL = 1e-9
 _BUDGET_REL_TOL = 1e-12
+_LINK_PASSES = 3
+"""Passes that lower a capped link, worth less a byte than the budget's price, to that price."""
 _STEP_MIN = 0.1
 """An interpolated price step moves at least this share of the bracket (log scale)."""
 _NARROW_LOG_SPAN = 1e-3
@@ -655,30 +661,76 @@ def allocate_quality(
     """A rung and a rate for every channel (see the module docstring); infeasible is a status.
 
     ``ladders`` by topic; a topic not in the problem is an error, a channel without a ladder
-    keeps its declared size. Per-link limits are not supported yet (``SpecError``).
+    keeps its declared size. Per-link capacities (``problem.links``, each its capacity times
+    the utilisation) hold too, for links that share no channel (``SpecError`` otherwise).
     ``price_hint``: the last allocation's ``price_per_byte``, where a large fleet's search
     starts (the answer does not depend on it, only how soon it is found).
     """
     unknown = sorted(set(ladders) - set(problem.topics))
     if unknown:
         raise SpecError(f"ladder of topic {unknown[0]!r}: no such channel in the problem")
-    if problem.links:
-        raise SpecError(
-            f"quality allocation does not support links yet (link {problem.links[0].name!r})"
-        )
     arrays = problem.arrays
     budget = problem.budget_bytes_per_s
     normalized = normalize_priorities(arrays.priority, arrays.size_bytes)
     fmin, fmax = arrays.min_rate_hz, arrays.max_rate_hz
     floors = (fmax - fmin) * normalized + fmin
     table = _table(problem, ladders, floors)
+    if problem.links:
+        solved = _solve_links(problem, table, budget, price_hint)
+    else:
+        solved = _solve(table, budget, price_hint)
+    cols, rates = solved.cols, solved.rates
     rows = np.arange(len(problem.topics))
+    chosen_size = table.size[rows, cols]
+    used = float(chosen_size @ rates)
+    value = _value(table, cols, rates)
+    message, upper = solved.message, solved.upper
+    if solved.status is QualityStatus.OPTIMAL:
+        message = (
+            f"{used / BYTES_PER_S_PER_MBIT:.3f} Mbit/s of a "
+            f"{budget / BYTES_PER_S_PER_MBIT:.3f} Mbit/s budget allocated"
+        )
+        upper = value if upper is None else max(upper, value)
+    return QualityAllocation(
+        status=solved.status,
+        message=message,
+        budget_bytes_per_s=budget,
+        topics=problem.topics,
+        normalized_priority=_frozen(normalized),
+        floor_hz=_frozen(floors),
+        rung=_frozen_int(table.rung[rows, cols]),
+        rate_hz=_frozen(np.asarray(rates, dtype=float)),
+        size_bytes=_frozen(chosen_size),
+        quality=_frozen(table.quality[rows, cols]),
+        utility=value,
+        upper_bound=upper,
+        price_per_byte=solved.price,
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class _Solved:
+    """A table's rungs and rates within one budget, before they become an allocation."""
+
+    status: QualityStatus
+    message: str  # why, when infeasible
+    cols: IntArray
+    rates: FloatArray
+    upper: float | None  # no choice within the budget is worth more (None: unknown)
+    price: float  # the Lagrangian price the rates spend the budget at (NaN: infeasible)
+
+
+def _solve(table: _Table, budget: float, price_hint: float | None = None) -> _Solved:
+    """The best rungs and rates of ``table`` within ``budget``.
+
+    Floors that do not fit on the cheapest rungs are pulled back (infeasible, a status).
+    """
+    fmin, floors = table.fmin, table.lo
+    rows = np.arange(len(floors))
     cheapest = np.argmin(table.size, axis=1)
     cheap_size = table.size[rows, cheapest]
-    status, upper, price = QualityStatus.OPTIMAL, None, math.nan
     need = float(cheap_size @ floors)
     if need > budget * (1 + _BUDGET_REL_TOL):
-        cols = cheapest
         need_min = float(cheap_size @ fmin)
         if need_min > budget:
             fraction = budget / need_min
@@ -696,40 +748,153 @@ def allocate_quality(
                 f"rungs but the budget allows {budget / BYTES_PER_S_PER_MBIT:.3f} Mbit/s; floors "
                 f"pulled back to {alpha:.1%} of their height above the minimum rates"
             )
-        status = QualityStatus.INFEASIBLE
+        return _Solved(QualityStatus.INFEASIBLE, message, cheapest, rates, None, math.nan)
+    upper = None
+    if float(np.log(table.valid.sum(axis=1)).sum()) <= math.log(EXACT_COMBINATIONS) + 1e-9:
+        cols, rates, price = _exact(table, budget)  # every combination: value is the bound
     else:
-        if float(np.log(table.valid.sum(axis=1)).sum()) <= math.log(EXACT_COMBINATIONS) + 1e-9:
-            cols, rates, price = _exact(table, budget)  # every combination: value is the bound
-        else:
-            cols, rates, upper, price = _priced(table, budget, price_hint)
-            if len(cols) <= LOCAL_SEARCH_CHANNELS:
-                cols, rates = _improve(table, cols, rates, budget)
-                price = _fill(table, cols, budget)[1]
-        message = ""
-    chosen_size = table.size[rows, cols]
-    used = float(chosen_size @ rates)
-    value = _value(table, cols, rates)
-    if status is QualityStatus.OPTIMAL:
-        message = (
-            f"{used / BYTES_PER_S_PER_MBIT:.3f} Mbit/s of a "
-            f"{budget / BYTES_PER_S_PER_MBIT:.3f} Mbit/s budget allocated"
+        cols, rates, upper, price = _priced(table, budget, price_hint)
+        if len(cols) <= LOCAL_SEARCH_CHANNELS:
+            cols, rates = _improve(table, cols, rates, budget)
+            price = _fill(table, cols, budget)[1]
+    return _Solved(QualityStatus.OPTIMAL, "", cols, rates, upper, price)
+
+
+def _solve_links(
+    problem: Problem, table: _Table, budget: float, price_hint: float | None
+) -> _Solved:
+    """``_solve`` within the budget and every link's capacity (links that share no channel).
+
+    At the budget's price ``lam`` a link whose channels would spend more than its capacity pays
+    its own higher price ``pi``, the one at which they spend the capacity alone; so a link is
+    either capped (``pi >= lam``: its channels take its own allocation, the whole capacity) or
+    free (its channels follow ``lam`` and stay within it). From every link free: the channels
+    of the free links are solved within what the capped ones leave, and every free link that
+    went over is capped (solved alone, once). Capping only lowers ``lam``, so a capped link
+    stays above it; where a rung's step leaves one below, it is freed (lowest ``pi`` first) and
+    capped for good if it goes over again. The bound is the sum of the parts' duals at their
+    own prices.
+    """
+    n, count = len(problem.topics), len(problem.links)
+    index = {topic: i for i, topic in enumerate(problem.topics)}
+    member = np.full(n, -1, dtype=np.intp)
+    for k, link in enumerate(problem.links):
+        for topic in link.topics:
+            i = index[topic]
+            if member[i] >= 0:
+                raise SpecError(
+                    f"channel {topic!r} crosses links {problem.links[member[i]].name!r} and "
+                    f"{link.name!r}: the quality allocation takes links that share no channel"
+                )
+            member[i] = k
+    caps = np.array([link.capacity_mbit for link in problem.links])
+    caps *= BYTES_PER_S_PER_MBIT * problem.utilization
+    groups = [np.flatnonzero(member == k) for k in range(count)]
+    crossing = member >= 0
+    alone: dict[int, _Solved] = {}  # each capped link's own allocation at its capacity
+
+    def capped_price(k: int) -> float:  # infeasible alone: capped whatever the budget's price
+        solved = alone[k]
+        return math.inf if solved.status is QualityStatus.INFEASIBLE else solved.price
+
+    capped = np.zeros(count, dtype=bool)
+    pinned = np.zeros(count, dtype=bool)
+    # Each round caps a link or frees one; a freed link is capped again at most once, for good.
+    for _ in range(3 * count + 2):
+        free = np.flatnonzero(~(crossing & capped[np.maximum(member, 0)]))
+        left = budget - sum(
+            (_spend(table, groups[k], alone[k]) for k in np.flatnonzero(capped).tolist()), 0.0
         )
-        upper = value if upper is None else max(upper, value)
-    return QualityAllocation(
-        status=status,
-        message=message,
-        budget_bytes_per_s=budget,
-        topics=problem.topics,
-        normalized_priority=_frozen(normalized),
-        floor_hz=_frozen(floors),
-        rung=_frozen_int(table.rung[rows, cols]),
-        rate_hz=_frozen(np.asarray(rates, dtype=float)),
-        size_bytes=_frozen(chosen_size),
-        quality=_frozen(table.quality[rows, cols]),
-        utility=value,
-        upper_bound=upper,
-        price_per_byte=price,
-    )
+        if len(free):
+            rest = _solve(_rows(table, free), max(left, 0.0), price_hint)
+        else:  # every link capped: within the budget, or one must follow its price after all
+            rest = _Solved(QualityStatus.OPTIMAL, "", free, np.zeros(0), 0.0, 0.0)
+            if left < 0:
+                rest = _Solved(QualityStatus.INFEASIBLE, "", free, np.zeros(0), None, math.nan)
+        price = rest.price if rest.status is QualityStatus.OPTIMAL else math.inf
+        spent = np.zeros(n)
+        spent[free] = table.spend_size[free, rest.cols] * rest.rates
+        by_link = np.bincount(member[crossing], weights=spent[crossing], minlength=count)
+        over = np.flatnonzero(~capped & (by_link > caps * (1 + 1e-9)))
+        if len(over):  # solved alone at its capacity; capped (for good if it was freed)
+            for k in over.tolist():
+                if k not in alone:
+                    alone[k] = _solve(_rows(table, groups[k]), float(caps[k]))
+                else:
+                    pinned[k] = True
+            capped[over] = True
+            continue
+        cheaper = sorted((capped_price(k), k) for k in np.flatnonzero(capped & ~pinned).tolist())
+        if not cheaper or cheaper[0][0] >= price:
+            break
+        capped[cheaper[0][1]] = False
+    else:  # pragma: no cover - bounded by the count above
+        raise AssertionError("the links' caps did not settle")
+    # A link capped for good (its choice at the budget's price jumps over its capacity) may be
+    # worth less a byte at its capacity than the budget's price: its rungs then run at their
+    # rates at that price, within the capacity, and what that leaves goes to the free channels.
+    for _ in range(_LINK_PASSES):
+        price = rest.price if rest.status is QualityStatus.OPTIMAL else math.inf
+        lowered = False
+        for k in np.flatnonzero(capped).tolist():
+            solved = alone[k]
+            if not 0 < capped_price(k) < price < math.inf:
+                continue
+            group = groups[k]
+            coef, size = table.coef[group, solved.cols], table.size[group, solved.cols]
+            at_price = _rates(
+                coef, size, price, table.knee[group], lo=table.lo[group], hi=table.hi[group]
+            )
+            spend = float(size @ at_price)
+            if spend < _spend(table, group, solved) * (1 - 1e-9):
+                alone[k] = _solve(_rows(table, group), spend)
+                lowered = True
+        if not lowered or not len(free):
+            break
+        left = budget - sum(
+            (_spend(table, groups[k], alone[k]) for k in np.flatnonzero(capped).tolist()), 0.0
+        )
+        rest = _solve(_rows(table, free), max(left, 0.0), price_hint)
+    cols = np.zeros(n, dtype=np.intp)
+    rates = np.zeros(n)
+    cols[free], rates[free] = rest.cols, rest.rates
+    status, messages = rest.status, [rest.message] if rest.message else []
+    for k in np.flatnonzero(capped).tolist():
+        cols[groups[k]], rates[groups[k]] = alone[k].cols, alone[k].rates
+        if alone[k].status is QualityStatus.INFEASIBLE:
+            status = QualityStatus.INFEASIBLE
+            messages.append(f"link {problem.links[k].name!r}: {alone[k].message}")
+    if status is QualityStatus.INFEASIBLE:
+        total = float(table.spend_size[np.arange(n), cols] @ rates)
+        if total > budget:  # links' floors pulled back within each, the budget still holds
+            rates = rates * (budget / total)
+        if not messages:
+            messages.append("the links' pulled-back floors need more than the budget")
+        return _Solved(status, "; ".join(messages), cols, rates, None, math.nan)
+    # Lagrangian bound: the free part's dual at its price, each capped link's at its own.
+    parts = [(free, rest, budget - float(caps[capped].sum()))]
+    parts += [(groups[k], alone[k], float(caps[k])) for k in np.flatnonzero(capped).tolist()]
+    bound = 0.0
+    for part, solved, part_budget in parts:
+        if not len(part):
+            continue
+        sub = _rows(table, part)
+        if solved.price > 0:
+            bound += _dual(sub, solved.price, part_budget)[0]
+        else:  # bytes free: every rate at its maximum on its best rung, the part's optimum
+            bound += _value(sub, solved.cols, solved.rates)
+    value = _value(table, cols, rates)
+    return _Solved(status, "", cols, rates, max(bound, value), rest.price)
+
+
+def _rows(table: _Table, rows: IntArray) -> _Table:
+    """The table of the channels ``rows`` alone."""
+    return _Table(**{name: getattr(table, name)[rows] for name in _Table.__slots__})
+
+
+def _spend(table: _Table, group: IntArray, solved: _Solved) -> float:
+    """The bytes a second ``solved`` (of the channels ``group``) spends."""
+    return float(table.spend_size[group, solved.cols] @ solved.rates)
 
 
 def _frozen(array: FloatArray) -> FloatArray:

@@ -504,7 +504,13 @@ class OptimizerNode:
             frame_headroom=dbm.frame_headroom,
         )
         ladders = {c.topic: ladder for c in managed if c.topic in topics and (ladder := c.ladder())}
-        if ladders and dbm.strategy is Strategy.PAPER and not links:
+        crossing = [topic for link in links for topic in link.topics]
+        # Ladders under the paper's strategy, or under `lp` with links that share no channel
+        # (a robot's uplink): the rung and the rate together; else rates on declared sizes.
+        quality = dbm.strategy is Strategy.PAPER or (
+            dbm.strategy is Strategy.LP and len(crossing) == len(set(crossing))
+        )
+        if ladders and quality:
             outcome = _quality_outcome(problem, ladders, self._price_hint)
             assert outcome.quality is not None
             self._price_hint = outcome.quality.price_per_byte  # where the next round starts
