@@ -101,11 +101,15 @@ class QueueDetector:
         if overuse and view.now_s >= self._frozen_until:
             # Frames still queued were sent before this decrease could act: one decrease, then
             # wait until what is sent after it has had time to arrive.
-            backlog = _backlog_s(judged, shared.response_s)
             capacity = (
                 busy_rate_mbit(view.pairs(shared.window_s), s.overuse_delay_s / 2) or view.cut_rate
             )
             if capacity > 0:
+                # The queue grows no faster than what is offered (the estimate at most) exceeds
+                # what the link carries: a burst's slope (frames of two allocations at once, as
+                # one replaces the other) does not go on until the cut acts.
+                growth = max(0.0, estimate / capacity - 1.0)
+                backlog = _backlog_s(judged, shared.response_s, max_slope=growth)
                 self._capacity_mbit = capacity
                 drain = backlog * capacity / s.drain_s
                 target = max(s.backoff * capacity - drain, 0.5 * s.backoff * capacity)
@@ -143,9 +147,15 @@ def increase(
     return Decision(Phase.INCREASE, estimate * (1.0 + rate) ** view.dt_s)
 
 
-def _backlog_s(judged: list[Judged], response_s: float) -> float:
-    """The queue by the time a decrease acts: it keeps growing until then."""
+def _backlog_s(judged: list[Judged], response_s: float, *, max_slope: float) -> float:
+    """The queue by the time a decrease acts.
+
+    It keeps growing until then, at most at ``max_slope`` (seconds of queueing a second).
+    """
     return max(
-        (j.latest_s + max(0.0, j.slope) * (j.latest_s + response_s) for j in judged),
+        (
+            j.latest_s + min(max(0.0, j.slope), max_slope) * (j.latest_s + response_s)
+            for j in judged
+        ),
         default=0.0,
     )

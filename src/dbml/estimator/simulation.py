@@ -76,6 +76,7 @@ def simulate(
     jitter_s: Callable[[str, int], float] | None = None,
     report_lag_s: float = 0.0,
     shares: Callable[[float], Mapping[str, float]] | None = None,
+    transmit_until: Callable[[float, float], float] | None = None,
 ) -> Trace:
     """``FRAMES``' senders over a link of ``link_mbit(t)`` for ``duration_s``, and what arrived.
 
@@ -83,6 +84,8 @@ def simulate(
     arrives (``report_lag_s`` late) and updated every ``tick_s``; its estimate reaches the
     senders ``reaction_s`` later. ``clock_offsets_s`` shifts a stream's send times (the
     sender's clock); ``jitter_s(stream, seq)`` delays a frame after the bottleneck.
+    ``transmit_until(start_s, megabits)``: when a frame's transmission started at ``start_s``
+    ends (a recorded link's capacity integrated over it); else at ``link_mbit(start)``.
     """
     offsets = clock_offsets_s or {}
     last_arrival = dict.fromkeys((name for name, *_ in FRAMES), 0.0)
@@ -111,7 +114,10 @@ def simulate(
             if sent >= tick_end:
                 break
             start = max(sent + propagation_s, link_free_s)
-            link_free_s = start + size * 8e-6 / (link_mbit(start) * wire_efficiency)
+            if transmit_until is not None:
+                link_free_s = transmit_until(start, size * 8e-6)
+            else:
+                link_free_s = start + size * 8e-6 / (link_mbit(start) * wire_efficiency)
             extra = 0.0 if jitter_s is None else jitter_s(name, seqs[name])
             arrived_s = max(link_free_s + extra, last_arrival[name])
             last_arrival[name] = arrived_s
