@@ -229,12 +229,12 @@ def busy_rate_mbit(ordered: list[Sample], queued_s: float) -> float | None:
     A frame that waited in the queue arrived as soon as the one before it had, so its size over
     that gap is the link's rate (packet pairs).
     """
-    size = gap = 0.0
-    for (t_prev, _, _), (t, queue, frame) in itertools.pairwise(ordered):
-        if queue > queued_s and t > t_prev:
-            size += frame
-            gap += t - t_prev
-    return bytes_per_s_to_mbit(size / gap) if gap > 0 else None
+    rates = sorted(
+        frame / (t - t_prev)
+        for (t_prev, _, _), (t, queue, frame) in itertools.pairwise(ordered)
+        if queue > queued_s and t > t_prev
+    )
+    return bytes_per_s_to_mbit(rates[len(rates) // 2]) if rates else None
 
 
 def receive_rate_mbit(ordered: list[Sample], now_s: float, window_s: float) -> float:
