@@ -1,7 +1,5 @@
 """``python -m dbml``."""
 
-import sys
+from dbml.cli import run
 
-from dbml.cli import main
-
-sys.exit(main())
+run()

@@ -1,7 +1,6 @@
 """``python -m dbml.experiment KIND ...``: a child process of a demo or testbed run."""
 
-import sys
-
 from dbml.experiment.entry import main
+from dbml.harness.processes import exit_process
 
-sys.exit(main())
+exit_process(main)

@@ -5,14 +5,16 @@ Starting, reading and ending processes is the supervisor's (``dbml.harness.super
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import os
 import random
 import socket
 import sys
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
-__all__ = ["foreign_interpreter_env", "free_port"]
+__all__ = ["exit_process", "foreign_interpreter_env", "free_port"]
 
 _ROS_WHEELS_GUARD = "_ROS_WHEELS_BOOTSTRAP_COMPLETE"
 """Set by the ROS 2 wheels' ``.pth`` bootstrap once it has re-executed with its library path."""
@@ -89,3 +91,24 @@ def _wheels_library_dir(path: Path) -> bool:
         return False
     prefix = path.parent  # ours, or another virtual environment's (a child of one of them)
     return prefix.resolve() == Path(sys.prefix).resolve() or (prefix / "pyvenv.cfg").is_file()
+
+
+def exit_process(main: Callable[[], int]) -> None:
+    """Run a process's ``main``; end the process with its code, without the interpreter's teardown.
+
+    ``main`` closes what it opened (sessions, nodes, files) before it returns; what is left to
+    the interpreter's finalization is its threads. There a middleware's own thread (zenoh's,
+    Fast DDS's) that calls into Python is ended by CPython 3.11 with ``pthread_exit``, and the
+    unwinding through its native frames can abort the process after its work is done (``FATAL:
+    exception not rethrown``, exit -6: a CI run of ``dbml priority`` over mTLS). So the output
+    and the logs are flushed and the process ends at once.
+    """
+    try:
+        code = main()
+    except SystemExit as stop:
+        code = stop.code if isinstance(stop.code, int) else (0 if stop.code is None else 1)
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(OSError, ValueError):  # closed, or its reader gone
+            stream.flush()
+    os._exit(code)
