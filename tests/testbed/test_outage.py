@@ -52,7 +52,7 @@ def test_an_outage_holds_then_releases_the_urgent_channel_first(netns_privilege:
     assert outage.first_fresh_urgent_s < FIRST_URGENT_S, outage
     assert outage.stale <= MAX_STALE, outage
     assert outage.release_over_budget_mbit is not None
-    assert result.targets()["budget_kept_within_one_message_per_channel_after_outage_at_9s"]
+    assert result.targets()["budget_kept_within_one_message_per_channel_after_outage_at_9s"], outage
     budget = result.steps[-1].budget_mbit
     assert budget is not None
     assert budget >= MIN_BUDGET_AFTER_MBIT, result.steps[-1]
