@@ -34,6 +34,8 @@ import json
 import math
 import statistics
 import time
+from collections.abc import Callable
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -42,7 +44,7 @@ from scipy.sparse import coo_array
 
 from dbml.core.ladder import Ladder, Preference, Rung
 from dbml.core.priority import normalize_priorities
-from dbml.core.quality import PREFERENCE_TERMS, WEIGHT_BASE, allocate_quality
+from dbml.core.quality import PREFERENCE_TERMS, WEIGHT_BASE, QualityAllocation, allocate_quality
 from dbml.core.spec import BYTES_PER_S_PER_MBIT, ChannelSpec, LinkSpec, Problem
 from dbml.media.jpeg import encode_jpeg
 from dbml.protocol.ladders import encoding_label
@@ -133,6 +135,18 @@ def milp_optimum(problem: Problem, ladders: dict[str, Ladder], grid: int) -> tup
     return float(-result.fun), str(result.message)
 
 
+def _timed(
+    solve: Callable[[], QualityAllocation], repeat: int
+) -> tuple[QualityAllocation, list[float]]:
+    """``solve`` ``repeat`` times: its last result and each call's milliseconds."""
+    times_ms = []
+    for _ in range(repeat):
+        started = time.perf_counter()
+        result = solve()
+        times_ms.append((time.perf_counter() - started) * 1e3)
+    return result, times_ms
+
+
 def measure(n: int, repeat: int, grid: int, seed: int, fleets: int) -> dict[str, Any]:
     """The solver on ``fleets`` random fleets of ``n`` cameras; the MILP on the first."""
     per_fleet_ms: list[float] = []
@@ -143,21 +157,16 @@ def measure(n: int, repeat: int, grid: int, seed: int, fleets: int) -> dict[str,
     first: tuple[Problem, dict[str, Ladder], Any] | None = None
     for k in range(fleets):
         problem, ladders = fleet(np.random.default_rng(seed + k), n)
-        solve_ms = []
-        for _ in range(repeat):
-            started = time.perf_counter()
-            allocation = allocate_quality(problem, ladders)
-            solve_ms.append((time.perf_counter() - started) * 1e3)
+        allocation, solve_ms = _timed(partial(allocate_quality, problem, ladders), repeat)
         per_fleet_ms.append(statistics.median(solve_ms))
         fastest_ms = min(fastest_ms, *solve_ms)
         # The optimizer's next round: one camera's priority moved, the last price the start.
         changed = _one_priority_moved(problem, np.random.default_rng(seed + k + 1))
         cold = allocate_quality(changed, ladders)
-        solve_ms = []
-        for _ in range(repeat):
-            started = time.perf_counter()
-            warm = allocate_quality(changed, ladders, price_hint=allocation.price_per_byte)
-            solve_ms.append((time.perf_counter() - started) * 1e3)
+        hint = allocation.price_per_byte
+        warm, solve_ms = _timed(
+            partial(allocate_quality, changed, ladders, price_hint=hint), repeat
+        )
         warm_ms.append(statistics.median(solve_ms))
         warm_differs += abs(warm.utility - cold.utility) > 1e-9 * abs(cold.utility)
         assert allocation.upper_bound is not None
@@ -221,11 +230,7 @@ def measure_links(n: int, repeat: int, grid: int, seed: int, fleets: int) -> dic
         rng = np.random.default_rng(seed + k)
         problem, ladders = fleet(rng, n)
         problem = with_uplinks(problem, ladders, rng)
-        solve_ms = []
-        for _ in range(repeat):
-            started = time.perf_counter()
-            allocation = allocate_quality(problem, ladders)
-            solve_ms.append((time.perf_counter() - started) * 1e3)
+        allocation, solve_ms = _timed(partial(allocate_quality, problem, ladders), repeat)
         per_fleet_ms.append(statistics.median(solve_ms))
         spent = allocation.bytes_per_s
         binding.append(
