@@ -21,11 +21,11 @@ import argparse
 import json
 import statistics
 import sys
-import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from arrivals import write_arrivals
 from dbml.experiment.runner import Snapshot
 from dbml.testbed.runner import TestbedOptions, TestbedResult, run_teleop_testbed
 
@@ -80,44 +80,9 @@ def _run(schedule: str, step_s: float, trace: Path | None, name: str) -> Testbed
     recorder = _Recorder()
     result = run_teleop_testbed(options, observe=recorder)
     if trace is not None and recorder.snapshot is not None:
-        _write_trace(trace, name, schedule, step_s, recorder.snapshot)
+        head = {"schedule": schedule, "step_s": step_s, "wire": WIRE_EFFICIENCY}
+        write_arrivals(trace, name, head, recorder.snapshot)
     return result
-
-
-def _write_trace(folder: Path, name: str, schedule: str, step_s: float, snap: Snapshot) -> None:
-    """One JSON line of the run, then one per frame and one per operator tick (t0-relative)."""
-    folder.mkdir(parents=True, exist_ok=True)
-    path = folder / f"{name}-{time.strftime('%Y%m%dT%H%M%S')}.jsonl"
-    t0 = snap.t0
-    with path.open("w") as out:
-        head = {"kind": "run", "schedule": schedule, "step_s": step_s, "wire": WIRE_EFFICIENCY}
-        out.write(json.dumps(head) + "\n")
-        for a in snap.arrivals:
-            if a.seq is None or a.sent_s is None:
-                continue
-            frame = {
-                "kind": "frame",
-                "stream": f"r{a.robot + 1}",
-                "seq": a.seq,
-                "sent_s": round(a.sent_s - t0, 6),
-                "arrival_s": round(a.arrival_s - t0, 6),
-                "size_bytes": a.size_bytes,
-                "rate_hz": a.rate_hz,
-            }
-            out.write(json.dumps(frame) + "\n")
-        for t in snap.ticks:
-            tick = {
-                "kind": "tick",
-                "t_s": round(t.t_s - t0, 4),
-                "budget_mbit": t.budget_mbit,
-                "estimate_mbit": t.estimate_mbit,
-                "phase": None if t.estimator is None else t.estimator.phase.value,
-                "decided_s": None
-                if t.estimator is None or t.estimator.decided_at_s is None
-                else round(t.estimator.decided_at_s - t0, 4),
-            }
-            out.write(json.dumps(tick) + "\n")
-    print(f"trace: {path}", file=sys.stderr)
 
 
 def _report(result: TestbedResult) -> dict[str, Any]:

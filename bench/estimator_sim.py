@@ -16,7 +16,6 @@ testbed's runs add; a design is judged there, not here.
 from __future__ import annotations
 
 import argparse
-import bisect
 import json
 import statistics
 from collections.abc import Sequence
@@ -25,7 +24,7 @@ from typing import Any
 
 from dbml.estimator import BandwidthEstimator, Design, EstimatorSettings, settings_of
 from dbml.estimator.base import Estimate, Phase
-from dbml.estimator.simulation import FRAMES, WIRE_EFFICIENCY, Trace, simulate
+from dbml.estimator.simulation import FRAMES, WIRE_EFFICIENCY, Trace, simulate, transmission_over
 from dbml.scenarios.traces import LinkTrace, load_trace
 
 CAP_MBIT = 11.0 * 0.92
@@ -49,27 +48,6 @@ class Oracle:
     def update(self, now_s: float) -> Estimate:
         self.estimate_mbit = max(min(CAP_MBIT, self._trace.mbit_at(now_s) * WIRE_EFFICIENCY), 0.01)
         return Estimate(now_s, self.estimate_mbit, Phase.HOLD, 0.0, 0.0, 0.0, 0)
-
-
-def finish_function(trace: LinkTrace):  # type: ignore[no-untyped-def]
-    """When a transmission of ``megabits`` started at ``start_s`` ends on ``trace``'s link."""
-    times = [e.at_s for e in trace.entries]
-    rates = [e.mbit * WIRE_EFFICIENCY for e in trace.entries]
-
-    def finish_s(start_s: float, megabits: float) -> float:
-        i = max(bisect.bisect_right(times, start_s) - 1, 0)
-        t, left = start_s, megabits
-        while True:
-            end = times[i + 1] if i + 1 < len(times) else float("inf")
-            rate = rates[i]
-            if rate > 0 and t + left / rate <= end:
-                return t + left / rate
-            if end == float("inf"):
-                return t + (left / rate if rate > 0 else 3600.0)
-            left -= rate * (end - t)
-            t, i = end, i + 1
-
-    return finish_s
 
 
 def judge(run: Trace, start_s: float, end_s: float) -> dict[str, float]:
@@ -97,7 +75,7 @@ def run_one(trace: LinkTrace, design: str | None) -> dict[str, float]:
         duration_s=trace.duration_s,
         tick_s=TICK_S,
         report_lag_s=REPORT_LAG_S,
-        transmit_until=finish_function(trace),
+        transmit_until=transmission_over(trace.schedule),
     )
     return judge(run, SETTLE_S, trace.duration_s)
 

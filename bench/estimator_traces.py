@@ -22,6 +22,7 @@ JSON object on stdout.
 
     sudo .venv/bin/python bench/estimator_traces.py [--gym DIR] [--designs queue ...]
                                                    [--cases steady drop ...] [--runs N]
+                                                   [--trace DIR]
 
 A run takes its case's length and about 15 s of set-up: the whole matrix (nine cases, three
 designs, one run each) took 41 minutes.
@@ -41,6 +42,7 @@ from typing import Any
 
 import numpy as np
 
+from arrivals import write_arrivals
 from dbml.core.spec import BYTES_PER_S_PER_MBIT
 from dbml.estimator.designs import DEFAULT_DESIGN, Design
 from dbml.estimator.simulation import WIRE_EFFICIENCY
@@ -101,7 +103,9 @@ class _Recorder:
         self.snapshot = snapshot
 
 
-def run_case(case: Case, design: Design) -> tuple[TestbedResult, Snapshot | None]:
+def run_case(
+    case: Case, design: Design, *, trace: Path | None = None
+) -> tuple[TestbedResult, Snapshot | None]:
     """One testbed run of ``case`` with ``design``; its result and the operator's records."""
     options = TestbedOptions.from_flags(
         policy="dbml",
@@ -114,6 +118,9 @@ def run_case(case: Case, design: Design) -> tuple[TestbedResult, Snapshot | None
     )
     recorder = _Recorder()
     result = run_teleop_testbed(options, observe=recorder)
+    if trace is not None and recorder.snapshot is not None:
+        head = {"case": case.name, "design": design.value, "schedule": case.trace.schedule}
+        write_arrivals(trace, f"{case.name}-{design.value}", head, recorder.snapshot)
     return result, recorder.snapshot
 
 
@@ -293,6 +300,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--cases", nargs="+", default=[*BUILT_IN, *GYM_TRACES])
     parser.add_argument("--runs", type=int, default=1)
+    parser.add_argument("--trace", type=Path, help="write each run's arrivals here (JSON lines)")
     parser.add_argument("--oracle-only", action="store_true", help="no testbed: the oracle alone")
     args = parser.parse_args(argv)
     report: dict[str, Any] = {
@@ -320,7 +328,7 @@ def main(argv: list[str] | None = None) -> int:
         for design in (Design(d) for d in args.designs):
             runs = []
             for _ in range(args.runs):
-                result, snapshot = run_case(case, design)
+                result, snapshot = run_case(case, design, trace=args.trace)
                 run = figures(case, result, snapshot)
                 best = reference["utilisation"]
                 if run.get("utilisation") is not None and best:

@@ -14,7 +14,13 @@ from hypothesis import strategies as st
 
 from dbml.core.errors import SpecError
 from dbml.estimator import Arrival, BandwidthEstimator, Phase, QueueSettings
-from dbml.estimator.simulation import CAP_MBIT, WIRE_EFFICIENCY, drop_and_rise, simulate
+from dbml.estimator.simulation import (
+    CAP_MBIT,
+    WIRE_EFFICIENCY,
+    drop_and_rise,
+    simulate,
+    transmission_over,
+)
 
 DEMAND_MAX_MBIT = 16 * (84_000 + 21_000) * 8e-6  # both cameras at their maximum
 
@@ -39,6 +45,54 @@ def test_rise_is_found_within_ten_seconds() -> None:
     trace = simulate(BandwidthEstimator(max_mbit=CAP_MBIT), drop_and_rise, duration_s=52)
     assert trace.estimate_at(39.9) < 6.0
     assert trace.estimate_at(50) >= 0.9 * 11.0
+
+
+def test_after_the_drop_the_budget_cruises_at_the_new_rate() -> None:
+    """A cut below the link's rate drains the queue; once drained the budget is back near it."""
+    trace = simulate(BandwidthEstimator(max_mbit=CAP_MBIT), drop_and_rise, duration_s=40)
+    payload_mbit = 5.0 * WIRE_EFFICIENCY
+    assert min(e.estimate_mbit for e in trace.estimates if 20.5 < e.t_s < 21) < 0.7 * payload_mbit
+    after = [e.estimate_mbit for e in trace.estimates if 23.5 < e.t_s < 26.5]
+    assert sum(after) / len(after) > 0.85 * payload_mbit
+
+
+def test_a_cut_says_why() -> None:
+    trace = simulate(BandwidthEstimator(max_mbit=CAP_MBIT), drop_and_rise, duration_s=24)
+    cut = next(e for e in trace.estimates if e.t_s > 20 and e.phase is Phase.DECREASE)
+    assert "queue" in cut.reason
+    assert "link" in cut.reason
+    assert "Mbit/s" in cut.reason
+
+
+def test_rise_leaves_the_slow_band_at_once() -> None:
+    """Frames crossing faster than any in the seconds before: the rise is taken at full pace."""
+    trace = simulate(BandwidthEstimator(max_mbit=CAP_MBIT), drop_and_rise, duration_s=46)
+    assert trace.estimate_at(45) >= 0.9 * CAP_MBIT
+
+
+FADES = tuple(
+    step for start in range(5, 60, 3) for step in ((float(start), 0.01), (start + 0.3, 14.0))
+)
+"""A radio uplink of 14 Mbit/s that fades to nothing for 300 ms every 3 s."""
+
+
+def test_fades_are_ridden_through() -> None:
+    """A fade's backlog crosses at the link's rate, above the estimate.
+
+    A cut made before the frames behind it could tell is undone at once, and none is made after.
+    """
+    schedule = ((0.0, 14.0), *FADES)
+    link = dict(schedule)
+    trace = simulate(
+        BandwidthEstimator(max_mbit=CAP_MBIT),
+        lambda t: link[max(at for at in link if at <= t)],
+        duration_s=60,
+        transmit_until=transmission_over(schedule),
+    )
+    assert max(e.queue_delay_s for e in trace.estimates) > 0.2  # the fades queue frames
+    low = [e.t_s for e in trace.estimates if e.estimate_mbit < 0.95 * CAP_MBIT]
+    assert len(low) <= len(FADES) // 2  # at most one tick a fade
+    assert all(trace.estimate_at(t + 0.15) >= 0.95 * CAP_MBIT for t in low)
 
 
 def test_without_estimation_the_drop_builds_an_ever_growing_queue() -> None:

@@ -23,6 +23,7 @@ from dbml.protocol.messages import (
     HEARD_RECENT_MAX,
     MAX_BEACON_BYTES,
     MAX_NAME_CHARS,
+    MAX_REASON_CHARS,
     MAX_REPORT_BYTES,
     MAX_REPORT_FRAMES,
     MAX_REPORTED_CHANNELS,
@@ -70,6 +71,15 @@ def test_a_state_travels_as_json_and_reads_as_a_line() -> None:
     assert EstimatorState.decode(hold.encode()) == hold
 
 
+def test_a_state_says_why() -> None:
+    cut = Estimate(5.0, 4.5, Phase.DECREASE, 3.2, 0.2, 0.5, 0, reason="queue 200 ms rising")
+    state = EstimatorState.of(cut)
+    assert state.text.endswith("lost 0 (queue 200 ms rising)")
+    assert EstimatorState.decode(state.encode()).reason == "queue 200 ms rising"
+    long = Estimate(5.0, 4.5, Phase.HOLD, 3.2, 0.0, 0.0, 0, reason="x" * (MAX_REASON_CHARS + 9))
+    assert len(EstimatorState.of(long).reason) == MAX_REASON_CHARS  # cut to what travels
+
+
 @pytest.mark.parametrize(
     ("text", "match"),
     [
@@ -89,6 +99,15 @@ def test_a_state_travels_as_json_and_reads_as_a_line() -> None:
             '{"phase": "hold", "lost": 0, "received_mbit": 1, "queue_delay_s": 0, '
             '"decided_at_s": -2}',
             "estimator state: decided_at_s=-2 must be >= 0",
+        ),
+        (
+            '{"phase": "hold", "lost": 0, "received_mbit": 1, "queue_delay_s": 0, '
+            '"reason": "a\\nb"}',
+            "estimator state: reason='a\\\\nb' is not a line of at most 120 printable",
+        ),
+        (
+            '{"phase": "hold", "lost": 0, "received_mbit": 1, "queue_delay_s": 0, "reason": 7}',
+            "estimator state: reason=7 is not a line",
         ),
     ],
 )

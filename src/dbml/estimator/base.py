@@ -86,6 +86,8 @@ class Estimate:
     """Seconds of queueing delay gained per second (negative while the queue drains)."""
     lost: int
     """Frames lost (sequence gaps) since the previous update."""
+    reason: str = ""
+    """Why the design decided as it did, for a person (``dbml monitor``); may be empty."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -140,6 +142,8 @@ class Decision:
 
     phase: Phase
     estimate_mbit: float
+    reason: str = ""
+    """Why, in a few words with the figures that decided (``Estimate.reason``)."""
 
 
 class Detector(Protocol):
@@ -223,18 +227,19 @@ def slope(points: list[tuple[float, float]]) -> float:
     return sum((t - mean_t) * (y - mean_y) for t, y in points) / var
 
 
-def busy_rate_mbit(ordered: list[Sample], queued_s: float) -> float | None:
-    """Delivery rate while the link was busy.
+def busy_rate_mbit(ordered: list[Sample], queued_s: float, *, least: int = 1) -> float | None:
+    """Delivery rate while the link was busy; None from fewer than ``least`` packet pairs.
 
     A frame that waited in the queue arrived as soon as the one before it had, so its size over
-    that gap is the link's rate (packet pairs).
+    that gap is the link's rate (packet pairs). The median pair: one that spans a fade (its gap
+    the fade's length) says nothing of the rate after it.
     """
     rates = sorted(
         frame / (t - t_prev)
         for (t_prev, _, _), (t, queue, frame) in itertools.pairwise(ordered)
         if queue > queued_s and t > t_prev
     )
-    return bytes_per_s_to_mbit(rates[len(rates) // 2]) if rates else None
+    return bytes_per_s_to_mbit(rates[len(rates) // 2]) if rates and len(rates) >= least else None
 
 
 def receive_rate_mbit(ordered: list[Sample], now_s: float, window_s: float) -> float:

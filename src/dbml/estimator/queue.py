@@ -1,25 +1,35 @@
-"""The ``queue`` design (the first one, the default): a standing or rising queue is overuse.
+"""The ``queue`` design (the default): a queue that stands or rises past the link's pace.
 
-Queueing delay above ``overuse_delay_s`` and rising, or above ``max_queue_delay_s``, or frames
-lost (sequence gaps) is overuse; a cut to ``backoff`` of the packet-pair rate minus what drains
-the queue within ``drain_s``, then a hold while the queue drains; an increase otherwise, slowly
-near the capacity last measured, fast away from it. The default because the other designs'
-probing costs frames after a drop on a drop-tail link (docs/estimator.md).
+Overuse: queueing that stands above ``max_queue_delay_s``; queueing that rises above
+``overuse_delay_s`` (plus, near a rate the link was measured at, one frame of another stream's
+wait, the link's own pace); frames lost. A queue that rose while the link's median rate of the
+last seconds (packet pairs) is ``headroom`` above the estimate drains by itself (a radio fade's
+backlog, a burst): no cut. Otherwise a cut to ``backoff`` of the link's rate less what drains the
+queue within ``drain_s``; before enough frames have queued to measure that rate the cut is
+provisional, undone if the frames behind it cross at the rate offered before (a fade), kept if
+slower (a fall). Once drained the estimate goes back to ``backoff`` of the rate measured and stays
+there ``plateau_s``, then probes up slowly near it and fast away from it; frames of the largest
+stream crossing faster than in the seconds before (the link rose) end the stay and the slow band.
 
-It reads, per stream that speaks for the link, its newest and least queueing and their slope,
-the packet pairs of the last ``window_s``, and the frames lost.
+It reads, per stream that speaks for the link, its newest and least queueing and their slope and
+its frames' one-way delays; the packet pairs of the last ``window_s``; the frames lost.
 """
 
 from __future__ import annotations
 
 import math
+import statistics
+from collections import deque
 from dataclasses import dataclass
 
+from dbml.core.errors import SpecError
 from dbml.estimator.base import (
+    RATE_FRAMES,
     Arrival,
     Decision,
     Judged,
     Phase,
+    Sample,
     SharedSettings,
     View,
     busy_rate_mbit,
@@ -48,6 +58,27 @@ class QueueSettings:
     fast_increase_per_s: float = 0.25
     near_band: tuple[float, float] = (0.8, 1.1)
     """Around the capacity last measured under overuse (as fractions), increase slowly."""
+    least_pairs: int = 3
+    """The link's rate needs this many packet pairs (a fade spans one); a cut before them is
+    provisional..."""
+    undo_s: float = 1.0
+    """...and undone if within this long the pairs measure ``undo_share`` of the estimate before
+    it (a fade's backlog crossing at the link's pace, as TCP's recovery allows)."""
+    undo_share: float = 0.8
+    plateau_s: float = 4.0
+    """Back at the rate a cut measured, the estimate stays there this long before it probes
+    above it (the link's rise, seen, ends the stay)."""
+    rise_delay_s: float = 0.02
+    rise_window_s: float = 5.0
+    """A stream's frames crossing ``rise_delay_s`` faster than any in the ``rise_window_s``
+    before: the link rose (its frames' own transmission is shorter), the slow band is left."""
+    link_window_s: float = 3.0
+    """The link's median rate over this long says whether a queue drains by itself."""
+    memory_s: float = 8.0
+    """A cut's measure of the link holds the increase back (plateau, slow band) this long."""
+    headroom: float = 1.1
+    """A queue while the link carries this many times the estimate or more drains by itself
+    (a fade's backlog, a burst): hold, no cut."""
 
     def __post_init__(self) -> None:
         check_positive(
@@ -57,11 +88,20 @@ class QueueSettings:
                 "overuse_delay_s",
                 "max_queue_delay_s",
                 "drain_s",
+                "undo_s",
+                "plateau_s",
+                "link_window_s",
+                "memory_s",
+                "rise_delay_s",
+                "rise_window_s",
+                "headroom",
                 "slow_increase_per_s",
                 "fast_increase_per_s",
             ),
         )
-        check_shares("estimator", self, ("backoff",))
+        check_shares("estimator", self, ("backoff", "undo_share"))
+        if self.least_pairs < 1:
+            raise SpecError(f"estimator least_pairs={self.least_pairs!r} must be at least 1")
 
     def detector(self, shared: SharedSettings) -> QueueDetector:
         """A fresh ``queue`` detector."""
@@ -69,7 +109,7 @@ class QueueSettings:
 
 
 class QueueDetector:
-    """A standing or rising queue, a cut to the packet-pair rate."""
+    """A queue that stands or rises past the link's pace; a cut to the link's rate."""
 
     def __init__(self, settings: QueueSettings, shared: SharedSettings) -> None:
         self.settings = settings
@@ -77,48 +117,122 @@ class QueueDetector:
         self._frozen_until = -math.inf
         """No new cut before this: what was sent before the last one is still arriving."""
         self._capacity_mbit: float | None = None
-        """The link's rate measured at the last cut."""
+        """The link's rate measured at the last cut (or found faster since)."""
+        self._provisional_mbit: float | None = None
+        """The estimate before a cut made before the link's rate could be measured."""
+        self._provisional_s = -math.inf
+        self._provisional_until = -math.inf
+        self._cruise_until = -math.inf
+        """Back at the link's rate after a cut: no probe above it before this (unless it rose)."""
+        self._capacity_s = -math.inf
+        """When the last cut measured the link's rate."""
+        self._rates: deque[tuple[float, float]] = deque()
+        """(when, Mbit/s): the link's rate at each update that measured it, ``link_window_s``."""
+        self._rose = False
+        """The link was seen to rise since the last cut."""
+        self._why_cut = ""
+        """The last cut's reason, repeated in the holds that follow it."""
+        self._restore = False
+        """The last cut went below the link's rate to drain the queue: back to it once drained."""
 
     def observe(self, arrival: Arrival) -> None:
         """Nothing: it reads the streams' delays from the view."""
 
     def forget(self, stream: str | None) -> None:
-        """Nothing: it keeps nothing per stream."""
+        """The link went down (``None``): a provisional cut read the start of the outage."""
+        if stream is None and self._provisional_mbit is not None:
+            self._provisional_until = math.inf
 
     def decide(self, view: View) -> Decision:
         """Cut on overuse once a cut could have acted; hold while it drains; increase."""
         s, shared = self.settings, self._shared
         judged = view.judged
         estimate = view.estimate_mbit
-        overuse = view.lost > 0 or any(
-            (j.latest_s > s.overuse_delay_s and j.slope > s.overuse_trend)
-            or (j.least_s > s.max_queue_delay_s and j.slope >= 0)
-            for j in judged
-        )
-        draining = bool(judged) and all(j.slope < -s.overuse_trend for j in judged)
+        if self._provisional_until == math.inf and self._provisional_mbit is not None:
+            # The queue the provisional cut read was the outage's start; the outage keeps the
+            # estimate from before it, as it does for every design.
+            before, self._provisional_mbit = self._provisional_mbit, None
+            self._frozen_until, self._restore = -math.inf, False
+            return Decision(Phase.HOLD, max(estimate, before), "outage: provisional cut undone")
         if view.settling:
-            return Decision(Phase.HOLD, estimate)  # the backlog of the outage drains
+            return Decision(Phase.HOLD, estimate, "outage's backlog drains")
+        if self._capacity_mbit is not None and _faster(
+            judged,
+            since_s=view.now_s - s.rise_window_s,
+            recent_s=view.now_s - shared.window_s,
+            by_s=s.rise_delay_s,
+        ):
+            # Frames cross in less time than any in the seconds before: the link rose, what
+            # the last cut measured no longer holds the increase back.
+            self._capacity_mbit = None
+            self._rose = True
+        pairs = view.pairs(shared.window_s)
+        measured = busy_rate_mbit(pairs, s.overuse_delay_s / 2, least=s.least_pairs)
+        if measured is not None:
+            self._rates.append((view.now_s, measured))
+        while self._rates and self._rates[0][0] < view.now_s - s.link_window_s:
+            self._rates.popleft()
+        # The link's rate of the last seconds: frames that queue behind a fade cross as TCP's
+        # recovery lets them (slower than the link), or all at once from the receiver's buffer
+        # (faster): the median reading of the last seconds speaks for the link.
+        link_mbit = statistics.median(r for _, r in self._rates) if self._rates else None
+        if self._capacity_mbit is not None and view.now_s > self._capacity_s + s.memory_s:
+            self._capacity_mbit = None  # not confirmed by a cut for a while: probe at pace
+        undone = self._settle_provisional(view, pairs)
+        if undone is not None:
+            return undone
+        # Near a rate the link was measured at (or rising to one), a frame may wait for one
+        # frame of another stream to cross: that wait is the link's own pace, not a queue that
+        # grows.
+        allowance_s = 0.0
+        near = self._capacity_mbit
+        pace_mbit = measured if self._rose else None
+        if near is not None and estimate <= s.near_band[1] * near:
+            pace_mbit = near
+        if pace_mbit:
+            allowance_s = max((size for *_, size in pairs), default=0) * 8e-6 / pace_mbit
+        overuse, standing = _overuse(view, s, allowance_s)
+        draining = bool(judged) and all(j.slope < -s.overuse_trend for j in judged)
         if overuse and view.now_s >= self._frozen_until:
-            # Frames still queued were sent before this decrease could act: one decrease, then
-            # wait until what is sent after it has had time to arrive.
-            capacity = (
-                busy_rate_mbit(view.pairs(shared.window_s), s.overuse_delay_s / 2) or view.cut_rate
-            )
-            if capacity > 0:
-                # The queue grows no faster than what is offered (the estimate at most) exceeds
-                # what the link carries: a burst's slope (frames of two allocations at once, as
-                # one replaces the other) does not go on until the cut acts.
-                growth = max(0.0, estimate / capacity - 1.0)
-                backlog = _backlog_s(judged, shared.response_s, max_slope=growth)
-                self._capacity_mbit = capacity
-                drain = backlog * capacity / s.drain_s
-                target = max(s.backoff * capacity - drain, 0.5 * s.backoff * capacity)
-                estimate = min(estimate, target)
-                self._frozen_until = view.now_s + backlog + shared.response_s
-            return Decision(Phase.DECREASE, estimate)
+            if not standing and link_mbit is not None and link_mbit >= s.headroom * estimate:
+                # The link carries more than is offered: a queue that rose (a burst, a fade's
+                # backlog, the frames a sender dropped while it could not send) drains by
+                # itself. One that stands does not.
+                return Decision(
+                    Phase.HOLD, estimate, f"{overuse}; drains: link {link_mbit:.2f} Mbit/s"
+                )
+            if measured is None:
+                if self._provisional_mbit is not None:
+                    return Decision(Phase.HOLD, estimate, self._why_cut)
+                # Too few frames queued to tell a fade from a fall: cut on what arrived, and
+                # undo it if the frames behind say the link carried what was offered.
+                self._provisional_mbit = estimate
+                self._provisional_s = view.now_s
+                self._provisional_until = view.now_s + s.undo_s
+                return self._cut(
+                    view, view.cut_rate, frozen_s=shared.response_s, why=f"{overuse}; provisional"
+                )
+            self._provisional_mbit = None
+            return self._cut(view, measured, why=overuse)
         if overuse or draining or view.now_s < self._frozen_until:
-            return Decision(Phase.HOLD, estimate)  # still draining, or the cut not yet seen
-        return increase(
+            # Still draining, or the cut not yet seen.
+            return Decision(Phase.HOLD, estimate, self._why_cut if self._why_cut else overuse)
+        if self._capacity_mbit is not None:
+            # Drained: cruise at the link's rate the cut measured, not below it.
+            cruise = s.backoff * self._capacity_mbit
+            if self._restore and estimate < cruise:
+                self._restore = False
+                self._cruise_until = view.now_s + s.plateau_s
+                return Decision(Phase.INCREASE, cruise, "drained: back to the link's rate")
+            # Frames that queued behind others say the link's rate without overuse: one found
+            # faster than the cut's (the link rose) leaves the slow band.
+            if measured is not None and measured > s.near_band[1] * self._capacity_mbit:
+                self._capacity_mbit = measured
+            elif view.now_s < self._cruise_until:
+                return Decision(Phase.HOLD, estimate, "at the link's rate measured")
+        self._restore = False
+        self._why_cut = ""
+        decision = increase(
             view,
             self._capacity_mbit,
             probe_fraction=shared.probe_fraction,
@@ -126,6 +240,61 @@ class QueueDetector:
             fast_per_s=s.fast_increase_per_s,
             near_band=s.near_band,
         )
+        if self._rose and decision.phase is Phase.INCREASE:
+            return Decision(decision.phase, decision.estimate_mbit, "the link rose")
+        return decision
+
+    def _settle_provisional(self, view: View, pairs: list[Sample]) -> Decision | None:
+        """Undo a provisional cut the link's rate did not call for; let a called-for one stand."""
+        before = self._provisional_mbit
+        if before is None:
+            return None
+        # The link's rate from the frames that arrived since the cut (the ones before it may
+        # have crossed before a fall).
+        since = [p for p in pairs if p[0] >= self._provisional_s]
+        measured = busy_rate_mbit(since, self.settings.overuse_delay_s / 2, least=_SETTLE_PAIRS)
+        if measured is not None and measured >= self.settings.undo_share * before:
+            # A fade: what queued crossed at (nearly) the rate offered before the cut.
+            self._provisional_mbit = None
+            self._frozen_until = -math.inf
+            self._restore = False
+            self._why_cut = ""
+            return Decision(
+                Phase.INCREASE,
+                max(view.estimate_mbit, before),
+                f"provisional cut undone: link {measured:.2f} Mbit/s",
+            )
+        if measured is not None or view.now_s >= self._provisional_until:
+            # A fall: the link's rate, now measured, may ask for a deeper cut at once.
+            self._provisional_mbit = None
+            self._frozen_until = min(self._frozen_until, view.now_s)
+        return None
+
+    def _cut(
+        self, view: View, capacity: float, *, why: str, frozen_s: float | None = None
+    ) -> Decision:
+        """A cut to ``backoff`` of ``capacity`` less what drains the queue; then a freeze."""
+        s, estimate = self.settings, view.estimate_mbit
+        if capacity <= 0:
+            return Decision(Phase.DECREASE, estimate, f"{why}; nothing received")
+        # The queue grows no faster than what is offered (the estimate at most) exceeds what
+        # the link carries: a burst's slope (frames of two allocations at once, as one
+        # replaces the other) does not go on until the cut acts.
+        growth = max(0.0, estimate / capacity - 1.0)
+        backlog = _backlog_s(view.judged, self._shared.response_s, max_slope=growth)
+        self._capacity_mbit = capacity
+        self._capacity_s = view.now_s
+        self._restore = True
+        drain = backlog * capacity / s.drain_s
+        target = max(s.backoff * capacity - drain, 0.5 * s.backoff * capacity)
+        # Frames still queued were sent before this decrease could act: wait until what is
+        # sent after it has had time to arrive (or, for a provisional cut, for the frames
+        # behind the queue that tell a fade from a fall).
+        wait_s = backlog + self._shared.response_s if frozen_s is None else frozen_s
+        self._frozen_until = view.now_s + wait_s
+        self._rose = False
+        self._why_cut = f"{why}; link {capacity:.2f} Mbit/s, backlog {backlog * 1e3:.0f} ms"
+        return Decision(Phase.DECREASE, min(estimate, target), self._why_cut)
 
 
 def increase(
@@ -145,6 +314,44 @@ def increase(
     near = capacity_mbit is not None and (low * capacity_mbit <= estimate <= high * capacity_mbit)
     rate = slow_per_s if near else fast_per_s
     return Decision(Phase.INCREASE, estimate * (1.0 + rate) ** view.dt_s)
+
+
+_SETTLE_PAIRS = 2
+"""Two pairs since a provisional cut settle it: one that spans a fade is slow, the median (the
+faster of two) is the link's."""
+
+
+def _overuse(view: View, s: QueueSettings, allowance_s: float) -> tuple[str, bool]:
+    """What says the link is overused, in a few words (empty if nothing does).
+
+    And whether it is a queue that stands (rather than one that rose, or frames lost).
+    """
+    for j in view.judged:
+        if j.least_s > s.max_queue_delay_s and j.slope >= 0:
+            return f"standing queue {j.least_s * 1e3:.0f} ms", True
+    if view.lost > 0:
+        return f"{view.lost} lost", False
+    for j in view.judged:
+        if j.latest_s > s.overuse_delay_s + allowance_s and j.slope > s.overuse_trend:
+            return f"queue {j.latest_s * 1e3:.0f} ms rising {j.slope:.2f} s/s", False
+    return "", False
+
+
+def _faster(judged: list[Judged], *, since_s: float, recent_s: float, by_s: float) -> bool:
+    """Whether the stream of the largest frames crossed faster lately than in the seconds before.
+
+    Its least one-way delay since ``recent_s`` is ``by_s`` below its least between ``since_s``
+    and then (a clock offset cancels: both are the same stream's). The largest frames, because
+    their own transmission is most of their delay: a small frame's varies with what it waited
+    behind.
+    """
+    sized = [j for j in judged if j.samples]
+    if not sized:
+        return False
+    largest = max(sized, key=lambda j: max(size for *_, size in j.samples))
+    before = [d for t, d, _ in largest.samples if since_s <= t < recent_s]
+    now = [d for t, d, _ in largest.samples if t >= recent_s]
+    return len(before) >= RATE_FRAMES and bool(now) and min(now) < min(before) - by_s
 
 
 def _backlog_s(judged: list[Judged], response_s: float, *, max_slope: float) -> float:

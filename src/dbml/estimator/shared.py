@@ -439,7 +439,16 @@ class BandwidthEstimator:
         self._estimate = min(self._max_mbit, max(floor, decision.estimate_mbit))
         queue = max((j.least_s for j in judged), default=0.0)
         trend = max((j.slope for j in judged), default=0.0)
-        self.last = Estimate(now_s, self._estimate, decision.phase, received, queue, trend, lost)
+        self.last = Estimate(
+            now_s,
+            self._estimate,
+            decision.phase,
+            received,
+            queue,
+            trend,
+            lost,
+            reason=decision.reason,
+        )
         return self.last
 
 

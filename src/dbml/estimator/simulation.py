@@ -10,14 +10,23 @@ the bottleneck (a stream's frames stay in order), as the testbed's traces measur
 
 from __future__ import annotations
 
+import bisect
 import heapq
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 from dbml.estimator.base import Arrival, Estimate
 from dbml.estimator.shared import BandwidthEstimator
 
-__all__ = ["CAP_MBIT", "FRAMES", "WIRE_EFFICIENCY", "Trace", "drop_and_rise", "simulate"]
+__all__ = [
+    "CAP_MBIT",
+    "FRAMES",
+    "WIRE_EFFICIENCY",
+    "Trace",
+    "drop_and_rise",
+    "simulate",
+    "transmission_over",
+]
 
 FRAMES = (("r1", 84_000, 16.0, 0.8), ("r2", 21_000, 16.0, 0.2))
 """The paper's two cameras: stream, bytes per frame, maximum Hz, share of the budget."""
@@ -28,6 +37,8 @@ CAP_MBIT = 11.0 * 0.92
 
 
 _DROP_S, _RISE_S = 20.0, 40.0
+_NEVER_S = 3600.0
+"""A transmission on a link that never comes back ends this long after it started."""
 _FULL_MBIT, _DROPPED_MBIT = 11.0, 5.0
 _P95 = 0.95
 
@@ -35,6 +46,33 @@ _P95 = 0.95
 def drop_and_rise(t: float) -> float:
     """The testbed's drop: 11 Mbit/s, 5 from 20 s, 11 again from 40 s."""
     return _FULL_MBIT if t < _DROP_S or t >= _RISE_S else _DROPPED_MBIT
+
+
+def transmission_over(
+    schedule: Sequence[tuple[float, float]], *, wire_efficiency: float = WIRE_EFFICIENCY
+) -> Callable[[float, float], float]:
+    """``simulate``'s ``transmit_until`` for a link of ``(from s, Mbit/s)`` steps.
+
+    A frame's transmission is the capacity integrated over its time on the wire, so a fade (a
+    step near 0) holds the frame in flight until the link comes back.
+    """
+    times = [at for at, _ in schedule]
+    rates = [mbit * wire_efficiency for _, mbit in schedule]
+
+    def finish_s(start_s: float, megabits: float) -> float:
+        i = max(bisect.bisect_right(times, start_s) - 1, 0)
+        t, left = start_s, megabits
+        while True:
+            end = times[i + 1] if i + 1 < len(times) else float("inf")
+            rate = rates[i]
+            if rate > 0 and t + left / rate <= end:
+                return t + left / rate
+            if end == float("inf"):
+                return t + (left / rate if rate > 0 else _NEVER_S)
+            left -= rate * (end - t)
+            t, i = end, i + 1
+
+    return finish_s
 
 
 @dataclass

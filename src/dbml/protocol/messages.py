@@ -43,6 +43,7 @@ __all__ = [
     "HEARD_RECENT_MAX",
     "MAX_BEACON_BYTES",
     "MAX_NAME_CHARS",
+    "MAX_REASON_CHARS",
     "MAX_REPORTED_CHANNELS",
     "MAX_REPORT_BYTES",
     "MAX_REPORT_FRAMES",
@@ -58,6 +59,8 @@ __all__ = [
     "RoundReport",
 ]
 
+MAX_REASON_CHARS = 120
+"""The longest reason an estimator state carries (a line for a person)."""
 MAX_NAME_CHARS = 1024
 """The longest host or topic name a message may carry: four times the longest ROS 2 topic
 (247 characters, rmw's ``RMW_TOPIC_MAX_NAME_LENGTH``). Names key what the estimator keeps per
@@ -134,6 +137,8 @@ class EstimatorState:
     """A decrease's wall-clock time (s) of decision, also in the holds after it while the
     estimate is the cut's: the testbed times a cut by it to the millisecond, where a reader that
     polls the parameter sees it only as often as it polls (and may see only the hold)."""
+    reason: str = ""
+    """Why the estimator decided as it did, in a few words (may be empty)."""
 
     @classmethod
     def of(cls, estimate: Estimate, *, decided_at_s: float | None = None) -> EstimatorState:
@@ -144,6 +149,7 @@ class EstimatorState:
             queue_delay_s=estimate.queue_delay_s,
             lost=estimate.lost,
             decided_at_s=decided_at_s,
+            reason=estimate.reason[:MAX_REASON_CHARS],
         )
 
     @property
@@ -153,6 +159,8 @@ class EstimatorState:
             f"{self.phase.value}: received {self.received_mbit:.2f} Mbit/s, "
             f"queueing {self.queue_delay_s * 1000:.0f} ms, lost {self.lost}"
         )
+        if self.reason:
+            line = f"{line} ({self.reason})"
         return line if self.decided_at_s is None else f"{line} @{self.decided_at_s:.3f}"
 
     def as_json(self) -> dict[str, Any]:
@@ -163,6 +171,7 @@ class EstimatorState:
             "queue_delay_s": round(self.queue_delay_s, 4),
             "lost": self.lost,
             "decided_at_s": None if self.decided_at_s is None else round(self.decided_at_s, 3),
+            "reason": self.reason,
         }
 
     def encode(self) -> str:
@@ -185,12 +194,23 @@ class EstimatorState:
         if isinstance(lost, bool) or not isinstance(lost, int) or lost < 0:
             raise SpecError(f"estimator state: lost={short_repr(lost)} is not a count")
         decided = document.get("decided_at_s")
+        reason = document.get("reason", "")
+        if (
+            not isinstance(reason, str)
+            or len(reason) > MAX_REASON_CHARS
+            or not reason.isprintable()
+        ):
+            raise SpecError(
+                f"estimator state: reason={short_repr(reason)} is not a line of at most "
+                f"{MAX_REASON_CHARS} printable characters"
+            )
         return cls(
             phase=known,
             received_mbit=_state_number(document, "received_mbit"),
             queue_delay_s=_state_number(document, "queue_delay_s"),
             lost=lost,
             decided_at_s=None if decided is None else _state_number(document, "decided_at_s"),
+            reason=reason,
         )
 
     @classmethod
