@@ -57,11 +57,16 @@ def test_after_the_drop_the_budget_cruises_at_the_new_rate() -> None:
 
 
 def test_a_cut_says_why() -> None:
+    """The first sign of the drop: a shallow provisional cut; then the cut to the rate measured."""
     trace = simulate(BandwidthEstimator(max_mbit=CAP_MBIT), drop_and_rise, duration_s=24)
-    cut = next(e for e in trace.estimates if e.t_s > 20 and e.phase is Phase.DECREASE)
-    assert "queue" in cut.reason
-    assert "link" in cut.reason
-    assert "Mbit/s" in cut.reason
+    cuts = [e for e in trace.estimates if e.t_s > 20 and e.phase is Phase.DECREASE]
+    assert "queue" in cuts[0].reason
+    assert "provisional" in cuts[0].reason
+    assert cuts[0].estimate_mbit >= 0.9 * CAP_MBIT
+    measured = next(e for e in cuts if "provisional" not in e.reason)
+    assert "link" in measured.reason
+    assert "Mbit/s" in measured.reason
+    assert measured.estimate_mbit < 5.0
 
 
 def test_rise_leaves_the_slow_band_at_once() -> None:

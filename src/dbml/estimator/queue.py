@@ -65,6 +65,8 @@ class QueueSettings:
     """...and undone if within this long the pairs measure ``undo_share`` of the estimate before
     it (a fade's backlog crossing at the link's pace, as TCP's recovery allows)."""
     undo_share: float = 0.8
+    provisional_share: float = 0.92
+    """A provisional cut is to this share of the estimate."""
     plateau_s: float = 4.0
     """Back at the rate a cut measured, the estimate stays there this long before it probes
     above it (the link's rise, seen, ends the stay)."""
@@ -99,7 +101,7 @@ class QueueSettings:
                 "fast_increase_per_s",
             ),
         )
-        check_shares("estimator", self, ("backoff", "undo_share"))
+        check_shares("estimator", self, ("backoff", "undo_share", "provisional_share"))
         if self.least_pairs < 1:
             raise SpecError(f"estimator least_pairs={self.least_pairs!r} must be at least 1")
 
@@ -206,12 +208,14 @@ class QueueDetector:
                     return Decision(Phase.HOLD, estimate, self._why_cut)
                 # Too few frames queued to tell a fade from a fall: cut on what arrived, and
                 # undo it if the frames behind say the link carried what was offered.
+                # The cut is shallow: the same signal (a frame that waited) comes from a link at
+                # its own pace.
                 self._provisional_mbit = estimate
                 self._provisional_s = view.now_s
                 self._provisional_until = view.now_s + s.undo_s
-                return self._cut(
-                    view, view.cut_rate, frozen_s=shared.response_s, why=f"{overuse}; provisional"
-                )
+                self._frozen_until = view.now_s + shared.response_s
+                self._why_cut = f"{overuse}; provisional"
+                return Decision(Phase.DECREASE, s.provisional_share * estimate, self._why_cut)
             self._provisional_mbit = None
             return self._cut(view, measured, why=overuse)
         if overuse or draining or view.now_s < self._frozen_until:
@@ -270,9 +274,7 @@ class QueueDetector:
             self._frozen_until = min(self._frozen_until, view.now_s)
         return None
 
-    def _cut(
-        self, view: View, capacity: float, *, why: str, frozen_s: float | None = None
-    ) -> Decision:
+    def _cut(self, view: View, capacity: float, *, why: str) -> Decision:
         """A cut to ``backoff`` of ``capacity`` less what drains the queue; then a freeze."""
         s, estimate = self.settings, view.estimate_mbit
         if capacity <= 0:
@@ -288,10 +290,8 @@ class QueueDetector:
         drain = backlog * capacity / s.drain_s
         target = max(s.backoff * capacity - drain, 0.5 * s.backoff * capacity)
         # Frames still queued were sent before this decrease could act: wait until what is
-        # sent after it has had time to arrive (or, for a provisional cut, for the frames
-        # behind the queue that tell a fade from a fall).
-        wait_s = backlog + self._shared.response_s if frozen_s is None else frozen_s
-        self._frozen_until = view.now_s + wait_s
+        # sent after it has had time to arrive.
+        self._frozen_until = view.now_s + backlog + self._shared.response_s
         self._rose = False
         self._why_cut = f"{why}; link {capacity:.2f} Mbit/s, backlog {backlog * 1e3:.0f} ms"
         return Decision(Phase.DECREASE, min(estimate, target), self._why_cut)
