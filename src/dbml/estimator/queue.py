@@ -128,6 +128,8 @@ class QueueDetector:
         """Back at the link's rate after a cut: no probe above it before this (unless it rose)."""
         self._capacity_s = -math.inf
         """When the last cut measured the link's rate."""
+        self._cut_from_mbit = math.inf
+        """The estimate the last cut was made from."""
         self._rates: deque[tuple[float, float]] = deque()
         """(when, Mbit/s): the link's rate at each update that measured it, ``link_window_s``."""
         self._rose = False
@@ -171,6 +173,9 @@ class QueueDetector:
         pairs = view.pairs(shared.window_s)
         measured = busy_rate_mbit(pairs, s.overuse_delay_s / 2, least=s.least_pairs)
         if measured is not None:
+            # Frames a stall held back reach the receiver together: their pairs say nothing of
+            # the link. One faster than the estimate could ever use is not taken for it.
+            measured = min(measured, _PLAUSIBLE * view.max_mbit)
             self._rates.append((view.now_s, measured))
         while self._rates and self._rates[0][0] < view.now_s - s.link_window_s:
             self._rates.popleft()
@@ -223,7 +228,8 @@ class QueueDetector:
             return Decision(Phase.HOLD, estimate, self._why_cut if self._why_cut else overuse)
         if self._capacity_mbit is not None:
             # Drained: cruise at the link's rate the cut measured, not below it.
-            cruise = s.backoff * self._capacity_mbit
+            # Never above the estimate the cut was made from: it overused the link.
+            cruise = min(s.backoff * self._capacity_mbit, self._cut_from_mbit)
             if self._restore and estimate < cruise:
                 self._restore = False
                 self._cruise_until = view.now_s + s.plateau_s
@@ -286,6 +292,9 @@ class QueueDetector:
         backlog = _backlog_s(view.judged, self._shared.response_s, max_slope=growth)
         self._capacity_mbit = capacity
         self._capacity_s = view.now_s
+        # A cut before the last one's queue drained is the same episode: it was made from the
+        # estimate before the first.
+        self._cut_from_mbit = max(estimate, self._cut_from_mbit) if self._restore else estimate
         self._restore = True
         drain = backlog * capacity / s.drain_s
         target = max(s.backoff * capacity - drain, 0.5 * s.backoff * capacity)
@@ -316,6 +325,8 @@ def increase(
     return Decision(Phase.INCREASE, estimate * (1.0 + rate) ** view.dt_s)
 
 
+_PLAUSIBLE = 1.25
+"""Packet pairs faster than this many times the configured budget are the receiver's bunching."""
 _SETTLE_PAIRS = 2
 """Two pairs since a provisional cut settle it: one that spans a fade is slow, the median (the
 faster of two) is the link's."""
