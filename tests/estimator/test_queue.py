@@ -6,6 +6,7 @@ The bottleneck is ``dbml.estimator.simulation``'s.
 from __future__ import annotations
 
 import math
+from collections import deque
 from typing import Any
 
 import pytest
@@ -13,7 +14,14 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from dbml.core.errors import SpecError
-from dbml.estimator import Arrival, BandwidthEstimator, Phase, QueueSettings
+from dbml.estimator import (
+    Arrival,
+    BandwidthEstimator,
+    EstimatorSettings,
+    Phase,
+    QueueSettings,
+)
+from dbml.estimator.base import Judged, View
 from dbml.estimator.simulation import (
     CAP_MBIT,
     WIRE_EFFICIENCY,
@@ -98,6 +106,35 @@ def test_fades_are_ridden_through() -> None:
     low = [e.t_s for e in trace.estimates if e.estimate_mbit < 0.95 * CAP_MBIT]
     assert len(low) <= len(FADES) // 2  # at most one tick a fade
     assert all(trace.estimate_at(t + 0.15) >= 0.95 * CAP_MBIT for t in low)
+
+
+def _view(now_s: float, estimate: float, *, queued_s: float, gap_s: float) -> View:
+    """One update's view: two streams whose last frames queued ``queued_s``, ``gap_s`` apart."""
+    frames = [(now_s - 0.3 + i * gap_s, queued_s, 84_000) for i in range(6)]
+    judged = Judged(queued_s, queued_s, 0.0, deque(frames), frames)
+    return View(
+        now_s=now_s,
+        dt_s=0.1,
+        settling=False,
+        lost=0,
+        recent=frames,
+        judged=[judged, judged],
+        received=estimate,
+        cut_rate=estimate,
+        estimate_mbit=estimate,
+        max_mbit=10.0,
+        speaks=lambda _: True,
+    )
+
+
+def test_frames_bunched_after_a_stall_do_not_raise_the_estimate() -> None:
+    """Frames a stall held back arrive 1 ms apart: their pairs say 670 Mbit/s, not the link."""
+    detector = QueueSettings().detector(EstimatorSettings())
+    cut = detector.decide(_view(10.0, 3.0, queued_s=0.3, gap_s=0.001))
+    assert cut.phase is Phase.DECREASE
+    assert cut.estimate_mbit <= 3.0
+    after = detector.decide(_view(13.0, cut.estimate_mbit, queued_s=0.0, gap_s=0.05))
+    assert after.estimate_mbit <= 3.0 * 1.25**0.1 + 1e-9
 
 
 def test_without_estimation_the_drop_builds_an_ever_growing_queue() -> None:
