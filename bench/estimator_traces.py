@@ -18,7 +18,8 @@ through the same capacity), p50/p95/p99 frame latency, frames lost, the share of
 time the budget stood above the capacity (while the link was up), and where the case has them,
 the first cut after each fall, the time to 90 % after each rise, the goodput from 3 s and the
 p95 from 2 s after a fall, the outages' recoveries and the steady link's lowest budget. One
-JSON object on stdout.
+JSON object on stdout; ``--trace DIR`` also writes each run's arrivals and the operator's ticks
+(with the estimator's phase and reason) as JSON lines (``bench/arrivals.py``).
 
     sudo .venv/bin/python bench/estimator_traces.py [--gym DIR] [--designs queue ...]
                                                    [--cases steady drop ...] [--runs N]

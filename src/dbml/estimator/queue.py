@@ -338,7 +338,7 @@ def _overuse(view: View, s: QueueSettings, allowance_s: float) -> tuple[str, boo
     And whether it is a queue that stands (rather than one that rose, or frames lost).
     """
     for j in view.judged:
-        if j.least_s > s.max_queue_delay_s and j.slope >= 0:
+        if j.least_s > max(s.max_queue_delay_s, allowance_s) and j.slope >= 0:
             return f"standing queue {j.least_s * 1e3:.0f} ms", True
     if view.lost > 0:
         return f"{view.lost} lost", False
