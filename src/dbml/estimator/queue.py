@@ -193,7 +193,9 @@ class QueueDetector:
         # grows.
         allowance_s = 0.0
         near = self._capacity_mbit
-        pace_mbit = measured if self._rose else None
+        pace_mbit = link_mbit if link_mbit is not None and estimate <= link_mbit else None
+        if self._rose and measured is not None:
+            pace_mbit = measured
         if near is not None and estimate <= s.near_band[1] * near:
             pace_mbit = near
         if pace_mbit:
