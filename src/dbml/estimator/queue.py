@@ -191,7 +191,7 @@ class QueueDetector:
         # Near a rate the link was measured at (or rising to one), a frame may wait for one
         # frame of another stream to cross: that wait is the link's own pace, not a queue that
         # grows.
-        allowance_s = 0.0
+        pace_s = 0.0
         near = self._capacity_mbit
         pace_mbit = link_mbit if link_mbit is not None and estimate <= link_mbit else None
         if self._rose and measured is not None:
@@ -199,8 +199,8 @@ class QueueDetector:
         if near is not None and estimate <= s.near_band[1] * near:
             pace_mbit = near
         if pace_mbit:
-            allowance_s = max((size for *_, size in pairs), default=0) * 8e-6 / pace_mbit
-        overuse, standing = _overuse(view, s, allowance_s)
+            pace_s = 8e-6 / pace_mbit
+        overuse, standing = _overuse(view, s, [size for *_, size in pairs], pace_s)
         draining = bool(judged) and all(j.slope < -s.overuse_trend for j in judged)
         if overuse and view.now_s >= self._frozen_until:
             if not standing and link_mbit is not None and link_mbit >= s.headroom * estimate:
@@ -334,20 +334,37 @@ _SETTLE_PAIRS = 2
 faster of two) is the link's."""
 
 
-def _overuse(view: View, s: QueueSettings, allowance_s: float) -> tuple[str, bool]:
+def _overuse(view: View, s: QueueSettings, sizes: list[int], pace_s: float) -> tuple[str, bool]:
     """What says the link is overused, in a few words (empty if nothing does).
 
     And whether it is a queue that stands (rather than one that rose, or frames lost).
+    ``sizes``: the recent frames' bytes; ``pace_s``: seconds a byte takes on the link (0: not
+    known), so a stream's frame may wait for one larger frame of another stream.
     """
+    allowance = {id(j): _other_frame_s(j, sizes, pace_s) for j in view.judged}
     for j in view.judged:
-        if j.least_s > max(s.max_queue_delay_s, allowance_s) and j.slope >= 0:
+        if j.least_s > max(s.max_queue_delay_s, allowance[id(j)]) and j.slope >= 0:
             return f"standing queue {j.least_s * 1e3:.0f} ms", True
     if view.lost > 0:
         return f"{view.lost} lost", False
     for j in view.judged:
-        if j.latest_s > s.overuse_delay_s + allowance_s and j.slope > s.overuse_trend:
+        if j.latest_s > s.overuse_delay_s + allowance[id(j)] and j.slope > s.overuse_trend:
             return f"queue {j.latest_s * 1e3:.0f} ms rising {j.slope:.2f} s/s", False
     return "", False
+
+
+def _other_frame_s(judged: Judged, sizes: list[int], pace_s: float) -> float:
+    """How long a frame of ``judged``'s stream may wait for another stream's frame to cross.
+
+    The other frame is the largest one of another size class: the largest of all for a stream
+    of smaller frames, the largest smaller than its own for the stream of the largest.
+    """
+    if not pace_s or not sizes:
+        return 0.0
+    own = max((size for *_, size in judged.samples), default=0)
+    largest = max(sizes)
+    other = largest if own < largest else max((n for n in sizes if n < own), default=0)
+    return other * pace_s
 
 
 def _faster(judged: list[Judged], *, since_s: float, recent_s: float, by_s: float) -> bool:
