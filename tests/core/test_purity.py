@@ -7,6 +7,7 @@ import dbml.estimator
 
 PURE_IMPORTS = {
     "__future__",
+    "bisect",
     "collections",
     "collections.abc",
     "dataclasses",
