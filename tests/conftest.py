@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -68,8 +69,15 @@ _lttng_before: set[Path] = set()
 
 
 def pytest_configure(config: pytest.Config) -> None:
-    """Before any test module imports rclpy: what /dev/shm held of LTTng's already."""
+    """Before any test module imports rclpy: what /dev/shm held of LTTng's already.
+
+    And Ctrl-C as a terminal's foreground job has it: a shell that starts the suite in the
+    background (``cmd &``) ignores SIGINT, every process a test starts inherits that, and the
+    tests that press Ctrl-C on a process they started would see it ignored.
+    """
     _lttng_before.update(Path("/dev/shm").glob(_LTTNG))
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def pytest_unconfigure(config: pytest.Config) -> None:
