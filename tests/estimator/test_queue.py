@@ -21,7 +21,7 @@ from dbml.estimator import (
     Phase,
     QueueSettings,
 )
-from dbml.estimator.base import Judged, View
+from dbml.estimator.base import Estimate, Judged, View, busy_rate_mbit
 from dbml.estimator.simulation import (
     CAP_MBIT,
     WIRE_EFFICIENCY,
@@ -135,6 +135,39 @@ def test_frames_bunched_after_a_stall_do_not_raise_the_estimate() -> None:
     assert cut.estimate_mbit <= 3.0
     after = detector.decide(_view(13.0, cut.estimate_mbit, queued_s=0.0, gap_s=0.05))
     assert after.estimate_mbit <= 3.0 * 1.25**0.1 + 1e-9
+
+
+def _slower_link_that_idles(estimator: BandwidthEstimator) -> list[Estimate]:
+    """Two cameras, 84 KB and 21 KB at 1 Hz each, on a link that idles between their frames.
+
+    Its rate falls from 11 to 3 Mbit/s at 5 s: each frame's own transmission grows (the large
+    one's by 167 ms), no frame waits for another.
+    """
+    estimates = []
+    for tick in range(100):
+        now = tick * 0.1
+        if tick % 5 == 0:
+            mbit = 11.0 if now < 5 else 3.0
+            stream, size = ("r1", 84_000) if tick % 10 == 0 else ("r2", 21_000)
+            sent = now - 0.1
+            arrival = sent + 0.01 + size * 8e-6 / mbit
+            estimator.observe(Arrival(stream, tick // 10, sent, arrival, size))
+        estimates.append(estimator.update(now))
+    return estimates
+
+
+def test_a_slower_link_that_idles_is_not_a_queue() -> None:
+    """A large frame that crosses a slower radio more slowly waited for nothing: no cut stays."""
+    estimates = _slower_link_that_idles(BandwidthEstimator(max_mbit=10.0, initial_mbit=2.0))
+    assert not [e for e in estimates if e.t_s > 6 and e.phase is Phase.DECREASE]
+    assert estimates[-1].estimate_mbit >= 2.0
+
+
+def test_frames_sent_into_an_idle_link_are_not_packet_pairs() -> None:
+    """Frames 0.5 s apart that each waited 300 ms in a fade measure what was offered, no link."""
+    frames = [(i * 0.5, 0.3, 84_000) for i in range(8)]
+    assert busy_rate_mbit(frames, 0.02) == pytest.approx(84_000 * 8e-6 / 0.5)
+    assert busy_rate_mbit(frames, 0.02, fastest_mbit=12.5) is None
 
 
 def test_without_estimation_the_drop_builds_an_ever_growing_queue() -> None:

@@ -32,6 +32,7 @@ __all__ = [
     "Sample",
     "SharedSettings",
     "View",
+    "behind",
     "busy_rate_mbit",
     "check_positive",
     "check_shares",
@@ -227,17 +228,41 @@ def slope(points: list[tuple[float, float]]) -> float:
     return sum((t - mean_t) * (y - mean_y) for t, y in points) / var
 
 
-def busy_rate_mbit(ordered: list[Sample], queued_s: float, *, least: int = 1) -> float | None:
+def behind(previous: Sample, frame: Sample, queued_s: float, fastest_mbit: float | None) -> bool:
+    """Whether ``frame`` crossed right behind ``previous``: it queued, and waited for it.
+
+    ``fastest_mbit`` (the fastest the link could be): it waited for ``previous`` only if it was
+    sent before that one arrived, its queueing plus its own transmission at that rate (less
+    than its one-way delay) reaching back over the gap. A frame sent after the link went idle,
+    that queued behind a fade or crossed slower than its stream's fastest (a radio's rate
+    moves), did not. None: every frame that queued counts.
+    """
+    (t_prev, _, _), (t, queue, size) = previous, frame
+    return (
+        queue > queued_s
+        and t > t_prev
+        and (fastest_mbit is None or queue + size * 8e-6 / fastest_mbit >= t - t_prev)
+    )
+
+
+def busy_rate_mbit(
+    ordered: list[Sample],
+    queued_s: float,
+    *,
+    least: int = 1,
+    fastest_mbit: float | None = None,
+) -> float | None:
     """Delivery rate while the link was busy; None from fewer than ``least`` packet pairs.
 
-    A frame that waited in the queue arrived as soon as the one before it had, so its size over
-    that gap is the link's rate (packet pairs). The median pair: one that spans a fade (its gap
-    the fade's length) says nothing of the rate after it.
+    A frame that waited in the queue (:func:`behind` the one before it) arrived as soon as that
+    one had, so its size over that gap is the link's rate (packet pairs). The median pair: one
+    that spans a fade (its gap the fade's length) says nothing of the rate after it. A frame
+    sent after the link went idle measures what was offered, not the link.
     """
     rates = sorted(
-        frame / (t - t_prev)
-        for (t_prev, _, _), (t, queue, frame) in itertools.pairwise(ordered)
-        if queue > queued_s and t > t_prev
+        frame[2] / (frame[0] - previous[0])
+        for previous, frame in itertools.pairwise(ordered)
+        if behind(previous, frame, queued_s, fastest_mbit)
     )
     return bytes_per_s_to_mbit(rates[len(rates) // 2]) if rates and len(rates) >= least else None
 

@@ -17,6 +17,8 @@ its frames' one-way delays; the packet pairs of the last ``window_s``; the frame
 
 from __future__ import annotations
 
+import bisect
+import itertools
 import math
 import statistics
 from collections import deque
@@ -32,6 +34,7 @@ from dbml.estimator.base import (
     Sample,
     SharedSettings,
     View,
+    behind,
     busy_rate_mbit,
     check_positive,
     check_shares,
@@ -136,8 +139,12 @@ class QueueDetector:
         """The link was seen to rise since the last cut."""
         self._why_cut = ""
         """The last cut's reason, repeated in the holds that follow it."""
+        self._why_provisional = ""
+        """What the provisional cut read, for the cut that a fall measured makes of it."""
         self._restore = False
         """The last cut went below the link's rate to drain the queue: back to it once drained."""
+        self._restore_to_mbit = 0.0
+        """Where that is, should the cut's measure be gone by then (the link rose)."""
 
     def observe(self, arrival: Arrival) -> None:
         """Nothing: it reads the streams' delays from the view."""
@@ -171,7 +178,10 @@ class QueueDetector:
             self._capacity_mbit = None
             self._rose = True
         pairs = view.pairs(shared.window_s)
-        measured = busy_rate_mbit(pairs, s.overuse_delay_s / 2, least=s.least_pairs)
+        fastest = _PLAUSIBLE * view.max_mbit
+        measured = busy_rate_mbit(
+            pairs, s.overuse_delay_s / 2, least=s.least_pairs, fastest_mbit=fastest
+        )
         if measured is not None:
             # Frames a stall held back reach the receiver together: their pairs say nothing of
             # the link. One faster than the estimate could ever use is not taken for it.
@@ -200,7 +210,10 @@ class QueueDetector:
             pace_mbit = near
         if pace_mbit:
             pace_s = 8e-6 / pace_mbit
-        overuse, standing = _overuse(view, s, [size for *_, size in pairs], pace_s)
+        queued = s.overuse_delay_s / 2
+        latest = _since(view.recent, view.now_s - s.link_window_s)
+        waited = {f for p, f in itertools.pairwise(latest) if behind(p, f, queued, fastest)}
+        overuse, standing = _overuse(view, s, [size for *_, size in pairs], pace_s, waited)
         draining = bool(judged) and all(j.slope < -s.overuse_trend for j in judged)
         if overuse and view.now_s >= self._frozen_until:
             if not standing and link_mbit is not None and link_mbit >= s.headroom * estimate:
@@ -221,6 +234,7 @@ class QueueDetector:
                 self._provisional_s = view.now_s
                 self._provisional_until = view.now_s + s.undo_s
                 self._frozen_until = view.now_s + shared.response_s
+                self._why_provisional = overuse
                 self._why_cut = f"{overuse}; provisional"
                 return Decision(Phase.DECREASE, s.provisional_share * estimate, self._why_cut)
             self._provisional_mbit = None
@@ -228,6 +242,11 @@ class QueueDetector:
         if overuse or draining or view.now_s < self._frozen_until:
             # Still draining, or the cut not yet seen.
             return Decision(Phase.HOLD, estimate, self._why_cut if self._why_cut else overuse)
+        if self._restore and any(
+            j.latest_s > s.max_queue_delay_s and j.window[-1] in waited for j in judged
+        ):
+            # Below the link's rate to drain a queue: a stream's newest frame still waited.
+            return Decision(Phase.HOLD, estimate, self._why_cut)
         if self._capacity_mbit is not None:
             # Drained: cruise at the link's rate the cut measured, not below it.
             # Never above the estimate the cut was made from: it overused the link.
@@ -242,6 +261,13 @@ class QueueDetector:
                 self._capacity_mbit = measured
             elif view.now_s < self._cruise_until:
                 return Decision(Phase.HOLD, estimate, "at the link's rate measured")
+        elif self._restore and estimate < self._restore_to_mbit:
+            # The link rose (or the cut's measure aged) while its queue drained: back to the
+            # rate the cut measured at least, and from there up at pace.
+            self._restore = False
+            return Decision(
+                Phase.INCREASE, self._restore_to_mbit, "drained: back to the link's rate"
+            )
         self._restore = False
         self._why_cut = ""
         decision = increase(
@@ -264,20 +290,41 @@ class QueueDetector:
         # The link's rate from the frames that arrived since the cut (the ones before it may
         # have crossed before a fall).
         since = [p for p in pairs if p[0] >= self._provisional_s]
-        measured = busy_rate_mbit(since, self.settings.overuse_delay_s / 2, least=_SETTLE_PAIRS)
-        if measured is not None and measured >= self.settings.undo_share * before:
+        fastest = _PLAUSIBLE * view.max_mbit
+        measured = busy_rate_mbit(
+            since, self.settings.overuse_delay_s / 2, least=_SETTLE_PAIRS, fastest_mbit=fastest
+        )
+        if measured is not None:
+            measured = min(measured, fastest)
+        # Or a frame crossed without queueing: the queue drained by itself (a fade's backlog
+        # at a rate the link carries), which it does not at a rate above a fall's. Or the link
+        # idled: a frame sent after the one before it had arrived.
+        drained = any(
+            t > self._provisional_s
+            and (
+                queue < self.settings.overuse_delay_s / 2
+                or t - t_prev > queue + size * 8e-6 / fastest + _PATH_S
+            )
+            for (t_prev, _, _), (t, queue, size) in itertools.pairwise(
+                _since(view.recent, self._provisional_s)
+            )
+        )
+        if drained or (measured is not None and measured >= self.settings.undo_share * before):
             # A fade: what queued crossed at (nearly) the rate offered before the cut.
             self._provisional_mbit = None
             self._frozen_until = -math.inf
             self._restore = False
             self._why_cut = ""
+            why = "the queue drained" if drained else f"link {measured:.2f} Mbit/s"
             return Decision(
-                Phase.INCREASE,
-                max(view.estimate_mbit, before),
-                f"provisional cut undone: link {measured:.2f} Mbit/s",
+                Phase.INCREASE, max(view.estimate_mbit, before), f"provisional cut undone: {why}"
             )
-        if measured is not None or view.now_s >= self._provisional_until:
-            # A fall: the link's rate, now measured, may ask for a deeper cut at once.
+        if measured is not None:
+            # A fall: the cut to the link's rate, now measured, at once.
+            self._provisional_mbit = None
+            return self._cut(view, measured, why=self._why_provisional)
+        if view.now_s >= self._provisional_until:
+            # Nothing measured to undo it: it stands, and a queue may cut again.
             self._provisional_mbit = None
             self._frozen_until = min(self._frozen_until, view.now_s)
         return None
@@ -298,6 +345,7 @@ class QueueDetector:
         # estimate before the first.
         self._cut_from_mbit = max(estimate, self._cut_from_mbit) if self._restore else estimate
         self._restore = True
+        self._restore_to_mbit = min(s.backoff * capacity, self._cut_from_mbit)
         drain = backlog * capacity / s.drain_s
         target = max(s.backoff * capacity - drain, 0.5 * s.backoff * capacity)
         # Frames still queued were sent before this decrease could act: wait until what is
@@ -329,21 +377,41 @@ def increase(
 
 _PLAUSIBLE = 1.25
 """Packet pairs faster than this many times the configured budget are the receiver's bunching."""
+_PATH_S = 0.05
+"""A path's own delay beyond a frame's transmission (propagation, the hops) is below this: a gap
+longer than a frame's queueing and transmission by more was the link idle."""
 _SETTLE_PAIRS = 2
 """Two pairs since a provisional cut settle it: one that spans a fade is slow, the median (the
 faster of two) is the link's."""
 
 
-def _overuse(view: View, s: QueueSettings, sizes: list[int], pace_s: float) -> tuple[str, bool]:
+def _since(recent: list[Sample], start_s: float) -> list[Sample]:
+    """The frames (in arrival order) that arrived after ``start_s``, and the one before them."""
+    first = bisect.bisect_right(recent, (start_s, math.inf, 0))
+    return recent[max(0, first - 1) :]
+
+
+def _overuse(
+    view: View, s: QueueSettings, sizes: list[int], pace_s: float, waited: set[Sample]
+) -> tuple[str, bool]:
     """What says the link is overused, in a few words (empty if nothing does).
 
     And whether it is a queue that stands (rather than one that rose, or frames lost).
     ``sizes``: the recent frames' bytes; ``pace_s``: seconds a byte takes on the link (0: not
-    known), so a stream's frame may wait for one larger frame of another stream.
+    known), so a stream's frame may wait for one larger frame of another stream; ``waited``:
+    the recent frames that crossed right behind another.
     """
     allowance = {id(j): _other_frame_s(j, sizes, pace_s) for j in view.judged}
     for j in view.judged:
-        if j.least_s > max(s.max_queue_delay_s, allowance[id(j)]) and j.slope >= 0:
+        # A queue stands only where frames wait behind frames. A large frame's own
+        # transmission on a link slower than when its stream's least delay was measured (a
+        # radio's rate moves) delays it as much (84 KB: 167 ms more at 3 Mbit/s than at 11.7)
+        # on a link that idles between frames.
+        if (
+            j.least_s > max(s.max_queue_delay_s, allowance[id(j)])
+            and j.slope >= 0
+            and j.window[-1] in waited
+        ):
             return f"standing queue {j.least_s * 1e3:.0f} ms", True
     if view.lost > 0:
         return f"{view.lost} lost", False
