@@ -21,6 +21,7 @@ from dbml.core.errors import SpecError
 from dbml.core.spec import bytes_per_s_to_mbit
 
 __all__ = [
+    "PATH_S",
     "RATE_FRAMES",
     "Arrival",
     "Decision",
@@ -228,20 +229,25 @@ def slope(points: list[tuple[float, float]]) -> float:
     return sum((t - mean_t) * (y - mean_y) for t, y in points) / var
 
 
-def behind(previous: Sample, frame: Sample, queued_s: float, fastest_mbit: float | None) -> bool:
-    """Whether ``frame`` crossed right behind ``previous``: it queued, and waited for it.
+PATH_S = 0.05
+"""A path's own delay beyond a frame's transmission (propagation, the hops, the stacks) is
+below this."""
 
-    ``fastest_mbit`` (the fastest the link could be): it waited for ``previous`` only if it was
-    sent before that one arrived, its queueing plus its own transmission at that rate (less
-    than its one-way delay) reaching back over the gap. A frame sent after the link went idle,
-    that queued behind a fade or crossed slower than its stream's fastest (a radio's rate
-    moves), did not. None: every frame that queued counts.
+
+def behind(previous: Sample, frame: Sample, queued_s: float, fastest_mbit: float | None) -> bool:
+    """Whether ``frame`` crossed right behind ``previous``: it queued, and the link did not idle.
+
+    ``fastest_mbit`` (the fastest the link could be): the link idled before ``frame`` if it
+    arrived longer after ``previous`` than its one-way delay could be, its queueing plus its
+    own transmission at that rate plus ``PATH_S``: it was sent after ``previous`` arrived, and
+    its delay is a fade's or its own transmission on a link slower than its stream's fastest (a
+    radio's rate moves), not a wait for ``previous``. None: every frame that queued counts.
     """
     (t_prev, _, _), (t, queue, size) = previous, frame
     return (
         queue > queued_s
         and t > t_prev
-        and (fastest_mbit is None or queue + size * 8e-6 / fastest_mbit >= t - t_prev)
+        and (fastest_mbit is None or t - t_prev <= queue + size * 8e-6 / fastest_mbit + PATH_S)
     )
 
 

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 from dbml.core.errors import SpecError
 from dbml.estimator.base import (
+    PATH_S,
     RATE_FRAMES,
     Arrival,
     Decision,
@@ -296,18 +297,12 @@ class QueueDetector:
         )
         if measured is not None:
             measured = min(measured, fastest)
-        # Or a frame crossed without queueing: the queue drained by itself (a fade's backlog
-        # at a rate the link carries), which it does not at a rate above a fall's. Or the link
-        # idled: a frame sent after the one before it had arrived.
-        drained = any(
-            t > self._provisional_s
-            and (
-                queue < self.settings.overuse_delay_s / 2
-                or t - t_prev > queue + size * 8e-6 / fastest + _PATH_S
-            )
-            for (t_prev, _, _), (t, queue, size) in itertools.pairwise(
-                _since(view.recent, self._provisional_s)
-            )
+        # Or every stream's frames since the cut crossed without waiting: the queue drained by
+        # itself (a fade's backlog at a rate the link carries), which it does not at a rate
+        # above a fall's. Every stream's: a publisher's backlog sits in its own connection,
+        # and another's small frame may cross between its frames.
+        drained = _unqueued_since(
+            view, self._provisional_s, self.settings.overuse_delay_s / 2, fastest
         )
         if drained or (measured is not None and measured >= self.settings.undo_share * before):
             # A fade: what queued crossed at (nearly) the rate offered before the cut.
@@ -377,9 +372,6 @@ def increase(
 
 _PLAUSIBLE = 1.25
 """Packet pairs faster than this many times the configured budget are the receiver's bunching."""
-_PATH_S = 0.05
-"""A path's own delay beyond a frame's transmission (propagation, the hops) is below this: a gap
-longer than a frame's queueing and transmission by more was the link idle."""
 _SETTLE_PAIRS = 2
 """Two pairs since a provisional cut settle it: one that spans a fade is slow, the median (the
 faster of two) is the link's."""
@@ -389,6 +381,24 @@ def _since(recent: list[Sample], start_s: float) -> list[Sample]:
     """The frames (in arrival order) that arrived after ``start_s``, and the one before them."""
     first = bisect.bisect_right(recent, (start_s, math.inf, 0))
     return recent[max(0, first - 1) :]
+
+
+def _unqueued_since(view: View, start_s: float, queued_s: float, fastest_mbit: float) -> bool:
+    """Whether each stream with frames since ``start_s`` had one that waited for nothing.
+
+    It did not queue (``queued_s``), or the link idled before it: it arrived more than its
+    queueing, its own transmission at ``fastest_mbit`` and ``PATH_S`` after the frame ahead.
+    """
+    recent = _since(view.recent, start_s)
+    idle = {
+        frame
+        for (t_prev, _, _), frame in itertools.pairwise(recent)
+        if frame[1] < queued_s
+        or frame[0] - t_prev > frame[1] + frame[2] * 8e-6 / fastest_mbit + PATH_S
+    }
+    crossed = [[f for f in j.window if f[0] > start_s] for j in view.judged]
+    crossed = [frames for frames in crossed if frames]
+    return bool(crossed) and all(any(f in idle for f in frames) for frames in crossed)
 
 
 def _overuse(
