@@ -214,7 +214,13 @@ class QueueDetector:
         queued = s.overuse_delay_s / 2
         latest = _since(view.recent, view.now_s - s.link_window_s)
         waited = {f for p, f in itertools.pairwise(latest) if behind(p, f, queued, fastest)}
-        overuse, standing = _overuse(view, s, [size for *_, size in pairs], pace_s, waited)
+        # Probing above the rate a cut measured, a queue that rises at half the pace is read:
+        # the probe found the link's edge, and a later reading is a larger spike.
+        probing = near is not None and estimate > near
+        trend = s.overuse_trend * (_PROBING_TREND if probing else 1.0)
+        overuse, standing = _overuse(
+            view, s, [size for *_, size in pairs], pace_s, waited, trend=trend
+        )
         draining = bool(judged) and all(j.slope < -s.overuse_trend for j in judged)
         if overuse and view.now_s >= self._frozen_until:
             if not standing and link_mbit is not None and link_mbit >= s.headroom * estimate:
@@ -372,6 +378,8 @@ def increase(
 
 _PLAUSIBLE = 1.25
 """Packet pairs faster than this many times the configured budget are the receiver's bunching."""
+_PROBING_TREND = 0.5
+"""Above the rate a cut measured, a rising queue is read at this share of ``overuse_trend``."""
 _SETTLE_PAIRS = 2
 """Two pairs since a provisional cut settle it: one that spans a fade is slow, the median (the
 faster of two) is the link's."""
@@ -402,14 +410,21 @@ def _unqueued_since(view: View, start_s: float, queued_s: float, fastest_mbit: f
 
 
 def _overuse(
-    view: View, s: QueueSettings, sizes: list[int], pace_s: float, waited: set[Sample]
+    view: View,
+    s: QueueSettings,
+    sizes: list[int],
+    pace_s: float,
+    waited: set[Sample],
+    *,
+    trend: float,
 ) -> tuple[str, bool]:
     """What says the link is overused, in a few words (empty if nothing does).
 
     And whether it is a queue that stands (rather than one that rose, or frames lost).
     ``sizes``: the recent frames' bytes; ``pace_s``: seconds a byte takes on the link (0: not
     known), so a stream's frame may wait for one larger frame of another stream; ``waited``:
-    the recent frames that crossed right behind another.
+    the recent frames that crossed right behind another; ``trend``: the slope of a queue that
+    rises.
     """
     allowance = {id(j): _other_frame_s(j, sizes, pace_s) for j in view.judged}
     for j in view.judged:
@@ -426,7 +441,7 @@ def _overuse(
     if view.lost > 0:
         return f"{view.lost} lost", False
     for j in view.judged:
-        if j.latest_s > s.overuse_delay_s + allowance[id(j)] and j.slope > s.overuse_trend:
+        if j.latest_s > s.overuse_delay_s + allowance[id(j)] and j.slope > trend:
             return f"queue {j.latest_s * 1e3:.0f} ms rising {j.slope:.2f} s/s", False
     return "", False
 
