@@ -835,6 +835,7 @@ def _solve_links(
     # rates at that price, within the capacity, and what that leaves goes to the free channels.
     for _ in range(_LINK_PASSES):
         price = rest.price if rest.status is QualityStatus.OPTIMAL else math.inf
+        before = (dict(alone), rest)
         lowered = False
         for k in np.flatnonzero(capped).tolist():
             solved = alone[k]
@@ -855,6 +856,14 @@ def _solve_links(
             (_spend(table, groups[k], alone[k]) for k in np.flatnonzero(capped).tolist()), 0.0
         )
         rest = _solve(_rows(table, free), max(left, 0.0), price_hint)
+        spent = np.zeros(n)
+        spent[free] = table.spend_size[free, rest.cols] * rest.rates
+        by_link = np.bincount(member[crossing], weights=spent[crossing], minlength=count)
+        if np.any(~capped & (by_link > caps * (1 + 1e-9))):
+            # What the lowered links left took a free link over its capacity: the pass before
+            # held every link.
+            alone, rest = before
+            break
     cols = np.zeros(n, dtype=np.intp)
     rates = np.zeros(n)
     cols[free], rates[free] = rest.cols, rest.rates

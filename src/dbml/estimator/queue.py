@@ -12,7 +12,10 @@ there ``plateau_s``, then probes up slowly near it and fast away from it; frames
 stream crossing faster than in the seconds before (the link rose) end the stay and the slow band.
 
 It reads, per stream that speaks for the link, its newest and least queueing and their slope and
-its frames' one-way delays; the packet pairs of the last ``window_s``; the frames lost.
+its frames' one-way delays; the packet pairs of the last ``window_s``; the frames lost. A pair,
+a standing queue and a drained one are judged only on frames that waited for the frame ahead
+(:func:`dbml.estimator.base.behind`): a frame sent into an idle link that queued in a fade, or
+crossed a slower radio in more time, waited for nothing.
 """
 
 from __future__ import annotations
@@ -186,7 +189,7 @@ class QueueDetector:
         if measured is not None:
             # Frames a stall held back reach the receiver together: their pairs say nothing of
             # the link. One faster than the estimate could ever use is not taken for it.
-            measured = min(measured, _PLAUSIBLE * view.max_mbit)
+            measured = min(measured, fastest)
             self._rates.append((view.now_s, measured))
         while self._rates and self._rates[0][0] < view.now_s - s.link_window_s:
             self._rates.popleft()
