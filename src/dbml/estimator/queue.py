@@ -145,6 +145,8 @@ class QueueDetector:
         """The last cut's reason, repeated in the holds that follow it."""
         self._why_provisional = ""
         """What the provisional cut read, for the cut that a fall measured makes of it."""
+        self._queued_provisional = True
+        """It read a queue (not frames lost): frames that then cross unqueued undo it."""
         self._restore = False
         """The last cut went below the link's rate to drain the queue: back to it once drained."""
         self._restore_to_mbit = 0.0
@@ -245,6 +247,8 @@ class QueueDetector:
                 self._provisional_until = view.now_s + s.undo_s
                 self._frozen_until = view.now_s + shared.response_s
                 self._why_provisional = overuse
+                # Frames lost with no queue standing are no fade's backlog to wait out.
+                self._queued_provisional = standing or view.lost == 0
                 self._why_cut = f"{overuse}; provisional"
                 return Decision(Phase.DECREASE, s.provisional_share * estimate, self._why_cut)
             self._provisional_mbit = None
@@ -310,7 +314,7 @@ class QueueDetector:
         # itself (a fade's backlog at a rate the link carries), which it does not at a rate
         # above a fall's. Every stream's: a publisher's backlog sits in its own connection,
         # and another's small frame may cross between its frames.
-        drained = _unqueued_since(
+        drained = self._queued_provisional and _unqueued_since(
             view, self._provisional_s, self.settings.overuse_delay_s / 2, fastest
         )
         if drained or (measured is not None and measured >= self.settings.undo_share * before):
