@@ -6,6 +6,7 @@ The bottleneck is ``dbml.estimator.simulation``'s.
 from __future__ import annotations
 
 import math
+import statistics
 from collections import deque
 from typing import Any
 
@@ -168,6 +169,50 @@ def test_frames_sent_into_an_idle_link_are_not_packet_pairs() -> None:
     frames = [(i * 0.5, 0.3, 84_000) for i in range(8)]
     assert busy_rate_mbit(frames, 0.02) == pytest.approx(84_000 * 8e-6 / 0.5)
     assert busy_rate_mbit(frames, 0.02, fastest_mbit=12.5) is None
+
+
+def _fall(*, ramp_s: float) -> View:
+    """A stream that crossed unqueued for a second, then queued more with every frame.
+
+    Its frames then arrive back to back at 5 Mbit/s, each ``ramp_s`` later than the one before.
+    """
+    flat = [(9.0 + i * 0.1, 0.0, 84_000) for i in range(10)]
+    gap_s = 84_000 * 8e-6 / 5.0
+    ramp = [(9.9 + i * gap_s, i * ramp_s, 84_000) for i in range(1, 5)]
+    frames = flat + ramp
+    trend = statistics.linear_regression([t for t, *_ in frames], [q for _, q, _ in frames])
+    judged = Judged(ramp[-1][1], 0.0, trend.slope, deque(frames), frames)
+    return View(
+        now_s=ramp[-1][0] + 0.01,
+        dt_s=0.1,
+        settling=False,
+        lost=0,
+        recent=frames,
+        judged=[judged],
+        received=5.0,
+        cut_rate=5.0,
+        estimate_mbit=10.0,
+        max_mbit=10.0,
+        speaks=lambda _: True,
+    )
+
+
+def test_a_cut_drains_the_queue_a_fall_builds_until_it_acts() -> None:
+    """After 1 s unqueued, the queue grew by 40 ms a frame: it keeps growing at that pace.
+
+    The trend over the whole window reads a third of it. The cut is deep enough to drain, in its
+    ``drain_s``, the queue that pace builds until the cut acts.
+    """
+    settings = EstimatorSettings()
+    view = _fall(ramp_s=0.04)
+    pace = 0.04 / (84_000 * 8e-6 / 5.0)  # seconds of queue a second
+    assert view.judged[0].slope < pace / 2
+    queued_s = view.judged[0].latest_s + pace * (view.judged[0].latest_s + settings.response_s)
+    cut = QueueSettings().detector(settings).decide(view)
+    assert cut.phase is Phase.DECREASE
+    assert "link" in cut.reason  # the rate measured from the pairs, not a provisional cut
+    drain_mbit = queued_s * 5.0 / QueueSettings().drain_s
+    assert cut.estimate_mbit <= max(5.0 - drain_mbit, 0.5 * 5.0)
 
 
 def test_without_estimation_the_drop_builds_an_ever_growing_queue() -> None:

@@ -346,7 +346,9 @@ class QueueDetector:
         # the link carries: a burst's slope (frames of two allocations at once, as one
         # replaces the other) does not go on until the cut acts.
         growth = max(0.0, estimate / capacity - 1.0)
-        backlog = _backlog_s(view.judged, self._shared.response_s, max_slope=growth)
+        backlog = _backlog_s(
+            view.judged, self._shared.response_s, max_slope=growth, low_s=s.overuse_delay_s / 2
+        )
         self._capacity_mbit = capacity
         self._capacity_s = view.now_s
         # A cut before the last one's queue drained is the same episode: it was made from the
@@ -484,15 +486,32 @@ def _faster(judged: list[Judged], *, since_s: float, recent_s: float, by_s: floa
     return len(before) >= RATE_FRAMES and bool(now) and min(now) < min(before) - by_s
 
 
-def _backlog_s(judged: list[Judged], response_s: float, *, max_slope: float) -> float:
+def _backlog_s(judged: list[Judged], response_s: float, *, max_slope: float, low_s: float) -> float:
     """The queue by the time a decrease acts.
 
     It keeps growing until then, at most at ``max_slope`` (seconds of queueing a second).
     """
     return max(
         (
-            j.latest_s + min(max(0.0, j.slope), max_slope) * (j.latest_s + response_s)
+            j.latest_s
+            + min(max(0.0, j.slope, _ramp(j, low_s)), max_slope) * (j.latest_s + response_s)
             for j in judged
         ),
         default=0.0,
     )
+
+
+def _ramp(judged: Judged, low_s: float) -> float:
+    """How fast the queue grew since the stream's last frame that queued at most ``low_s``.
+
+    The trend window's regression also spans the frames before a fall, so it reads a fraction
+    of the pace at which the queue grows after it: the ramp from where it began does not.
+    """
+    window = judged.window
+    if not window:
+        return 0.0
+    newest_s, newest_q, _ = window[-1]
+    start = next((sample for sample in reversed(window[:-1]) if sample[1] <= low_s), None)
+    if start is None or newest_s <= start[0]:
+        return 0.0
+    return (newest_q - start[1]) / (newest_s - start[0])
