@@ -215,6 +215,25 @@ def test_a_cut_drains_the_queue_a_fall_builds_until_it_acts() -> None:
     assert cut.estimate_mbit <= max(5.0 - drain_mbit, 0.5 * 5.0)
 
 
+def test_one_reading_of_frames_a_stall_bunched_does_not_leave_the_slow_band() -> None:
+    """After a cut measured the link at 5 Mbit/s, frames bunched by a stall read 12.5 once.
+
+    That is no rise: back at the link's rate, the estimate holds, then probes at the slow pace.
+    """
+    detector = QueueSettings().detector(EstimatorSettings())
+    cut = detector.decide(_fall(ramp_s=0.04))
+    assert cut.phase is Phase.DECREASE
+    drained = detector.decide(_view(12.0, cut.estimate_mbit, queued_s=0.0, gap_s=0.2))
+    assert drained.phase is Phase.INCREASE
+    cruise = drained.estimate_mbit
+    assert cruise < 5.0
+    bunched = detector.decide(_view(12.5, cruise, queued_s=0.05, gap_s=0.001))
+    assert bunched.estimate_mbit == cruise
+    later = detector.decide(_view(16.5, cruise, queued_s=0.0, gap_s=0.2))
+    slow = QueueSettings().slow_increase_per_s
+    assert later.estimate_mbit <= cruise * (1 + slow) ** 0.1 + 1e-9
+
+
 def test_without_estimation_the_drop_builds_an_ever_growing_queue() -> None:
     """The reference: the paper's constant budget on the same schedule."""
     constant = simulate(None, drop_and_rise, duration_s=30, constant_mbit=CAP_MBIT)

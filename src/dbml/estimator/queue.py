@@ -269,10 +269,13 @@ class QueueDetector:
                 self._restore = False
                 self._cruise_until = view.now_s + s.plateau_s
                 return Decision(Phase.INCREASE, cruise, "drained: back to the link's rate")
-            # Frames that queued behind others say the link's rate without overuse: one found
-            # faster than the cut's (the link rose) leaves the slow band.
-            if measured is not None and measured > s.near_band[1] * self._capacity_mbit:
-                self._capacity_mbit = measured
+            # Frames that queued behind others say the link's rate without overuse: found
+            # faster than the cut's (the link rose), it leaves the slow band. The median of the
+            # readings since the cut: one update's pairs may be frames a stall bunched.
+            since_cut = [r for t, r in self._rates if t >= self._capacity_s]
+            faster = statistics.median(since_cut) if len(since_cut) >= _SINCE_CUT else None
+            if faster is not None and faster > s.near_band[1] * self._capacity_mbit:
+                self._capacity_mbit = faster
             elif view.now_s < self._cruise_until:
                 return Decision(Phase.HOLD, estimate, "at the link's rate measured")
         elif self._restore and estimate < self._restore_to_mbit:
@@ -389,6 +392,8 @@ _PLAUSIBLE = 1.25
 """Packet pairs faster than this many times the configured budget are the receiver's bunching."""
 _PROBING_TREND = 0.5
 """Above the rate a cut measured, a rising queue is read at this share of ``overuse_trend``."""
+_SINCE_CUT = 3
+"""Readings of the link's rate since a cut that may say it rose (their median)."""
 _SETTLE_PAIRS = 2
 """Two pairs since a provisional cut settle it: one that spans a fade is slow, the median (the
 faster of two) is the link's."""
