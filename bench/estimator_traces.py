@@ -5,6 +5,8 @@ the paper's two cameras over a link that follows:
 
 - ``steady``: 11 Mbit/s for 60 s (no cut is the target);
 - ``drop``: 11 -> 5 -> 11 Mbit/s at 20 and 40 s;
+- ``rate-drop``: ``tests/testbed/test_teleop.py -k rate_drop``'s link, 11 -> 5 Mbit/s at 8 s, for
+  20 s;
 - ``outage``: 11 Mbit/s, down for 1 s at 10 s, 10 s at 25 s and 30 s at 50 s, for 100 s;
 - ``rfc8867-5.1``: RFC 8867's test case 5.1 (1 -> 2.5 -> 0.6 -> 1 Mbit/s at 0/40/60/80 s),
   its 2.5-Mbit/s peak as 11 Mbit/s: 4.4 -> 11 -> 2.64 -> 4.4 for 100 s;
@@ -17,7 +19,8 @@ fraction of the oracle's (``dbml.experiment.oracle``: the allocation on a perfec
 through the same capacity), p50/p95/p99 frame latency, frames lost, the share of
 time the budget stood above the capacity (while the link was up), and where the case has them,
 the first cut after each fall, the time to 90 % after each rise, the goodput from 3 s and the
-p95 from 2 s after a fall, the outages' recoveries and the steady link's lowest budget. One
+p95 from 2 s after a fall (and from which 1-s window on each is good, the rate-drop test's
+``recovery_s``), the outages' recoveries and the steady link's lowest budget. One
 JSON object on stdout; ``--trace DIR`` also writes each run's arrivals and the operator's ticks
 (with the estimator's phase and reason) as JSON lines (``bench/arrivals.py``).
 
@@ -26,7 +29,7 @@ JSON object on stdout; ``--trace DIR`` also writes each run's arrivals and the o
                                                    [--trace DIR]
 
 A run takes its case's length and about 15 s of set-up: the whole matrix (nine cases, three
-designs, one run each) took 41 minutes.
+designs, one run each) took 41 minutes, before ``rate-drop`` (20 s a run) was added.
 """
 
 from __future__ import annotations
@@ -89,6 +92,7 @@ def _schedule_case(name: str, schedule: str, duration_s: float) -> Case:
 BUILT_IN = {
     "steady": _schedule_case("steady", "0:11", 60.0),
     "drop": _schedule_case("drop", "0:11,20:5,40:11", 60.0),
+    "rate-drop": _schedule_case("rate-drop", "0:11,8:5", 20.0),
     "outage": _schedule_case("outage", "0:11,10:0,11:11,25:0,35:11,50:0,80:11", 100.0),
     "rfc8867-5.1": _schedule_case("rfc8867-5.1", "0:4.4,40:11,60:2.64,80:4.4", 100.0),
 }
@@ -179,6 +183,8 @@ def figures(case: Case, result: TestbedResult, snapshot: Snapshot | None) -> dic
                     "first_cut_s": change.first_cut_s,
                     "goodput_share_after": change.goodput_share_after,
                     "peak_p95_ms": change.max_latency_p95_ms,
+                    # the rate-drop test's: from which 1-s window on each is good (p95, loss)
+                    "recovery_s": change.recovery_s,
                     "p95_from_2s_ms": _pct(later, 95),
                 }
             )
