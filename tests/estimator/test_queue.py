@@ -234,6 +234,26 @@ def test_one_reading_of_frames_a_stall_bunched_does_not_leave_the_slow_band() ->
     assert later.estimate_mbit <= cruise * (1 + slow) ** 0.1 + 1e-9
 
 
+def test_no_probe_above_the_rate_a_cut_measured_until_it_ages() -> None:
+    """Back at the link's rate after a cut, the estimate stays there.
+
+    A rise shows as frames crossing faster. Once the rate measured is ``memory_s`` old, it
+    probes again, slowly.
+    """
+    settings = QueueSettings()
+    detector = settings.detector(EstimatorSettings())
+    fall = _fall(ramp_s=0.04)
+    assert detector.decide(fall).phase is Phase.DECREASE
+    cruise = detector.decide(_view(12.0, 2.5, queued_s=0.0, gap_s=0.2)).estimate_mbit
+    assert cruise < 5.0
+    plateau_over = 12.0 + settings.plateau_s + 0.5
+    held = detector.decide(_view(plateau_over, cruise, queued_s=0.0, gap_s=0.2))
+    assert held.estimate_mbit == cruise
+    aged = fall.now_s + settings.memory_s + 0.5
+    probe = detector.decide(_view(aged, cruise, queued_s=0.0, gap_s=0.2))
+    assert cruise < probe.estimate_mbit <= cruise * (1 + settings.slow_increase_per_s) ** 0.1
+
+
 def test_without_estimation_the_drop_builds_an_ever_growing_queue() -> None:
     """The reference: the paper's constant budget on the same schedule."""
     constant = simulate(None, drop_and_rise, duration_s=30, constant_mbit=CAP_MBIT)

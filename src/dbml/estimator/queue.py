@@ -25,6 +25,7 @@ import itertools
 import math
 import statistics
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from dbml.core.errors import SpecError
@@ -135,12 +136,16 @@ class QueueDetector:
         """Back at the link's rate after a cut: no probe above it before this (unless it rose)."""
         self._capacity_s = -math.inf
         """When the last cut measured the link's rate."""
+        self._aged_mbit: float | None = None
+        """That rate once ``memory_s`` old and not confirmed: the estimate probes slowly near it."""
         self._cut_from_mbit = math.inf
         """The estimate the last cut was made from."""
         self._rates: deque[tuple[float, float]] = deque()
         """(when, Mbit/s): the link's rate at each update that measured it, ``link_window_s``."""
         self._rose = False
         """The link was seen to rise since the last cut."""
+        self._fall: tuple[float, float, float] | None = None
+        """(when, Mbit/s before, Mbit/s after) of the last fall a cut measured, until it rises."""
         self._why_cut = ""
         """The last cut's reason, repeated in the holds that follow it."""
         self._why_provisional = ""
@@ -173,7 +178,7 @@ class QueueDetector:
             return Decision(Phase.HOLD, max(estimate, before), "outage: provisional cut undone")
         if view.settling:
             return Decision(Phase.HOLD, estimate, "outage's backlog drains")
-        if self._capacity_mbit is not None and _faster(
+        if (self._capacity_mbit is not None or self._aged_mbit is not None) and _faster(
             judged,
             since_s=view.now_s - s.rise_window_s,
             recent_s=view.now_s - shared.window_s,
@@ -181,8 +186,9 @@ class QueueDetector:
         ):
             # Frames cross in less time than any in the seconds before: the link rose, what
             # the last cut measured no longer holds the increase back.
-            self._capacity_mbit = None
+            self._capacity_mbit = self._aged_mbit = None
             self._rose = True
+            self._fall = None
         pairs = view.pairs(shared.window_s)
         fastest = _PLAUSIBLE * view.max_mbit
         measured = busy_rate_mbit(
@@ -200,7 +206,8 @@ class QueueDetector:
         # (faster): the median reading of the last seconds speaks for the link.
         link_mbit = statistics.median(r for _, r in self._rates) if self._rates else None
         if self._capacity_mbit is not None and view.now_s > self._capacity_s + s.memory_s:
-            self._capacity_mbit = None  # not confirmed by a cut for a while: probe at pace
+            # Not confirmed by a cut for a while: probe above it, slowly near it.
+            self._aged_mbit, self._capacity_mbit = self._capacity_mbit, None
         undone = self._settle_provisional(view, pairs)
         if undone is not None:
             return undone
@@ -221,10 +228,18 @@ class QueueDetector:
         waited = {f for p, f in itertools.pairwise(latest) if behind(p, f, queued, fastest)}
         # Probing above the rate a cut measured, a queue that rises at half the pace is read:
         # the probe found the link's edge, and a later reading is a larger spike.
-        probing = near is not None and estimate > near
+        edge = near if near is not None else self._aged_mbit
+        probing = edge is not None and estimate > edge
         trend = s.overuse_trend * (_PROBING_TREND if probing else 1.0)
         overuse, standing = _overuse(
-            view, s, [size for *_, size in pairs], pace_s, waited, trend=trend
+            view,
+            s,
+            [size for *_, size in pairs],
+            pace_s,
+            waited,
+            trend=trend,
+            # probing, a frame crossing more slowly is taken for the queue it may be
+            slower=_none if probing else self._slower_s,
         )
         draining = bool(judged) and all(j.slope < -s.overuse_trend for j in judged)
         if overuse and view.now_s >= self._frozen_until:
@@ -276,7 +291,9 @@ class QueueDetector:
             faster = statistics.median(since_cut) if len(since_cut) >= _SINCE_CUT else None
             if faster is not None and faster > s.near_band[1] * self._capacity_mbit:
                 self._capacity_mbit = faster
-            elif view.now_s < self._cruise_until:
+            elif view.now_s < self._cruise_until or estimate >= cruise:
+                # No probe above the rate measured while it holds: a rise shows as frames
+                # crossing faster, and each probe past the link's edge is a spike of latency.
                 return Decision(Phase.HOLD, estimate, "at the link's rate measured")
         elif self._restore and estimate < self._restore_to_mbit:
             # The link rose (or the cut's measure aged) while its queue drained: back to the
@@ -289,7 +306,7 @@ class QueueDetector:
         self._why_cut = ""
         decision = increase(
             view,
-            self._capacity_mbit,
+            self._capacity_mbit if self._capacity_mbit is not None else self._aged_mbit,
             probe_fraction=shared.probe_fraction,
             slow_per_s=s.slow_increase_per_s,
             fast_per_s=s.fast_increase_per_s,
@@ -353,6 +370,7 @@ class QueueDetector:
             view.judged, self._shared.response_s, max_slope=growth, low_s=s.overuse_delay_s / 2
         )
         self._capacity_mbit = capacity
+        self._aged_mbit = None
         self._capacity_s = view.now_s
         # A cut before the last one's queue drained is the same episode: it was made from the
         # estimate before the first.
@@ -365,8 +383,30 @@ class QueueDetector:
         # sent after it has had time to arrive.
         self._frozen_until = view.now_s + backlog + self._shared.response_s
         self._rose = False
+        if capacity < estimate:
+            self._fall = (view.now_s, estimate, capacity)
         self._why_cut = f"{why}; link {capacity:.2f} Mbit/s, backlog {backlog * 1e3:.0f} ms"
         return Decision(Phase.DECREASE, min(estimate, target), self._why_cut)
+
+    def _slower_s(self, judged: Judged) -> float:
+        """How much slower ``judged``'s largest frame crosses than when its least delay was met.
+
+        A least delay met before the last fall was met on a link that carried at least the
+        estimate then: since, the frame's own transmission takes longer at the rate measured,
+        and that is no queue (84 KB: 75 ms more at 4.76 Mbit/s than at 10.1).
+        """
+        if self._fall is None or not judged.samples:
+            return 0.0
+        fall_s, before_mbit, after_mbit = self._fall
+        least_t, _, _ = min(judged.samples, key=lambda sample: sample[1])
+        if least_t >= fall_s:
+            return 0.0
+        own = max(size for *_, size in judged.samples)
+        return own * 8e-6 * (1.0 / after_mbit - 1.0 / before_mbit)
+
+
+def _none(_: Judged) -> float:
+    return 0.0
 
 
 def increase(
@@ -431,6 +471,7 @@ def _overuse(
     waited: set[Sample],
     *,
     trend: float,
+    slower: Callable[[Judged], float],
 ) -> tuple[str, bool]:
     """What says the link is overused, in a few words (empty if nothing does).
 
@@ -438,9 +479,10 @@ def _overuse(
     ``sizes``: the recent frames' bytes; ``pace_s``: seconds a byte takes on the link (0: not
     known), so a stream's frame may wait for one larger frame of another stream; ``waited``:
     the recent frames that crossed right behind another; ``trend``: the slope of a queue that
-    rises.
+    rises; ``slower``: how much longer a stream's own frame takes than when its least delay
+    was met.
     """
-    allowance = {id(j): _other_frame_s(j, sizes, pace_s) for j in view.judged}
+    allowance = {id(j): _other_frame_s(j, sizes, pace_s) + slower(j) for j in view.judged}
     for j in view.judged:
         # A queue stands only where frames wait behind frames. A large frame's own
         # transmission on a link slower than when its stream's least delay was measured (a
