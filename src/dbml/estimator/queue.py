@@ -8,8 +8,10 @@ backlog, a burst): no cut. Otherwise a cut to ``backoff`` of the link's rate les
 queue within ``drain_s``; before enough frames have queued to measure that rate the cut is
 provisional, undone if the frames behind it cross at the rate offered before (a fade), kept if
 slower (a fall). Once drained the estimate goes back to ``backoff`` of the rate measured and stays
-there ``plateau_s``, then probes up slowly near it and fast away from it; frames of the largest
-stream crossing faster than in the seconds before (the link rose) end the stay and the slow band.
+there until that rate is ``memory_s`` old, then probes up slowly near it and fast away from it;
+frames of the largest stream crossing faster than in the seconds before (the link rose) end the
+stay and the slow band. After a fall, a frame's own longer transmission at the rate measured is
+not read as queue.
 
 It reads, per stream that speaks for the link, its newest and least queueing and their slope and
 its frames' one-way delays; the packet pairs of the last ``window_s``; the frames lost. A pair,
@@ -85,7 +87,7 @@ class QueueSettings:
     link_window_s: float = 3.0
     """The link's median rate over this long says whether a queue drains by itself."""
     memory_s: float = 8.0
-    """A cut's measure of the link holds the increase back (plateau, slow band) this long."""
+    """A cut's measure of the link holds the increase back (no probe above it) this long."""
     headroom: float = 1.1
     """A queue while the link carries this many times the estimate or more drains by itself
     (a fade's backlog, a burst): hold, no cut."""
@@ -406,6 +408,7 @@ class QueueDetector:
 
 
 def _none(_: Judged) -> float:
+    """No allowance."""
     return 0.0
 
 
