@@ -234,6 +234,46 @@ def test_one_reading_of_frames_a_stall_bunched_does_not_leave_the_slow_band() ->
     assert later.estimate_mbit <= cruise * (1 + slow) ** 0.1 + 1e-9
 
 
+def _cruising(now_s: float, estimate: float) -> View:
+    """Back at a 5-Mbit/s link's rate since 12 s: frames that queued 30 ms cross back to back.
+
+    Then a stall's frames: four that queued 50 ms arrive 1 ms apart, the newest 50 ms ago.
+    """
+    gap_s = 84_000 * 8e-6 / 5.0
+    crossing = [(12.05 + i * gap_s, 0.03, 84_000) for i in range(10)]
+    bunched = [(13.3 + i * 0.001, 0.05, 84_000) for i in range(4)]
+    frames = crossing + bunched
+    judged = Judged(0.05, 0.03, 0.0, deque(frames), frames[-6:])
+    return View(
+        now_s=now_s,
+        dt_s=0.1,
+        settling=False,
+        lost=0,
+        recent=frames,
+        judged=[judged],
+        received=estimate,
+        cut_rate=estimate,
+        estimate_mbit=estimate,
+        max_mbit=10.0,
+        speaks=lambda _: True,
+    )
+
+
+def test_frames_a_stall_bunched_read_in_several_updates_do_not_leave_the_slow_band() -> None:
+    """A stall's frames stay in the pairs' window for several updates, each reading 12.5.
+
+    The pairs since the queue drained, each once, still say 5 Mbit/s: the estimate holds.
+    """
+    detector = QueueSettings().detector(EstimatorSettings())
+    cut = detector.decide(_fall(ramp_s=0.04))
+    assert cut.phase is Phase.DECREASE
+    cruise = detector.decide(_view(12.0, cut.estimate_mbit, queued_s=0.0, gap_s=0.2))
+    assert cruise.phase is Phase.INCREASE
+    for now_s in (13.35, 13.45, 13.55, 13.65, 13.75):
+        held = detector.decide(_cruising(now_s, cruise.estimate_mbit))
+        assert held.estimate_mbit == cruise.estimate_mbit, held.reason
+
+
 def test_no_probe_above_the_rate_a_cut_measured_until_it_ages() -> None:
     """Back at the link's rate after a cut, the estimate stays there.
 

@@ -135,6 +135,8 @@ class QueueDetector:
         self._provisional_s = -math.inf
         self._provisional_until = -math.inf
         self._cruise_until = -math.inf
+        self._drained_s = -math.inf
+        """When the last cut's queue drained (the return to the link's rate)."""
         """Back at the link's rate after a cut: no probe above it before this (unless it rose)."""
         self._capacity_s = -math.inf
         """When the last cut measured the link's rate."""
@@ -285,12 +287,19 @@ class QueueDetector:
             if self._restore and estimate < cruise:
                 self._restore = False
                 self._cruise_until = view.now_s + s.plateau_s
+                self._drained_s = view.now_s
                 return Decision(Phase.INCREASE, cruise, "drained: back to the link's rate")
             # Frames that queued behind others say the link's rate without overuse: found
             # faster than the cut's (the link rose), it leaves the slow band. The median of the
-            # readings since the cut: one update's pairs may be frames a stall bunched.
-            since_cut = [r for t, r in self._rates if t >= self._capacity_s]
-            faster = statistics.median(since_cut) if len(since_cut) >= _SINCE_CUT else None
+            # pairs since the cut's queue drained, each once and over a window at least: frames
+            # a stall bunched arrive within milliseconds, often as the queue drains, and the
+            # updates' readings repeat them while they are in the window.
+            since_cut = _since(view.recent, max(self._capacity_s, self._drained_s))
+            faster = None
+            if since_cut and since_cut[-1][0] - since_cut[0][0] >= shared.window_s:
+                faster = busy_rate_mbit(since_cut, queued, least=_SINCE_CUT, fastest_mbit=fastest)
+            if faster is not None:
+                faster = min(faster, fastest)
             if faster is not None and faster > s.near_band[1] * self._capacity_mbit:
                 self._capacity_mbit = faster
             elif view.now_s < self._cruise_until or estimate >= cruise:
@@ -435,8 +444,8 @@ _PLAUSIBLE = 1.25
 """Packet pairs faster than this many times the configured budget are the receiver's bunching."""
 _PROBING_TREND = 0.5
 """Above the rate a cut measured, a rising queue is read at this share of ``overuse_trend``."""
-_SINCE_CUT = 3
-"""Readings of the link's rate since a cut that may say it rose (their median)."""
+_SINCE_CUT = 5
+"""Packet pairs since a cut that may say the link rose (their median)."""
 _SETTLE_PAIRS = 2
 """Two pairs since a provisional cut settle it: one that spans a fade is slow, the median (the
 faster of two) is the link's."""
