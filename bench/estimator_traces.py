@@ -20,7 +20,10 @@ through the same capacity), p50/p95/p99 frame latency, frames lost, the share of
 time the budget stood above the capacity (while the link was up), and where the case has them,
 the first cut after each fall, the time to 90 % after each rise, the goodput from 3 s and the
 p95 from 2 s after a fall (and from which 1-s window on each is good, the rate-drop test's
-``recovery_s``), the outages' recoveries and the steady link's lowest budget. One
+``recovery_s``), the outages' recoveries and the steady link's lowest budget. Beside the
+oracle, per recorded trace, the same cameras through the same FIFO on fixed budgets of 30-100 %
+of its mean capacity (``fixed_budget``, ``best_fixed``): what each share of the link costs in
+latency to a design that cannot foresee a fade. One
 JSON object on stdout; ``--trace DIR`` also writes each run's arrivals and the operator's ticks
 (with the estimator's phase and reason) as JSON lines (``bench/arrivals.py``).
 
@@ -50,7 +53,7 @@ from arrivals import write_arrivals
 from dbml.core.spec import BYTES_PER_S_PER_MBIT
 from dbml.estimator.designs import DEFAULT_DESIGN, Design
 from dbml.estimator.simulation import WIRE_EFFICIENCY
-from dbml.experiment.oracle import simulate_oracle
+from dbml.experiment.oracle import OracleRun, simulate_fixed_budget, simulate_oracle
 from dbml.experiment.runner import Snapshot
 from dbml.scenarios.traces import LinkTrace, load_trace, parse_plain_trace
 from dbml.testbed.options import DEFAULT_UTILIZATION
@@ -71,6 +74,9 @@ TARGET_GOODPUT = 0.85
 TARGET_OUTAGE_BACK_S = 3.0
 TARGET_OUTAGE_BUDGET_S = 10.0
 TARGET_STEADY_LOW_SHARE = 0.9
+FIXED_SHARES = tuple(round(0.3 + 0.05 * k, 2) for k in range(15))
+"""Fixed budgets, as shares of a trace's mean payload capacity: the latency each share of the
+link costs on it, for a design that cannot foresee it (``fixed_budget``)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -213,21 +219,59 @@ def figures(case: Case, result: TestbedResult, snapshot: Snapshot | None) -> dic
 
 
 def oracle(case: Case) -> dict[str, Any]:
-    """What a perfect estimate reaches on ``case``'s capacity (``dbml.experiment.oracle``)."""
+    """What a perfect estimate reaches on ``case``'s capacity (``dbml.experiment.oracle``).
+
+    Beside it, for a recorded trace, the same through fixed budgets (``FIXED_SHARES`` of its
+    mean payload capacity): a design without foresight sends into a fade what the oracle does
+    not, so the share of the link it reaches within a latency is bounded by these (``best_fixed``:
+    the most of the oracle's utilisation with p95 within the trace's target; None if no
+    budget's p95 is).
+    """
     started = time.perf_counter()
-    run = simulate_oracle(
-        case.trace, step_s=case.trace.duration_s / 10, max_budget_mbit=MAX_BUDGET_MBIT
-    )
-    later = [w for w in run.windows if w.t_s >= SETTLE_S]  # as the designs are judged
-    capacity = sum(w.capacity_mbit for w in later)
-    return {
-        "utilisation": sum(w.goodput_mbit for w in later) / capacity if capacity > 0 else None,
+    step_s = case.trace.duration_s / 10
+    run = simulate_oracle(case.trace, step_s=step_s, max_budget_mbit=MAX_BUDGET_MBIT)
+    best = _utilisation(run)
+    out: dict[str, Any] = {
+        "utilisation": best,
         "latency_p50_ms": run.latency_p50_ms,
         "latency_p95_ms": run.latency_p95_ms,
         "latency_p99_ms": run.latency_p99_ms,
         "frames_lost": run.frames_lost,
-        "simulated_s": round(time.perf_counter() - started, 3),
     }
+    if case.schedule is None and best:
+        mean = case.trace.megabits(0, case.trace.duration_s) / case.trace.duration_s
+        fixed = []
+        for share in FIXED_SHARES:
+            budget = min(share * mean * WIRE_EFFICIENCY, MAX_BUDGET_MBIT)
+            at = simulate_fixed_budget(case.trace, budget_mbit=budget, step_s=step_s)
+            used = _utilisation(at)
+            fixed.append(
+                {
+                    "share_of_capacity": share,
+                    "budget_mbit": round(budget, 3),
+                    "of_oracle": None if used is None else round(used / best, 3),
+                    "latency_p95_ms": at.latency_p95_ms,
+                    "frames_lost": at.frames_lost,
+                }
+            )
+        out["fixed_budget"] = fixed
+        within = [
+            f["of_oracle"]
+            for f in fixed
+            if f["of_oracle"] is not None
+            and f["latency_p95_ms"] is not None
+            and f["latency_p95_ms"] <= TARGET_TRACE_P95_MS
+        ]
+        out["best_fixed"] = max(within, default=None)
+    out["simulated_s"] = round(time.perf_counter() - started, 3)
+    return out
+
+
+def _utilisation(run: OracleRun) -> float | None:
+    """Goodput over payload capacity from ``SETTLE_S`` on, as the designs are judged."""
+    later = [w for w in run.windows if w.t_s >= SETTLE_S]
+    capacity = sum(w.capacity_mbit for w in later)
+    return sum(w.goodput_mbit for w in later) / capacity if capacity > 0 else None
 
 
 def _pct(values: np.ndarray, q: float) -> float | None:

@@ -17,6 +17,7 @@ from dbml.core.errors import SpecError
 from dbml.experiment.oracle import (
     bottleneck_departures,
     oracle_budget,
+    simulate_fixed_budget,
     simulate_oracle,
 )
 from dbml.scenarios.teleop import PAPER_TABLE2
@@ -198,6 +199,36 @@ def test_window_capacities_add_up_to_the_traces_payload() -> None:
     megabits = sum(w.capacity_mbit * (min(w.t_s + 1, 7.5) - w.t_s) for w in run.windows)
     assert megabits * 125_000 == pytest.approx(run.capacity_payload_bytes)
     assert run.capacity_payload_bytes == pytest.approx((7.5 + 0.875 + 19.5) * PAYLOAD_PER_MBIT)
+
+
+def test_a_fixed_budget_delivers_itself_below_the_link() -> None:
+    # 5 Mbit/s of budget on an 11-Mbit/s link: 625,000 B/s sent and delivered, the rest idle
+    run = simulate_fixed_budget(trace("0:11"), budget_mbit=5.0, step_s=2.0)
+    assert run.budget_bytes == pytest.approx(625_000 * 20)
+    assert run.delivered_bytes == pytest.approx(625_000 * 20, rel=0.03)
+    assert run.utilisation == pytest.approx(5 / 10.527, rel=0.03)
+    assert run.frames_lost == 0
+    # no queue at half the link: a frame's own time (21 KB: 15.96 ms, 84 KB: 63.84), at
+    # worst behind one frame of the other camera
+    assert run.latency_p50_ms is not None
+    assert run.latency_p99_ms is not None
+    assert 15.95 <= run.latency_p50_ms <= run.latency_p99_ms < 63.84 + 15.96 + 1.0
+
+
+def test_a_fixed_budget_sends_into_an_outage_the_oracle_sees() -> None:
+    # Down from 5 to 6 s: the oracle sends nothing in it; a fixed budget of 2 Mbit/s sends
+    # about 2 frames a second of 84 KB and 1 of 21 KB, which wait for the link's return.
+    link = trace("0:11,5:0,6:11")
+    fixed = simulate_fixed_budget(link, budget_mbit=2.0, step_s=2.0)
+    oracle = simulate_oracle(link, step_s=2.0, max_budget_mbit=2.0)
+    assert oracle.latency_p99_ms is not None
+    assert fixed.latency_p99_ms is not None
+    assert oracle.latency_p99_ms < 100.0
+    assert fixed.latency_p99_ms > 500.0
+    assert fixed.budget_bytes == pytest.approx(250_000 * 20)
+    assert oracle.budget_bytes == pytest.approx(250_000 * 19)
+    with pytest.raises(SpecError, match="budget_mbit=0"):
+        simulate_fixed_budget(link, budget_mbit=0.0, step_s=2.0)
 
 
 def test_a_run_is_repeatable() -> None:

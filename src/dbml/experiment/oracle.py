@@ -36,6 +36,7 @@ __all__ = [
     "OracleWindow",
     "bottleneck_departures",
     "oracle_budget",
+    "simulate_fixed_budget",
     "simulate_oracle",
 ]
 
@@ -47,6 +48,8 @@ WINDOW_S = 1.0
 _PHASE_SPREAD_S = 1.0 / 16.0
 """Camera ``k`` of ``n`` sends its first frame ``k / n`` of this in: the shortest frame period
 (16 Hz), so the cameras' first frames do not all queue behind one another."""
+_REALLOCATE_S = 0.1
+"""How often the oracle hands the optimizer the capacity (the estimator's update period)."""
 _EDGE = 1e-9
 """Slack on ``t / step_s`` so a float sum of ticks on a step's edge counts as in that step."""
 _MS_PER_S = 1000.0
@@ -267,7 +270,7 @@ def simulate_oracle(
     step_s: float,
     max_budget_mbit: float,
     strategy: Strategy | str = Strategy.PAPER,
-    reallocate_s: float = 0.1,
+    reallocate_s: float = _REALLOCATE_S,
     max_queue_s: float = DEFAULT_MAX_QUEUE_S,
 ) -> OracleRun:
     """The teleoperation scenario's ten steps (``step_s`` each) with a perfect estimate.
@@ -285,6 +288,55 @@ def simulate_oracle(
         minimum=MIN_PERIOD_S,
         maximum=MAX_PERIOD_S,
     )
+    return _simulate(
+        trace,
+        _budget(trace, cap_mbit),
+        robots=robots,
+        step_s=step_s,
+        strategy=strategy,
+        reallocate_s=reallocate_s,
+        max_queue_s=max_queue_s,
+    )
+
+
+def simulate_fixed_budget(
+    trace: LinkTrace,
+    *,
+    budget_mbit: float,
+    robots: int = 2,
+    step_s: float,
+    strategy: Strategy | str = Strategy.PAPER,
+    max_queue_s: float = DEFAULT_MAX_QUEUE_S,
+) -> OracleRun:
+    """As ``simulate_oracle``, on a budget that never moves.
+
+    A design that cannot foresee the link does no better than some budget, at best, between
+    two of its readings: the runs over a range of fixed budgets draw the latency a share of the
+    link costs on that trace.
+    """
+    step_s = _positive(step_s, "step_s")
+    budget_bps = _positive(budget_mbit, "budget_mbit") * BYTES_PER_S_PER_MBIT
+    return _simulate(
+        trace,
+        _Rate([0.0], [budget_bps]),
+        robots=robots,
+        step_s=step_s,
+        strategy=strategy,
+        reallocate_s=_REALLOCATE_S,  # the steps' events still move the allocation
+        max_queue_s=max_queue_s,
+    )
+
+
+def _simulate(
+    trace: LinkTrace,
+    budget: _Rate,
+    *,
+    robots: int,
+    step_s: float,
+    strategy: Strategy | str,
+    reallocate_s: float,
+    max_queue_s: float,
+) -> OracleRun:
     max_queue_s = _max_queue(max_queue_s)
     try:
         chosen = Strategy(strategy)
@@ -292,7 +344,7 @@ def simulate_oracle(
         names = ", ".join(s.value for s in Strategy)
         raise SpecError(f"oracle: strategy={strategy!r} is not one of: {names}") from None
     duration_s = len(fleet_steps(robots)) * step_s
-    link, budget = _payload(trace), _budget(trace, cap_mbit)
+    link = _payload(trace)
     sends = _sends(
         budget,
         robots=robots,
