@@ -403,6 +403,10 @@ def test_names_from_the_network_are_bounded_and_a_flood_is_logged_once(
         mine = ("/dbm/round", "/dbm/max_bandwidth_in_mbit", "/r1/camera/dbm/priority")
         assert [store.replica.get(n) for n in mine] == [1, 2, 0.3]
         assert ("/dbm/round", store.held("/dbm/round")) in store.owned(lambda _writer: True)
+        # A question about one channel: only its values are encoded and served.
+        assert [name for name, _ in store.owned(lambda _w: True, prefix="/r1/camera")] == [
+            "/r1/camera/dbm/priority"
+        ]
     full = [r.getMessage() for r in caplog.records if "parameter names" in r.getMessage()]
     assert full == [
         "parameter names: 65536 held, the most kept; refusing new ones "

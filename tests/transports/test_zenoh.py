@@ -120,8 +120,10 @@ def test_a_newcomer_costs_each_session_answers_of_its_own_values_only() -> None:
             def counting(
                 is_live: Callable[[str], bool],
                 owned: Callable[..., list[tuple[str, bytes]]] = owned,
+                *,
+                prefix: str = "",
             ) -> list[tuple[str, bytes]]:
-                answer = owned(is_live)
+                answer = owned(is_live, prefix=prefix)
                 answered.append(len(answer))
                 return answer
 
@@ -170,15 +172,24 @@ def test_a_publishing_session_hears_its_own_channels_not_the_fleets_reports() ->
         fleet.params.set("/r1/cam/dbm/message_size_in_bytes", 1)  # a write over its own channel
         fleet.params.set_many({"/r1/cam/dbm/frequency/current_value": 4.0}, host="r1")
         fleet.params.set_many({"/r2/cam/dbm/frequency/current_value": 5.0}, host="r2")
+        before_ns = time.time_ns()
         fleet.params.set_many({"/dbm/round": 3})  # the batch for everyone
         fleet.params.set("/dbm/max_bandwidth_in_mbit", 7.0)  # a global, sent last
         wait_for(lambda: robot.params.get("/dbm/max_bandwidth_in_mbit") == 7.0, timeout_s=10)
         wait_for(lambda: robot.params.get("/r1/cam/dbm/message_size_in_bytes") == 1, timeout_s=10)
         assert robot.params.get("/r1/cam/dbm/frequency/current_value") == 4.0  # its host's batch
         assert robot.params.get("/dbm/round") == 3
+        stamp = robot.param_stamp_ns("/dbm/round")  # the writer's clock: the same host here
+        assert stamp is not None
+        assert before_ns <= stamp <= time.time_ns()
+        assert robot.param_stamp_ns("/dbm/never_written") is None
         assert robot.params.get("/r2/cam/dbm/frequency/current_value") is None  # r2's batch
         assert "dbml/param/r2/cam/dbm/frequency/applied_value" not in delivered
         assert "dbml/param/r1/cam/dbm/message_size_in_bytes" in delivered
+        # What it paid for, as the fleet bench counts it: each write delivered, and its host's
+        # and everyone's batch, not r2's.
+        assert robot.control_messages_received >= len(delivered) + 2
+        assert robot.control_bytes_received >= robot.control_messages_received
     finally:
         close_all([robot, fleet])
 

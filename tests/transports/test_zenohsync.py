@@ -17,7 +17,12 @@ import zenoh
 
 from dbml.protocol import keys
 from dbml.transports.worker import death_count
-from dbml.transports.zenoh.params import MAX_QUEUED_FETCHES, MAX_SESSIONS, ParamSync
+from dbml.transports.zenoh.params import (
+    MAX_QUEUED_FETCHES,
+    MAX_SESSIONS,
+    ParamSync,
+    _name_prefix,
+)
 from tests.conftest import wait_for
 
 TIMEOUT_S = 10.0
@@ -255,3 +260,22 @@ def test_a_channel_subscriber_declared_as_the_sync_closes_is_undeclared_outside_
     assert locked_at_undeclare == [False]
     assert sync._declared == []
     assert session.gets == []  # nothing asked for a channel no longer heard
+
+
+@pytest.mark.parametrize(
+    ("selector", "prefix"),
+    [
+        ("dbml/own/n1/r1/cam/**", "/r1/cam"),  # a robot's question: its channel's values
+        ("dbml/own/n1/dbm/**", "/dbm"),  # the global values
+        ("dbml/own/n1/**", ""),  # everything (a session that follows everything)
+        ("dbml/own/n1/r1/$*/dbm/priority", "/r1"),  # a sub-chunk wildcard
+        ("dbml/own/n1/dbm/round", "/dbm/round"),  # one name
+        ("dbml/own/n12/dbm/**", ""),  # another session whose id starts with this one's
+        ("dbml/own/*/dbm/**", ""),  # every session's: the key expression decides alone
+        ("dbml/own/n1", ""),
+    ],
+)
+def test_a_question_encodes_only_what_its_literal_prefix_selects(
+    selector: str, prefix: str
+) -> None:
+    assert _name_prefix(selector, keys.own_key("n1")) == prefix

@@ -151,15 +151,18 @@ class KeyedParams:
         held = self.replica.entry(name)
         return None if held is None else (held.stamp, held.writer)
 
-    def owned(self, is_live: Callable[[str], bool]) -> list[tuple[str, bytes]]:
-        """What this process serves: its own newest writes, and those whose writer left.
+    def owned(self, is_live: Callable[[str], bool], *, prefix: str = "") -> list[tuple[str, bytes]]:
+        """What this process serves of the names that start with ``prefix``.
 
-        Deletions are served too, so a newcomer does not revive a deleted value.
+        Its own newest writes, and those whose writer left; deletions too, so a newcomer does
+        not revive a deleted value. Only what the prefix selects is encoded: the optimizer owns
+        every channel's rate and a robot asks for its own channels', so encoding all of it for
+        every question cost O(fleet) a question.
         """
         return [
             (name, encode_param(held.value, held.stamp, held.writer))
             for name, held in self.replica.entries()
-            if held.writer == self.node_id or not is_live(held.writer)
+            if name.startswith(prefix) and (held.writer == self.node_id or not is_live(held.writer))
         ]
 
     def held(self, name: str) -> bytes | None:

@@ -130,6 +130,7 @@ class ParamSync:
         self._replier = node_id.encode()
         self._counter_lock = threading.Lock()
         self._received = 0
+        self._received_bytes = 0
         self._follow_all = follow_all
         self._follow_everything: set[str] = set()
         """The live sessions that follow every parameter (a subset of ``_live``)."""
@@ -211,22 +212,31 @@ class ParamSync:
             self.keyed.on_value(owned[1], sample.payload.to_bytes())
 
     def _on_param(self, sample: zenoh.Sample) -> None:
-        self._count_received()
-        self.keyed.on_write(str(sample.key_expr), sample.payload.to_bytes())
+        payload = sample.payload.to_bytes()
+        self._count_received(len(payload))
+        self.keyed.on_write(str(sample.key_expr), payload)
 
     def _on_batch(self, sample: zenoh.Sample) -> None:
-        self._count_received()
-        self.keyed.on_batch(sample.payload.to_bytes())
+        payload = sample.payload.to_bytes()
+        self._count_received(len(payload))
+        self.keyed.on_batch(payload)
 
-    def _count_received(self) -> None:
+    def _count_received(self, size_bytes: int) -> None:
         with self._counter_lock:
             self._received += 1
+            self._received_bytes += size_bytes
 
     @property
     def received_messages(self) -> int:
         """Parameter writes and batches delivered to this session so far (what it paid for)."""
         with self._counter_lock:
             return self._received
+
+    @property
+    def received_bytes(self) -> int:
+        """Their payloads' bytes so far."""
+        with self._counter_lock:
+            return self._received_bytes
 
     @property
     def alive(self) -> bool:
@@ -256,9 +266,10 @@ class ParamSync:
         if puller is not None:
             self._schedule_fetch(puller)
             return
-        for name, data in self.keyed.owned(self._is_live):
+        asked = query.key_expr
+        for name, data in self.keyed.owned(self._is_live, prefix=_name_prefix(str(asked), own)):
             reply_key = own + name
-            if query.key_expr.intersects(reply_key):
+            if asked.intersects(reply_key):
                 query.reply(reply_key, data, attachment=self._replier)
 
     def _on_node(self, sample: zenoh.Sample) -> None:
@@ -537,3 +548,17 @@ class ParamSync:
             log.warning("closing with parameter writes unsent after %.1f s", FLUSH_TIMEOUT_S)
         for item in declared:
             _undeclare(item)
+
+
+def _name_prefix(selector: str, own: str) -> str:
+    """What every name a query on ``own`` (this session's owned-values key) selects starts with.
+
+    The literal part of its key expression after ``own``, up to the chunk with the first
+    wildcard (``dbml/own/<node>/r1/ch0/**``: ``/r1/ch0``); empty when it does not name ``own``
+    literally. A prefix, not a match: the key expression still decides.
+    """
+    rest = selector[len(own) :]
+    if not selector.startswith(own) or not rest.startswith("/"):
+        return ""  # another session's key, all of this one's, or its key as a pattern
+    wild = min((i for i in (rest.find("*"), rest.find("$")) if i >= 0), default=len(rest))
+    return rest[: rest.rfind("/", 0, wild)] if wild < len(rest) else rest

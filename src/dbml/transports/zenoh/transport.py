@@ -509,6 +509,19 @@ class ZenohTransport(TransportBase):
         """Parameter writes and batches delivered to this session so far (for measurement)."""
         return self._sync.received_messages
 
+    @property
+    def control_bytes_received(self) -> int:
+        """Their payloads' bytes so far (for measurement)."""
+        return self._sync.received_bytes
+
+    def param_stamp_ns(self, name: str) -> int | None:
+        """When the newest write of ``name`` known here was made, in ns on its writer's clock.
+
+        For measurement: on one host, its delay to this session. None if none is known.
+        """
+        stamped = self._sync.keyed.stamp(name)
+        return None if stamped is None else stamped[0]
+
     def wait_for_peers(self, timeout_s: float) -> bool:
         """Wait until another dbml session is reachable and what the sessions met own is here."""
         return self._sync.wait_for_peers(timeout_s)
