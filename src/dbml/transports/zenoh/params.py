@@ -554,7 +554,7 @@ def _name_prefix(selector: str, own: str) -> str:
     """What every name a query on ``own`` (this session's owned-values key) selects starts with.
 
     The literal part of its key expression after ``own``, up to the chunk with the first
-    wildcard (``dbml/own/<node>/r1/ch0/**``: ``/r1/ch0``); empty when it does not name ``own``
+    wildcard (``own`` + ``/r1/ch0/**``: ``/r1/ch0``); empty when it does not name ``own``
     literally. A prefix, not a match: the key expression still decides.
     """
     rest = selector[len(own) :]
