@@ -135,9 +135,9 @@ class QueueDetector:
         self._provisional_s = -math.inf
         self._provisional_until = -math.inf
         self._cruise_until = -math.inf
+        """Back at the link's rate after a cut: no probe above it before this (unless it rose)."""
         self._drained_s = -math.inf
         """When the last cut's queue drained (the return to the link's rate)."""
-        """Back at the link's rate after a cut: no probe above it before this (unless it rose)."""
         self._capacity_s = -math.inf
         """When the last cut measured the link's rate."""
         self._aged_mbit: float | None = None

@@ -7,6 +7,9 @@ one FIFO bottleneck that follows the trace exactly. A benchmark reports each rea
 fraction of this run. Pure arithmetic (no I/O, threads or clocks, every time an argument): a run
 is exact and repeatable.
 
+``simulate_fixed_budget`` runs the same on a budget that never moves: the latency each share of
+a recorded link costs a sender that does not know its fades in advance.
+
 Below the cap the oracle loads the link at exactly its payload capacity, so a backlog left by
 the reallocation lag (a drop between two ticks) drains only once the capacity is back above the
 cap: that latency is the price of a perfect estimate, not an estimator's error.
@@ -310,9 +313,8 @@ def simulate_fixed_budget(
 ) -> OracleRun:
     """As ``simulate_oracle``, on a budget that never moves.
 
-    A design that cannot foresee the link does no better than some budget, at best, between
-    two of its readings: the runs over a range of fixed budgets draw the latency a share of the
-    link costs on that trace.
+    A design that cannot foresee the link sends into a fade what the oracle does not: runs over
+    a range of fixed budgets draw what each share of the link costs in latency on that trace.
     """
     step_s = _positive(step_s, "step_s")
     budget_bps = _positive(budget_mbit, "budget_mbit") * BYTES_PER_S_PER_MBIT
