@@ -22,7 +22,7 @@ from dbml.estimator import (
     Phase,
     QueueSettings,
 )
-from dbml.estimator.base import Estimate, Judged, View, busy_rate_mbit
+from dbml.estimator.base import Estimate, Judged, Sample, View, busy_rate_mbit
 from dbml.estimator.simulation import (
     CAP_MBIT,
     WIRE_EFFICIENCY,
@@ -113,13 +113,18 @@ def _view(now_s: float, estimate: float, *, queued_s: float, gap_s: float) -> Vi
     """One update's view: two streams whose last frames queued ``queued_s``, ``gap_s`` apart."""
     frames = [(now_s - 0.3 + i * gap_s, queued_s, 84_000) for i in range(6)]
     judged = Judged(queued_s, queued_s, 0.0, deque(frames), frames)
+    return _steady_view(now_s, estimate, frames, [judged, judged])
+
+
+def _steady_view(now_s: float, estimate: float, frames: list[Sample], judged: list[Judged]) -> View:
+    """An update's view of ``frames`` while what arrives is the estimate, nothing lost."""
     return View(
         now_s=now_s,
         dt_s=0.1,
         settling=False,
         lost=0,
         recent=frames,
-        judged=[judged, judged],
+        judged=judged,
         received=estimate,
         cut_rate=estimate,
         estimate_mbit=estimate,
@@ -244,19 +249,7 @@ def _cruising(now_s: float, estimate: float) -> View:
     bunched = [(13.3 + i * 0.001, 0.05, 84_000) for i in range(4)]
     frames = crossing + bunched
     judged = Judged(0.05, 0.03, 0.0, deque(frames), frames[-6:])
-    return View(
-        now_s=now_s,
-        dt_s=0.1,
-        settling=False,
-        lost=0,
-        recent=frames,
-        judged=[judged],
-        received=estimate,
-        cut_rate=estimate,
-        estimate_mbit=estimate,
-        max_mbit=10.0,
-        speaks=lambda _: True,
-    )
+    return _steady_view(now_s, estimate, frames, [judged])
 
 
 def test_frames_a_stall_bunched_read_in_several_updates_do_not_leave_the_slow_band() -> None:
