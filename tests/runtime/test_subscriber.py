@@ -129,10 +129,10 @@ def test_a_failed_graph_read_does_not_freeze_the_subscriber() -> None:
     entries = operator.graph.entries
     failures = [TransportError("master unreachable")]
 
-    def flaky() -> frozenset[GraphEntry]:
+    def flaky(*, topic: str | None = None) -> frozenset[GraphEntry]:
         if failures:
             raise failures.pop()
-        return entries()
+        return entries(topic=topic)
 
     operator.graph.entries = flaky  # type: ignore[method-assign]
     robot = MemoryTransport(network, host="r9")
@@ -181,7 +181,7 @@ def test_a_subscriber_whose_thread_dies_says_so(caplog: pytest.LogCaptureFixture
     operator = MemoryTransport(network, host="op")
     subscriber = ManagedSubscriber(operator, "/cam", lambda s: None)
 
-    def fatal() -> frozenset[GraphEntry]:
+    def fatal(*, topic: str | None = None) -> frozenset[GraphEntry]:
         raise SystemExit("the graph view is gone")
 
     operator.graph.entries = fatal  # type: ignore[method-assign]

@@ -38,7 +38,7 @@ from dbml.transports import (
     TransportBase,
     Variant,
 )
-from dbml.transports.base import Closer, TransportPriority
+from dbml.transports.base import Closer, TransportPriority, of_topic
 from dbml.transports.codecs import ROS1_FLOAT64
 from tests.conftest import require
 from tests.ros1.rosnet import ros1_problem
@@ -219,13 +219,17 @@ class _PeerGraph:
     def announce(self, role: Role, topic: str, variant: Variant) -> Handle:
         return self._peer.listen("announce", lambda: None, role.value, topic, variant.value)
 
-    def entries(self) -> frozenset[GraphEntry]:
+    def entries(self, *, topic: str | None = None) -> frozenset[GraphEntry]:
         entries: list[GraphEntry] = self._peer.call("entries")
-        return frozenset(
-            GraphEntry(e.role, self._hosts.name(e.host), e.topic, e.variant, e.uid) for e in entries
+        return of_topic(
+            frozenset(
+                GraphEntry(e.role, self._hosts.name(e.host), e.topic, e.variant, e.uid)
+                for e in entries
+            ),
+            topic,
         )
 
-    def watch(self, callback: Callable[[], None]) -> Handle:
+    def watch(self, callback: Callable[[], None], *, topic: str | None = None) -> Handle:
         return self._peer.listen("watch_graph", callback)
 
 

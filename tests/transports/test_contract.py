@@ -135,12 +135,14 @@ DOES_NOT_APPLY = {
     ("rclpy", "test_graph_announce_withdraw_and_watch"): _DDS_GRAPH,
     ("rclpy", "test_two_identical_declarations_are_two_entries"): _DDS_GRAPH,
     ("rclpy", "test_closing_a_transport_withdraws_its_graph"): _DDS_GRAPH,
+    ("rclpy", "test_a_topics_entries_and_its_watch"): _DDS_GRAPH,
     ("memory", "test_a_write_never_waits_for_a_stalled_network"): (
         "memory's store is the network itself: a write sends nothing that could stall"
     ),
     ("ros1", "test_graph_announce_withdraw_and_watch"): _ANNOUNCE,
     ("ros1", "test_two_identical_declarations_are_two_entries"): _ANNOUNCE,
     ("ros1", "test_closing_a_transport_withdraws_its_graph"): _ANNOUNCE,
+    ("ros1", "test_a_topics_entries_and_its_watch"): _ANNOUNCE,
 }
 """(transport, test) pairs a test cannot hold for, with the reason."""
 
@@ -296,6 +298,18 @@ def test_graph_announce_withdraw_and_watch(make: Factory) -> None:
     wait_for(lambda: len(changes) >= 1, what="a graph notification")
     token.close()
     wait_for(lambda: wanted not in entries(), what="the withdrawal")
+
+
+def test_a_topics_entries_and_its_watch(make: Factory) -> None:
+    a, b = make("host-a"), make("host-b")
+    changes: list[int] = []
+    b.graph.watch(lambda: changes.append(1), topic="/r1/camera")
+    a.graph.announce(Role.PUBLISHER, "/r2/lidar", Variant.FULL)
+    a.graph.announce(Role.PUBLISHER, "/r1/camera", Variant.FULL)
+    wait_for(lambda: len(b.graph.entries()) == 2, what="both announcements")
+    assert {e.topic for e in b.graph.entries(topic="/r1/camera")} == {"/r1/camera"}
+    assert b.graph.entries(topic="/r3/none") == frozenset()
+    wait_for(lambda: len(changes) >= 1, what="the topic's notification")
 
 
 def test_two_identical_declarations_are_two_entries(make: Factory) -> None:

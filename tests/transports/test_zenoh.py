@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import os
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -24,6 +27,7 @@ from dbml.transports.zenoh.transport import (
     MAX_GRAPH_ENTRIES,
     OPEN_TIMEOUT_MS,
     RETRY_MAX_MS,
+    ROUTER_RX_THREADS,
     RUNTIME_ENV,
     RX_THREADS,
     ZenohTransport,
@@ -287,6 +291,56 @@ def test_graph_entries_from_peers_are_bounded_and_a_flood_is_logged_once(
     assert len(graph.entries()) == MAX_GRAPH_ENTRIES // 2 - 1
 
 
+def test_a_publishing_session_hears_the_graph_of_its_own_topics_alone() -> None:
+    """Every robot of a fleet hearing every graph token cost each one a callback per token."""
+    port = free_port()
+    fleet = ZenohTransport(host="base", port=port)
+    robot = ZenohTransport(host="r1", port=port, follow_all_params=False)
+    try:
+        assert robot.wait_for_peers(10)
+        fleet.graph.announce(Role.SUBSCRIBER, "/r2/cam", Variant.OPTIMIZED)  # another robot's
+        fleet.graph.announce(Role.SUBSCRIBER, "/r1/cam", Variant.OPTIMIZED)  # before the robot
+        woken: list[int] = []
+        robot.graph.watch(lambda: woken.append(1), topic="/r1/lidar")
+        robot.graph.announce(Role.PUBLISHER, "/r1/cam", Variant.FULL)
+        wait_for(
+            lambda: any(e.host == "base" for e in robot.graph.entries(topic="/r1/cam")),
+            timeout_s=10,
+            what="the operator's subscriber of /r1/cam, declared before the robot followed it",
+        )
+        fleet.graph.announce(Role.SUBSCRIBER, "/r1/lidar", Variant.OPTIMIZED)  # a watched topic
+        wait_for(lambda: bool(woken), timeout_s=10, what="the watched topic's token")
+        fleet.graph.announce(Role.SUBSCRIBER, "/r2/lidar", Variant.OPTIMIZED)
+        wait_for(lambda: len(fleet.graph.entries()) == 5, timeout_s=10, what="the fleet's graph")
+        late = fleet.graph.announce(Role.SUBSCRIBER, "/r1/cam", Variant.FULL)  # after /r2/lidar
+        wait_for(lambda: len(robot.graph.entries(topic="/r1/cam")) == 3, timeout_s=10)
+        assert {e.topic for e in robot.graph.entries()} == {"/r1/cam", "/r1/lidar"}
+        late.close()
+        wait_for(lambda: len(robot.graph.entries(topic="/r1/cam")) == 2, timeout_s=10)
+    finally:
+        close_all([robot, fleet])
+
+
+def test_a_topics_watchers_wake_for_that_topic_alone() -> None:
+    """A subscriber per channel of a fleet: one change wakes one, not every subscriber."""
+    graph = _ZenohGraph(cast(ZenohTransport, _FakeTransport()))
+    woken: list[str] = []
+    graph.watch(lambda: woken.append("all"))
+    for topic in ("/r1/cam0", "/r1/cam1", "/r1/cam2"):
+        graph.watch(functools.partial(woken.append, topic), topic=topic)
+    graph.on_sample(_graph_token(1))
+    assert woken == ["all", "/r1/cam1"]
+    assert {e.topic for e in graph.entries(topic="/r1/cam1")} == {"/r1/cam1"}
+    assert graph.entries(topic="/r1/cam2") == frozenset()
+    woken.clear()
+    mine = graph.announce(Role.SUBSCRIBER, "/r1/cam2", Variant.OPTIMIZED)
+    mine.close()
+    graph.on_sample(_graph_token(1, gone=True))
+    assert woken == ["all", "/r1/cam2", "all", "/r1/cam2", "all", "/r1/cam1"]
+    assert graph.entries() == frozenset()
+    assert graph.entries(topic="/r1/cam1") == frozenset()
+
+
 def test_the_receiving_runtime_gets_its_threads_unless_the_user_chose(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
@@ -297,6 +351,29 @@ def test_the_receiving_runtime_gets_its_threads_unless_the_user_chose(
     monkeypatch.setenv(RUNTIME_ENV, "(app: (worker_threads: 2))")
     prepare_runtime()
     assert os.environ[RUNTIME_ENV] == "(app: (worker_threads: 2))"
+
+
+def test_a_router_gets_a_receiving_thread_per_link_of_a_fleet() -> None:
+    """Its first session decides: a router's process, as ``dbml router`` starts it."""
+    code = (
+        "import os, sys\n"
+        "from dbml.transports.zenoh.transport import open_router\n"
+        "open_router([sys.argv[1]]).close()\n"
+        f"print(os.environ[{RUNTIME_ENV!r}])\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != RUNTIME_ENV}
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    done = subprocess.run(
+        [sys.executable, "-c", code, endpoint],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == f"(rx: (worker_threads: {ROUTER_RX_THREADS}))"
+    assert ROUTER_RX_THREADS > RX_THREADS
 
 
 def test_sessions_drop_a_lost_peer_soon_and_retry_a_returning_one_often() -> None:

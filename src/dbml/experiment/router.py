@@ -18,7 +18,12 @@ import zenoh
 
 from dbml.harness.child import Control
 from dbml.runtime.serve import Lifetime
-from dbml.transports.zenoh.transport import RETRY_MAX_MS, prepare_runtime, put_link_timeouts
+from dbml.transports.zenoh.transport import (
+    RETRY_MAX_MS,
+    ROUTER_RX_THREADS,
+    prepare_runtime,
+    put_link_timeouts,
+)
 
 __all__ = ["open_meshed_router", "serve"]
 
@@ -47,7 +52,7 @@ def open_meshed_router(*, listen: list[str], connect: list[str]) -> zenoh.Sessio
     put_link_timeouts(
         config
     )  # its link crosses the shaped one: an outage's return found as a peer's
-    prepare_runtime()
+    prepare_runtime(rx_threads=ROUTER_RX_THREADS)
     return zenoh.open(config)
 
 

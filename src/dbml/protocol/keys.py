@@ -60,6 +60,7 @@ __all__ = [
     "param_key",
     "parse_graph_key",
     "parse_node_key",
+    "topic_graph_filter",
     "topic_params_filter",
 ]
 
@@ -204,6 +205,11 @@ class GraphKey:
 def graph_key(role: str, host: str, uid: str, variant: str, topic: str) -> str:
     """A declaration's liveliness token: ``host`` plays ``role`` on ``topic`` in ``variant``."""
     return f"{GRAPH}/{role}/{host}/{uid}/{variant}{check_topic(topic)}"
+
+
+def topic_graph_filter(topic: str) -> str:
+    """The key expression of every graph token on ``topic`` (whoever plays what there)."""
+    return f"{GRAPH}/*/*/*/*{check_topic(topic)}"
 
 
 def parse_graph_key(key: str) -> GraphKey | None:

@@ -72,7 +72,7 @@ class ManagedSubscriber:
             self._update, interval_s=RECHECK_S, name=f"dbml-subscriber {topic}", log=log
         )
         # A graph change only wakes the worker: the watch may call on a middleware thread.
-        self._graph_watch = transport.graph.watch(self._worker.wake)
+        self._graph_watch = transport.graph.watch(self._worker.wake, topic=topic)
         try:
             self._update()  # the first switch here, so that its error is the caller's
         except BaseException:
@@ -96,7 +96,7 @@ class ManagedSubscriber:
     def _wanted(self) -> Variant:
         # Full rate only when every publisher is here: a forged "publisher on this host" beside
         # a real remote one must not pull the full-rate stream across the network.
-        hosts = publisher_hosts(self._transport.graph.entries(), self.topic)
+        hosts = publisher_hosts(self._transport.graph.entries(topic=self.topic), self.topic)
         return Variant.FULL if hosts == {self._transport.host} else self._remote
 
     @property

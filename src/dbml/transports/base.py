@@ -50,6 +50,7 @@ __all__ = [
     "Variant",
     "check_param_value",
     "check_topic",
+    "of_topic",
     "resolve_host",
 ]
 
@@ -134,6 +135,11 @@ class GraphEntry:
     variant: Variant
     uid: str
     """Unique per declaration, so two identical declarations stay two entries."""
+
+
+def of_topic(entries: frozenset[GraphEntry], topic: str | None) -> frozenset[GraphEntry]:
+    """``entries`` of ``topic`` (all of them for None): ``GraphView.entries``'s filter."""
+    return entries if topic is None else frozenset(e for e in entries if e.topic == topic)
 
 
 @dataclass(frozen=True, slots=True)
@@ -239,12 +245,17 @@ class GraphView(Protocol):
         """Declare that this host plays ``role`` on ``topic``; closing the handle withdraws it."""
         ...
 
-    def entries(self) -> frozenset[GraphEntry]:
-        """Every live declaration, from every host."""
+    def entries(self, *, topic: str | None = None) -> frozenset[GraphEntry]:
+        """Every live declaration, from every host; ``topic``'s only, if given."""
         ...
 
-    def watch(self, callback: Callable[[], None]) -> Handle:
-        """Call ``callback()`` whenever the entries change."""
+    def watch(self, callback: Callable[[], None], *, topic: str | None = None) -> Handle:
+        """Call ``callback()`` whenever the entries change.
+
+        ``topic``: at least whenever that topic's entries change. A transport that keeps its
+        watchers by topic calls it for that topic's changes alone, so a process with a
+        subscriber per channel of a fleet is not woken N times for every one of N changes.
+        """
         ...
 
 

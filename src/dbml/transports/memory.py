@@ -32,6 +32,7 @@ from dbml.transports.base import (
     TransportPriority,
     Variant,
     check_topic,
+    of_topic,
     resolve_host,
 )
 from dbml.transports.callbacks import CallbackList
@@ -166,11 +167,12 @@ class _MemoryGraph:
 
         return Closer(withdraw)
 
-    def entries(self) -> frozenset[GraphEntry]:
+    def entries(self, *, topic: str | None = None) -> frozenset[GraphEntry]:
         with self._transport.network.lock:
-            return frozenset(self._transport.network.tokens.values())
+            return of_topic(frozenset(self._transport.network.tokens.values()), topic)
 
-    def watch(self, callback: Callable[[], None]) -> Handle:
+    def watch(self, callback: Callable[[], None], *, topic: str | None = None) -> Handle:
+        """Every change calls every watcher: a test double's graph is small."""
         return self._transport.network.graph_watchers.add(callback)
 
 

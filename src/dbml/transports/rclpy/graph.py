@@ -21,7 +21,15 @@ from dbml.core.errors import TransportError
 from dbml.protocol import keys
 from dbml.protocol.names import OPTIMIZED, check_topic
 from dbml.protocol.schema import GLOBAL_PREFIX
-from dbml.transports.base import Closer, GraphEntry, Handle, Role, Variant, resolve_host
+from dbml.transports.base import (
+    Closer,
+    GraphEntry,
+    Handle,
+    Role,
+    Variant,
+    of_topic,
+    resolve_host,
+)
 from dbml.transports.callbacks import CallbackList
 from dbml.transports.overflow import LogOnce, Overflow
 from dbml.transports.rclpy.fastdds import GID_BYTES, gid_host_id
@@ -245,13 +253,13 @@ class Graph:
         check_topic(topic)
         return Closer(lambda: None)
 
-    def entries(self) -> frozenset[GraphEntry]:
+    def entries(self, *, topic: str | None = None) -> frozenset[GraphEntry]:
         """The graph as last read."""
         with self._lock:
-            return self._entries
+            return of_topic(self._entries, topic)
 
-    def watch(self, callback: Callable[[], None]) -> Handle:
-        """Call ``callback()`` when a read changed the entries."""
+    def watch(self, callback: Callable[[], None], *, topic: str | None = None) -> Handle:
+        """Call ``callback()`` when a read changed the entries (any topic's)."""
         return self.watchers.add(callback)
 
     def update(self, entries: frozenset[GraphEntry]) -> None:

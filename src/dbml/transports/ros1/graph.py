@@ -15,7 +15,15 @@ from urllib.parse import urlparse
 
 from dbml.core.errors import TransportError
 from dbml.protocol.schema import GLOBAL_PREFIX
-from dbml.transports.base import Closer, GraphEntry, Handle, Role, Variant, check_topic
+from dbml.transports.base import (
+    Closer,
+    GraphEntry,
+    Handle,
+    Role,
+    Variant,
+    check_topic,
+    of_topic,
+)
 from dbml.transports.callbacks import CallbackList
 from dbml.transports.ros1.master import CALL_TIMEOUT_S, MasterClient
 from dbml.transports.worker import PeriodicWorker
@@ -122,7 +130,7 @@ class Ros1Graph:
             self._entries = fresh
         return changed
 
-    def entries(self) -> frozenset[GraphEntry]:
+    def entries(self, *, topic: str | None = None) -> frozenset[GraphEntry]:
         """The graph as last read (read now when nobody watches it)."""
         with self._lock:
             cached, polling = self._entries, self._polling
@@ -131,10 +139,10 @@ class Ros1Graph:
             with self._lock:
                 cached = self._entries
         assert cached is not None
-        return cached
+        return of_topic(cached, topic)
 
-    def watch(self, callback: Callable[[], None]) -> Handle:
-        """Call ``callback()`` when the graph changes; the first watch starts the polling."""
+    def watch(self, callback: Callable[[], None], *, topic: str | None = None) -> Handle:
+        """Call ``callback()`` when any topic's entries change; the first watch starts polling."""
         handle = self._watchers.add(callback)
         with self._lock:
             start, self._polling = not self._polling, True

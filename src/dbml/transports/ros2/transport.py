@@ -50,6 +50,7 @@ from dbml.transports.base import (
     TransportPriority,
     Variant,
     check_topic,
+    of_topic,
 )
 from dbml.transports.callbacks import CallbackList
 from dbml.transports.codecs import IMAGE_TYPE
@@ -222,15 +223,15 @@ class _Ros2Graph:
         """Declare in dbml's graph (ROS 2 tokens are the endpoints' own)."""
         return self._inner.announce(role, topic, variant)
 
-    def entries(self) -> frozenset[GraphEntry]:
+    def entries(self, *, topic: str | None = None) -> frozenset[GraphEntry]:
         """Dbml's entries and the ROS 2 subscribers of ``/optimized`` topics."""
         with self._lock:
             foreign = frozenset(entry for _, entry in self._foreign.values())
-        return self._inner.entries() | foreign
+        return self._inner.entries(topic=topic) | of_topic(foreign, topic)
 
-    def watch(self, callback: Callable[[], None]) -> Handle:
-        """Call ``callback()`` on any change, dbml's or ROS 2's."""
-        inner = self._inner.watch(callback)
+    def watch(self, callback: Callable[[], None], *, topic: str | None = None) -> Handle:
+        """Call ``callback()`` on a change of dbml's (``topic``'s) or of ROS 2's (any)."""
+        inner = self._inner.watch(callback, topic=topic)
         own = self.watchers.add(callback)
 
         def stop() -> None:

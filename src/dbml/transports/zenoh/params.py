@@ -74,6 +74,11 @@ _HELD = "held"
 _PULL = "pull"
 """The query parameter telling a session to fetch what the named session owns."""
 
+_WRITE_CONGESTION = zenoh.CongestionControl.BLOCK
+"""A parameter write waits for room on the way: it is said once."""
+_BATCH_CONGESTION = zenoh.CongestionControl.DROP
+"""A batch is dropped on the way to a session that reads late: the next round says it again."""
+
 _Declared: TypeAlias = "zenoh.Subscriber[None] | zenoh.Queryable[None] | zenoh.LivelinessToken"
 
 
@@ -154,7 +159,12 @@ class ParamSync:
     def _send(self, key: str, data: bytes) -> None:
         """Put one parameter write or batch (on the store's sender thread, never a callback's).
 
-        Control traffic: never dropped behind bulk data (which uses DROP), and sent ahead of it.
+        Control traffic, sent ahead of bulk data. A write waits for room rather than be dropped.
+        A batch (the optimizer's round) does not: a router routes a sender's messages in order,
+        and one reliable message to a session that reads late holds the rest (a base station's
+        process busy with every camera's frames held the heartbeat of 80 robots for seconds). A
+        batch says the whole round again next round, and a rate not acknowledged is pushed
+        again a period later, so one lost on the way to a late reader costs it a round at most.
         A session that does not hear every parameter starts hearing a channel's when it first
         writes one of them (a publisher's bounds): others' writes there are its business.
         """
@@ -163,7 +173,9 @@ class ParamSync:
         self.session.put(
             key,
             data,
-            congestion_control=zenoh.CongestionControl.BLOCK,
+            congestion_control=_BATCH_CONGESTION
+            if key.startswith(keys.BATCH)
+            else _WRITE_CONGESTION,
             priority=self._priority,
         )
 

@@ -10,8 +10,9 @@ Key layout: the wire schema's (``dbml.protocol.keys``): a topic's data, paramete
 batches, each session's owned values (a queryable), graph declarations and sessions (liveliness
 tokens). The parameter store's protocol over the session (meetings, fetches, confirmations) is
 ``dbml.transports.zenoh.params``; with ``follow_all_params=False`` (a process that only publishes)
-a session hears the global parameters, the batches and the channels it writes to, so the
-reports of a fleet's other publishers (bounds, sizes, acknowledgements) cost it nothing.
+a session hears the global parameters, the batches and the channels it writes to, and the graph
+of the topics it declares on or asks about, so the reports of a fleet's other publishers
+(bounds, sizes, acknowledgements, graph tokens) cost it nothing.
 """
 
 from __future__ import annotations
@@ -61,6 +62,7 @@ __all__ = [
     "OPEN_TIMEOUT_MS",
     "PRIORITY_LINK_RANGES",
     "RETRY_MAX_MS",
+    "ROUTER_RX_THREADS",
     "RUNTIME_ENV",
     "RX_THREADS",
     "ZENOH_PRIORITY",
@@ -105,6 +107,13 @@ After an outage longer than the lease, one such close per lost link held both de
 and no link was read, not even the new ones to the same peers (docs/testbed.md). With more
 threads than links lost at once, the new links are read at once; past that number the rest
 wait for a lingering close."""
+ROUTER_RX_THREADS = 256
+"""The receiving runtime's threads in a router (``open_router``). A router routes what a link
+brings on that link's thread, and a reliable message (control traffic) to a session whose queue
+is full waits there for room: a session that reads late holds one thread per link that sends to
+it. A fleet of 80 x 4 starting at once, its router on ``RX_THREADS``, stopped reading its
+links for 1-9 s (the optimizer's heartbeat reached every robot that late); the same run with
+256 had a p99 of 0.19 s and no fail-safe (``bench/fleet.py``). A waiting thread costs no CPU."""
 LEASE_MS = 3000
 """The lease dbml's sessions announce (zenoh's default: 10 s): a peer silent this long is closed
 and opened anew. A session that outlives an outage resumes only when TCP's retransmission timer
@@ -131,13 +140,13 @@ RUNTIME_ENV = "ZENOH_RUNTIME"
 """zenoh's runtime settings (RON), read once when its first session opens."""
 
 
-def prepare_runtime() -> None:
-    """Give zenoh's receiving runtime ``RX_THREADS`` threads, unless ``ZENOH_RUNTIME`` is set.
+def prepare_runtime(*, rx_threads: int = RX_THREADS) -> None:
+    """Give zenoh's receiving runtime ``rx_threads`` threads, unless ``ZENOH_RUNTIME`` is set.
 
     Call before the process's first session opens; later it changes nothing. Whoever set
     ``ZENOH_RUNTIME`` chose: it is left as it is.
     """
-    os.environ.setdefault(RUNTIME_ENV, f"(rx: (worker_threads: {RX_THREADS}))")
+    os.environ.setdefault(RUNTIME_ENV, f"(rx: (worker_threads: {rx_threads}))")
 
 
 ZENOH_PRIORITY: dict[TransportPriority, zenoh.Priority] = {
@@ -329,8 +338,19 @@ class _ZenohPublisher:
 
 
 class _ZenohGraph:
-    def __init__(self, transport: ZenohTransport) -> None:
+    """The graph from the sessions' liveliness tokens.
+
+    ``follow_all``: every topic's tokens (an optimizer, an operator, a monitor). Otherwise only
+    the topics this session declares on or asks about, each followed from its first use: what
+    a robot hears of the graph is then its own channels', whatever the fleet's size (every
+    robot hearing every token cost a fleet of 80 x 4 57,000 callbacks at its start).
+    """
+
+    def __init__(self, transport: ZenohTransport, *, follow_all: bool = True) -> None:
         self._transport = transport
+        self._follow_all = follow_all
+        self._followed: set[str] = set()
+        """The topics whose tokens are followed, when not all are (this process's own)."""
         self._lock = threading.Lock()
         self._entries: dict[str, GraphEntry] = {}
         """Every live entry by token key: ours and, up to ``MAX_GRAPH_ENTRIES``, others'."""
@@ -339,22 +359,41 @@ class _ZenohGraph:
         # A dropped token is undeclared: keep each until it is withdrawn.
         self._tokens: dict[str, zenoh.LivelinessToken] = {}
         self.watchers: CallbackList[[]] = CallbackList()
+        self._topic_watchers: dict[str, CallbackList[[]]] = {}
+        """Watchers of one topic each (this process's own, so bounded by what it declares)."""
+        self._by_topic: dict[str, dict[str, GraphEntry]] = {}
+        """``_entries`` by topic: a topic's read costs its entries, not the fleet's."""
         self._count = 0
         self._published: Counter[str] = Counter()
         """Publisher entries per topic: the channels live now."""
 
     def _add_locked(self, key: str, entry: GraphEntry) -> None:
         self._entries[key] = entry
+        self._by_topic.setdefault(entry.topic, {})[key] = entry
         if entry.role is Role.PUBLISHER:
             self._published[entry.topic] += 1
 
     def _remove_locked(self, key: str) -> GraphEntry | None:
         entry = self._entries.pop(key, None)
-        if entry is not None and entry.role is Role.PUBLISHER:
+        if entry is None:
+            return None
+        of_topic = self._by_topic[entry.topic]
+        del of_topic[key]
+        if not of_topic:
+            del self._by_topic[entry.topic]
+        if entry.role is Role.PUBLISHER:
             self._published[entry.topic] -= 1
             if self._published[entry.topic] <= 0:
                 del self._published[entry.topic]
         return entry
+
+    def _fire(self, topic: str) -> None:
+        """Tell the graph's watchers, and ``topic``'s, that the entries changed."""
+        self.watchers.fire()
+        with self._lock:
+            callbacks = self._topic_watchers.get(topic)
+        if callbacks is not None:
+            callbacks.fire()
 
     def keeps(self, name: str) -> bool:
         """Whether a full store keeps parameter ``name``: a global, or a live channel's."""
@@ -364,8 +403,23 @@ class _ZenohGraph:
         with self._lock:
             return split[0] in self._published
 
+    def follow(self, topic: str) -> None:
+        """Hear ``topic``'s tokens from now on (and those already declared), if not yet."""
+        if self._follow_all:
+            return
+        with self._lock:
+            if topic in self._followed:
+                return
+            self._followed.add(topic)
+        self._transport.hold(
+            lambda session: session.liveliness().declare_subscriber(
+                keys.topic_graph_filter(topic), self.on_sample, history=True
+            )
+        )
+
     def announce(self, role: Role, topic: str, variant: Variant) -> Handle:
         check_topic(topic)
+        self.follow(topic)
         transport = self._transport
         with self._lock:
             self._count += 1
@@ -376,7 +430,7 @@ class _ZenohGraph:
         with self._lock:
             self._add_locked(key, entry)
             self._tokens[key] = token
-        self.watchers.fire()
+        self._fire(topic)
 
         def withdraw() -> None:
             with self._lock:
@@ -384,16 +438,26 @@ class _ZenohGraph:
                 self._tokens.pop(key, None)
                 self._full.room(len(self._entries))
             _undeclare(token)
-            self.watchers.fire()
+            self._fire(topic)
 
         return Closer(withdraw)
 
-    def entries(self) -> frozenset[GraphEntry]:
+    def entries(self, *, topic: str | None = None) -> frozenset[GraphEntry]:
+        if topic is not None:
+            self.follow(topic)
         with self._lock:
-            return frozenset(self._entries.values())
+            if topic is None:
+                return frozenset(self._entries.values())
+            return frozenset(self._by_topic.get(topic, {}).values())
 
-    def watch(self, callback: Callable[[], None]) -> Handle:
-        return self.watchers.add(callback)
+    def watch(self, callback: Callable[[], None], *, topic: str | None = None) -> Handle:
+        if topic is None:
+            return self.watchers.add(callback)
+        with self._lock:
+            callbacks = self._topic_watchers.setdefault(topic, CallbackList())
+        handle = callbacks.add(callback)
+        self.follow(topic)
+        return handle
 
     def on_sample(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
@@ -423,7 +487,7 @@ class _ZenohGraph:
             # A publisher declares its parameters before it announces itself: what its session
             # owns now includes them, even if their writes went out before they could reach us.
             self._transport.fetch_owner_of(entry.uid, entry.topic)
-        self.watchers.fire()
+        self._fire(entry.topic)
 
 
 class ZenohTransport(TransportBase):
@@ -481,14 +545,15 @@ class ZenohTransport(TransportBase):
             mesh_sessions=None if connect or listen or config_file else PEER_MESH_SESSIONS,
         )
         self.params = self._sync.params
-        self.graph = _ZenohGraph(self)
+        self.graph = _ZenohGraph(self, follow_all=follow_all_params)
         # A full store gives up a flood's names first: those of channels nobody publishes.
         self.params.keep = self.graph.keeps
-        self._declared.add(
-            self.session.liveliness().declare_subscriber(
-                f"{keys.GRAPH}/**", self.graph.on_sample, history=True
+        if follow_all_params:
+            self.hold(
+                lambda session: session.liveliness().declare_subscriber(
+                    f"{keys.GRAPH}/**", self.graph.on_sample, history=True
+                )
             )
-        )
         _OPEN.add(self)
 
     # -- the parameter store ----------------------------------------------------------------
@@ -534,6 +599,22 @@ class ZenohTransport(TransportBase):
 
     now = staticmethod(time.monotonic)
     """Monotonic seconds (the function itself: publishers read it per message)."""
+
+    def hold(self, declare: Callable[[zenoh.Session], zenoh.Subscriber[None]]) -> None:
+        """Make ``declare(session)`` and keep it until the transport closes (not if closed)."""
+        with self._lock:
+            if self._closed:
+                return
+        try:
+            declaration = declare(self.session)
+        except zenoh.ZError:
+            return  # closing: nothing left to declare
+        with self._lock:
+            closed = self._closed
+            if not closed:
+                self._declared.add(declaration)
+        if closed:  # closed meanwhile: undeclared here, outside the lock (a middleware call)
+            _undeclare(declaration)
 
     def _forget(self, declaration: _Declaration) -> None:
         with self._lock:
@@ -624,7 +705,7 @@ def open_router(listen: Iterable[str]) -> zenoh.Session:
         # A session may open a link per range of priorities (``priority_links``) to it.
         config.insert_json5("transport/unicast/max_links", str(len(PRIORITY_LINK_RANGES)))
         put_link_timeouts(config)
-        prepare_runtime()
+        prepare_runtime(rx_threads=ROUTER_RX_THREADS)
         return zenoh.open(config)
     except zenoh.ZError as err:
         raise TransportError(f"zenoh router: cannot listen on {endpoints!r}: {err}") from err
