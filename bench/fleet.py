@@ -110,8 +110,8 @@ and this machine moves the data without the data being what it measures."""
 STRATEGY = "paper"
 TOPOLOGIES = ("router", "peer")
 DEFAULT_TOPOLOGY = "router"
-"""A fleet's sessions as clients of one router, each with a link per range of priorities (control
-never waits behind camera frames in one TCP connection). ``peer``, a loopback mesh, is what dbml
+"""A fleet's sessions as clients of one router, one link each (a zenoh client opens one, whatever
+``priority_links`` asks). ``peer``, a loopback mesh, is what dbml
 does with no flags; at 83 sessions the mesh never completes on this machine (robots with 0 to 74
 of their 82 links after 60 s), and zenoh peers send only over direct links."""
 CLIENT_CONFIG = '{mode: "client"}\n'
@@ -319,7 +319,6 @@ def open_session(
         connect=[router],
         config_file=net["client_config"],
         follow_all_params=follow_all_params,
-        priority_links=True,
     )
 
 
@@ -622,7 +621,6 @@ class Fleet:
         argv = [sys.executable, "-m", "dbml", "optimizer", "--config", str(config)]
         if net.get("router") is not None:
             argv += ["--connect", net["router"], "--zenoh-config", net["client_config"]]
-            argv.append("--priority-links")
         self.children.start(
             "optimizer", [*argv, "--host", "base"], env=self._env, stop_signal=signal.SIGTERM
         )

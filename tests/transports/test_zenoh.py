@@ -12,6 +12,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import cast
 
 import pytest
@@ -383,6 +384,37 @@ def test_sessions_drop_a_lost_peer_soon_and_retry_a_returning_one_often() -> Non
     assert json.loads(config.get_json("transport/link/tx/lease")) == LEASE_MS < 10_000
     assert json.loads(config.get_json("transport/unicast/open_timeout")) == OPEN_TIMEOUT_MS
     assert json.loads(config.get_json("connect/retry"))["period_max_ms"] == RETRY_MAX_MS
+
+
+def test_priority_links_of_a_client_are_said_to_be_one_link(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Zenoh's client connects to one endpoint: the second range's link is never opened."""
+    client = tmp_path / "client.json5"
+    client.write_text('{mode: "client"}')
+    router = ["tcp/127.0.0.1:7000"]
+    with caplog.at_level(logging.WARNING, logger="dbml.zenoh"):
+        _config(
+            connect=router,
+            listen=[],
+            config_file=None,
+            shared_memory=False,
+            port=1,
+            priority_links=True,
+        )
+        assert not caplog.records  # a peer opens a link per range
+        _config(
+            connect=router,
+            listen=[],
+            config_file=client,
+            shared_memory=False,
+            port=1,
+            priority_links=True,
+        )
+    assert [r.getMessage() for r in caplog.records] == [
+        "priority_links: a zenoh client opens one link, to the first router it reaches; "
+        "control and data share it (a peer opens one per range)"
+    ]
 
 
 def test_a_cdr_float64_on_the_priority_topic_sets_the_priority_and_a_flood_keeps_the_rule(

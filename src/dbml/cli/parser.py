@@ -74,8 +74,9 @@ def _transport_options(parser: argparse.ArgumentParser) -> None:
     group.add_argument(
         "--priority-links",
         action="store_true",
-        help="zenoh/ros2: one TCP link per range of priorities to each --connect endpoint, so "
-        "urgent channels never wait behind queued frames (the listening side needs it too)",
+        help="zenoh/ros2 peers: one TCP link per range of priorities to each --connect endpoint, "
+        "so urgent channels never wait behind queued frames (the listening side needs it too; "
+        "a zenoh client opens one link whatever this asks)",
     )
     group.add_argument(
         "--domain-id",

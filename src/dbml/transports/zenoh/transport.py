@@ -210,6 +210,11 @@ def _config(
             put_link_timeouts(config)
         if priority_links:
             put("transport/unicast/max_links", str(len(PRIORITY_LINK_RANGES)))
+            if config.get_json("mode") == '"client"':
+                log.warning(
+                    "priority_links: a zenoh client opens one link, to the first router it "
+                    "reaches; control and data share it (a peer opens one per range)"
+                )
         if connect or listen:
             if listen:
                 put("listen/endpoints", _json_list(listen, listening=True))
