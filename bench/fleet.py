@@ -347,7 +347,9 @@ def ignore_sample(_sample: Sample) -> None:
 def run_operator(
     spec: dict[str, Any], emit: Emit, commands: queue.Queue[str], stop: threading.Event
 ) -> int:
-    transport = open_session("operator", spec["net"])
+    # It subscribes and needs no parameter: a session that follows them all must keep up with
+    # every robot's writes (reliable, routed in order), and this one is busy with every frame.
+    transport = open_session("operator", spec["net"], follow_all_params=False)
     subscribers: list[ManagedSubscriber] = []
     sniffer: WireSniffer | None = None
     try:
