@@ -292,8 +292,11 @@ def test_graph_entries_from_peers_are_bounded_and_a_flood_is_logged_once(
     assert len(graph.entries()) == MAX_GRAPH_ENTRIES // 2 - 1
 
 
-def test_a_publishing_session_hears_the_graph_of_its_own_topics_alone() -> None:
-    """Every robot of a fleet hearing every graph token cost each one a callback per token."""
+def test_a_publishing_session_hears_the_graph_of_the_topics_it_reads_alone() -> None:
+    """Every robot of a fleet hearing every graph token cost each one a callback per token.
+
+    A publisher hears none (its own declarations aside); a subscriber its topics'.
+    """
     port = free_port()
     fleet = ZenohTransport(host="base", port=port)
     robot = ZenohTransport(host="r1", port=port, follow_all_params=False)
@@ -301,23 +304,29 @@ def test_a_publishing_session_hears_the_graph_of_its_own_topics_alone() -> None:
         assert robot.wait_for_peers(10)
         fleet.graph.announce(Role.SUBSCRIBER, "/r2/cam", Variant.OPTIMIZED)  # another robot's
         fleet.graph.announce(Role.SUBSCRIBER, "/r1/cam", Variant.OPTIMIZED)  # before the robot
+        robot.graph.announce(Role.PUBLISHER, "/r1/cam", Variant.FULL)
         woken: list[int] = []
         robot.graph.watch(lambda: woken.append(1), topic="/r1/lidar")
-        robot.graph.announce(Role.PUBLISHER, "/r1/cam", Variant.FULL)
-        wait_for(
-            lambda: any(e.host == "base" for e in robot.graph.entries(topic="/r1/cam")),
-            timeout_s=10,
-            what="the operator's subscriber of /r1/cam, declared before the robot followed it",
-        )
         fleet.graph.announce(Role.SUBSCRIBER, "/r1/lidar", Variant.OPTIMIZED)  # a watched topic
         wait_for(lambda: bool(woken), timeout_s=10, what="the watched topic's token")
         fleet.graph.announce(Role.SUBSCRIBER, "/r2/lidar", Variant.OPTIMIZED)
         wait_for(lambda: len(fleet.graph.entries()) == 5, timeout_s=10, what="the fleet's graph")
-        late = fleet.graph.announce(Role.SUBSCRIBER, "/r1/cam", Variant.FULL)  # after /r2/lidar
-        wait_for(lambda: len(robot.graph.entries(topic="/r1/cam")) == 3, timeout_s=10)
-        assert {e.topic for e in robot.graph.entries()} == {"/r1/cam", "/r1/lidar"}
+        late = fleet.graph.announce(Role.SUBSCRIBER, "/r1/lidar", Variant.FULL)  # after the rest
+        wait_for(lambda: len(robot.graph.entries(topic="/r1/lidar")) == 2, timeout_s=10)
+        # Its own publisher, the watched topic's two subscribers; not the operator's of /r1/cam.
+        assert sorted((e.host, e.topic, e.variant.value) for e in robot.graph.entries()) == [
+            ("base", "/r1/lidar", "full"),
+            ("base", "/r1/lidar", "optimized"),
+            ("r1", "/r1/cam", "full"),
+        ]
+        # Read, a topic is followed from then on, with what was declared before.
+        wait_for(
+            lambda: any(e.host == "base" for e in robot.graph.entries(topic="/r1/cam")),
+            timeout_s=10,
+            what="the operator's subscriber of /r1/cam, declared before the robot read it",
+        )
         late.close()
-        wait_for(lambda: len(robot.graph.entries(topic="/r1/cam")) == 2, timeout_s=10)
+        wait_for(lambda: len(robot.graph.entries(topic="/r1/lidar")) == 1, timeout_s=10)
     finally:
         close_all([robot, fleet])
 
