@@ -77,7 +77,7 @@ _PULL = "pull"
 _WRITE_CONGESTION = zenoh.CongestionControl.BLOCK
 """A parameter write waits for room on the way: it is said once."""
 _BATCH_CONGESTION = zenoh.CongestionControl.DROP
-"""A batch is dropped on the way to a session that reads late: the next round says it again."""
+"""A batch is dropped on the way to a session that reads late: the heartbeat goes every round."""
 
 _Declared: TypeAlias = "zenoh.Subscriber[None] | zenoh.Queryable[None] | zenoh.LivelinessToken"
 
@@ -161,10 +161,9 @@ class ParamSync:
 
         Control traffic, sent ahead of bulk data. A write waits for room rather than be dropped.
         A batch (the optimizer's round) does not: a router routes a sender's messages in order,
-        and one reliable message to a session that reads late holds the rest (a base station's
-        process busy with every camera's frames held the heartbeat of 80 robots for seconds). A
-        batch says the whole round again next round, and a rate not acknowledged is pushed
-        again a period later, so one lost on the way to a late reader costs it a round at most.
+        and one reliable message to a session that reads late holds the rest there, for every
+        robot. The heartbeat goes every round and a rate not acknowledged is pushed again a period
+        later; a status or ``managed`` flag (said only when it changes) stays stale there.
         A session that does not hear every parameter starts hearing a channel's when it first
         writes one of them (a publisher's bounds): others' writes there are its business.
         """
