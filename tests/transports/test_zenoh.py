@@ -266,6 +266,23 @@ def _graph_token(i: int, *, gone: bool = False) -> zenoh.Sample:
     return cast(zenoh.Sample, _FakeSample(key, kind))
 
 
+@pytest.mark.parametrize(
+    "key",
+    [
+        "dbml/graph/pub/r1/x.1/bogus/r1/cam",  # no such variant
+        "dbml/graph/nope/r1/x.1/full/r1/cam",  # no such role
+        "dbml/graph/pub/r 1/x.1/full/r1/cam",  # not a host name
+        "dbml/graph/pub/r1",  # too short
+    ],
+)
+def test_a_malformed_graph_token_is_no_entry(key: str) -> None:
+    transport = _FakeTransport()
+    graph = _ZenohGraph(cast(ZenohTransport, transport))
+    graph.on_sample(cast(zenoh.Sample, _FakeSample(key, zenoh.SampleKind.PUT)))
+    assert graph.entries() == frozenset()
+    assert transport.fetched == []
+
+
 def test_graph_entries_from_peers_are_bounded_and_a_flood_is_logged_once(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
@@ -401,25 +418,18 @@ def test_priority_links_of_a_client_are_said_to_be_one_link(
     """Zenoh's client connects to one endpoint: the second range's link is never opened."""
     client = tmp_path / "client.json5"
     client.write_text('{mode: "client"}')
-    router = ["tcp/127.0.0.1:7000"]
+    linked = functools.partial(
+        _config,
+        connect=["tcp/127.0.0.1:7000"],
+        listen=[],
+        shared_memory=False,
+        port=1,
+        priority_links=True,
+    )
     with caplog.at_level(logging.WARNING, logger="dbml.zenoh"):
-        _config(
-            connect=router,
-            listen=[],
-            config_file=None,
-            shared_memory=False,
-            port=1,
-            priority_links=True,
-        )
+        linked(config_file=None)
         assert not caplog.records  # a peer opens a link per range
-        _config(
-            connect=router,
-            listen=[],
-            config_file=client,
-            shared_memory=False,
-            port=1,
-            priority_links=True,
-        )
+        linked(config_file=client)
     assert [r.getMessage() for r in caplog.records] == [
         "priority_links: a zenoh client opens one link, to the first router it reaches; "
         "control and data share it (a peer opens one per range)"

@@ -18,6 +18,7 @@ import logging
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 from typing import TypeAlias
 
 import zenoh
@@ -178,6 +179,24 @@ class ParamSync:
             priority=self._priority,
         )
 
+    def hold(self, declare: Callable[[zenoh.Session], _Declared]) -> _Declared | None:
+        """Make ``declare(session)`` and keep it until this store closes (None: closing)."""
+        with self._lock:
+            if self._closed:
+                return None
+        try:
+            declaration = declare(self.session)
+        except zenoh.ZError:
+            return None  # closing: nothing left to declare
+        with self._lock:
+            closed = self._closed
+            if not closed:
+                self._declared.append(declaration)
+        if closed:  # closed meanwhile: undeclared here, outside the lock (a middleware call)
+            _undeclare(declaration)
+            return None
+        return declaration
+
     def _follow(self, key: str) -> None:
         """Hear the parameters of the channel that ``key`` (a parameter write's) belongs to."""
         channel = keys.channel_params_filter(key)
@@ -187,17 +206,8 @@ class ParamSync:
             if channel in self._followed or self._closed:
                 return
             self._followed.add(channel)
-        try:
-            subscriber = self.session.declare_subscriber(channel, self._on_param)
-        except zenoh.ZError:
+        if self.hold(lambda session: session.declare_subscriber(channel, self._on_param)) is None:
             return  # closing: nothing left to hear
-        with self._lock:
-            closed = self._closed
-            if not closed:
-                self._declared.append(subscriber)
-        if closed:  # closed meanwhile: undeclared here, outside the lock (a middleware call)
-            _undeclare(subscriber)
-            return
         # What others wrote there between the meetings' fetches and now, from its owners: the
         # sessions that follow everything (a robot owns nothing of another's channel). Asking
         # every session instead cost a fleet of 80 x 4 26,000 queries at its start.

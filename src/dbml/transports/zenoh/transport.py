@@ -473,7 +473,7 @@ class _ZenohGraph:
         key = str(sample.key_expr)
         fields = keys.parse_graph_key(key)
         try:
-            if fields is None:
+            if fields is None or not keys.is_host_name(fields.host):
                 raise ValueError(key)
             entry = GraphEntry(
                 Role(fields.role), fields.host, fields.topic, Variant(fields.variant), fields.uid
@@ -559,7 +559,7 @@ class ZenohTransport(TransportBase):
         # A full store gives up a flood's names first: those of channels nobody publishes.
         self.params.keep = self.graph.keeps
         if follow_all_params:
-            self.hold(
+            self._sync.hold(
                 lambda session: session.liveliness().declare_subscriber(
                     f"{keys.GRAPH}/**", self.graph.on_sample, history=True
                 )
@@ -611,20 +611,8 @@ class ZenohTransport(TransportBase):
     """Monotonic seconds (the function itself: publishers read it per message)."""
 
     def hold(self, declare: Callable[[zenoh.Session], zenoh.Subscriber[None]]) -> None:
-        """Make ``declare(session)`` and keep it until the transport closes (not if closed)."""
-        with self._lock:
-            if self._closed:
-                return
-        try:
-            declaration = declare(self.session)
-        except zenoh.ZError:
-            return  # closing: nothing left to declare
-        with self._lock:
-            closed = self._closed
-            if not closed:
-                self._declared.add(declaration)
-        if closed:  # closed meanwhile: undeclared here, outside the lock (a middleware call)
-            _undeclare(declaration)
+        """Make ``declare(session)`` and keep it until the transport closes (not if closing)."""
+        self._sync.hold(declare)
 
     def _forget(self, declaration: _Declaration) -> None:
         with self._lock:
