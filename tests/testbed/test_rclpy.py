@@ -2,7 +2,7 @@
 
 Plain rclpy cameras and operator, a ``dbml bridge --transport rclpy`` per camera and dbml's
 optimizer, in the testbed's namespaces, meeting by DDS discovery across the router. One short
-run (2-s steps, about 30 s) is judged as the zenoh one is (``test_teleop``); the rest checks
+run (4-s steps, about 50 s) is judged as the zenoh one is (``test_teleop``); the rest checks
 the options and the wiring without root.
 """
 
@@ -34,7 +34,13 @@ from dbml.transports.memory import MemoryNetwork
 from dbml.transports.registry import open_transport
 from tests.testbed.test_teleop import assert_fits_the_link
 
-STEP_S = 2.0
+STEP_S = 4.0
+"""A 3-s window per step. A rate is read from arrival times, so a frame's latency changing across
+the window (R2's 21-KB frames wait 13-74 ms behind R1's 84-KB ones on the shared link; R1's
+latency went 61 -> 78 ms over one 1.3-s window of 2-s steps) reads as a rate off by that change
+over the window's length: step goodput 0.896-0.909 of the link in 4 of 34 runs of 2-s steps
+(one in CI; the bound is 0.9, the budget 0.92), 0.914-0.920 in 6 runs of 4-s steps beside the
+other lane."""
 
 
 # -- options, without root --------------------------------------------------------------------
