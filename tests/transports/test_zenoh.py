@@ -348,6 +348,24 @@ def test_a_publishing_session_hears_the_graph_of_the_topics_it_reads_alone() -> 
         close_all([robot, fleet])
 
 
+def test_a_robot_hears_the_sessions_that_follow_everything_not_other_robots() -> None:
+    """Each robot hearing every other's session token was quadratic in the fleet at its start."""
+    port = free_port()
+    fleet = ZenohTransport(host="base", port=port)
+    robots = [ZenohTransport(host=f"r{i}", port=port, follow_all_params=False) for i in range(1, 3)]
+    try:
+        for robot in robots:
+            assert robot.wait_for_peers(10)
+        wait_for(lambda: len(fleet._sync._live) == 2, timeout_s=10, what="both robots met")
+        late = ZenohTransport(host="r3", port=port, follow_all_params=False)
+        robots.append(late)
+        wait_for(lambda: len(fleet._sync._live) == 3, timeout_s=10, what="the third robot")
+        for robot in robots:  # a token heard would be in ``_live`` (met or not)
+            assert set(robot._sync._live) == {fleet._sync.node_id}, robot.host
+    finally:
+        close_all([*robots, fleet])
+
+
 def test_a_topics_watchers_wake_for_that_topic_alone() -> None:
     """A subscriber per channel of a fleet: one change wakes one, not every subscriber."""
     graph = _ZenohGraph(cast(ZenohTransport, _FakeTransport()))

@@ -54,6 +54,7 @@ __all__ = [
     "is_host_name",
     "is_node_id",
     "new_node_id",
+    "node_filter",
     "node_key",
     "own_key",
     "own_name",
@@ -179,6 +180,16 @@ def node_key(node_id: str, zid: str, *, follows_all: bool = True) -> str:
     """
     scope = _FOLLOWS_ALL if follows_all else _FOLLOWS_OWN
     return f"{NODE}/{node_id}/{zid}/{scope}"
+
+
+def node_filter(*, follows_all: bool) -> str:
+    """The session tokens a session hears: all of them if it follows every parameter.
+
+    One that follows only its own channels (a robot) hears only the sessions that follow
+    everything, the ones it meets: a robot's share of the fleet's tokens stays the same however
+    many robots there are (at 80 x 4, 2.9 tokens a robot instead of 79).
+    """
+    return f"{NODE}/**" if follows_all else f"{NODE}/*/*/{_FOLLOWS_ALL}"
 
 
 def parse_node_key(key: str) -> tuple[str, str, bool] | None:

@@ -6,7 +6,8 @@ it owns under its owned-values key (``dbml.protocol.keys``). Two sessions that m
 other's node token, and again when their direct link comes up) each fetch what the other owns
 and tell the other to fetch theirs, so what one wrote before the other could hear it is not
 lost; after that, writes reach it. Two sessions that both follow only their own channels (two
-robots) do not meet: the sessions that follow everything meet each. A session that does not
+robots) do not meet: such a session hears only the tokens of the sessions that follow
+everything, and meets each. A session that does not
 follow every parameter (a process that only publishes) hears the global ones, the batches for
 every session and for its own host, and the channels it writes to.
 """
@@ -151,7 +152,9 @@ class ParamSync:
             session.declare_subscriber(heard, self._on_param),
             *(session.declare_subscriber(batch, self._on_batch) for batch in batches),
             session.declare_queryable(keys.own_key(node_id, "/**"), self._on_query),
-            session.liveliness().declare_subscriber(f"{keys.NODE}/**", self._on_node, history=True),
+            session.liveliness().declare_subscriber(
+                keys.node_filter(follows_all=follow_all), self._on_node, history=True
+            ),
             session.liveliness().declare_token(
                 keys.node_key(node_id, str(session.info.zid()), follows_all=follow_all)
             ),
@@ -318,7 +321,7 @@ class ParamSync:
             self._live[node] = zid
             if follows_all:
                 self._follow_everything.add(node)
-            apart = not (self._follow_all or follows_all)
+            apart = not (self._follow_all or follows_all)  # not heard: ``keys.node_filter``
             if not apart:
                 self._zids[zid] = node
             sessions = len(self._live) + 1

@@ -598,7 +598,11 @@ class ZenohTransport(TransportBase):
         return None if stamped is None else stamped[0]
 
     def wait_for_peers(self, timeout_s: float) -> bool:
-        """Wait until another dbml session is reachable and what the sessions met own is here."""
+        """Wait until another dbml session is reachable and what the sessions met own is here.
+
+        With ``follow_all_params=False``: a session that follows every parameter (an optimizer,
+        a monitor), the only kind such a session meets.
+        """
         return self._sync.wait_for_peers(timeout_s)
 
     def confirm_param(self, name: str, *, timeout_s: float) -> bool:
