@@ -255,6 +255,17 @@ def test_no_window_sends_more_than_the_rates_frames_and_one_or_what_was_offered(
         assert went <= max(share, sum(c for u, c in offered if t - 1.0 < u <= t)) + 1e-6
 
 
+def test_a_frame_counts_from_when_it_left_not_from_when_it_was_offered() -> None:
+    window = ByteWindow()  # 1 Hz at 100 B: the rate's frame and one more, 200 B a window
+    assert window.admit(0.0, 150, 100, rate_hz=1)
+    window.left(0.05)  # its send took 50 ms
+    assert window.admit(0.5, 50, 100, rate_hz=1)
+    window.left(0.5)
+    # Offered 1.02 s after the first but 0.97 s after it left: a wire window holds all three.
+    assert not window.admit(1.02, 150, 100, rate_hz=1)
+    assert window.admit(1.06, 150, 100, rate_hz=1)
+
+
 def test_the_window_remembers_a_bounded_number_of_frames() -> None:
     # Five refused frames leave room for a large one, unless the window forgot them.
     whole, bounded = ByteWindow(), ByteWindow(max_frames=2)

@@ -185,14 +185,20 @@ class ManagedCamera:
             self._last_bytes = len(message)
             return message
 
+        windowed: list[bool] = []
+
         def admit(_message: bytes, rate_hz: float) -> bool:  # the JPEG against its count
             if counted is None or not sent:
                 return True
-            return self._window.admit(self._transport.now(), sent[0], counted, rate_hz=rate_hz)
+            fits = self._window.admit(self._transport.now(), sent[0], counted, rate_hz=rate_hz)
+            windowed.append(fits)
+            return fits
 
         went = self.publisher.publish(
             payload, encode=compress, size_bytes=self._size_bytes(), admit=admit
         )
+        if went and windowed:  # the byte window counts it from when it left
+            self._window.left(self._transport.now())
         if sent:
             self._account(encoding, sent[0])
         return went
