@@ -170,6 +170,23 @@ def test_two_robots_do_not_meet_but_each_meets_whoever_follows_everything(
         robot.close()
 
 
+def test_the_side_that_follows_everything_repeats_a_meeting(session: FakeSession) -> None:
+    """A meeting goes both ways: the optimizer's repeat does for the robot's too."""
+    robot, optimizer = sync_of(session, follow_all=False), sync_of(session)
+    try:
+        assert session.polled.wait(TIMEOUT_S)  # the sync threads hold still from now on
+        robot._on_node(token(2, follows_all=True))
+        optimizer._on_node(token(1, follows_all=False))
+        assert robot._meet_again == {}
+        assert set(optimizer._meet_again) == {node(1)}
+        assert (node(2), True) in robot._queued  # each still tells the other to fetch
+        assert (node(1), True) in optimizer._queued
+    finally:
+        session.running.set()
+        robot.close()
+        optimizer.close()
+
+
 def test_a_session_churning_its_tokens_leaves_nothing_behind(session: FakeSession) -> None:
     """A node id met under one zenoh id and withdrawn under another forgets both."""
     sync = sync_of(session)

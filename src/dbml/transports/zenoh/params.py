@@ -350,11 +350,15 @@ class ParamSync:
         What we wrote before our writes could reach its subscriber is in that fetch; from then
         on our writes reach it. But a session's token can arrive before its subscriber's
         declaration (or, from a peer's answer, before the link to it is up), so the meeting is
-        repeated once ``MEET_AGAIN_S`` later, and whenever a direct link to it comes up.
+        repeated once ``MEET_AGAIN_S`` later, and whenever a direct link to it comes up. A
+        meeting goes both ways, so one side's repeat does for both: the side that follows
+        everything repeats it (a robot meets only such sessions). At 80 x 4 the robots'
+        repeats were about a third of their queries at the fleet's start, each routed by the
+        router under one lock.
         """
         with self._lock:
             self._queue_locked(node, announce=True)
-            if again and node in self._live:  # one time per session, the latest meeting's
+            if again and self._follow_all and node in self._live:  # once, the latest meeting's
                 self._meet_again[node] = time.monotonic() + MEET_AGAIN_S
         self._schedule_fetch(node)
 
