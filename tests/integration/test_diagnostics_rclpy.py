@@ -52,19 +52,28 @@ class Statuses:
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._levels: dict[str, tuple[Level, str]] = {}
-        self._sent: dict[str, str] = {}
+        self._sent: dict[str, tuple[str, str]] = {}
+        """Each channel's sent and allocated rates, as the newest status says them."""
 
     def heard(self, array: Any) -> None:
         with self._lock:
             for status in array.status:
                 self._levels[status.name] = (Level(status.level[0]), status.message)
                 values = {v.key: v.value for v in status.values}
-                self._sent[status.name] = values.get("sent_hz", "")
+                self._sent[status.name] = (
+                    values.get("sent_hz", ""),
+                    values.get("allocated_hz", ""),
+                )
 
-    def sent_said(self, name: str) -> bool:
-        """Whether the channel's publisher has said what it sends (steady state)."""
+    def sending(self, name: str) -> bool:
+        """Whether the channel's publisher said it sends at least half its allocation.
+
+        What it said last sets how soon a silence is a stop (two of its intervals): said during
+        the infeasible step (about 1 Hz) and not since, a dead driver is said 2 s later.
+        """
         with self._lock:
-            return bool(self._sent.get(name))
+            sent, allocated = self._sent.get(name, ("", ""))
+        return bool(sent and allocated) and float(sent) >= 0.5 * float(allocated)
 
     def level(self, name: str) -> Level | None:
         with self._lock:
@@ -123,9 +132,9 @@ def test_diagnostics_say_ok_then_warn_then_error_for_a_dead_driver(tmp_path: Pat
             result = param_set(operator, "/dbm", "max_bandwidth_in_mbit", 11.0)
             assert result.successful, result.reason
             wait_for(
-                lambda: all_at(Level.OK, *names) and all(map(statuses.sent_said, names[1:])),
+                lambda: all_at(Level.OK, *names) and all(map(statuses.sending, names[1:])),
                 timeout_s=CHANGE_TIMEOUT_S,
-                what="every status OK again, each channel's sent rate said",
+                what="every status OK again, each channel said to send its allocation",
             )
             dead = ROBOTS[1].topic
             driver = cameras.pop(dead)

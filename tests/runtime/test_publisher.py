@@ -246,6 +246,34 @@ def test_a_publisher_hears_its_own_channel_not_every_write(
     assert publisher.current_rate_hz() == 4.0
 
 
+def test_a_slow_rate_between_two_frames_is_not_said_as_a_stop(
+    network: MemoryNetwork, clock: ManualClock
+) -> None:
+    """A cut to 0.6 Hz (an infeasible budget) leaves 1-s spans without a frame: not a stop."""
+    publisher = robot(network, clock)
+    optimizer = MemoryTransport(network, host="base", clock=clock).params
+    params = MemoryTransport(network, host="op").params
+    optimizer.set(names.current_value("/r1/camera"), 10.0)
+    written: list[float] = []
+    params.watch(
+        lambda name, value: (
+            written.append(value)  # type: ignore[arg-type]
+            if name == names.sent("/r1/camera")
+            else None
+        )
+    )
+    for beat in range(8):  # a 10-Hz source, a heartbeat a second
+        if beat == 2:
+            optimizer.set(names.current_value("/r1/camera"), 0.6)
+        for _ in range(10):
+            clock.advance(0.1)
+            publisher.publish(b"x")
+        optimizer.set(names.ROUND, float(beat))
+    assert written[0] == pytest.approx(10.0)
+    assert 0.0 not in written
+    assert written[-1] == pytest.approx(0.6, abs=0.2)
+
+
 def test_says_the_rate_it_sent_when_it_moves_or_stops(
     network: MemoryNetwork, clock: ManualClock
 ) -> None:

@@ -167,6 +167,29 @@ def test_a_periodic_worker_survives_a_failing_tick_and_reports_its_death(
     assert "test-worker-dies: the thread died" in caplog.text
 
 
+def test_a_periodic_worker_is_alive_while_its_thread_starts(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # A run polls ``alive`` from another thread; read while the thread was made but not yet
+    # started, it once said dead and the optimizer exited 1 right after its activation.
+    worker = PeriodicWorker(lambda: None, interval_s=10.0, name="test-worker-starts", log=log)
+    seen: list[bool] = []
+    start = threading.Thread.start
+
+    def look_then_start(thread: threading.Thread) -> None:
+        seen.append(worker.alive)
+        start(thread)
+
+    monkeypatch.setattr(threading.Thread, "start", look_then_start)
+    worker.start()
+    monkeypatch.undo()
+    try:
+        assert seen == [True]
+        assert worker.alive
+    finally:
+        worker.stop()
+
+
 def test_a_background_thread_tells_its_own_calls_from_others_from_its_first_instruction() -> None:
     seen: list[bool] = []
 

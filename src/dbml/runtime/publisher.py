@@ -78,6 +78,7 @@ __all__ = [
     "SENT_STALL_INTERVALS",
     "SIZE_CHANGE",
     "ManagedPublisher",
+    "silent_too_long",
     "worth_saying",
 ]
 
@@ -94,6 +95,27 @@ SENT_ALIVE_FRAMES = 3
 """From this many frames in a span, the rate while the source ran is timed to its last one."""
 SENT_SPAN_PERIODS = 0.9
 """The sent rate is measured over at least this much of the optimizer's period."""
+
+
+def silent_too_long(silent_s: float, rate_hz: float, *, limit_hz: float) -> bool:
+    """Whether a source silent for ``silent_s`` has stopped.
+
+    Silent ``SENT_STALL_INTERVALS`` of its intervals at the slower of its rate and the limit's:
+    a decrease is not a stop.
+    """
+    slowest = min(rate_hz, limit_hz)
+    return slowest > 0 and silent_s > SENT_STALL_INTERVALS / slowest
+
+
+def _span_s(period_s: float, limit_hz: float) -> float:
+    """The shortest span a sent rate is measured over.
+
+    ``SENT_SPAN_PERIODS`` of the optimizer's period, and ``SENT_STALL_INTERVALS`` of the limit's
+    intervals: at 0.6 Hz, one frame in a 1-s span reads 1 Hz, and none reads a stop.
+    """
+    if limit_hz <= 0:
+        return SENT_SPAN_PERIODS * period_s
+    return max(SENT_SPAN_PERIODS * period_s, SENT_STALL_INTERVALS / limit_hz)
 
 
 def worth_saying(said_hz: float | None, sent_hz: float) -> bool:
@@ -296,29 +318,32 @@ class ManagedPublisher:
         """At a heartbeat: the rate sent, written if it moved by ``SENT_CHANGE`` or stopped.
 
         Measured over at least ``SENT_SPAN_PERIODS`` of the optimizer's period (a change of
-        parameters brings extra rounds, milliseconds apart). A source silent for more than
-        ``SENT_STALL_INTERVALS`` of its intervals (at its rate, or the limit's if slower: a
-        decrease is not a stop) has stopped: 0 at once, at any heartbeat.
+        parameters brings extra rounds, milliseconds apart) and two of the limit's intervals.
+        A source silent for more than ``SENT_STALL_INTERVALS`` of its intervals
+        (``silent_too_long``) has stopped: 0 at once, at any heartbeat.
         """
         with self._lock:
             sent, last_s = self._optimized_seq, self._sent_s
             period_s = self._allocation.period_s
             limit_hz = self._limiter.rate_hz
 
-        def stalled(rate_hz: float) -> bool:  # at the slower of its own rate and the limit's
-            slowest = min(rate_hz, limit_hz)
-            return slowest > 0 and now - last_s > SENT_STALL_INTERVALS / slowest
+        def stalled(rate_hz: float) -> bool:
+            return silent_too_long(now - last_s, rate_hz, limit_hz=limit_hz)
 
         said = self._sent_said
         mark = self._sent_mark
         if said is not None and said > 0 and stalled(said):
             rate = 0.0  # (said at once, unless ``say_if_stopped`` said it already)
-        elif mark is None or now - mark[0] < SENT_SPAN_PERIODS * period_s:
+        elif mark is None or now - mark[0] < _span_s(period_s, limit_hz):
             if mark is None:
                 self._sent_mark = (now, sent)
             return
         else:
             frames = sent - mark[1]
+            if frames == 0 and said is not None and said > 0:
+                # Silent, but not too long for the rate it said (above): a slow rate between two
+                # frames (a cut to 0.6 Hz leaves 1-s spans empty), not a stop. The span goes on.
+                return
             rate = min(frames / (now - mark[0]), MAX_RATE_HZ)
             # Judged at the rate it ran while it ran: a driver that died early in the span
             # sent a few frames at its own rate, not a few over the whole span.
@@ -338,16 +363,15 @@ class ManagedPublisher:
         """Say at once that nothing is sent, if the source has stopped (no heartbeat waited for).
 
         For a caller that sees its source idle (the bridge, waiting for a message): a source
-        that said a rate and has been silent ``SENT_STALL_INTERVALS`` of it (or of the limit,
-        if slower) has stopped. Cheap when it has not; said once.
+        that said a rate and has been silent too long for it (``silent_too_long``) has
+        stopped. Cheap when it has not; said once.
         """
         now = self._now()
         with self._lock:  # the heartbeat's thread says too: one decides at a time
             said = self._sent_said
             if said is None or said <= 0:
                 return
-            slowest = min(said, self._limiter.rate_hz)
-            if slowest <= 0 or now - self._sent_s <= SENT_STALL_INTERVALS / slowest:
+            if not silent_too_long(now - self._sent_s, said, limit_hz=self._limiter.rate_hz):
                 return
             self._sent_said = 0.0
         self._transport.params.set(names.sent(self.topic), 0.0)  # non-blocking

@@ -216,19 +216,25 @@ class ByteWindow:
     follows, and a rate that fills the budget then overspends it by as much. Each frame the rate
     lets through is offered here with its bytes, the bytes it was counted at and the rate in
     force; it goes only if the frames that went in the last ``window_s``, with it, are within
-    the channel's share of the promise: the rate's frames and one more at the counted bytes, or
-    what every frame offered in the window was counted at, if more (frames let through at a
-    higher rate just before a cut). So a frame over its count costs a later frame, never the
-    budget, and a camera whose frames keep to their count is never refused.
+    the channel's share of the promise: what its allocations (rate times counted bytes) earned
+    over the window, and one frame more at its count. So a frame over its count costs a later
+    frame, never the budget; frames let through at a higher rate just before a cut are within
+    what that rate earned; and frames at their count are refused only where the limiter's
+    catch-up would put more than the rate's frames and one in a window.
     """
 
     def __init__(self, *, window_s: float = WINDOW_S, max_frames: int = MAX_WINDOW_FRAMES) -> None:
         self._window_s = window_s
-        self._frames: collections.deque[tuple[float, int, int]] = collections.deque()
-        """(time, counted bytes, bytes sent: 0 if refused) of each frame offered in the window."""
+        self._frames: collections.deque[tuple[float, int]] = collections.deque()
+        """(time, bytes sent: 0 if refused) of each frame offered in the window."""
         self._max_frames = max_frames
-        self._counted = 0
         self._sent = 0
+        self._allocations: collections.deque[tuple[float, float]] = collections.deque()
+        """(since, bytes/s) of each allocation in force over the window, oldest first; the
+        oldest counts as in force over the whole window before the next (a first frame's
+        allocation was the channel's before it)."""
+        self._seen: float | None = None
+        """When a frame was last offered: a lower allocation seen now counts from then."""
         self.refused = 0
         """Frames refused so far (a count for a monitor or a test)."""
 
@@ -236,14 +242,12 @@ class ByteWindow:
         """Whether a frame of ``size_bytes``, counted at ``counted_bytes``, goes at ``now``."""
         frames = self._frames
         while frames and (frames[0][0] <= now - self._window_s or len(frames) >= self._max_frames):
-            _, counted, sent = frames.popleft()
-            self._counted -= counted
-            self._sent -= sent
-        share = (rate_hz * self._window_s + 1.0) * counted_bytes
-        fits = self._sent + size_bytes <= max(self._counted + counted_bytes, share)
+            self._sent -= frames.popleft()[1]
+        self._allocate(now, rate_hz * counted_bytes)
+        self._seen = now
+        fits = self._sent + size_bytes <= counted_bytes + self._earned(now)
         sent = size_bytes if fits else 0
-        frames.append((now, counted_bytes, sent))
-        self._counted += counted_bytes
+        frames.append((now, sent))
         self._sent += sent
         if not fits:
             self.refused += 1
@@ -260,5 +264,36 @@ class ByteWindow:
         """
         frames = self._frames
         if frames:
-            at, counted, sent = frames[-1]
-            frames[-1] = (max(at, now), counted, sent)
+            at, sent = frames[-1]
+            frames[-1] = (max(at, now), sent)
+
+    def _allocate(self, now: float, bytes_per_s: float) -> None:
+        """Record the allocation in force at ``now``; forget those wholly before the window.
+
+        A change is seen at the next frame; the time since the last one counts at the lower of
+        the two (as the limiter's credit does), so a cut seen late earns nothing at the old rate.
+        """
+        allocations = self._allocations
+        if not allocations or allocations[-1][1] != bytes_per_s:
+            since = now
+            if allocations and self._seen is not None and bytes_per_s < allocations[-1][1]:
+                since = self._seen
+            while allocations and allocations[-1][0] >= since:
+                allocations.pop()  # superseded from its start
+            allocations.append((since, bytes_per_s))
+        start = now - self._window_s
+        while len(allocations) > 1 and (
+            allocations[1][0] <= start or len(allocations) > self._max_frames
+        ):
+            allocations.popleft()
+
+    def _earned(self, now: float) -> float:
+        """The bytes the allocations in force over the window ending at ``now`` earned."""
+        allocations = self._allocations
+        start = now - self._window_s
+        earned = 0.0
+        for i, (since, bytes_per_s) in enumerate(allocations):
+            begin = start if i == 0 else max(since, start)
+            end = allocations[i + 1][0] if i + 1 < len(allocations) else now
+            earned += bytes_per_s * max(end - begin, 0.0)
+        return earned

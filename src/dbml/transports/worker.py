@@ -170,8 +170,9 @@ class PeriodicWorker:
     def start(self) -> PeriodicWorker:
         """Start the thread (once)."""
         if self._thread is None:
-            self._thread = threading.Thread(target=self._run, name=self._name, daemon=True)
-            self._thread.start()
+            thread = threading.Thread(target=self._run, name=self._name, daemon=True)
+            thread.start()
+            self._thread = thread  # once started: ``alive`` reads a made, unstarted one as dead
         return self
 
     def _run(self) -> None:
