@@ -217,16 +217,18 @@ class ByteWindow:
     lets through is offered here with its bytes, the bytes it was counted at and the rate in
     force; it goes only if the frames that went in the last ``window_s``, with it, are within
     the channel's share of the promise: what its allocations (rate times counted bytes) earned
-    over the window, and one frame more at its count. So a frame over its count costs a later
-    frame, never the budget; frames let through at a higher rate just before a cut are within
-    what that rate earned; and frames at their count are refused only where the limiter's
-    catch-up would put more than the rate's frames and one in a window.
+    over the window, and the limiter's ``RateLimiter.BANKED_FRAMES`` at the largest count of
+    the window's frames (a late frame and its catch-up put the rate's frames and two in one
+    window; a window that opens just before a frame of a higher count, before a cut or a lower
+    rung, holds a frame more of it than its rate earned in the window). So a frame over its
+    count costs a later frame, never the budget; frames at their count are never refused; and
+    frames refused, or offered close together, do not widen the window.
     """
 
     def __init__(self, *, window_s: float = WINDOW_S, max_frames: int = MAX_WINDOW_FRAMES) -> None:
         self._window_s = window_s
-        self._frames: collections.deque[tuple[float, int]] = collections.deque()
-        """(time, bytes sent: 0 if refused) of each frame offered in the window."""
+        self._frames: collections.deque[tuple[float, int, int]] = collections.deque()
+        """(time, bytes sent: 0 if refused, counted bytes) of each frame offered in the window."""
         self._max_frames = max_frames
         self._sent = 0
         self._allocations: collections.deque[tuple[float, float]] = collections.deque()
@@ -245,9 +247,11 @@ class ByteWindow:
             self._sent -= frames.popleft()[1]
         self._allocate(now, rate_hz * counted_bytes)
         self._seen = now
-        fits = self._sent + size_bytes <= counted_bytes + self._earned(now)
+        largest = max((counted for _, _, counted in frames), default=counted_bytes)
+        banked = RateLimiter.BANKED_FRAMES * max(largest, counted_bytes)
+        fits = self._sent + size_bytes <= banked + self._earned(now)
         sent = size_bytes if fits else 0
-        frames.append((now, sent))
+        frames.append((now, sent, counted_bytes))
         self._sent += sent
         if not fits:
             self.refused += 1
@@ -264,8 +268,8 @@ class ByteWindow:
         """
         frames = self._frames
         if frames:
-            at, sent = frames[-1]
-            frames[-1] = (max(at, now), sent)
+            at, sent, counted = frames[-1]
+            frames[-1] = (max(at, now), sent, counted)
 
     def _allocate(self, now: float, bytes_per_s: float) -> None:
         """Record the allocation in force at ``now``; forget those wholly before the window.
