@@ -6,6 +6,7 @@ the ones the stores ordered by arrival (ROS 1's master, rclpy's nodes) rely on.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import logging
 import threading
@@ -410,3 +411,49 @@ def test_a_write_made_by_a_watcher_is_heard_after_the_change_it_answers() -> Non
     store.watch(lambda name, value: heard.append(("second", value)))
     store.set(PRIORITY, 0.5)
     assert heard == [(PRIORITY, 0.5), ("second", 0.5), (ROUND, 1), ("second", 1)]
+
+
+# -- reading by prefix ----------------------------------------------------------------------------
+
+_NAMES = [f"/r{r}/c{c}/dbm/priority" for r in (1, 2, 12) for c in (0, 1)] + [ROUND]
+_OPS = st.lists(
+    st.tuples(
+        st.sampled_from(["set", "merge", "arrived", "forget", "evict"]),
+        st.sampled_from(_NAMES),
+        st.sampled_from([None, 0.25, 0.5]),
+    ),
+    max_size=60,
+)
+
+
+@given(_OPS, st.sampled_from(["", "/", "/r1", "/r1/", "/r1/c1", "/r12/c0/dbm/", "/dbm/", "/x"]))
+def test_a_prefix_reads_what_a_look_at_every_name_finds(
+    ops: list[tuple[str, str, float | None]], prefix: str
+) -> None:
+    # The store's sorted index against a brute-force filter of everything it holds, after any
+    # mix of writes, network writes, deletions, departures and evictions (3 names at most).
+    store = replica(max_params=3)
+    store.keep = lambda _name: False  # a full store gives up its oldest network name
+    candidates = set(_NAMES)
+    for stamp, (op, name, value) in enumerate(ops, start=1):
+        if op == "set" and value is not None:
+            with contextlib.suppress(TransportError):
+                store.set(name, value)
+        elif op == "merge":
+            store.merge(name, value, stamp=stamp, writer="peer")
+        elif op == "arrived":
+            store.arrived(name, value, writer="peer")
+        elif op == "forget":
+            store.forget(name.rsplit("/", 3)[0])
+        else:
+            candidates.add(f"/r9/c{stamp}/dbm/priority")
+            store.merge(f"/r9/c{stamp}/dbm/priority", 0.5, stamp=stamp, writer="peer")
+    held = {name: entry for name in candidates if (entry := store.entry(name)) is not None}
+    assert store.entries(prefix) == sorted(
+        (name, entry) for name, entry in held.items() if name.startswith(prefix)
+    )
+    assert store.snapshot(prefix or "/") == {
+        name: entry.value
+        for name, entry in held.items()
+        if name.startswith(prefix or "/") and entry.value is not None
+    }

@@ -25,6 +25,7 @@ What ``set`` refuses is the same on every transport (``ParamStore``): ``check_wr
 
 from __future__ import annotations
 
+import bisect
 import logging
 import threading
 import time
@@ -159,6 +160,9 @@ class Replica:
         self._lock = threading.Lock()
         self._entries: dict[str, Entry] = {}
         """The newest write of each name: up to ``max_params`` from the network, and ours."""
+        self._names: list[str] = []
+        """``_entries``' names, sorted: a prefix's names without a look at every other (a
+        session answers a robot's question about its channel from a fleet's names)."""
         self._own: set[str] = set()
         """Names this process wrote (``max_params`` at most), whoever wrote them last."""
         self._heard: OrderedDict[str, None] = OrderedDict()
@@ -220,7 +224,7 @@ class Replica:
                 )
             stamp = self._stamp_locked(values)
             for name, value in values.items():
-                self._entries[name] = Entry(value, stamp, self.writer)
+                self._put_locked(name, Entry(value, stamp, self.writer))
                 self._own.add(name)
                 self._heard.pop(name, None)
                 self._pending[name] = stamp
@@ -314,19 +318,40 @@ class Replica:
         with self._lock:
             return self._entries.get(name)
 
-    def entries(self) -> list[tuple[str, Entry]]:
-        """Every write held here, deletions included."""
+    def entries(self, prefix: str = "") -> list[tuple[str, Entry]]:
+        """Every write held here whose name starts with ``prefix``, deletions included."""
         with self._lock:
-            return list(self._entries.items())
+            return [(name, self._entries[name]) for name in self._names_locked(prefix)]
 
     def snapshot(self, prefix: str = "/") -> dict[str, ParamValue]:
         """Every set value whose name starts with ``prefix``."""
         with self._lock:
             return {
                 name: held.value
-                for name, held in self._entries.items()
-                if name.startswith(prefix) and held.value is not None
+                for name in self._names_locked(prefix)
+                if (held := self._entries[name]).value is not None
             }
+
+    def _names_locked(self, prefix: str) -> list[str]:
+        """The names held that start with ``prefix``, in order (lock held)."""
+        names = self._names
+        if not prefix:
+            return list(names)
+        start = end = bisect.bisect_left(names, prefix)
+        while end < len(names) and names[end].startswith(prefix):
+            end += 1
+        return names[start:end]
+
+    def _put_locked(self, name: str, entry: Entry) -> None:
+        """Hold ``entry`` as ``name``'s newest write (lock held)."""
+        if name not in self._entries:
+            bisect.insort(self._names, name)
+        self._entries[name] = entry
+
+    def _drop_locked(self, name: str) -> None:
+        """Forget ``name`` (lock held; it is held)."""
+        del self._entries[name]
+        del self._names[bisect.bisect_left(self._names, name)]
 
     def watch(self, callback: Callable[[str, ParamValue], None]) -> Handle:
         """Call ``callback(name, value)`` on every change, this process's or the network's."""
@@ -357,7 +382,7 @@ class Replica:
                 if not self._room_locked():
                     return False
                 self._heard[name] = None
-            self._entries[name] = Entry(value, stamp, writer)
+            self._put_locked(name, Entry(value, stamp, writer))
             self._told_locked([(name, value)])
         self._tell()
         return True
@@ -389,7 +414,7 @@ class Replica:
             if value is None:
                 if held is None:
                     return False
-                del self._entries[name]
+                self._drop_locked(name)
                 self._heard.pop(name, None)
                 size = len(self._entries)
                 changed = held.value is not None  # a deletion held here already is none
@@ -401,7 +426,7 @@ class Replica:
                         return False
                     if name not in self._own:
                         self._heard[name] = None
-                self._entries[name] = Entry(value, self._stamp_locked([name]), writer)
+                self._put_locked(name, Entry(value, self._stamp_locked([name]), writer))
                 size, changed = -1, True
             if changed:
                 self._told_locked([(name, value)])
@@ -424,6 +449,8 @@ class Replica:
             for name in gone:
                 del self._entries[name]
                 self._heard.pop(name, None)
+            if gone:
+                self._names = sorted(self._entries)
             size = len(self._entries)
             self._told_locked((name, None) for name in gone)
         self._full.room(size)
@@ -485,7 +512,7 @@ class Replica:
                 self._heard.move_to_end(name)
                 continue
             del self._heard[name]
-            del self._entries[name]
+            self._drop_locked(name)
             self._told_locked([(name, None)])
             self._full.refuse()  # counted as a refusal: a flood is logged once either way
             return True

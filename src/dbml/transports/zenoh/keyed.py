@@ -161,8 +161,8 @@ class KeyedParams:
         """
         return [
             (name, encode_param(held.value, held.stamp, held.writer))
-            for name, held in self.replica.entries()
-            if name.startswith(prefix) and (held.writer == self.node_id or not is_live(held.writer))
+            for name, held in self.replica.entries(prefix)
+            if held.writer == self.node_id or not is_live(held.writer)
         ]
 
     def held(self, name: str) -> bytes | None:
