@@ -6,7 +6,14 @@ import pytest
 from dbml.core.errors import SpecError
 from dbml.protocol import names
 from dbml.runtime import ManagedPublisher, MessageMeta, ParamView
-from dbml.transports import ManualClock, MemoryNetwork, MemoryTransport, Sample, Variant
+from dbml.transports import (
+    ManualClock,
+    MemoryNetwork,
+    MemoryTransport,
+    ParamStore,
+    Sample,
+    Variant,
+)
 from dbml.transports.base import Handle
 
 
@@ -246,10 +253,10 @@ def test_a_publisher_hears_its_own_channel_not_every_write(
     assert publisher.current_rate_hz() == 4.0
 
 
-def test_a_slow_rate_between_two_frames_is_not_said_as_a_stop(
+def sent_rates(
     network: MemoryNetwork, clock: ManualClock
-) -> None:
-    """A cut to 0.6 Hz (an infeasible budget) leaves 1-s spans without a frame: not a stop."""
+) -> tuple[ManagedPublisher, ParamStore, list[float]]:
+    """A robot's publisher at 10 Hz, the optimizer's store, and every sent rate it writes."""
     publisher = robot(network, clock)
     optimizer = MemoryTransport(network, host="base", clock=clock).params
     params = MemoryTransport(network, host="op").params
@@ -262,6 +269,14 @@ def test_a_slow_rate_between_two_frames_is_not_said_as_a_stop(
             else None
         )
     )
+    return publisher, optimizer, written
+
+
+def test_a_slow_rate_between_two_frames_is_not_said_as_a_stop(
+    network: MemoryNetwork, clock: ManualClock
+) -> None:
+    """A cut to 0.6 Hz (an infeasible budget) leaves 1-s spans without a frame: not a stop."""
+    publisher, optimizer, written = sent_rates(network, clock)
     for beat in range(8):  # a 10-Hz source, a heartbeat a second
         if beat == 2:
             optimizer.set(names.current_value("/r1/camera"), 0.6)
@@ -278,18 +293,7 @@ def test_says_the_rate_it_sent_when_it_moves_or_stops(
     network: MemoryNetwork, clock: ManualClock
 ) -> None:
     """Between two heartbeats of the optimizer: steady writes nothing, a stop is said."""
-    publisher = robot(network, clock)
-    optimizer = MemoryTransport(network, host="base", clock=clock).params
-    params = MemoryTransport(network, host="op").params
-    optimizer.set(names.current_value("/r1/camera"), 10.0)
-    written: list[float] = []
-    params.watch(
-        lambda name, value: (
-            written.append(value)  # type: ignore[arg-type]
-            if name == names.sent("/r1/camera")
-            else None
-        )
-    )
+    publisher, optimizer, written = sent_rates(network, clock)
 
     def period(frames: int, heartbeat: float, seconds: float = 1.0) -> None:
         for _ in range(frames):  # ``frames`` sent over ``seconds``, then a heartbeat
@@ -329,4 +333,4 @@ def test_says_the_rate_it_sent_when_it_moves_or_stops(
     clock.advance(0.6)
     optimizer.set(names.ROUND, 9.0)
     assert written[-1] == 0.0
-    assert params.get(names.sent("/r1/camera")) == 0.0
+    assert optimizer.get(names.sent("/r1/camera")) == 0.0  # as every other session holds it
