@@ -210,19 +210,23 @@ def test_a_child_in_a_namespace_runs_through_ip_netns_exec(
 def test_unread_lines_are_bounded_per_child_and_others_kept(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
-    code = "import sys\nfor i in range(50): print(i)\nsys.stdout.flush(); input()"
     with (
         caplog.at_level(logging.WARNING, logger="dbml.harness"),
         Supervisor(lines_per_child=10) as children,
     ):
-        children.start("chatty", [sys.executable, "-c", code])
+        chatty = children.start("chatty", [sys.executable, "-c", "for i in range(50): print(i)"])
         children.start("quiet", [sys.executable, "-c", "print('hello'); input()"])
-        wait_for(lambda: "chatty: more than 10 unread lines" in caplog.text, timeout_s=TIMEOUT_S)
+        # Every line read, its end too (the warning comes at the first dropped line, before).
+        wait_for(
+            lambda: chatty.reader is not None and not chatty.reader.running, timeout_s=TIMEOUT_S
+        )
+        assert "chatty: more than 10 unread lines" in caplog.text
         line = children.next(child="quiet", timeout_s=TIMEOUT_S)
         assert line is not None
         assert line.text == "hello"
-        texts = [line.text for line in children.take_all(lambda ln: ln.child == "chatty")]
-    assert texts == [str(i) for i in range(40, 50)]
+        kept = children.take_all(lambda ln: ln.child == "chatty")
+    assert [line.text for line in kept[:-1]] == [str(i) for i in range(41, 50)]
+    assert kept[-1].ended  # the end is a line too: the newest 10 are 41-49 and it
 
 
 def test_a_thread_child_reads_its_lines_reports_and_ends_as_a_process_does() -> None:
