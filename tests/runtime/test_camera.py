@@ -19,12 +19,11 @@ from dbml.media.photos import PanCamera
 from dbml.protocol import names
 from dbml.protocol.ladders import (
     decode_rungs,
-    encode_rungs,
     encoding_label,
     parse_encoding,
     parse_rung_label,
 )
-from dbml.runtime.camera import ManagedCamera
+from dbml.runtime.camera import FALL_S, ManagedCamera
 from dbml.testing import Fleet
 from dbml.transports.base import Variant
 
@@ -131,17 +130,57 @@ def test_the_ladder_follows_the_scene_as_the_probe_measures_it_again(fleet: Flee
     camera = fleet.camera("/r1/camera", probe_interval_s=0.05)
     busy = PanCamera(640, 480, offset_px=1400).frame()  # the astronaut and the cat: detail
     camera.publish_frame(Frame(busy, "rgb8"))
-    first = decode_rungs(fleet.get(names.ladder("/r1/camera")))
+
+    def q95() -> float:
+        rungs = decode_rungs(fleet.get(names.ladder("/r1/camera")))
+        return next(r.size_bytes for r in rungs if (r.scale, r.jpeg_quality) == (1.0, 95))
+
+    detailed = q95()
     flat = Frame(np.full((480, 640, 3), 128, np.uint8), "rgb8")  # a grey wall: no detail
     deadline = time.monotonic() + 10.0
-    while fleet.get(names.ladder("/r1/camera")) == encode_rungs(first):
+    while q95() >= detailed / 4:  # a flat frame is a fraction of the detailed one's bytes
         assert time.monotonic() < deadline, "the probe never wrote the new scene's ladder"
         camera.publish_frame(flat)  # offered to the probe, which runs on its own thread
+        fleet.advance(0.02)  # a fall is written FALL_S after the probe
         time.sleep(0.02)
-    second = decode_rungs(fleet.get(names.ladder("/r1/camera")))
-    best = {r.jpeg_quality: r.size_bytes for r in first if r.scale == 1.0}
-    after = {r.jpeg_quality: r.size_bytes for r in second if r.scale == 1.0}
-    assert after[95] < best[95] / 4  # a flat frame is a fraction of the detailed one's bytes
+
+
+def test_a_probe_lowers_the_ladder_only_once_the_frames_sent_since_show_it(fleet: Fleet) -> None:
+    """A probe measures one frame: a fall is written ``FALL_S`` after it, a rise at once.
+
+    Written on the probe's word alone, the ladder of a scene panning into detail fell for one
+    round and rose again with the next frames, and the allocation flipped the camera's rung and
+    rate and back.
+    """
+    camera = fleet.camera("/r1/camera", priority=1.0, probe_interval_s=1e6)  # probed by hand
+    fleet.budget(50.0)
+    busy = Frame(PanCamera(640, 480, offset_px=1200, step_px=0).frame(), "rgb8")
+    plain = Frame(PanCamera(640, 480, offset_px=0, step_px=0).frame(), "rgb8")
+    period_s = 1 / 16
+
+    def q80() -> float:
+        assert camera.ladder is not None
+        return next(r.size_bytes for r in camera.ladder if (r.scale, r.jpeg_quality) == (1, 80))
+
+    def send(frame: Frame) -> None:
+        fleet.advance(period_s)
+        assert camera.publish_frame(frame)
+
+    camera.publish_frame(busy)  # measured at once
+    fleet.optimize()
+    send(busy)
+    written = q80()
+    send(plain)  # the newest frame offered: the probe's
+    camera._probe_once()  # the probe, now (its thread waits 1e6 s)
+    assert q80() == written  # a plain frame measured: the busy ladder stands
+    for _ in range(round(FALL_S / period_s) - 1):
+        send(plain)
+    assert q80() == written  # the frames since have not had FALL_S to show it
+    send(plain)
+    assert q80() < 0.6 * written  # they have: the plain scene's ladder
+    camera.publish_frame(busy)  # offered to the probe
+    camera._probe_once()
+    assert q80() == pytest.approx(written)  # a rise is written at once
 
 
 def test_frames_of_a_busier_scene_than_the_ladder_says_keep_to_the_budget(fleet: Fleet) -> None:
