@@ -26,6 +26,7 @@ from dbml.transports.codecs import encode_float64
 from dbml.transports.zenoh.transport import (
     LEASE_MS,
     MAX_GRAPH_ENTRIES,
+    NET_THREADS,
     OPEN_TIMEOUT_MS,
     RETRY_MAX_MS,
     ROUTER_RX_THREADS,
@@ -394,7 +395,9 @@ def test_the_receiving_runtime_gets_its_threads_unless_the_user_chose(
     monkeypatch.setenv(RUNTIME_ENV, "")  # recorded, so the test leaves it as it found it
     monkeypatch.delenv(RUNTIME_ENV)
     prepare_runtime()
-    assert os.environ[RUNTIME_ENV] == f"(rx: (worker_threads: {RX_THREADS}))"
+    assert os.environ[RUNTIME_ENV] == (
+        f"(rx: (worker_threads: {RX_THREADS}), net: (worker_threads: {NET_THREADS}))"
+    )
     monkeypatch.setenv(RUNTIME_ENV, "(app: (worker_threads: 2))")
     prepare_runtime()
     assert os.environ[RUNTIME_ENV] == "(app: (worker_threads: 2))"
@@ -419,7 +422,9 @@ def test_a_router_gets_a_receiving_thread_per_link_of_a_fleet() -> None:
         check=False,
     )
     assert done.returncode == 0, done.stderr
-    assert done.stdout.strip() == f"(rx: (worker_threads: {ROUTER_RX_THREADS}))"
+    assert done.stdout.strip() == (
+        f"(rx: (worker_threads: {ROUTER_RX_THREADS}), net: (worker_threads: {NET_THREADS}))"
+    )
     assert ROUTER_RX_THREADS > RX_THREADS
 
 

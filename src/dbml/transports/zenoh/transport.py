@@ -59,6 +59,7 @@ __all__ = [
     "KEEP_ALIVES_PER_LEASE",
     "LEASE_MS",
     "MAX_GRAPH_ENTRIES",
+    "NET_THREADS",
     "OPEN_TIMEOUT_MS",
     "PRIORITY_LINK_RANGES",
     "RETRY_MAX_MS",
@@ -114,6 +115,15 @@ is full waits there for room: a session that reads late holds one thread per lin
 it. A fleet of 80 x 4 starting at once, its router on ``RX_THREADS``, stopped reading its
 links for 1-9 s (the optimizer's heartbeat reached every robot that late); the same run with
 256 had a p99 of 0.19 s and no fail-safe (``bench/fleet.py``). A waiting thread costs no CPU."""
+NET_THREADS = 4
+"""Worker threads of zenoh's ``net`` runtime (zenoh's default: 1), where a ``connect``
+endpoint's attempts run, each under ``OPEN_TIMEOUT_MS``. A lost link's lingering close (above)
+can land on that runtime's one thread: a router whose link to the base station's had frames in
+flight when a 10-s outage dropped it gave up its first attempt after the link returned 10.9 s
+after starting it, not 2 s, the close holding the thread that runs the attempt's timer, and its
+robot was back 5.25 s after the link (the testbed's router topology with a busy core beside it,
+as in CI: 2 of 16 runs). With 4 threads one runs the timer while another lingers: 14 of 14 runs
+back within 1.5 s, two of them with such a close, their attempts given up after 2.0 s."""
 LEASE_MS = 3000
 """The lease dbml's sessions announce (zenoh's default: 10 s): a peer silent this long is closed
 and opened anew. A session that outlives an outage resumes only when TCP's retransmission timer
@@ -141,12 +151,14 @@ RUNTIME_ENV = "ZENOH_RUNTIME"
 
 
 def prepare_runtime(*, rx_threads: int = RX_THREADS) -> None:
-    """Give zenoh's receiving runtime ``rx_threads`` threads, unless ``ZENOH_RUNTIME`` is set.
+    """Give zenoh's receiving runtime ``rx_threads`` threads (``net``: ``NET_THREADS``).
 
     Call before the process's first session opens; later it changes nothing. Whoever set
     ``ZENOH_RUNTIME`` chose: it is left as it is.
     """
-    os.environ.setdefault(RUNTIME_ENV, f"(rx: (worker_threads: {rx_threads}))")
+    os.environ.setdefault(
+        RUNTIME_ENV, f"(rx: (worker_threads: {rx_threads}), net: (worker_threads: {NET_THREADS}))"
+    )
 
 
 ZENOH_PRIORITY: dict[TransportPriority, zenoh.Priority] = {
