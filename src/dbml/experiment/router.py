@@ -11,6 +11,7 @@ longer be told to stop).
 from __future__ import annotations
 
 import json
+import os
 import threading
 from collections.abc import Iterable, Sequence
 
@@ -19,8 +20,10 @@ import zenoh
 from dbml.harness.child import Control
 from dbml.runtime.serve import Lifetime
 from dbml.transports.zenoh.transport import (
+    NET_THREADS,
     RETRY_MAX_MS,
     ROUTER_RX_THREADS,
+    RUNTIME_ENV,
     prepare_runtime,
     put_link_timeouts,
 )
@@ -52,7 +55,10 @@ def open_meshed_router(*, listen: list[str], connect: list[str]) -> zenoh.Sessio
     put_link_timeouts(
         config
     )  # its link crosses the shaped one: an outage's return found as a peer's
-    prepare_runtime(rx_threads=ROUTER_RX_THREADS)
+    # The testbed's own router: a runtime inherited from the process that started the run (set
+    # there by its own sessions, a client's) is not a choice made for a router.
+    os.environ.pop(RUNTIME_ENV, None)
+    prepare_runtime(rx_threads=ROUTER_RX_THREADS, net_threads=NET_THREADS)
     return zenoh.open(config)
 
 

@@ -116,14 +116,16 @@ it. A fleet of 80 x 4 starting at once, its router on ``RX_THREADS``, stopped re
 links for 1-9 s (the optimizer's heartbeat reached every robot that late); the same run with
 256 had a p99 of 0.19 s and no fail-safe (``bench/fleet.py``). A waiting thread costs no CPU."""
 NET_THREADS = 4
-"""Worker threads of zenoh's ``net`` runtime (zenoh's default: 1), where a ``connect``
-endpoint's attempts run, each under ``OPEN_TIMEOUT_MS``. A lost link's lingering close (above)
-can land on that runtime's one thread: a router whose link to the base station's had frames in
-flight when a 10-s outage dropped it gave up its first attempt after the link returned 10.9 s
-after starting it, not 2 s, the close holding the thread that runs the attempt's timer, and its
-robot was back 5.25 s after the link (the testbed's router topology with a busy core beside it,
-as in CI: 2 of 16 runs). With 4 threads one runs the timer while another lingers: 14 of 14 runs
-back within 1.5 s, two of them with such a close, their attempts given up after 2.0 s."""
+"""Worker threads of zenoh's ``net`` runtime in a router (zenoh's default: 1), where a
+``connect`` endpoint's attempts run, each under ``OPEN_TIMEOUT_MS``. A lost link's lingering
+close (above) can land on that runtime's one thread: a router whose link to the base station's
+had frames in flight when a 10-s outage dropped it gave up its first attempt after the link
+returned 10.9 s after starting it, not 2 s, the close holding the thread that runs the
+attempt's timer, and its robot was back 5.25 s after the link (the testbed's router topology
+with a busy core beside it, as in CI: 2 of 16 runs). With 4 threads one runs the timer while
+another lingers: 14 of 14 runs back within 1.5 s, two of them with such a close, their attempts
+given up after 2.0 s. Routers only: that is where it was measured, and the peer topology's
+rate-drop test failed 2 of 5 runs with every session given 4 (0 of 4 without; not traced)."""
 LEASE_MS = 3000
 """The lease dbml's sessions announce (zenoh's default: 10 s): a peer silent this long is closed
 and opened anew. A session that outlives an outage resumes only when TCP's retransmission timer
@@ -150,15 +152,16 @@ RUNTIME_ENV = "ZENOH_RUNTIME"
 """zenoh's runtime settings (RON), read once when its first session opens."""
 
 
-def prepare_runtime(*, rx_threads: int = RX_THREADS) -> None:
-    """Give zenoh's receiving runtime ``rx_threads`` threads (``net``: ``NET_THREADS``).
+def prepare_runtime(*, rx_threads: int = RX_THREADS, net_threads: int | None = None) -> None:
+    """Give zenoh's receiving runtime ``rx_threads`` threads (and ``net``: ``net_threads``).
 
     Call before the process's first session opens; later it changes nothing. Whoever set
     ``ZENOH_RUNTIME`` chose: it is left as it is.
     """
-    os.environ.setdefault(
-        RUNTIME_ENV, f"(rx: (worker_threads: {rx_threads}), net: (worker_threads: {NET_THREADS}))"
-    )
+    settings = f"rx: (worker_threads: {rx_threads})"
+    if net_threads is not None:
+        settings += f", net: (worker_threads: {net_threads})"
+    os.environ.setdefault(RUNTIME_ENV, f"({settings})")
 
 
 ZENOH_PRIORITY: dict[TransportPriority, zenoh.Priority] = {
@@ -719,7 +722,7 @@ def open_router(listen: Iterable[str]) -> zenoh.Session:
         # A session may open a link per range of priorities (``priority_links``) to it.
         config.insert_json5("transport/unicast/max_links", str(len(PRIORITY_LINK_RANGES)))
         put_link_timeouts(config)
-        prepare_runtime(rx_threads=ROUTER_RX_THREADS)
+        prepare_runtime(rx_threads=ROUTER_RX_THREADS, net_threads=NET_THREADS)
         return zenoh.open(config)
     except zenoh.ZError as err:
         raise TransportError(f"zenoh router: cannot listen on {endpoints!r}: {err}") from err
