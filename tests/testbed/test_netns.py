@@ -179,6 +179,83 @@ def test_uplink_shapes_only_its_robot(make_network: Callable[..., Network]) -> N
     print(f"uplink r1 2 Mbit: {slow:.2f} Mbit/s; r2 over the 8 Mbit link: {fast:.2f} Mbit/s")
 
 
+# UDP probes through a saturated link, alternately marked (IP_TOS) and not: "echo" returns what
+# it gets (the way back, op -> robot, is not shaped, so a round trip is the way there's queue);
+# "probe" sends N of each, one every 20 ms, and reports each kind's round trips in ms.
+PROBE = r"""
+import json, socket, sys, time
+
+mode, addr, port = sys.argv[1], sys.argv[2], int(sys.argv[3])
+if mode == "echo":
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind((addr, port))
+        sock.settimeout(float(sys.argv[4]))
+        try:
+            while True:
+                data, peer = sock.recvfrom(2048)
+                sock.sendto(data, peer)
+        except TimeoutError:
+            pass
+else:
+    tos, count = int(sys.argv[4], 0), int(sys.argv[5])
+    socks = {}
+    for kind, value in (("marked", tos), ("unmarked", 0)):
+        s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        s.setsockopt(socket.IPPROTO_IP, socket.IP_TOS, value)
+        s.settimeout(1.0)
+        socks[kind] = s
+    rtts = {kind: [] for kind in socks}
+    for i in range(count):
+        for kind, s in socks.items():
+            sent = time.monotonic()
+            s.sendto(b"p" * 200, (addr, port))
+            try:
+                s.recvfrom(2048)
+            except TimeoutError:
+                continue
+            rtts[kind].append((time.monotonic() - sent) * 1000)
+        time.sleep(0.02)
+    print(json.dumps(rtts))
+"""
+
+
+BULK_BYTES = 2_000_000
+"""8 s at 2 Mbit/s: it outlasts 30 probes of each kind even if each waits out a full queue."""
+
+
+def test_an_expedited_link_forwards_marked_packets_first(
+    make_network: Callable[..., Network],
+) -> None:
+    """A saturating TCP transfer fills the bottleneck; EF-marked probes skip its queue."""
+    tos = 0xB8
+    network = make_network(link_mbit=2, expedited_tos=tos)
+    op = network.hosts["op"]
+    with Supervisor() as children:
+        echo = [sys.executable, "-c", PROBE, "echo", op.address, str(PORT + 1), "20"]
+        children.start("echo", echo, netns=op.netns, stdin=False)
+        serve = [sys.executable, "-c", PEER, "serve", op.address, str(PORT), "20"]
+        children.start("serve", serve, netns=op.netns, stdin=False)
+        send = [sys.executable, "-c", PEER, "send", op.address, str(PORT), "20", str(BULK_BYTES)]
+        children.start("send", send, netns=network.hosts["r2"].netns, stdin=False)
+        probe = [sys.executable, "-c", PROBE, "probe", op.address, str(PORT + 1), str(tos), "30"]
+        prober = children.start("probe", probe, netns=network.hosts["r1"].netns, stdin=False)
+        assert prober.wait(20) == 0, prober.log()
+        out = prober.next(timeout_s=5)
+    assert out is not None
+    assert out.report is not None, out.text
+    rtts = {kind: sorted(values) for kind, values in out.report.items()}
+    marked, unmarked = rtts["marked"], rtts["unmarked"]
+    assert len(marked) >= 28, rtts
+    marked_p95 = marked[int(0.95 * (len(marked) - 1))]
+    unmarked_p50 = unmarked[len(unmarked) // 2]
+    print(
+        f"round trips beside a 2-Mbit transfer: marked p95 {marked_p95:.1f} ms, "
+        f"unmarked p50 {unmarked_p50:.1f} ms"
+    )
+    assert marked_p95 < 40.0  # the packet on the wire and the one tbf holds: 12 ms at 2 Mbit/s
+    assert unmarked_p50 > 2 * marked_p95
+
+
 def test_close_removes_everything_and_twice_is_fine() -> None:
     network = Network(link_mbit=8).build()
     try:
@@ -268,6 +345,9 @@ def test_two_networks_at_once_are_independent(make_network: Callable[..., Networ
         ({"link_mbit": math.nan}, "link_mbit=nan"),
         ({"link_mbit": math.inf}, "link_mbit=inf"),
         ({"run_id": "ABCDEF"}, "run_id='ABCDEF'"),
+        ({"expedited_tos": 0xB9}, "expedited_tos=185"),
+        ({"expedited_tos": 0}, "expedited_tos=0"),
+        ({"expedited_tos": True}, "expedited_tos=True"),
     ],
 )
 def test_bad_values_are_refused_before_anything_exists(

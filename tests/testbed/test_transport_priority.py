@@ -2,7 +2,8 @@
 
 One run, ``--policy unmanaged`` (the cameras at 16 Hz want 13.4 Mbit/s of an 11 Mbit/s link,
 so R1's frames queue in its socket buffer), R1 sending the 1,000-byte 20 Hz urgent stream twice
-at the same moments: mapped (its own zenoh priority link) and unmapped (behind the frames).
+at the same moments: mapped (its own zenoh priority link, marked DSCP EF, which the run's shared
+link honours) and unmapped (behind the frames).
 """
 
 from __future__ import annotations

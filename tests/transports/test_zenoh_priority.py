@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import shutil
+import subprocess
 from typing import SupportsInt, cast
 
 import pytest
@@ -12,7 +14,7 @@ from dbml.protocol import names
 from dbml.runtime import ManagedPublisher
 from dbml.runtime.qos import TransportQos, map_priority
 from dbml.transports import Sample, Variant
-from dbml.transports.base import TransportPriority
+from dbml.transports.base import EXPEDITED_TOS, TransportPriority
 from dbml.transports.zenoh.transport import (
     PRIORITY_LINK_RANGES,
     ZENOH_PRIORITY,
@@ -26,12 +28,45 @@ from tests.conftest import wait_for
 def test_each_endpoint_gets_one_link_per_priority_range() -> None:
     assert PRIORITY_LINK_RANGES == ("1-3", "4-7")
     assert _priority_endpoints(["tcp/10.0.0.1:7447", "tls/h:7447#iface=eth0"]) == [
-        "tcp/10.0.0.1:7447?prio=1-3",
+        "tcp/10.0.0.1:7447?prio=1-3#dscp=0xb8",
         "tcp/10.0.0.1:7447?prio=4-7",
-        "tls/h:7447?prio=1-3#iface=eth0",
+        "tls/h:7447?prio=1-3#iface=eth0;dscp=0xb8",
         "tls/h:7447?prio=4-7#iface=eth0",
     ]
     assert _priority_endpoints(["tcp/h:1?prio=1-7"]) == ["tcp/h:1?prio=1-7"]  # the author's
+    assert _priority_endpoints(["tcp/h:1#dscp=0x20"]) == [  # the author's marking, on both
+        "tcp/h:1?prio=1-3#dscp=0x20",
+        "tcp/h:1?prio=4-7#dscp=0x20",
+    ]
+    assert _priority_endpoints(["quic/h:1"]) == ["quic/h:1?prio=1-3", "quic/h:1?prio=4-7"]
+    assert EXPEDITED_TOS >> 2 == 46  # DSCP EF (RFC 3246), past the two ECN bits
+
+
+def tos_of_connections(port: int) -> list[str]:
+    """``ss``'s TOS of each established TCP connection made to ``port`` (``tos:0xb8``)."""
+    ss = shutil.which("ss")
+    if ss is None:
+        pytest.skip("needs ss (iproute2) to read a socket's TOS")
+    argv = [ss, "-tnH", "--tos", "state", "established", f"( dport = :{port} )"]
+    out = subprocess.run(argv, check=True, capture_output=True, text=True, timeout=10).stdout
+    return sorted(word for word in out.split() if word.startswith("tos:"))
+
+
+def test_only_the_urgent_link_is_marked_expedited() -> None:
+    """The connecting side's urgent link carries the TOS ``_priority_endpoints`` asks for."""
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    operator = ZenohTransport(host="op", listen=[endpoint], priority_links=True)
+    robot = ZenohTransport(
+        host="r1", listen=["tcp/127.0.0.1:0"], connect=[endpoint], priority_links=True
+    )
+    try:
+        assert robot.wait_for_peers(10.0)
+        wanted = sorted(["tos:0", f"tos:{EXPEDITED_TOS:#x}"])
+        wait_for(lambda: tos_of_connections(port) == wanted, what="two links, one marked EF")
+    finally:
+        robot.close()
+        operator.close()
 
 
 def link_of(priority: TransportPriority) -> int:

@@ -49,8 +49,20 @@ _ROUTER = "rt"
 _ROBOT_NAME = re.compile(r"^[a-z][a-z0-9]{0,5}$")
 _RUN_ID = re.compile(r"^[0-9a-f]{6}$")
 _OPERATOR_SUBNET = 100  # 10.200.100.0/24; robots use 10.200.1.0/24 .. 10.200.99.0/24
-_BURST = "32kbit"
-_LATENCY = "200ms"
+_BURST_BYTES = 4_000
+_BURST = f"{_BURST_BYTES * 8 // 1_000}kbit"
+_LATENCY_S = 0.2
+"""The longest a packet waits in a shaped link's queue; tbf drops what would wait longer."""
+_LATENCY = f"{round(_LATENCY_S * 1_000)}ms"
+_TBF_HANDLE = "1:"
+_CLASSES_HANDLE = "10:"
+_EXPEDITED_CLASS = "10:1"
+_BULK_CLASS = "10:2"
+_BULK_HANDLE = "20:"
+_CLASS_RATE = "10gbit"
+"""A DSCP-aware link's classes never limit: the tbf above them does; they only order."""
+_DSCP_MASK = 0xFC
+"""The TOS byte's DSCP bits (the low two are ECN)."""
 _COMMAND_TIMEOUT_S = 10.0
 _DOWN_RULE_PRIORITY = 100
 """The first ``ip rule`` priority of a down link's blackhole rules: two per host (from it, to
@@ -117,6 +129,9 @@ class Network:
     """The current bottleneck rate (router toward operator)."""
     uplinks_mbit: dict[str, float]
     """Robots whose own uplink is shaped, and at what rate."""
+    expedited_tos: int | None
+    """The shared link forwards packets with this TOS byte's DSCP first (strict priority, as a
+    Wi-Fi access point's WMM or a DSCP-aware router does); None: one FIFO, the paper's link."""
 
     def __init__(
         self,
@@ -124,9 +139,20 @@ class Network:
         robots: Sequence[str] = ("r1", "r2"),
         link_mbit: float,
         uplinks_mbit: Mapping[str, float] | None = None,
+        expedited_tos: int | None = None,
         run_id: str | None = None,
     ) -> None:
         self.robots = _check_robots(robots)
+        if expedited_tos is not None and (
+            isinstance(expedited_tos, bool)
+            or not isinstance(expedited_tos, int)
+            or not 0 < expedited_tos <= _DSCP_MASK
+            or expedited_tos & ~_DSCP_MASK
+        ):
+            raise TestbedError(
+                f"expedited_tos={expedited_tos!r} must be a TOS byte with a DSCP and no ECN bits"
+            )
+        self.expedited_tos = expedited_tos
         self.link_mbit = _check_mbit("link_mbit", link_mbit)
         uplinks = dict(uplinks_mbit or {})
         for robot, mbit in uplinks.items():
@@ -199,6 +225,9 @@ class Network:
             router = self._netns(_ROUTER)
             tbf = self._tbf(self._router_if(OPERATOR), rate)
             _run(["tc", "-n", router, "qdisc", "change", *tbf])
+            if self.expedited_tos is not None:  # the bulk queue keeps its time bound
+                bulk = self._bulk_fifo(self._router_if(OPERATOR), rate)
+                _run(["tc", "-n", router, "qdisc", "change", *bulk])
             self.link_mbit = rate
         else:
             self._check_robot(host)
@@ -299,6 +328,8 @@ class Network:
             subnet = _OPERATOR_SUBNET if role == OPERATOR else index + 1
             self._link(role, subnet)
         self._shape(router, self._router_if(OPERATOR), self.link_mbit)
+        if self.expedited_tos is not None:
+            self._expedite(router, self._router_if(OPERATOR), self.expedited_tos)
         for robot, mbit in self.uplinks_mbit.items():
             self._shape(self._netns(robot), self._host_if(robot), mbit)
 
@@ -317,10 +348,64 @@ class Network:
     def _shape(self, netns: str, interface: str, mbit: float) -> None:
         _run(["tc", "-n", netns, "qdisc", "add", *self._tbf(interface, mbit)])
 
+    def _expedite(self, netns: str, interface: str, tos: int) -> None:
+        """Under the link's tbf, two classes in strict priority: ``tos`` first, the rest after.
+
+        The bulk class keeps the tbf's own queue bound (``_LATENCY_S`` at the link's rate); an
+        expedited packet waits at most for the one being sent.
+        """
+        tc = ["tc", "-n", netns]
+        parent = ["dev", interface, "parent", f"{_TBF_HANDLE}1"]
+        _run([*tc, "qdisc", "add", *parent, "handle", _CLASSES_HANDLE, "htb", "default", "2"])
+        for classid, prio in ((_EXPEDITED_CLASS, "0"), (_BULK_CLASS, "1")):
+            rates = ["rate", _CLASS_RATE, "ceil", _CLASS_RATE, "prio", prio]
+            _run(
+                [
+                    *tc,
+                    "class",
+                    "add",
+                    "dev",
+                    interface,
+                    "parent",
+                    _CLASSES_HANDLE,
+                    "classid",
+                    classid,
+                    "htb",
+                    *rates,
+                ]
+            )
+        _run([*tc, "qdisc", "add", *self._bulk_fifo(interface, self.link_mbit)])
+        match = ["u32", "match", "ip", "dsfield", f"{tos:#x}", f"{_DSCP_MASK:#x}"]
+        _run(
+            [
+                *tc,
+                "filter",
+                "add",
+                "dev",
+                interface,
+                "parent",
+                _CLASSES_HANDLE,
+                "protocol",
+                "ip",
+                "prio",
+                "1",
+                *match,
+                "flowid",
+                _EXPEDITED_CLASS,
+            ]
+        )
+
+    @staticmethod
+    def _bulk_fifo(interface: str, mbit: float) -> list[str]:
+        limit = round(mbit * 1e6 / 8 * _LATENCY_S) + _BURST_BYTES  # as tbf sizes its own queue
+        where = ["dev", interface, "parent", _BULK_CLASS, "handle", _BULK_HANDLE]
+        return [*where, "bfifo", "limit", str(limit)]
+
     @staticmethod
     def _tbf(interface: str, mbit: float) -> list[str]:
         rate = f"{round(mbit * 1000)}kbit"  # kbit keeps fractional Mbit exact to 1 kbit/s
-        return ["dev", interface, "root", "tbf", "rate", rate, "burst", _BURST, "latency", _LATENCY]
+        shape = ["rate", rate, "burst", _BURST, "latency", _LATENCY]
+        return ["dev", interface, "root", "handle", _TBF_HANDLE, "tbf", *shape]
 
     def _delete_namespaces(self) -> list[str]:
         """Delete what this run created, newest first; return problems instead of stopping."""

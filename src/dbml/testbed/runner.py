@@ -38,6 +38,7 @@ from dbml.testbed.options import Policy, TestbedOptions
 from dbml.testbed.rclpy_layout import RclpyLayout
 from dbml.testbed.result import BridgePublish, LinkTiming, TestbedResult
 from dbml.testbed.zenoh_layout import ZenohLayout
+from dbml.transports.base import EXPEDITED_TOS
 from dbml.transports.registry import Discovery
 
 __all__ = ["LAYOUTS", "TestbedOptions", "TestbedResult", "run_teleop_testbed"]
@@ -171,6 +172,8 @@ def _network(options: TestbedOptions) -> Network:
                 },
             }.items()
         },
+        # The urgent stream's run: its own link is marked EF, and the shared link honours it.
+        expedited_tos=EXPEDITED_TOS if options.urgent_stream else None,
     )
 
 

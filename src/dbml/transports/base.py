@@ -34,6 +34,7 @@ from dbml.transports.codecs import CDR_FLOAT64, Float64Codec
 __all__ = [
     "COMPRESSED_TYPE",
     "DEFAULT_ROUTER_ENDPOINT",
+    "EXPEDITED_TOS",
     "PRIORITY_SUFFIX",
     "Closer",
     "GraphEntry",
@@ -116,6 +117,13 @@ class TransportPriority(enum.StrEnum):
     DATA = "data"
     DATA_LOW = "data_low"
     BACKGROUND = "background"
+
+
+EXPEDITED_TOS = 0xB8
+"""The IP header's TOS byte on an urgent class's own link: DSCP EF (46, RFC 3246) shifted past
+the two ECN bits. The sender's socket is not the only queue: a network that honours DSCP (a
+Wi-Fi access point's WMM maps EF to its video queue, a router's DSCP-aware qdisc) then forwards
+these packets before the bulk ones waiting at the shared link."""
 
 
 class Role(enum.StrEnum):
