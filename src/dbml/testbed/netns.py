@@ -354,46 +354,18 @@ class Network:
         The bulk class keeps the tbf's own queue bound (``_LATENCY_S`` at the link's rate); an
         expedited packet waits at most for the one being sent.
         """
-        tc = ["tc", "-n", netns]
-        parent = ["dev", interface, "parent", f"{_TBF_HANDLE}1"]
-        _run([*tc, "qdisc", "add", *parent, "handle", _CLASSES_HANDLE, "htb", "default", "2"])
+        tc, dev = ["tc", "-n", netns], ["dev", interface]
+        default = ["default", _BULK_CLASS.partition(":")[2]]  # what no filter matches
+        classes = [*dev, "parent", f"{_TBF_HANDLE}1", "handle", _CLASSES_HANDLE, "htb", *default]
+        _run([*tc, "qdisc", "add", *classes])
+        under = [*dev, "parent", _CLASSES_HANDLE]
         for classid, prio in ((_EXPEDITED_CLASS, "0"), (_BULK_CLASS, "1")):
-            rates = ["rate", _CLASS_RATE, "ceil", _CLASS_RATE, "prio", prio]
-            _run(
-                [
-                    *tc,
-                    "class",
-                    "add",
-                    "dev",
-                    interface,
-                    "parent",
-                    _CLASSES_HANDLE,
-                    "classid",
-                    classid,
-                    "htb",
-                    *rates,
-                ]
-            )
+            shape = ["htb", "rate", _CLASS_RATE, "ceil", _CLASS_RATE, "prio", prio]
+            _run([*tc, "class", "add", *under, "classid", classid, *shape])
         _run([*tc, "qdisc", "add", *self._bulk_fifo(interface, self.link_mbit)])
         match = ["u32", "match", "ip", "dsfield", f"{tos:#x}", f"{_DSCP_MASK:#x}"]
-        _run(
-            [
-                *tc,
-                "filter",
-                "add",
-                "dev",
-                interface,
-                "parent",
-                _CLASSES_HANDLE,
-                "protocol",
-                "ip",
-                "prio",
-                "1",
-                *match,
-                "flowid",
-                _EXPEDITED_CLASS,
-            ]
-        )
+        rule = ["protocol", "ip", "prio", "1", *match, "flowid", _EXPEDITED_CLASS]
+        _run([*tc, "filter", "add", *under, *rule])
 
     @staticmethod
     def _bulk_fifo(interface: str, mbit: float) -> list[str]:
