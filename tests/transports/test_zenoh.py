@@ -35,6 +35,7 @@ from dbml.transports.zenoh.transport import (
     ZenohTransport,
     _config,
     _ZenohGraph,
+    open_router,
     prepare_runtime,
 )
 from tests.conftest import wait_for
@@ -428,11 +429,83 @@ def test_a_router_gets_a_receiving_thread_per_link_of_a_fleet() -> None:
 
 def test_sessions_drop_a_lost_peer_soon_and_retry_a_returning_one_often() -> None:
     config = _config(
-        connect=["tcp/127.0.0.1:7000"], listen=[], config_file=None, shared_memory=False, port=1
+        connect=["tcp/127.0.0.1:7000"],
+        listen=[],
+        config_file=None,
+        shared_memory=False,
+        port=1,
+        host="r1",
     )
     assert json.loads(config.get_json("transport/link/tx/lease")) == LEASE_MS < 10_000
     assert json.loads(config.get_json("transport/unicast/open_timeout")) == OPEN_TIMEOUT_MS
     assert json.loads(config.get_json("connect/retry"))["period_max_ms"] == RETRY_MAX_MS
+
+
+def test_a_session_declares_its_hosts_namespace_once(tmp_path: Path) -> None:
+    """Its publishers share one interest, its channels' parameters one subscription.
+
+    A router matches each declaration against every face's interests, under one lock.
+    """
+    aggregated = functools.partial(
+        _config, connect=[], listen=[], shared_memory=False, port=1, host="r1"
+    )
+    config = aggregated(config_file=None)
+    assert json.loads(config.get_json("aggregation/publishers")) == ["r1/**"]
+    assert json.loads(config.get_json("aggregation/subscribers")) == [
+        "dbml/param/r1/**",
+        "r1/**/dbm/priority",
+    ]
+    users = tmp_path / "users.json5"
+    users.write_text('{mode: "client", aggregation: {publishers: ["fleet/**"]}}')
+    config = aggregated(config_file=users)
+    assert json.loads(config.get_json("aggregation/publishers")) == ["fleet/**"]  # the user's
+    assert json.loads(config.get_json("aggregation/subscribers")) == [
+        "dbml/param/r1/**",
+        "r1/**/dbm/priority",
+    ]
+
+
+def test_through_a_router_each_aggregated_publisher_knows_its_own_subscribers(
+    tmp_path: Path,
+) -> None:
+    """What the aggregation must not change: which publisher has a subscriber, what is heard."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    client = tmp_path / "client.json5"
+    client.write_text('{mode: "client"}')
+    router = open_router([endpoint])
+    robot = ZenohTransport(
+        host="r1", connect=[endpoint], config_file=client, follow_all_params=False
+    )
+    operator = ZenohTransport(host="op", connect=[endpoint], config_file=client)
+    try:
+        heard: list[bytes] = []
+        operator.subscribe("/r1/a", lambda sample: heard.append(sample.payload), Variant.FULL)
+        a = robot.declare_publisher("/r1/a")
+        b = robot.declare_publisher("/r1/b")
+        wait_for(lambda: a.has_subscribers, what="/r1/a's subscriber")
+        assert not b.has_subscribers  # the one interest brought /r1/a's subscriber only
+        wait_for(lambda: (a.put(b"frame"), heard)[1] != [], what="/r1/a's frame")
+        operator.subscribe("/r1/b", lambda sample: None, Variant.FULL)
+        wait_for(lambda: b.has_subscribers, what="/r1/b's subscriber")
+        # Parameters: the robot hears the channels it writes to, and only those.
+        robot.params.set(names.max_rate("/r1/a"), 16.0)
+        operator.params.set(names.current_value("/r1/c"), 3.0)
+        operator.params.set(names.current_value("/r1/a"), 5.0)
+        wait_for(
+            lambda: robot.params.get(names.current_value("/r1/a")) == 5.0,
+            what="/r1/a's rate at the robot",
+        )
+        assert robot.params.get(names.current_value("/r1/c")) is None
+        # A priority topic's subscription, aggregated too, still gets its messages.
+        priorities: list[bytes] = []
+        robot.subscribe("/r1/a/dbm/priority", lambda sample: priorities.append(sample.payload))
+        source = operator.declare_publisher("/r1/a/dbm/priority")
+        wait_for(lambda: source.has_subscribers, what="the robot's priority subscription")
+        wait_for(lambda: (source.put(b"p"), priorities)[1] != [], what="a priority message")
+    finally:
+        operator.close()
+        robot.close()
+        router.close()  # type: ignore[no-untyped-call]  # unannotated in the stubs
 
 
 def test_priority_links_of_a_client_are_said_to_be_one_link(
@@ -447,6 +520,7 @@ def test_priority_links_of_a_client_are_said_to_be_one_link(
         listen=[],
         shared_memory=False,
         port=1,
+        host="r1",
         priority_links=True,
     )
     with caplog.at_level(logging.WARNING, logger="dbml.zenoh"):
