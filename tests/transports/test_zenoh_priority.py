@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import shutil
 import subprocess
+from collections.abc import Iterator
 from typing import SupportsInt, cast
 
 import pytest
@@ -52,9 +54,9 @@ def tos_of_connections(port: int) -> list[str]:
     return sorted(word for word in out.split() if word.startswith("tos:"))
 
 
-def test_only_the_urgent_link_is_marked_expedited() -> None:
-    """The connecting side's urgent link carries the TOS ``_priority_endpoints`` asks for."""
-    port = free_port()
+@contextlib.contextmanager
+def linked(port: int) -> Iterator[tuple[ZenohTransport, ZenohTransport]]:
+    """An operator listening on ``port`` and a robot connected to it, both with priority links."""
     endpoint = f"tcp/127.0.0.1:{port}"
     operator = ZenohTransport(host="op", listen=[endpoint], priority_links=True)
     robot = ZenohTransport(
@@ -62,11 +64,18 @@ def test_only_the_urgent_link_is_marked_expedited() -> None:
     )
     try:
         assert robot.wait_for_peers(10.0)
-        wanted = sorted(["tos:0", f"tos:{EXPEDITED_TOS:#x}"])
-        wait_for(lambda: tos_of_connections(port) == wanted, what="two links, one marked EF")
+        yield operator, robot
     finally:
         robot.close()
         operator.close()
+
+
+def test_only_the_urgent_link_is_marked_expedited() -> None:
+    """The connecting side's urgent link carries the TOS ``_priority_endpoints`` asks for."""
+    port = free_port()
+    with linked(port):
+        wanted = sorted(["tos:0", f"tos:{EXPEDITED_TOS:#x}"])
+        wait_for(lambda: tos_of_connections(port) == wanted, what="two links, one marked EF")
 
 
 def link_of(priority: TransportPriority) -> int:
@@ -94,13 +103,7 @@ def test_endpoints_with_metadata_are_checked_on_their_port() -> None:
 
 
 def test_priority_links_carry_every_class_and_a_remote_priority_redeclares() -> None:
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    operator = ZenohTransport(host="op", listen=[endpoint], priority_links=True)
-    robot = ZenohTransport(
-        host="r1", listen=["tcp/127.0.0.1:0"], connect=[endpoint], priority_links=True
-    )
-    try:
-        assert robot.wait_for_peers(10.0)
+    with linked(free_port()) as (operator, robot):
         received: list[Sample] = []
         operator.subscribe("/r1/alarm", received.append, Variant.OPTIMIZED)
         operator.params.set(names.current_value("/r1/alarm"), 20.0)
@@ -121,6 +124,3 @@ def test_priority_links_carry_every_class_and_a_remote_priority_redeclares() -> 
         wait_for(lambda: publisher.publish(bytes(1_000)), what="a message in the new class")
         wait_for(lambda: len(received) > count, what="the interactive class delivered")
         publisher.close()
-    finally:
-        robot.close()
-        operator.close()
