@@ -396,7 +396,9 @@ def test_the_receiving_runtime_gets_its_threads_unless_the_user_chose(
     monkeypatch.setenv(RUNTIME_ENV, "")  # recorded, so the test leaves it as it found it
     monkeypatch.delenv(RUNTIME_ENV)
     prepare_runtime()
-    assert os.environ[RUNTIME_ENV] == f"(rx: (worker_threads: {RX_THREADS}))"
+    assert os.environ[RUNTIME_ENV] == (
+        f"(rx: (worker_threads: {RX_THREADS}), net: (worker_threads: {NET_THREADS}))"
+    )
     monkeypatch.setenv(RUNTIME_ENV, "(app: (worker_threads: 2))")
     prepare_runtime()
     assert os.environ[RUNTIME_ENV] == "(app: (worker_threads: 2))"
