@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections.abc import Mapping
 
 import pytest
@@ -12,7 +13,7 @@ from dbml.core import DbmSettings, LinkSpec, Status, Strategy
 from dbml.protocol import names
 from dbml.protocol.keys import ROUND_TOPIC
 from dbml.runtime import ManagedPublisher, ManagedSubscriber, OptimizerNode, Round
-from dbml.runtime.optimizer import MAX_CHANNELS
+from dbml.runtime.optimizer import ACK_TIMEOUT_S, MAX_CHANNELS
 from dbml.runtime.rounds import RoundFollower
 from dbml.testing import Fleet
 from dbml.transports import ManualClock, MemoryNetwork, MemoryTransport, ParamValue, Role, Variant
@@ -211,6 +212,131 @@ def test_a_restarted_optimizer_orders_changes_by_what_publishers_run() -> None:
     successor.optimize()
     # It has pushed nothing yet, but the publishers' acknowledgements say R2 must go down first.
     assert [topic for topic, _ in writes] == [R2, R1]
+
+
+def test_a_round_that_raises_is_tried_again_a_period_later_not_at_once() -> None:
+    fleet = Fleet(settings=DbmSettings(11.0, 1.0, 0.5), clock=time.monotonic)
+    calls: list[float] = []
+
+    def failing() -> Round:
+        calls.append(time.monotonic())
+        raise RuntimeError("a round that fails")
+
+    fleet.optimizer.optimize = failing  # type: ignore[method-assign]
+    fleet.optimizer.start()
+    try:
+        wait_for(lambda: len(calls) >= 2, timeout_s=5, what="a second round")
+        assert calls[1] - calls[0] >= 0.45
+    finally:
+        fleet.close()
+
+
+class HeldAcks:
+    """A host's acknowledgements of its rates held back, as a slow route holds them."""
+
+    def __init__(self, fleet: Fleet, host: str) -> None:
+        store = fleet.host(host).params
+        self._set = store.set
+        self._held: list[tuple[str, ParamValue]] = []
+
+        def hold(name: str, value: ParamValue) -> None:
+            if name.endswith("/dbm/frequency/applied_value"):
+                self._held.append((name, value))
+            else:
+                self._set(name, value)
+
+        store.set = hold  # type: ignore[method-assign]
+
+    def release(self) -> None:
+        held, self._held = self._held, []
+        for name, value in held:
+            self._set(name, value)
+
+
+def r2_down_r1_up(fleet: Fleet) -> None:
+    """R1 12.37 -> 16 Hz, R2 16 -> 1.48 Hz: R1's rise needs the room R2's cut frees."""
+    fleet.priority(R2, 0.0)
+    fleet.priority(R1, 1.0)
+
+
+def paper_steady(fleet: Fleet) -> None:
+    fleet.watch(R1)
+    fleet.watch(R2)
+    fleet.priority(R2, 1.0)
+    fleet.optimize()
+    assert round(fleet.rates()[R1], 2) == 12.37
+    assert fleet.rates()[R2] == 16.0
+
+
+def test_an_increase_waits_for_the_decrease_it_needs_and_the_heartbeat_does_not() -> None:
+    fleet = two_robots()
+    paper_steady(fleet)
+    acks = HeldAcks(fleet, "r2")
+    r2_down_r1_up(fleet)
+    writes = rate_writes(fleet)
+    first = fleet.optimize()
+    second = fleet.optimize()  # the next round: R2 has still said nothing
+    assert [(t, round(hz, 2)) for t, hz in writes] == [(R2, 1.48)]
+    assert fleet.get(names.ROUND) == second.number == first.number + 1
+    assert round(fleet.rates()[R1], 2) == 12.37
+    acks.release()
+    fleet.optimizer.admit()
+    assert writes[1:] == [(R1, 16.0)]
+    assert fleet.rates() == {R1: 16.0, R2: pytest.approx(1.48, abs=0.01)}
+
+
+def test_a_decrease_not_acknowledged_in_time_counts_as_applied(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    fleet = two_robots()
+    paper_steady(fleet)
+    HeldAcks(fleet, "r2")
+    r2_down_r1_up(fleet)
+    fleet.optimize()
+    fleet.advance(ACK_TIMEOUT_S * 0.9)
+    fleet.optimizer.admit()
+    assert round(fleet.rates()[R1], 2) == 12.37
+    fleet.advance(ACK_TIMEOUT_S * 0.1)
+    with caplog.at_level(logging.WARNING, logger="dbml.optimizer"):
+        fleet.optimizer.admit()
+    assert fleet.rates()[R1] == 16.0
+    assert f"no acknowledgement of a decrease from ['{R2}']" in caplog.text
+
+
+def test_over_a_network_an_increase_waits_until_the_decreased_channels_last_frame_crossed() -> None:
+    """A frame sent just before the decrease applied may be queued behind its acknowledgement."""
+    fleet = two_robots()
+    fleet.optimizer._transport.delivers_at_once = False  # type: ignore[misc]
+    paper_steady(fleet)
+    r2_down_r1_up(fleet)
+    fleet.optimize()  # R2 acknowledges at once
+    drain_s = SIZES[R2] / (11e6 / 8)  # one of its frames at the budget's rate
+    fleet.advance(drain_s * 0.98)
+    fleet.optimizer.admit()
+    assert round(fleet.rates()[R1], 2) == 12.37
+    fleet.advance(drain_s * 0.02)
+    fleet.optimizer.admit()
+    assert fleet.rates()[R1] == 16.0
+
+
+def test_a_running_optimizer_pushes_a_waiting_increase_when_the_acknowledgement_comes() -> None:
+    fleet = Fleet(settings=DbmSettings(11.0, 1.0, 60.0), clock=time.monotonic, ack_timeout_s=30)
+    for topic, size in SIZES.items():
+        fleet.publisher(topic, size_bytes=size)
+    try:
+        fleet.watch(R1)
+        fleet.watch(R2)
+        fleet.priority(R2, 1.0)
+        fleet.optimizer.start()
+        wait_for(lambda: fleet.rates()[R2] == 16.0, what="the first allocation")
+        acks = HeldAcks(fleet, "r2")
+        r2_down_r1_up(fleet)
+        wait_for(lambda: fleet.rates()[R2] < 2, what="R2's decrease")
+        assert round(fleet.rates()[R1], 2) == 12.37
+        acks.release()  # long before the 30-s timeout and the 60-s period
+        wait_for(lambda: fleet.rates()[R1] == 16.0, timeout_s=5, what="R1's increase")
+    finally:
+        fleet.close()
 
 
 def test_a_round_pushes_each_host_its_channels_and_everyone_the_heartbeat() -> None:

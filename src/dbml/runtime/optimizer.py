@@ -9,9 +9,12 @@ allocates, and pushes each publisher its rate through ``[topic]/dbm/frequency/cu
 A round pushes only what changed: rates, ``managed`` flags, the status, and ``/dbm/round``, the
 heartbeat that tells publishers their rate still stands. Then it says what it decided, whole, in
 a ``RoundReport`` on ``/dbm/optimizer/round`` (when anyone listens): the live view and ``dbml
-monitor`` show that, and never allocate themselves. When some rates go down and others up it
-is two writes (``set_many``): the decreases first, acknowledged (or ``ACK_TIMEOUT_S`` passed)
-before the increases go out, so the budget is not exceeded while rates change; otherwise one.
+monitor`` show that, and never allocate themselves. When some rates go down and others up,
+the decreases go first and each increase goes once it fits beside what the others may still be
+sending (``dbml.runtime.ledger``: a decrease counts until acknowledged and drained, or
+``ACK_TIMEOUT_S`` passed), so the budget is not exceeded while rates change, and no round waits
+for the slowest publisher: an increase that does not fit yet goes when an acknowledgement
+frees its room.
 Each write is one message where the middleware allows (zenoh's batch), one write per name over
 ROS 1. A rate is pushed again when its channel's publishers change (a restarted publisher heard
 nothing). Only channels with a subscriber to ``[topic]/optimized`` on another host are managed;
@@ -43,6 +46,7 @@ from dbml.protocol.ladders import Encoding, encoding_label, parse_rung_label
 from dbml.protocol.messages import MAX_REPORTED_CHANNELS, ChannelRound, RoundReport
 from dbml.protocol.schema import Parameter
 from dbml.runtime.graph import summarize
+from dbml.runtime.ledger import Limit, RateLedger
 from dbml.runtime.params import ChannelParams, DbmParams, ParamView, write_settings
 from dbml.runtime.worker import PeriodicWorker
 from dbml.transports.base import (
@@ -76,6 +80,8 @@ _TRIGGERS = frozenset(
     }
 )
 """Parameters whose change re-allocates at once: a channel's inputs, the budget, the rules."""
+_ACKS = frozenset({schema.APPLIED, schema.ENCODING_APPLIED})
+"""A publisher's acknowledgements: one may free room for an increase waiting."""
 _DEFAULTS: dict[str, ParamValue] = {
     names.UTILIZATION: DbmParams().utilization,
     names.PERIOD: DbmParams().period_s,
@@ -83,7 +89,7 @@ _DEFAULTS: dict[str, ParamValue] = {
 }
 """What ``write_defaults`` writes: ``DbmParams``'s own defaults."""
 ACK_TIMEOUT_S = 0.25
-"""How long increases wait for publishers to acknowledge the decreases pushed before them."""
+"""How long an unacknowledged decrease counts at its rate before it (increases wait for room)."""
 COALESCE_S = 0.002
 """Triggers within this time of the first run one round."""
 REPORT_INTERVAL_S = 0.1
@@ -111,6 +117,19 @@ def _writes(topic: str, wanted: _Wanted) -> dict[str, ParamValue]:
     if label is not None:
         values[names.encoding(topic)] = label
     return values
+
+
+def _frame_bytes(channel: ChannelParams, label: str | None) -> float:
+    """The bytes a frame of ``channel`` counts at: its rung's, else its size."""
+    if label is not None and channel.rungs is not None:
+        return _rung_bytes(channel, label)
+    return channel.size_bytes or 0.0
+
+
+def _bytes_per_s(channel: ChannelParams, wanted: _Wanted) -> float:
+    """What ``wanted`` (a rate and a rung) sends a second (nothing without a rate)."""
+    rate, label = wanted
+    return 0.0 if rate is None else rate * _frame_bytes(channel, label)
 
 
 def _rung_bytes(channel: ChannelParams, label: str) -> float:
@@ -215,6 +234,16 @@ class Round:
 
 
 @dataclass(frozen=True, slots=True)
+class _Waiting:
+    """Increases a round could not push yet, and what their admission needs."""
+
+    increases: Mapping[str, _Wanted]
+    """In the order they go: the most important first."""
+    channels: tuple[ChannelState, ...]
+    limits: tuple[Limit, ...]
+
+
+@dataclass(frozen=True, slots=True)
 class _Outcome:
     """What one round's allocation decided for the managed channels, before it is pushed."""
 
@@ -288,7 +317,6 @@ class OptimizerNode:
         """The last quality allocation's price: the next one's search starts there."""
         self._report_interval_s = report_interval_s
         self._reported_s = -math.inf
-        self._ack_timeout_s = ack_timeout_s
         self._estimate = budget_mbit
         self._pushed: dict[str, tuple[_Wanted, frozenset[str]]] = {}
         self._pushed_at: dict[str, float] = {}
@@ -306,7 +334,13 @@ class OptimizerNode:
         self._ignored = 0
         """How many channels the last round ignored, past ``MAX_CHANNELS``."""
         self._channels_full = Overflow("channels tracked", MAX_CHANNELS, log=log)
-        self._acks = threading.Condition()
+        self._ledger = RateLedger(ack_timeout_s=ack_timeout_s)
+        self._waiting: _Waiting | None = None
+        """The last round's increases not pushed yet (on the worker's thread only)."""
+        self._poked = threading.Event()
+        """A trigger came: the next tick is a round, not only an admission."""
+        self._due_s = -math.inf
+        """When the next periodic round is due."""
         self.last_round: Round | None = None
         self._active = threading.Event()
         self._active.set()
@@ -326,7 +360,7 @@ class OptimizerNode:
         self._view = ParamView.of(params)
         self._worker = PeriodicWorker(
             self._round,
-            interval_s=lambda: self._view.dbm().period_s,
+            interval_s=self._wait_s,
             name="dbml-optimizer",
             log=log,
             coalesce_s=coalesce_s,
@@ -339,14 +373,35 @@ class OptimizerNode:
             transport.graph.watch(self.poke),
         ]
 
+    def _wait_s(self) -> float:
+        """Until the next tick: the period's round, or a waiting decrease's settling."""
+        due = self._due_s
+        if self._waiting is not None and (change := self._ledger.next_change_s()) is not None:
+            due = min(due, change)
+        return max(0.0, due - self._transport.now())
+
     def _round(self) -> None:
+        """A round when one is due or was asked for; else admit what waits for room."""
+        now = self._transport.now()
+        period_s = self._view.dbm().period_s
         if not self._active.is_set():
+            self._waiting = None  # nothing is pushed while paused
+            self._due_s = now + period_s
             return
+        waiting = self._waiting is not None and not self._poked.is_set()
+        if waiting and now < self._due_s:
+            self.admit()
+            return
+        self._poked.clear()
+        self._due_s = now + period_s  # a round that raises is retried a period later
         if self._resumed.is_set():
             self._resumed.clear()
             self._pushed = {}
             self._pushed_at = {}
+            self._ledger.clear()
+            self._waiting = None
         self.optimize()  # looked up per round, so a wrapped ``optimize`` is the one that runs
+        self._due_s = self._transport.now() + period_s
 
     # -- pausing (a lifecycle's inactive state) -----------------------------------------------
 
@@ -373,15 +428,15 @@ class OptimizerNode:
 
     def poke(self) -> None:
         """Ask for a re-optimisation as soon as possible (bursts coalesce into one)."""
+        self._poked.set()
         self._worker.wake()
 
     def _on_param(self, parameter: Parameter, _topic: str | None, _value: ParamValue) -> None:
         """A valid value arrived (the view has it already): react to what it changes."""
         if parameter in _TRIGGERS:
             self.poke()
-        elif parameter is schema.APPLIED or parameter is schema.ENCODING_APPLIED:
-            with self._acks:
-                self._acks.notify_all()
+        elif parameter in _ACKS and self._waiting is not None:
+            self._worker.wake()  # an increase may fit now: admitted on the worker's thread
 
     def _on_written(self, name: str, value: ParamValue) -> None:
         """Any write, valid or not: one over a value this node owns is undone at once."""
@@ -563,7 +618,8 @@ class OptimizerNode:
         self._owned = {name: v for values in owned.values() for name, v in values.items()}
         self._owned |= {names.current_value(t): r for t, r in rates.items()}
         self._owned |= {names.encoding(t): e for t, e in encodings.items()}
-        self._push(rates, encodings, channels, updates)
+        limits = self._limits(outcome, dbm, channels, rates, encodings)
+        self._push(rates, encodings, channels, updates, limits)
         result = Round(
             channels,
             rates,
@@ -587,6 +643,37 @@ class OptimizerNode:
                 self._watcher_failed = True
         return result
 
+    def _limits(
+        self,
+        outcome: _Outcome,
+        dbm: DbmParams,
+        channels: tuple[ChannelState, ...],
+        rates: Mapping[str, float],
+        encodings: Mapping[str, str],
+    ) -> tuple[Limit, ...]:
+        """What the managed channels may send together while rates change: the budget, each link.
+
+        Each at least what the round pushes (an infeasible round's floors exceed the budget; a
+        rung's bytes are rounded up to the byte in its label).
+        """
+        solved = outcome.allocation or outcome.quality
+        if solved is None:
+            return ()
+        target = {
+            c.topic: _bytes_per_s(c.params, (rates[c.topic], encodings.get(c.topic)))
+            for c in channels
+            if c.managed and c.topic in rates
+        }
+        limits = [Limit(frozenset(target), max(solved.budget_bytes_per_s, sum(target.values())))]
+        budget = dbm.link_and_utilization()
+        utilization = 1.0 if budget is None else budget[1]
+        for link in self._links:
+            topics = frozenset(link.topics) & target.keys()
+            if topics:
+                capacity = mbit_to_bytes_per_s(link.capacity_mbit) * utilization
+                limits.append(Limit(topics, max(capacity, sum(target[t] for t in topics))))
+        return tuple(limits)
+
     def _report(self, result: Round) -> None:
         """Say what the round decided, to whoever listens: at most once a ``report_interval_s``.
 
@@ -604,16 +691,18 @@ class OptimizerNode:
         encodings: dict[str, str],
         channels: tuple[ChannelState, ...],
         updates: _Writes,
+        limits: tuple[Limit, ...],
     ) -> None:
-        """Push what changed: decreases first (acknowledged), then the rest and the heartbeat.
+        """Push what changed: decreases first, the increases that fit, the rest and the heartbeat.
 
         A laddered channel's rung goes with its rate, and what decreases is its bytes a second
         (rate times the rung's bytes), so a channel trading detail for frames is not raised
-        before another's cut is applied.
+        before another's cut is applied. An increase that does not fit beside what the others
+        may still send (``RateLedger``) waits: ``admit`` pushes it once it fits.
         """
         params = self._transport.params
         publishers = {c.topic: c.publishers for c in channels}
-        ladders = {c.topic: c.params for c in channels if c.params.rungs is not None}
+        states = {c.topic: c.params for c in channels}
         now = self._transport.now()
         period_s = self._view.dbm().period_s  # once per round, not once per channel
         # Changed, or for new publishers (a restarted one heard nothing), or overwritten by
@@ -628,37 +717,96 @@ class OptimizerNode:
             or (w[1] is not None and params.get(names.encoding(t)) != w[1])
             or (not self._acknowledged(t, w) and now - self._pushed_at.get(t, now) >= period_s)
         }
-
-        def spend(topic: str, rate: float | None, label: str | None) -> float | None:
-            channel = ladders.get(topic)
-            if rate is None or channel is None or label is None:
-                return rate  # no ladder: the size is the same on both sides
-            return rate * _rung_bytes(channel, label)
-
-        before = {t: spend(t, *self._running(t)) for t in changed}
-        # A channel nobody pushed to yet sends nothing: it rises from zero, after the decreases.
+        # A channel nobody pushed to yet sends nothing: it rises from zero, with the increases.
+        before = {t: self._running(t) for t in changed}
         decreases = {
             t: w
             for t, w in changed.items()
-            if (b := before[t]) is not None and (after := spend(t, *w)) is not None and after < b
+            if before[t][0] is not None
+            and _bytes_per_s(states[t], w) < _bytes_per_s(states[t], before[t])
         }
+        budget = max((limit.bytes_per_s for limit in limits), default=0.0)
+        queued = not self._transport.delivers_at_once
+        for topic in decreases:
+            channel = states[topic]
+            frame = _frame_bytes(channel, before[topic][1])
+            self._ledger.decrease(
+                topic,
+                before_bytes_per_s=_bytes_per_s(channel, before[topic]),
+                drain_s=frame / budget if queued and budget > 0 else 0.0,
+                now=now,
+            )
         increases = {t: w for t, w in changed.items() if t not in decreases}
         if decreases and increases:
             self._send({t: _writes(t, w) for t, w in decreases.items()}, channels)
             self._pushed_at.update(dict.fromkeys(decreases, now))
-            self._await_acks(decreases)
+            for topic, w in decreases.items():
+                self._pushed[topic] = (w, publishers.get(topic, frozenset()))
             decreases = {}
+        order = sorted(increases, key=lambda t: (-(states[t].priority or 0.0), t))
+        admitted = set(self._fitting({t: increases[t] for t in order}, channels, limits))
         self._rounds += 1
-        pushed = decreases | increases
+        pushed = decreases | {t: w for t, w in increases.items() if t in admitted}
         writes: _Writes = {t: _writes(t, w) for t, w in pushed.items()}
-        for topic, values in updates.items():
-            writes[topic] = writes.get(topic, {}) | values
+        for key, values in updates.items():
+            writes[key] = writes.get(key, {}) | values
         writes[None] = writes.get(None, {}) | {names.ROUND: self._rounds}
         self._send(writes, channels)
         self._pushed_at.update(dict.fromkeys(pushed, now))
+        held = {t: increases[t] for t in order if t not in admitted}
+        kept = {t: p for t in held if (p := self._pushed.get(t)) is not None}
         self._pushed = {t: (w, publishers.get(t, frozenset())) for t, w in wanted.items()}
+        self._pushed.update(kept)  # still what it runs: pushed again once it fits
+        for topic in held.keys() - kept.keys():
+            del self._pushed[topic]
         for topic in set(self._pushed_at) - set(rates):
             del self._pushed_at[topic]
+        self._ledger.forget(rates)
+        self._waiting = _Waiting(held, channels, limits) if held else None
+        if held:
+            log.debug("round %d: %d increases wait for room: %s", self._rounds, len(held), held)
+
+    def _fitting(
+        self,
+        increases: Mapping[str, _Wanted],
+        channels: tuple[ChannelState, ...],
+        limits: tuple[Limit, ...],
+    ) -> list[str]:
+        """The ``increases`` that fit now (``RateLedger.admit``), the acknowledgements in first."""
+        now = self._transport.now()
+        states = {c.topic: c.params for c in channels}
+        for topic in self._ledger.pending:
+            pushed = self._pushed.get(topic)
+            if pushed is not None and self._acknowledged(topic, pushed[0]):
+                self._ledger.acknowledged(topic, now)
+        late = self._ledger.settle(now)
+        if late:
+            log.warning("no acknowledgement of a decrease from %s; raising others anyway", late)
+        current = {}
+        for topic, channel in states.items():
+            pushed = self._pushed.get(topic)
+            running = self._running(topic) if pushed is None else pushed[0]
+            current[topic] = _bytes_per_s(channel, running)
+        wanted = {t: _bytes_per_s(states[t], w) for t, w in increases.items()}
+        return self._ledger.admit(wanted, current, limits)
+
+    def admit(self) -> None:
+        """Push the last round's waiting increases that fit now (on an acknowledgement)."""
+        waiting = self._waiting
+        if waiting is None:
+            return
+        admitted = self._fitting(waiting.increases, waiting.channels, waiting.limits)
+        if admitted:
+            now = self._transport.now()
+            publishers = {c.topic: c.publishers for c in waiting.channels}
+            pushed = {t: waiting.increases[t] for t in admitted}
+            self._send({t: _writes(t, w) for t, w in pushed.items()}, waiting.channels)
+            self._pushed_at.update(dict.fromkeys(pushed, now))
+            for topic, w in pushed.items():
+                self._pushed[topic] = (w, publishers.get(topic, frozenset()))
+            log.debug("admitted once room was made: %s", pushed)
+        held = {t: w for t, w in waiting.increases.items() if t not in admitted}
+        self._waiting = replace(waiting, increases=held) if held else None
 
     def _send(self, writes: _Writes, channels: tuple[ChannelState, ...]) -> None:
         """Write in batches: a channel's values to each host that publishes it, the rest to all.
@@ -704,18 +852,6 @@ class OptimizerNode:
         if self._applied_hz(topic) != rate:
             return False
         return label is None or self._view.get(names.encoding_applied(topic)) == label
-
-    def _await_acks(self, decreases: Mapping[str, _Wanted]) -> None:
-        """Wait until publishers apply the decreases (bounded), so increases come after them."""
-
-        def late() -> list[str]:
-            return sorted(t for t, w in decreases.items() if not self._acknowledged(t, w))
-
-        with self._acks:
-            if not self._acks.wait_for(lambda: not late(), timeout=self._ack_timeout_s):
-                log.warning(
-                    "no acknowledgement of a decrease from %s; raising others anyway", late()
-                )
 
     # -- the loop -----------------------------------------------------------------------------
 

@@ -83,6 +83,8 @@ class RateLimiter:
 
     BANKED_FRAMES = 2.0
     """The most credit kept: a source that called late may catch up one message, no more."""
+    DECREASE_FRAMES = 1.0
+    """The most credit kept across a decrease: one frame, sent at once or not at all."""
 
     def __init__(self, rate_hz: float) -> None:
         self._credit = _Credit(rate_hz, cap_frames=self.BANKED_FRAMES)
@@ -93,12 +95,18 @@ class RateLimiter:
         return self._credit.rate_hz
 
     def set_rate(self, rate_hz: float, now: float) -> None:
-        """Apply ``rate_hz`` from ``now``; what was earned until ``now`` is kept.
+        """Apply ``rate_hz`` from ``now``; what was earned until ``now`` is kept, up to a frame.
 
         So a faster allocation takes effect at once (the part of a period already waited
-        counts), and a brief one earns only its share.
+        counts), and a brief one earns only its share. A slower one keeps at most one frame of
+        credit (``DECREASE_FRAMES``): the optimizer counts a decreased channel at its old rate
+        until it acknowledges and one frame drains, not a bank of frames earned before.
         """
-        self._credit.look(now, rate_hz)
+        credit = self._credit
+        slower = rate_hz < credit.rate_hz
+        credit.look(now, rate_hz)
+        if slower:
+            credit.frames = min(credit.frames, self.DECREASE_FRAMES)
 
     def restart(self, rate_hz: float, now: float, *, owed_frames: float = 0.0) -> None:
         """Apply ``rate_hz`` from ``now`` with at most one frame of credit, less ``owed_frames``.

@@ -292,6 +292,14 @@ class Transport(Protocol):
         ...
 
     @property
+    def delivers_at_once(self) -> bool:
+        """Whether a message arrives as it is put, never queued on a link (memory's network).
+
+        Elsewhere a frame put before a control message may arrive after it.
+        """
+        ...
+
+    @property
     def float64(self) -> Float64Codec:
         """A ``std_msgs/Float64`` as this middleware serialises it (a priority from a topic)."""
         ...
@@ -378,6 +386,8 @@ class TransportBase:
 
     has_priorities = False
     """Messages go in one class: a publisher's priority and ``express`` are ignored."""
+    delivers_at_once = False
+    """Messages cross a network: a frame may wait in a queue while a later message overtakes it."""
     float64 = CDR_FLOAT64
     """CDR, ROS 2's serialisation: what rmw_zenoh and rclpy carry, and zenoh and memory too."""
 

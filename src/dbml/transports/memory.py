@@ -179,6 +179,9 @@ class _MemoryGraph:
 class MemoryTransport(TransportBase):
     """One process's view of a ``MemoryNetwork`` (a fresh private network if none is given)."""
 
+    delivers_at_once = True
+    """Delivery is a call: nothing is ever queued on the way."""
+
     def __init__(
         self,
         network: MemoryNetwork | None = None,

@@ -1,0 +1,99 @@
+"""The rate ledger: which increases fit while decreases are not yet applied (no network)."""
+
+from __future__ import annotations
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from dbml.runtime.ledger import Limit, RateLedger
+
+TIMEOUT_S = 0.25
+BUDGET = Limit(frozenset({"a", "b", "c"}), 1_000.0)
+
+
+def test_an_increase_waits_for_the_decrease_that_makes_its_room_then_for_its_drain() -> None:
+    ledger = RateLedger(ack_timeout_s=TIMEOUT_S)
+    # a runs 600 B/s and goes down to 200; b runs 400 and wants 800: only once a is down.
+    ledger.decrease("a", before_bytes_per_s=600.0, drain_s=0.05, now=10.0)
+    current = {"a": 200.0, "b": 400.0}
+    assert ledger.admit({"b": 800.0}, current, [BUDGET]) == []
+    ledger.acknowledged("a", now=10.02)
+    assert ledger.settle(10.03) == []
+    assert ledger.admit({"b": 800.0}, current, [BUDGET]) == []  # its last frame may be queued
+    assert ledger.next_change_s() == pytest.approx(10.07)
+    assert ledger.settle(10.07) == []
+    assert ledger.pending == frozenset()
+    assert ledger.admit({"b": 800.0}, current, [BUDGET]) == ["b"]
+
+
+def test_an_increase_that_fits_beside_an_unapplied_decrease_goes_at_once() -> None:
+    ledger = RateLedger(ack_timeout_s=TIMEOUT_S)
+    ledger.decrease("a", before_bytes_per_s=600.0, drain_s=0.05, now=10.0)
+    current = {"a": 200.0, "b": 100.0, "c": 0.0}
+    # 600 + 100 + 300 = 1,000: c's first allocation fits; b's rise too would not.
+    assert ledger.admit({"c": 300.0, "b": 200.0}, current, [BUDGET]) == ["c"]
+    assert ledger.admit({"b": 200.0, "c": 300.0}, current, [BUDGET]) == ["b"]  # order decides
+
+
+def test_an_unacknowledged_decrease_counts_as_applied_after_the_timeout_and_is_named() -> None:
+    ledger = RateLedger(ack_timeout_s=TIMEOUT_S)
+    ledger.decrease("a", before_bytes_per_s=600.0, drain_s=0.05, now=10.0)
+    assert ledger.next_change_s() == pytest.approx(10.25)
+    assert ledger.settle(10.2) == []
+    assert ledger.admit({"b": 800.0}, {"a": 200.0, "b": 400.0}, [BUDGET]) == []
+    assert ledger.settle(10.25) == ["a"]
+    assert ledger.admit({"b": 800.0}, {"a": 200.0, "b": 400.0}, [BUDGET]) == ["b"]
+
+
+def test_a_second_decrease_before_the_first_settled_keeps_the_higher_rate_before() -> None:
+    ledger = RateLedger(ack_timeout_s=TIMEOUT_S)
+    ledger.decrease("a", before_bytes_per_s=600.0, drain_s=0.0, now=10.0)
+    ledger.decrease("a", before_bytes_per_s=300.0, drain_s=0.0, now=10.1)
+    assert ledger.committed("a", 100.0) == 600.0
+    assert ledger.committed("b", 100.0) == 100.0
+
+
+def test_a_link_limits_its_own_channels_only() -> None:
+    ledger = RateLedger(ack_timeout_s=TIMEOUT_S)
+    uplink = Limit(frozenset({"a"}), 300.0)
+    current = {"a": 100.0, "b": 100.0}
+    assert ledger.admit({"a": 400.0, "b": 700.0}, current, [BUDGET, uplink]) == ["b"]
+    assert ledger.admit({"x": 5_000.0}, current, [BUDGET, uplink]) == ["x"]  # in no limit
+
+
+def test_a_decrease_of_a_channel_gone_still_counts_until_it_settles() -> None:
+    ledger = RateLedger(ack_timeout_s=TIMEOUT_S)
+    ledger.decrease("a", before_bytes_per_s=600.0, drain_s=0.0, now=10.0)
+    assert ledger.admit({"b": 500.0}, {"b": 0.0}, [BUDGET]) == []
+    ledger.forget(["b"])
+    assert ledger.admit({"b": 500.0}, {"b": 0.0}, [BUDGET]) == ["b"]
+
+
+spends = st.floats(min_value=0.0, max_value=600.0, allow_nan=False)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    before=st.dictionaries(st.sampled_from("abc"), spends, max_size=3),
+    current=st.fixed_dictionaries(dict.fromkeys("abc", spends)),
+    wanted=st.dictionaries(st.sampled_from("abc"), spends, min_size=1, max_size=3),
+)
+def test_what_is_admitted_never_takes_the_committed_sum_over_a_limit_it_was_within(
+    before: dict[str, float], current: dict[str, float], wanted: dict[str, float]
+) -> None:
+    """And greedy: an increase refused would not have fitted beside those admitted before it."""
+    ledger = RateLedger(ack_timeout_s=TIMEOUT_S)
+    for topic, rate in before.items():
+        ledger.decrease(topic, before_bytes_per_s=rate, drain_s=0.0, now=0.0)
+    committed = {t: max(current[t], before.get(t, 0.0)) for t in "abc"}
+    admitted = ledger.admit(wanted, current, [BUDGET])
+    load = dict(committed)
+    for topic, spend in wanted.items():
+        rises = spend > load[topic]
+        fits = sum(load.values()) - load[topic] + spend <= BUDGET.bytes_per_s * (1 + 1e-9)
+        assert (topic in admitted) == (not rises or fits), (topic, load)
+        if topic in admitted:
+            load[topic] = max(load[topic], spend)
+    if sum(committed.values()) <= BUDGET.bytes_per_s:
+        assert sum(load.values()) <= BUDGET.bytes_per_s * (1 + 1e-9)
