@@ -46,6 +46,17 @@ def test_an_unacknowledged_decrease_counts_as_applied_after_the_timeout_and_is_n
     assert ledger.admit({"b": 800.0}, {"a": 200.0, "b": 400.0}, [BUDGET]) == ["b"]
 
 
+def test_a_late_acknowledgement_still_drains_in_full() -> None:
+    ledger = RateLedger(ack_timeout_s=TIMEOUT_S)
+    ledger.decrease("a", before_bytes_per_s=600.0, drain_s=0.2, now=10.0)
+    ledger.acknowledged("a", now=10.2)
+    assert ledger.next_change_s() == pytest.approx(10.4)
+    assert ledger.settle(10.3) == []
+    assert ledger.pending == {"a"}
+    assert ledger.settle(10.4) == []
+    assert ledger.pending == frozenset()
+
+
 def test_a_second_decrease_before_the_first_settled_keeps_the_higher_rate_before() -> None:
     ledger = RateLedger(ack_timeout_s=TIMEOUT_S)
     ledger.decrease("a", before_bytes_per_s=600.0, drain_s=0.0, now=10.0)

@@ -6,14 +6,16 @@ import logging
 import threading
 import time
 from collections.abc import Mapping
+from dataclasses import replace
 
 import pytest
 
 from dbml.core import DbmSettings, LinkSpec, Status, Strategy
 from dbml.protocol import names
 from dbml.protocol.keys import ROUND_TOPIC
-from dbml.runtime import ManagedPublisher, ManagedSubscriber, OptimizerNode, Round
-from dbml.runtime.optimizer import ACK_TIMEOUT_S, MAX_CHANNELS
+from dbml.runtime import ManagedPublisher, ManagedSubscriber, OptimizerNode, RateLimiter, Round
+from dbml.runtime.optimizer import ACK_TIMEOUT_S, MAX_CHANNELS, _Outcome
+from dbml.runtime.params import ChannelParams, DbmParams
 from dbml.runtime.rounds import RoundFollower
 from dbml.testing import Fleet
 from dbml.transports import ManualClock, MemoryNetwork, MemoryTransport, ParamValue, Role, Variant
@@ -231,6 +233,25 @@ def test_a_round_that_raises_is_tried_again_a_period_later_not_at_once() -> None
         fleet.close()
 
 
+def test_a_rate_moved_by_float_noise_only_is_not_pushed_again() -> None:
+    """A solver's rounding (1.000000000000011 Hz for a floor of 1) is no change to push."""
+    fleet = two_robots()
+    paper_steady(fleet)
+    before = dict(fleet.rates())
+    allocate = fleet.optimizer._allocate
+
+    def noisy(managed: list[ChannelParams], dbm: DbmParams) -> _Outcome:
+        outcome = allocate(managed, dbm)
+        return replace(outcome, rates_hz={t: r * (1 + 1e-14) for t, r in outcome.rates_hz.items()})
+
+    fleet.optimizer._allocate = noisy  # type: ignore[method-assign]
+    writes = rate_writes(fleet)
+    result = fleet.optimize()
+    assert writes == []
+    assert result.rates_hz == before
+    assert fleet.rates() == before
+
+
 class HeldAcks:
     """A host's acknowledgements of its rates held back, as a slow route holds them."""
 
@@ -303,18 +324,33 @@ def test_a_decrease_not_acknowledged_in_time_counts_as_applied(
     assert f"no acknowledgement of a decrease from ['{R2}']" in caplog.text
 
 
-def test_over_a_network_an_increase_waits_until_the_decreased_channels_last_frame_crossed() -> None:
-    """A frame sent just before the decrease applied may be queued behind its acknowledgement."""
+def test_over_a_network_an_increase_waits_until_the_decreased_channels_frames_crossed() -> None:
+    """Its banked frames may still go, and one sent just before may be queued behind its ack."""
     fleet = two_robots()
     fleet.optimizer._transport.delivers_at_once = False  # type: ignore[misc]
     paper_steady(fleet)
     r2_down_r1_up(fleet)
     fleet.optimize()  # R2 acknowledges at once
-    drain_s = SIZES[R2] / (11e6 / 8)  # one of its frames at the budget's rate
+    drain_s = (RateLimiter.BANKED_FRAMES + 1) * SIZES[R2] / (11e6 / 8)  # at the budget's rate
     fleet.advance(drain_s * 0.98)
     fleet.optimizer.admit()
     assert round(fleet.rates()[R1], 2) == 12.37
     fleet.advance(drain_s * 0.02)
+    fleet.optimizer.admit()
+    assert fleet.rates()[R1] == 16.0
+
+
+def test_the_drain_counts_from_when_the_acknowledgement_arrived() -> None:
+    """Not from when the optimizer next looked: a round a period later owes no drain."""
+    fleet = two_robots()
+    fleet.optimizer._transport.delivers_at_once = False  # type: ignore[misc]
+    paper_steady(fleet)
+    acks = HeldAcks(fleet, "r2")
+    r2_down_r1_up(fleet)
+    fleet.optimize()
+    fleet.advance(0.1)
+    acks.release()  # arrives now; the optimizer is not woken (a test steps it)
+    fleet.advance((RateLimiter.BANKED_FRAMES + 1) * SIZES[R2] / (11e6 / 8) + 0.005)
     fleet.optimizer.admit()
     assert fleet.rates()[R1] == 16.0
 

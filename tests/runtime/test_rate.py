@@ -39,24 +39,6 @@ def test_a_decrease_applies_from_the_next_message_without_a_burst() -> None:
     assert all(gap >= 0.5 - 1e-9 for gap in gaps)
 
 
-def test_a_decrease_keeps_at_most_one_banked_frame() -> None:
-    """The optimizer counts a decreased channel at its old rate until one frame drained."""
-    limiter = RateLimiter(10)
-    assert limiter.allow(0.0)
-    limiter.set_rate(10, 5.0)  # an idle source banked two frames (its cap)
-    limiter.set_rate(2, 5.0)
-    assert limiter.allow(5.0)
-    assert not limiter.allow(5.0)  # the second banked frame is gone
-    assert not limiter.allow(5.49)
-    assert limiter.allow(5.5)
-    busy = RateLimiter(10)
-    assert busy.allow(0.0)
-    busy.set_rate(10, 5.0)
-    busy.set_rate(20, 5.0)  # an increase keeps the bank
-    assert busy.allow(5.0)
-    assert busy.allow(5.0)
-
-
 def test_an_increase_applies_from_the_last_message_not_after_the_old_period() -> None:
     limiter = RateLimiter(1)
     assert limiter.allow(0.0)

@@ -7,12 +7,13 @@ heartbeat) wait for the slowest publisher of the fleet. The ledger instead count
 channel may still send, in bytes a second, and lets an increase go as soon as it fits:
 
 - a channel whose decrease was pushed counts at its rate before it until the publisher
-  acknowledges the new one, and for a drain after that: the frame it may have sent just before
-  applying it (a publisher keeps at most one frame of credit across a decrease, so no more is
-  banked) may still be queued on the link when the acknowledgement, on its own priority link,
-  arrives. The drain is the time that frame takes at the budget's rate;
-- a decrease not acknowledged within ``ack_timeout_s`` counts as applied (the publisher may be
-  gone; one that only missed the push hears it again a period later);
+  acknowledges the new one, and for a drain after that: the frames its limiter had banked may
+  still go, and the frame it sent just before applying the decrease may still be queued on
+  the link when the acknowledgement arrives. The drain is the time those frames take at the
+  budget's rate (the caller says it);
+- a decrease not acknowledged within ``ack_timeout_s`` of its push counts as applied (the
+  publisher may be gone; one that only missed the push hears it again a period later); one
+  acknowledged drains in full, however late;
 - an increase counts at its new rate from the moment it is pushed;
 - an increase goes when the sum over every limit it belongs to stays within that limit
   (the budget, a link's capacity), in the order given (the most important first); one that does
@@ -85,17 +86,21 @@ class RateLedger:
         """Forget the decreases settled by ``now``; return those that timed out, by topic."""
         late = []
         for topic, pending in list(self._pending.items()):
-            timed_out = now - pending.pushed_s >= self._ack_timeout_s
-            if now >= pending.settles_s or timed_out:
+            if now >= self._settles_s(pending):
                 del self._pending[topic]
                 if math.isinf(pending.settles_s):
                     late.append(topic)
         return sorted(late)
 
+    def _settles_s(self, pending: _Decrease) -> float:
+        """Its drain's end once acknowledged, else its acknowledgement's deadline."""
+        if math.isinf(pending.settles_s):
+            return pending.pushed_s + self._ack_timeout_s
+        return pending.settles_s
+
     def next_change_s(self) -> float | None:
         """The next time a decrease settles or times out without a new event (None: none)."""
-        times = [min(p.settles_s, p.pushed_s + self._ack_timeout_s) for p in self._pending.values()]
-        return min(times) if times else None
+        return min(map(self._settles_s, self._pending.values()), default=None)
 
     def forget(self, live: Iterable[str]) -> None:
         """Keep only the channels in ``live`` (the others are gone)."""

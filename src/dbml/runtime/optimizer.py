@@ -48,6 +48,7 @@ from dbml.protocol.schema import Parameter
 from dbml.runtime.graph import summarize
 from dbml.runtime.ledger import Limit, RateLedger
 from dbml.runtime.params import ChannelParams, DbmParams, ParamView, write_settings
+from dbml.runtime.rate import RateLimiter, same_rate
 from dbml.runtime.worker import PeriodicWorker
 from dbml.transports.base import (
     GraphEntry,
@@ -335,6 +336,8 @@ class OptimizerNode:
         """How many channels the last round ignored, past ``MAX_CHANNELS``."""
         self._channels_full = Overflow("channels tracked", MAX_CHANNELS, log=log)
         self._ledger = RateLedger(ack_timeout_s=ack_timeout_s)
+        self._acked_s: dict[str, float] = {}
+        """When each channel pushed to was last acknowledged (a drain counts from there)."""
         self._waiting: _Waiting | None = None
         """The last round's increases not pushed yet (on the worker's thread only)."""
         self._poked = threading.Event()
@@ -431,12 +434,14 @@ class OptimizerNode:
         self._poked.set()
         self._worker.wake()
 
-    def _on_param(self, parameter: Parameter, _topic: str | None, _value: ParamValue) -> None:
+    def _on_param(self, parameter: Parameter, topic: str | None, _value: ParamValue) -> None:
         """A valid value arrived (the view has it already): react to what it changes."""
         if parameter in _TRIGGERS:
             self.poke()
-        elif parameter in _ACKS and self._waiting is not None:
-            self._worker.wake()  # an increase may fit now: admitted on the worker's thread
+        elif parameter in _ACKS and topic is not None and topic in self._pushed_at:
+            self._acked_s[topic] = self._transport.now()  # a channel pushed to: bounded
+            if self._waiting is not None:
+                self._worker.wake()  # an increase may fit now: admitted on the worker's thread
 
     def _on_written(self, name: str, value: ParamValue) -> None:
         """Any write, valid or not: one over a value this node owns is undone at once."""
@@ -591,6 +596,7 @@ class OptimizerNode:
         for channel in channels:
             if not channel.managed and channel.params.max_rate_hz is not None:
                 rates[channel.topic] = channel.params.max_rate_hz
+        rates = {t: self._unless_noise(t, r) for t, r in rates.items()}
         if self._ignored:
             message = f"{message}; {self._ignored} channels ignored: more than {MAX_CHANNELS}"
         problems = self._view.problems()
@@ -729,11 +735,13 @@ class OptimizerNode:
         queued = not self._transport.delivers_at_once
         for topic in decreases:
             channel = states[topic]
-            frame = _frame_bytes(channel, before[topic][1])
+            # What it may still send once it applied the decrease: the frames its limiter had
+            # banked, and the one it sent just before (maybe queued behind the acknowledgement).
+            frames = (RateLimiter.BANKED_FRAMES + 1.0) * _frame_bytes(channel, before[topic][1])
             self._ledger.decrease(
                 topic,
                 before_bytes_per_s=_bytes_per_s(channel, before[topic]),
-                drain_s=frame / budget if queued and budget > 0 else 0.0,
+                drain_s=frames / budget if queued and budget > 0 else 0.0,
                 now=now,
             )
         increases = {t: w for t, w in changed.items() if t not in decreases}
@@ -761,6 +769,8 @@ class OptimizerNode:
             del self._pushed[topic]
         for topic in set(self._pushed_at) - set(rates):
             del self._pushed_at[topic]
+        for topic in set(self._acked_s) - set(rates):
+            del self._acked_s[topic]
         self._ledger.forget(rates)
         self._waiting = _Waiting(held, channels, limits) if held else None
         if held:
@@ -778,7 +788,7 @@ class OptimizerNode:
         for topic in self._ledger.pending:
             pushed = self._pushed.get(topic)
             if pushed is not None and self._acknowledged(topic, pushed[0]):
-                self._ledger.acknowledged(topic, now)
+                self._ledger.acknowledged(topic, min(self._acked_s.get(topic, now), now))
         late = self._ledger.settle(now)
         if late:
             log.warning("no acknowledgement of a decrease from %s; raising others anyway", late)
@@ -829,6 +839,13 @@ class OptimizerNode:
             params.set_many(by_host[host], host=host)
         if common:
             params.set_many(common)
+
+    def _unless_noise(self, topic: str, rate_hz: float) -> float:
+        """``rate_hz``, or the rate pushed already when they differ by float noise only."""
+        pushed = self._pushed.get(topic)
+        if pushed is not None and (old := pushed[0][0]) is not None and same_rate(old, rate_hz):
+            return old
+        return rate_hz
 
     def _running(self, topic: str) -> _Wanted:
         """What the publisher acknowledged running, else what was last pushed to it."""

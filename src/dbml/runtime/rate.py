@@ -18,7 +18,7 @@ import math
 import time
 from collections.abc import Callable
 
-__all__ = ["ByteWindow", "Rate", "RateLimiter"]
+__all__ = ["SAME_RATE", "ByteWindow", "Rate", "RateLimiter", "same_rate"]
 
 _EPSILON_FRAMES = 1e-9
 """Rounding slack, so a message exactly one period later is never refused."""
@@ -26,8 +26,16 @@ _PACER_BEHIND_FRAMES = 2.0
 """A loop this many ticks behind (a whole period late) restarts its schedule: no burst."""
 WINDOW_S = 1.0
 """The window the budget is promised over (what a passive counter of the wire measures)."""
+SAME_RATE = 1e-9
+"""Rates this close (relative) are one: a solver's rounding (1.000000000000011 Hz for a floor
+of 1) is no change to push, nor one for a loop to realign its phase to."""
 MAX_WINDOW_FRAMES = 4096
 """The most frames a ``ByteWindow`` remembers (its memory bound; far above any camera's rate)."""
+
+
+def same_rate(a_hz: float, b_hz: float) -> bool:
+    """Whether two rates are one: equal but for an allocation's float noise (``SAME_RATE``)."""
+    return math.isclose(a_hz, b_hz, rel_tol=SAME_RATE, abs_tol=0.0)
 
 
 class _Credit:
@@ -83,8 +91,6 @@ class RateLimiter:
 
     BANKED_FRAMES = 2.0
     """The most credit kept: a source that called late may catch up one message, no more."""
-    DECREASE_FRAMES = 1.0
-    """The most credit kept across a decrease: one frame, sent at once or not at all."""
 
     def __init__(self, rate_hz: float) -> None:
         self._credit = _Credit(rate_hz, cap_frames=self.BANKED_FRAMES)
@@ -95,18 +101,15 @@ class RateLimiter:
         return self._credit.rate_hz
 
     def set_rate(self, rate_hz: float, now: float) -> None:
-        """Apply ``rate_hz`` from ``now``; what was earned until ``now`` is kept, up to a frame.
+        """Apply ``rate_hz`` from ``now``; what was earned until ``now`` is kept.
 
         So a faster allocation takes effect at once (the part of a period already waited
-        counts), and a brief one earns only its share. A slower one keeps at most one frame of
-        credit (``DECREASE_FRAMES``): the optimizer counts a decreased channel at its old rate
-        until it acknowledges and one frame drains, not a bank of frames earned before.
+        counts), and a brief one earns only its share. What was banked stays across a
+        decrease: it is a paced loop's margin against its late wake-ups (without it a 1-Hz
+        loop's on-time tick after a late one was refused, and the stream went 2 s without a
+        frame); the optimizer counts those frames (``dbml.runtime.ledger``).
         """
-        credit = self._credit
-        slower = rate_hz < credit.rate_hz
-        credit.look(now, rate_hz)
-        if slower:
-            credit.frames = min(credit.frames, self.DECREASE_FRAMES)
+        self._credit.look(now, rate_hz)
 
     def restart(self, rate_hz: float, now: float, *, owed_frames: float = 0.0) -> None:
         """Apply ``rate_hz`` from ``now`` with at most one frame of credit, less ``owed_frames``.
@@ -187,7 +190,7 @@ class Rate:
             credit.look(now, hz)
             if credit.frames >= _PACER_BEHIND_FRAMES - _EPSILON_FRAMES:
                 credit.frames = 1.0  # a period or more behind: this tick now, then on schedule
-            if self._keep_phase and hz != self._tick_hz and hz > 0:
+            if self._keep_phase and not same_rate(hz, self._tick_hz) and hz > 0:
                 # A new rate: tick at the point of the loop's own grid nearest to when the
                 # credit allows (at most half a period either side; the next one if that point
                 # is past already: every tick at the new rate is a whole period after the one
