@@ -13,7 +13,7 @@ import pytest
 from dbml.core import DbmSettings, LinkSpec, Status, Strategy
 from dbml.protocol import names
 from dbml.protocol.keys import ROUND_TOPIC
-from dbml.runtime import ManagedPublisher, ManagedSubscriber, OptimizerNode, RateLimiter, Round
+from dbml.runtime import ManagedPublisher, ManagedSubscriber, OptimizerNode, Round
 from dbml.runtime.optimizer import ACK_TIMEOUT_S, MAX_CHANNELS, _Outcome
 from dbml.runtime.params import ChannelParams, DbmParams
 from dbml.runtime.rounds import RoundFollower
@@ -325,13 +325,13 @@ def test_a_decrease_not_acknowledged_in_time_counts_as_applied(
 
 
 def test_over_a_network_an_increase_waits_until_the_decreased_channels_frames_crossed() -> None:
-    """Its banked frames may still go, and one sent just before may be queued behind its ack."""
+    """A frame sent just before the decrease applied may be queued behind its acknowledgement."""
     fleet = two_robots()
     fleet.optimizer._transport.delivers_at_once = False  # type: ignore[misc]
     paper_steady(fleet)
     r2_down_r1_up(fleet)
     fleet.optimize()  # R2 acknowledges at once
-    drain_s = (RateLimiter.BANKED_FRAMES + 1) * SIZES[R2] / (11e6 / 8)  # at the budget's rate
+    drain_s = SIZES[R2] / (11e6 / 8)  # one of its frames at the budget's rate
     fleet.advance(drain_s * 0.98)
     fleet.optimizer.admit()
     assert round(fleet.rates()[R1], 2) == 12.37
@@ -350,7 +350,7 @@ def test_the_drain_counts_from_when_the_acknowledgement_arrived() -> None:
     fleet.optimize()
     fleet.advance(0.1)
     acks.release()  # arrives now; the optimizer is not woken (a test steps it)
-    fleet.advance((RateLimiter.BANKED_FRAMES + 1) * SIZES[R2] / (11e6 / 8) + 0.005)
+    fleet.advance(SIZES[R2] / (11e6 / 8) + 0.005)
     fleet.optimizer.admit()
     assert fleet.rates()[R1] == 16.0
 

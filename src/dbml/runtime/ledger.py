@@ -7,10 +7,9 @@ heartbeat) wait for the slowest publisher of the fleet. The ledger instead count
 channel may still send, in bytes a second, and lets an increase go as soon as it fits:
 
 - a channel whose decrease was pushed counts at its rate before it until the publisher
-  acknowledges the new one, and for a drain after that: the frames its limiter had banked may
-  still go, and the frame it sent just before applying the decrease may still be queued on
-  the link when the acknowledgement arrives. The drain is the time those frames take at the
-  budget's rate (the caller says it);
+  acknowledges the new one, and for a drain after that: the frame it sent just before applying
+  the decrease may still be queued on the link when the acknowledgement arrives. The drain is
+  the time that frame takes at the budget's rate (the caller says it);
 - a decrease not acknowledged within ``ack_timeout_s`` of its push counts as applied (the
   publisher may be gone; one that only missed the push hears it again a period later); one
   acknowledged drains in full, however late;

@@ -48,7 +48,7 @@ from dbml.protocol.schema import Parameter
 from dbml.runtime.graph import summarize
 from dbml.runtime.ledger import Limit, RateLedger
 from dbml.runtime.params import ChannelParams, DbmParams, ParamView, write_settings
-from dbml.runtime.rate import RateLimiter, same_rate
+from dbml.runtime.rate import same_rate
 from dbml.runtime.worker import PeriodicWorker
 from dbml.transports.base import (
     GraphEntry,
@@ -91,6 +91,9 @@ _DEFAULTS: dict[str, ParamValue] = {
 """What ``write_defaults`` writes: ``DbmParams``'s own defaults."""
 ACK_TIMEOUT_S = 0.25
 """How long an unacknowledged decrease counts at its rate before it (increases wait for room)."""
+QUEUED_FRAMES = 1.0
+"""Frames a decreased publisher may have on the way when its acknowledgement arrives: the
+ledger drains them at the budget's rate before their room goes to an increase."""
 COALESCE_S = 0.002
 """Triggers within this time of the first run one round."""
 REPORT_INTERVAL_S = 0.1
@@ -735,13 +738,14 @@ class OptimizerNode:
         queued = not self._transport.delivers_at_once
         for topic in decreases:
             channel = states[topic]
-            # What it may still send once it applied the decrease: the frames its limiter had
-            # banked, and the one it sent just before (maybe queued behind the acknowledgement).
-            frames = (RateLimiter.BANKED_FRAMES + 1.0) * _frame_bytes(channel, before[topic][1])
+            # The frame it sent just before applying the decrease may still be queued behind
+            # its acknowledgement. (Frames its limiter banked are within the limiter's own bound:
+            # a window carries its rates' frames plus those, decrease or not.)
+            frame = QUEUED_FRAMES * _frame_bytes(channel, before[topic][1])
             self._ledger.decrease(
                 topic,
                 before_bytes_per_s=_bytes_per_s(channel, before[topic]),
-                drain_s=frames / budget if queued and budget > 0 else 0.0,
+                drain_s=frame / budget if queued and budget > 0 else 0.0,
                 now=now,
             )
         increases = {t: w for t, w in changed.items() if t not in decreases}
