@@ -107,7 +107,7 @@ class RateLimiter:
         counts), and a brief one earns only its share. What was banked stays across a
         decrease: it is a paced loop's margin against its late wake-ups (without it a 1-Hz
         loop's on-time tick after a late one was refused, and the stream went 2 s without a
-        frame); the optimizer counts those frames (``dbml.runtime.ledger``).
+        frame), and it is within the limiter's bound (``BANKED_FRAMES``), decrease or not.
         """
         self._credit.look(now, rate_hz)
 
