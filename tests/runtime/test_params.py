@@ -363,3 +363,56 @@ def test_the_view_keeps_values_by_channel_and_parameter() -> None:
     assert view.channel(CAMERA).priority == 0.0
     assert view.dbm().bandwidth_mbit == 4.0
     camera.close()
+
+
+def test_a_channel_read_again_is_rebuilt_only_once_one_of_its_values_changed() -> None:
+    network = MemoryNetwork()
+    writer = MemoryTransport(network, host="peer").params
+    other = "/r2/camera"
+    for topic in (CAMERA, other):
+        writer.set(names.size(topic), 84_000)
+        writer.set(names.priority(topic), 0.5)
+    view = ParamView.of(MemoryTransport(network, host="me").params)
+    first = view.channels([CAMERA, other])
+    again = view.channels([CAMERA, other])
+    assert again[CAMERA] is first[CAMERA]  # nothing changed: the round's read builds nothing
+    assert first[CAMERA].spec() is None  # no bounds yet: no spec
+    writer.set(names.priority(CAMERA), 0.75)
+    after = view.channels([CAMERA, other])
+    assert after[CAMERA].priority == 0.75
+    assert after[other] is first[other]  # another channel's write rebuilds only that one
+    writer.set(names.size(CAMERA), None)
+    assert view.channel(CAMERA).size_bytes is None
+    writer.set(names.priority(CAMERA), None)
+    assert view.channel(CAMERA) == view.channel(CAMERA)  # no value left: read as unset
+    assert view.channel(CAMERA).priority == 0.0
+
+
+def test_the_global_parameters_are_read_again_once_one_changes() -> None:
+    network = MemoryNetwork()
+    writer = MemoryTransport(network, host="peer").params
+    writer.set(names.BANDWIDTH, 11.0)
+    view = ParamView.of(MemoryTransport(network, host="me").params)
+    first = view.dbm()
+    assert view.dbm() is first
+    writer.set(names.PERIOD, 0.5)
+    assert view.dbm().period_s == 0.5
+    assert view.dbm().bandwidth_mbit == 11.0
+    writer.set(names.BANDWIDTH, None)
+    assert view.dbm().bandwidth_mbit is None
+
+
+def test_a_channels_spec_follows_its_values_and_is_checked_once_per_value() -> None:
+    network = MemoryNetwork()
+    camera = camera_on(network)
+    view = ParamView.of(MemoryTransport(network, host="me").params)
+    spec = view.channel(CAMERA).spec()
+    assert spec is not None
+    assert (spec.min_rate_hz, spec.max_rate_hz, spec.size_bytes) == (1.0, 16.0, 84_000.0)
+    MemoryTransport(network, host="op").params.set(names.priority(CAMERA), 0.25)
+    moved = view.channel(CAMERA).spec()
+    assert moved is not None
+    assert moved.priority == 0.25
+    MemoryTransport(network, host="op").params.set(names.priority(CAMERA), 0.0)
+    assert view.channel(CAMERA).spec() is spec  # the same values: the spec built for them
+    camera.close()

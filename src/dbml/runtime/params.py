@@ -43,6 +43,7 @@ from dbml.transports.replica import MAX_PARAMS
 __all__ = [
     "MAX_PROBLEMS",
     "MAX_VALUES",
+    "SPECS_CACHED",
     "ByParameter",
     "ChannelParams",
     "DbmParams",
@@ -64,6 +65,9 @@ zenoh store keeps up to ``MAX_PARAMS`` names from the network and this process's
 so this is twice that (ROS 1's mirror is bounded alike), and it bounds any store that does not
 bound itself. Past it a new name is refused (not kept, nobody told) and the flood logged once,
 with a count; names held are still updated and deleted."""
+SPECS_CACHED = 8192
+"""Distinct channel specs kept built (``ChannelParams.spec``): twice the channels an optimizer
+tracks, so every round finds an unchanged channel's spec built and checked already."""
 MAX_PROBLEMS = 64
 """The most bad values ``problems()`` lists, each once in the log: they end up in
 ``/dbm/status_message``, which every process fetches, so a flood of bad names must not make it
@@ -161,9 +165,17 @@ class ChannelParams:
         """The channel as the allocator takes it, once bounds and size are known."""
         if not self.bounded or self.size_bytes is None:
             return None
-        return ChannelSpec(
+        return _spec(
             self.topic, self.floor_hz, self.max_rate_hz or 0.0, self.size_bytes, self.priority
         )
+
+
+@functools.lru_cache(maxsize=SPECS_CACHED)
+def _spec(
+    topic: str, min_rate_hz: float, max_rate_hz: float, size_bytes: float, priority: float
+) -> ChannelSpec:
+    """A spec, checked once per distinct value: the optimizer asks every channel every round."""
+    return ChannelSpec(topic, min_rate_hz, max_rate_hz, size_bytes, priority)
 
 
 @functools.lru_cache(maxsize=1024)
@@ -216,6 +228,12 @@ class ParamView:
         self._globals: dict[Parameter, ParamValue] = {}
         self._channels: dict[str, dict[Parameter, ParamValue]] = {}
         """The same values of dbml's own names, by parameter: the globals, and per channel."""
+        self._built: dict[str, ChannelParams] = {}
+        """Each channel's ``ChannelParams`` as last read, until one of its values changes (an
+        optimizer reads every channel every round; a round changes few). Only channels some
+        value names: bounded as ``_channels`` is."""
+        self._dbm: DbmParams | None = None
+        """The global parameters as last read, until one of them changes."""
         self._values_full = Overflow("parameter names viewed", MAX_VALUES, log=log)
         self._problems: dict[str, str] = {}
         """The bad value standing per name, as its error says it (``MAX_PROBLEMS`` at most)."""
@@ -278,11 +296,13 @@ class ParamView:
     def _keep_locked(self, parameter: Parameter, topic: str | None, value: ParamValue) -> None:
         """The value by parameter too (lock held): what ``dbm()`` and ``channel()`` read."""
         if topic is None:
+            self._dbm = None
             if value is None:
                 self._globals.pop(parameter, None)
             else:
                 self._globals[parameter] = value
             return
+        self._built.pop(topic, None)
         kept = self._channels.get(topic)
         if value is not None:
             if kept is None:
@@ -368,17 +388,28 @@ class ParamView:
     def dbm(self) -> DbmParams:
         """The ``/dbm/...`` parameters, with their defaults where unset."""
         with self._lock:
-            return _dbm(self._globals)
+            if self._dbm is None:
+                self._dbm = _dbm(self._globals)
+            return self._dbm
 
     def channel(self, topic: str) -> ChannelParams:
         """One channel's parameters."""
         with self._lock:
-            return _channel(topic, self._channels.get(topic, _NONE))
+            return self._channel_locked(topic)
 
     def channels(self, topics: Iterable[str]) -> dict[str, ChannelParams]:
         """Several channels' parameters, read at once (an optimizer's round)."""
         with self._lock:
-            return {t: _channel(t, self._channels.get(t, _NONE)) for t in topics}
+            return {t: self._channel_locked(t) for t in topics}
+
+    def _channel_locked(self, topic: str) -> ChannelParams:
+        built = self._built.get(topic)
+        if built is None:
+            kept = self._channels.get(topic)
+            if kept is None:
+                return _channel(topic, _NONE)  # not kept: any name may be asked of
+            built = self._built[topic] = _channel(topic, kept)
+        return built
 
     def topics(self) -> list[str]:
         """The channels some parameter is known of, sorted."""
