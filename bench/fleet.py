@@ -5,14 +5,16 @@ As clients of one router (``dbml router``; ``--topology peer``: a private loopba
 (``python -m dbml optimizer --config FILE --host base``), one operator process with a
 ``ManagedSubscriber`` per channel (host ``operator``, so every channel is managed), and robots,
 each its own zenoh session and host (``r1``, ``r2``, ...) with C channels ``/rK/ch0..`` at
-1-16 Hz, up to 10 robots per worker process (this script with ``--worker``), one pacing thread
-per robot, strategy ``paper``, ``frame_headroom`` on. A probe session (host ``bench``) reads the
-parameters. Two benches:
+1-16 Hz (paced down past 40 robots in the site bench), up to 10 robots per worker process (this
+script with ``--worker``), one pacing thread per robot, strategy ``paper``, ``frame_headroom``
+on. A probe session (host ``bench``) reads the parameters. Two benches:
 
 - the control plane at a site's scale (the default; 40, 80, 160 and 320 robots x 4): a shared
   budget of ``--budget-mbit`` (100 Mbit/s), the frames of 84,000 / 21,000 / 8,000 / 1,000 bytes
-  (cycling) scaled down so that it is 60 % of the fleet's maxima: the channels compete as in the
-  paper, and this machine moves the frames without being what is measured;
+  (cycling) scaled down so that it is 60 % of the fleet's maxima, the rates paced down past 40
+  robots (``SITE_PACED_ROBOTS``: 0.25-4 Hz at 160) so that the fleet sends as many frames a
+  second at every size: the channels compete as in the paper, and this machine moves the frames
+  without being what is measured;
 - ``--heavy``: those frames as they are, the budget 60 % of the maxima (700 Mbit/s at 80 x 4),
   a router saturated with data, where control must keep its lead.
 
@@ -117,6 +119,12 @@ of their 82 links after 60 s), and zenoh peers send only over direct links."""
 CLIENT_CONFIG = '{mode: "client"}\n'
 """The sessions' zenoh config with ``--topology router``: each reaches the others through the
 run's router (``dbml router``)."""
+SITE_PACED_ROBOTS = 40
+"""The control-plane bench's channels run at ``MIN_HZ``-``MAX_HZ`` up to this many robots; a
+larger fleet's are paced by this share of its robots (0.25-4 Hz at 160), its frames scaled as at
+this size: the fleet sends as many frames a second at every size, so what grows with it is the
+control plane, not this machine's work of moving frames (160 x 4 at the full rates kept the
+host's two cores 78-87 % busy)."""
 SITE_SIZES = ((40, 4), (80, 4), (160, 4), (320, 4))
 """The control-plane bench's sizes, robots x channels."""
 HEAVY_SIZES = ((80, 4),)
@@ -209,12 +217,25 @@ class Channel(NamedTuple):
     topic: str
     size_bytes: int
     host: str
+    min_hz: float = MIN_HZ
+    max_hz: float = MAX_HZ
 
 
-def fleet_channels(robots: int, channels: int, *, scale: float = 1.0) -> list[Channel]:
-    """Robot ``K``'s channels ``/rK/ch0..`` of ``SIZES_BYTES`` (cycling) times ``scale``."""
+def fleet_channels(
+    robots: int, channels: int, *, scale: float = 1.0, pace: float = 1.0
+) -> list[Channel]:
+    """Robot ``K``'s channels ``/rK/ch0..``: ``SIZES_BYTES`` (cycling) times ``scale``.
+
+    At ``MIN_HZ``-``MAX_HZ`` times ``pace``.
+    """
     return [
-        Channel(f"/r{r}/ch{c}", max(1, round(SIZES_BYTES[c % len(SIZES_BYTES)] * scale)), f"r{r}")
+        Channel(
+            f"/r{r}/ch{c}",
+            max(1, round(SIZES_BYTES[c % len(SIZES_BYTES)] * scale)),
+            f"r{r}",
+            MIN_HZ * pace,
+            MAX_HZ * pace,
+        )
         for r in range(1, robots + 1)
         for c in range(channels)
     ]
@@ -225,19 +246,21 @@ def plan(
 ) -> tuple[list[Channel], float]:
     """The fleet's channels and its budget in bytes/s.
 
-    ``budget_mbit`` None (``--heavy``): the paper's frames, the budget ``budget_share`` of the
-    fleet's maxima. Else that budget, and frames scaled down (never up) so that it is that share
-    of the maxima: a small fleet that cannot fill it gets its share, as with ``--heavy``.
+    ``budget_mbit`` None (``--heavy``): the paper's frames and rates, the budget
+    ``budget_share`` of the fleet's maxima. Else that budget, the rates paced down past
+    ``SITE_PACED_ROBOTS`` robots, and frames scaled down (never up) so that the budget is that
+    share of the maxima: a small fleet that cannot fill it gets its share, as with ``--heavy``.
     """
     full = fleet_channels(robots, channels)
-    share_bps = budget_share * sum(MAX_HZ * c.size_bytes for c in full)
     if budget_mbit is None:
-        return full, share_bps
+        return full, budget_share * sum(c.max_hz * c.size_bytes for c in full)
+    pace = min(1.0, SITE_PACED_ROBOTS / robots)
+    paced = fleet_channels(robots, channels, pace=pace)
+    share_bps = budget_share * sum(c.max_hz * c.size_bytes for c in paced)
     budget_bps = budget_mbit * 1e6 / 8
     if budget_bps >= share_bps:
-        return full, share_bps
-    scaled = fleet_channels(robots, channels, scale=budget_bps / share_bps)
-    return scaled, budget_bps
+        return paced, share_bps
+    return fleet_channels(robots, channels, scale=budget_bps / share_bps, pace=pace), budget_bps
 
 
 def expected_rates(
@@ -249,7 +272,7 @@ def expected_rates(
     size and priority) in declaration order: so do we, or /r10/ch0 and /r2/ch0 swap rates.
     """
     specs = tuple(
-        ChannelSpec(c.topic, MIN_HZ, MAX_HZ, float(c.size_bytes), priorities.get(c.topic, 0.0))
+        ChannelSpec(c.topic, c.min_hz, c.max_hz, float(c.size_bytes), priorities.get(c.topic, 0.0))
         for c in sorted(channels)
     )
     problem = Problem(specs, bandwidth_mbit=budget_mbit, frame_headroom=True)
@@ -404,7 +427,7 @@ class Robot(threading.Thread):
     def __init__(
         self,
         host: str,
-        channels: list[tuple[str, int]],
+        channels: list[tuple[str, int, float, float]],
         net: dict[str, Any],
         stop: threading.Event,
         done: Callable[[str, str | None], None],
@@ -429,10 +452,10 @@ class Robot(threading.Thread):
         try:
             watching = transport.params.watch(self.heartbeats.on_param)
             transport.wait_for_peers(PEER_WAIT_S)
-            payloads = [bytes(size) for _, size in self._channels]
-            for topic, _ in self._channels:
+            payloads = [bytes(size) for _, size, _, _ in self._channels]
+            for topic, _, min_hz, max_hz in self._channels:
                 publishers.append(
-                    ManagedPublisher(transport, topic, min_rate_hz=MIN_HZ, max_rate_hz=MAX_HZ)
+                    ManagedPublisher(transport, topic, min_rate_hz=min_hz, max_rate_hz=max_hz)
                 )
             self._done(self.host, None)
             self._pace(publishers, payloads)
@@ -514,7 +537,13 @@ def run_robots(
             cond.notify_all()
 
     robots = [
-        Robot(r["host"], [(t, int(s)) for t, s in r["channels"]], spec["net"], stop, done)
+        Robot(
+            r["host"],
+            [(t, int(s), float(lo), float(hi)) for t, s, lo, hi in r["channels"]],
+            spec["net"],
+            stop,
+            done,
+        )
         for r in spec["robots"]
     ]
     # Loaded (Python and dbml imported): the robots start together on the bench's word, so the
@@ -870,6 +899,7 @@ def empty_row(
         "budget_bytes_per_s": round(budget_bytes_per_s),
         "budget_share": budget_share,
         "sizes_bytes": None,
+        "rates_hz": None,
         "converge_s": None,
         "reaction_p50_ms": None,
         "reaction_p99_ms": None,
@@ -942,6 +972,7 @@ def measure_size(
         raise SystemExit(f"{robots}x{per_robot}: the floors do not fit the budget")
     row = empty_row(robots, per_robot, budget_bps, budget_share)
     row["sizes_bytes"] = sorted({c.size_bytes for c in channels}, reverse=True)
+    row["rates_hz"] = [channels[0].min_hz, channels[0].max_hz]
     row["topology"] = topology
     port = free_port()
     note(f"{robots}x{per_robot}: {len(channels)} channels, port {port}, {budget_mbit:.1f} Mbit/s")
@@ -1013,7 +1044,12 @@ def run_size(
         group = hosts[first : first + ROBOTS_PER_WORKER]
         role = f"robots-{group[0]}-{group[-1]}"
         robots = [
-            {"host": h, "channels": [[c.topic, c.size_bytes] for c in channels if c.host == h]}
+            {
+                "host": h,
+                "channels": [
+                    [c.topic, c.size_bytes, c.min_hz, c.max_hz] for c in channels if c.host == h
+                ],
+            }
             for h in group
         ]
         fleet.spawn(role, {"role": "robots", "net": run.net, "robots": robots})
