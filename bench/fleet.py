@@ -124,7 +124,7 @@ SITE_PACED_ROBOTS = 40
 larger fleet's are paced by this share of its robots (0.25-4 Hz at 160), its frames scaled as at
 this size: the fleet sends as many frames a second at every size, so what grows with it is the
 control plane, not this machine's work of moving frames (160 x 4 at the full rates kept the
-host's two cores 78-87 % busy)."""
+host's two cores 77-98 % busy)."""
 SITE_SIZES = ((40, 4), (80, 4), (160, 4), (320, 4))
 """The control-plane bench's sizes, robots x channels."""
 HEAVY_SIZES = ((80, 4),)
