@@ -66,6 +66,13 @@ def ros(tmp_path: Path) -> Iterator[RosNet]:
 _LTTNG = "lttng-ust-wait-*"
 """What ``import rclpy`` (LTTng's tracing) leaves in /dev/shm for the user, not per process."""
 _lttng_before: set[Path] = set()
+_FASTDDS = ("fastdds_*", "sem.fastdds_*")
+"""A Fast DDS segment's or port's files (``dbml.harness.ros2env``)."""
+_fastdds_before: set[Path] = set()
+
+
+def _fastdds_files() -> set[Path]:
+    return {path for pattern in _FASTDDS for path in Path("/dev/shm").glob(pattern)}
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -76,14 +83,23 @@ def pytest_configure(config: pytest.Config) -> None:
     tests that press Ctrl-C on a process they started would see it ignored.
     """
     _lttng_before.update(Path("/dev/shm").glob(_LTTNG))
+    _fastdds_before.update(_fastdds_files())
     if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
         signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def pytest_unconfigure(config: pytest.Config) -> None:
-    """Remove the LTTng files this session created (those from before are someone else's)."""
+    """Remove the /dev/shm files this session created (those from before are someone else's).
+
+    LTTng's, and the Fast DDS files of processes that ended without removing theirs (one killed,
+    or one that met a killed one): only those no live process holds, a test's or another's.
+    """
     for path in set(Path("/dev/shm").glob(_LTTNG)) - _lttng_before:
         path.unlink(missing_ok=True)
+    if new := _fastdds_files() - _fastdds_before:
+        from dbml.harness.ros2env import remove_fastdds_shm
+
+        remove_fastdds_shm(new)
 
 
 @pytest.hookimpl(tryfirst=True)  # before -m selects by marker

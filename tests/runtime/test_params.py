@@ -381,6 +381,8 @@ def test_a_channel_read_again_is_rebuilt_only_once_one_of_its_values_changed() -
     after = view.channels([CAMERA, other])
     assert after[CAMERA].priority == 0.75
     assert after[other] is first[other]  # another channel's write rebuilds only that one
+    network.forge({names.priority(CAMERA): 1.5})  # a peer's bad value: the last good one stands
+    assert view.channel(CAMERA) is after[CAMERA]
     writer.set(names.size(CAMERA), None)
     assert view.channel(CAMERA).size_bytes is None
     writer.set(names.priority(CAMERA), None)
