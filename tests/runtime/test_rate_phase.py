@@ -83,6 +83,37 @@ def test_keep_phase_costs_at_most_half_a_frame_per_change() -> None:
         assert k + 1 <= integral + 0.5 * changes + 1 + 1e-6, (end, k + 1, integral)
 
 
+@pytest.mark.parametrize("change_s", [0.05, 0.11, 0.2, 0.3])
+def test_a_new_rate_never_ticks_sooner_than_the_faster_period(change_s: float) -> None:
+    """Two ticks are at least the period of the faster of the rates at them apart.
+
+    1.93 Hz, 2.69 Hz from ``change_s`` after a tick, then 1.0 and 3.0 Hz, then 2.92, 1.9 and
+    2.69 Hz again before the grid's point at 1.9 Hz. Two ways it failed: the nearest point of
+    the grid came 223 ms after the tick before at 1.93 Hz, then 2.69 (a camera's 84 KB frame
+    onto a link at 95 % of its rate); and the credit earned while it waited for the grid went
+    out as two frames 49 ms apart once the rate was back near the last tick's.
+    """
+    clock = ManualClock(0.0)
+    schedule = [
+        (0.0, 1.93),
+        (3 / 1.93 + change_s, 2.69),
+        (5.37, 1.0),
+        (8.61, 3.0),
+        (12.0, 2.92),
+        (14.0 + change_s, 1.9),
+        (14.55, 2.69),
+    ]
+
+    def hz_at(t_s: float) -> float:
+        return next(r for at, r in reversed(schedule) if t_s >= at)
+
+    rate = Rate(lambda: hz_at(clock()), clock=clock, sleep=clock.advance, keep_phase=True)
+    ticks = ticks_of(rate, clock, 18.0)
+    assert len(ticks) > 30
+    for a, b in itertools.pairwise(ticks):
+        assert b - a >= 1 / max(hz_at(a), hz_at(b)) - 1e-9, (a, b)
+
+
 def test_keep_phase_at_a_steady_rate_is_the_plain_schedule() -> None:
     clock = ManualClock(10.0)
     rate = Rate(lambda: 4.0, clock=clock, sleep=clock.advance, keep_phase=True)
@@ -172,3 +203,22 @@ def test_a_slowed_loop_late_by_its_wake_ups_loses_no_frame_to_its_limiter(noise:
         sent = sent_by_a_paced_limited_loop(seed, noise=noise)
         gaps = [(a, b - a) for a, b in itertools.pairwise(sent) if a > 5.0]
         assert max(gap for _, gap in gaps) < 1.01, (seed, [g for g in gaps if g[1] >= 1.01])
+
+
+@pytest.mark.parametrize("phase_s", [0.0, 0.21, 0.66])
+def test_a_loop_probed_up_in_small_steps_keeps_its_pace(phase_s: float) -> None:
+    """2.8 Hz, then 1.5 % more every 200 ms (an estimator's probe): no tick waits past a period.
+
+    Realigning to the grid at each step put the next tick at a new point of a new grid each
+    time: the loop went up to 0.7 s without a tick.
+    """
+    clock = ManualClock(phase_s)
+
+    def hz_at(t_s: float) -> float:
+        steps = max(0, int((t_s - phase_s - 3.0) / 0.2) + 1) if t_s >= phase_s + 3.0 else 0
+        return 2.8 * 1.015 ** min(steps, 20)
+
+    rate = Rate(lambda: hz_at(clock()), clock=clock, sleep=clock.advance, keep_phase=True)
+    ticks = ticks_of(rate, clock, phase_s + 10.0)
+    gaps = [b - a for a, b in itertools.pairwise(ticks)]
+    assert max(gaps) <= 1 / 2.8 + 0.05 + 1e-9, max(gaps)  # a period and a poll at most

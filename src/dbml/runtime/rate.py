@@ -18,7 +18,7 @@ import math
 import time
 from collections.abc import Callable
 
-__all__ = ["SAME_RATE", "ByteWindow", "Rate", "RateLimiter", "same_rate"]
+__all__ = ["REALIGN_RATIO", "SAME_RATE", "ByteWindow", "Rate", "RateLimiter", "same_rate"]
 
 _EPSILON_FRAMES = 1e-9
 """Rounding slack, so a message exactly one period later is never refused."""
@@ -29,6 +29,8 @@ WINDOW_S = 1.0
 SAME_RATE = 1e-9
 """Rates this close (relative) are one: a solver's rounding (1.000000000000011 Hz for a floor
 of 1) is no change to push, nor one for a loop to realign its phase to."""
+REALIGN_RATIO = 1.25
+"""A pacer that keeps its phase moves to its grid when the rate changes by this factor or more."""
 MAX_WINDOW_FRAMES = 4096
 """The most frames a ``ByteWindow`` remembers (its memory bound; far above any camera's rate)."""
 
@@ -36,6 +38,13 @@ MAX_WINDOW_FRAMES = 4096
 def same_rate(a_hz: float, b_hz: float) -> bool:
     """Whether two rates are one: equal but for an allocation's float noise (``SAME_RATE``)."""
     return math.isclose(a_hz, b_hz, rel_tol=SAME_RATE, abs_tol=0.0)
+
+
+def _realigns(tick_hz: float, hz: float) -> bool:
+    """Whether a loop that ticked at ``tick_hz`` moves to its grid at ``hz``."""
+    if tick_hz <= 0:
+        return not same_rate(hz, tick_hz)
+    return max(hz / tick_hz, tick_hz / hz) >= REALIGN_RATIO
 
 
 class _Credit:
@@ -142,15 +151,22 @@ class Rate:
     (each tick's wake-up delay lost, 1.6 ms at 16 Hz on a loaded testbed, cost 2.5 % of the
     rate); falling behind by a whole period restarts the schedule instead of bursting.
 
-    ``keep_phase``: after the rate changes, the first tick at the new rate goes at the point of
-    the loop's own grid (``first tick + k / rate``) nearest to when the credit allows it (up to
-    half a period earlier or later; the next point if that one is past already), and the loop
-    stays on that grid: it keeps its phase instead of taking the moment of the change as its
-    new one. An optimizer pushes a new allocation to every publisher at once; without this,
-    every loop slowed by one push starts its slow schedule from that push, and a fleet's large
-    frames leave together once a period (measured: three 1 Hz robots of eight within 30 ms of
-    each other, 125 ms apart before the push; their 84 KB frames overflowed the shared link's
-    queue). It costs less than a period's wait once per change.
+    ``keep_phase``: after the rate changes by ``REALIGN_RATIO`` or more, the first tick at the
+    new rate goes at the point of the loop's own grid (``first tick + k / rate``) nearest to
+    when the credit allows it (up to half a period earlier or later), and the loop stays on
+    that grid: it keeps its phase instead of taking the moment of the change as its new one.
+    An optimizer pushes a new allocation to every publisher at once; without this, every loop
+    slowed by one push starts its slow schedule from that push, and a fleet's large frames
+    leave together once a period (measured: three 1 Hz robots of eight within 30 ms of each
+    other, 125 ms apart before the push; their 84 KB frames overflowed the shared link's
+    queue). It costs less than a period's wait once per such change. That tick never comes
+    sooner after the last one than the faster of the two rates' periods: a raised camera's
+    84 KB frame 223 ms after the one before (at 1.93 Hz, then 2.69) went onto a link at 95 %
+    of its rate and past tbf's queue. A smaller change (an estimator's probe moves the rates a
+    few percent every update) keeps the schedule the credit makes, which carries a loop's
+    place in its period over to the new rate: realigning at each one put the next tick at a
+    new point of a new grid each time, and a 2.8 Hz camera probed every 200 ms went 0.7 s
+    without a frame.
     """
 
     def __init__(
@@ -172,6 +188,8 @@ class Rate:
         """The loop's first tick: its phase, kept across rate changes with ``keep_phase``."""
         self._tick_hz = 0.0
         """The rate of the last tick: a different one in force is a change."""
+        self._last_tick = 0.0
+        """When the loop last ticked: the first tick at a new rate is timed from it."""
 
     def sleep(self) -> None:
         """Block until the loop's next tick."""
@@ -181,7 +199,7 @@ class Rate:
             self._anchor = self._clock()
             self._credit.look(self._anchor)
             self._credit.spend()
-            self._tick_hz = hz
+            self._tick_hz, self._last_tick = hz, self._anchor
             return
         credit = self._credit
         pending: tuple[float, float] | None = None  # a new rate and its tick on the grid
@@ -190,29 +208,40 @@ class Rate:
             credit.look(now, hz)
             if credit.frames >= _PACER_BEHIND_FRAMES - _EPSILON_FRAMES:
                 credit.frames = 1.0  # a period or more behind: this tick now, then on schedule
-            if self._keep_phase and not same_rate(hz, self._tick_hz) and hz > 0:
+            if self._keep_phase and hz > 0 and _realigns(self._tick_hz, hz):
                 # A new rate: tick at the point of the loop's own grid nearest to when the
-                # credit allows (at most half a period either side; the next one if that point
-                # is past already: every tick at the new rate is a whole period after the one
-                # before, as the publisher's limiter counts), then stay on the grid.
+                # credit allows (at most half a period either side), then stay on the grid.
                 if pending is None or pending[0] != hz:
-                    grid = self._grid_point(now + credit.wait_s(), hz)
-                    pending = (hz, grid if grid >= now else grid + 1 / hz)
+                    # Never sooner after the last tick than the faster rate's period: a tick
+                    # early for both rates is a frame more than the link was carrying.
+                    soonest = max(now, self._last_tick + 1 / max(hz, self._tick_hz))
+                    pending = (hz, self._grid_point(now + credit.wait_s(), hz, soonest))
                 grid = pending[1]
                 if now < grid:
                     self._sleep(min(grid - now, self._poll_s))
                     continue
                 credit.frames, credit.seen = 0.0, grid
-                self._tick_hz = hz
+                self._tick_hz, self._last_tick = hz, grid
                 return
+            if pending is not None:
+                # The rate went back near the last tick's before the grid's point: what the
+                # wait earned is no catch-up, the credit's schedule goes on from one frame.
+                credit.frames, pending = min(credit.frames, 1.0), None
             if credit.spend():
-                self._tick_hz = hz
+                self._tick_hz, self._last_tick = hz, now
                 return
             self._sleep(min(credit.wait_s(), self._poll_s))
 
-    def _grid_point(self, due: float, hz: float) -> float:
-        """The point of the loop's grid at ``hz`` (first tick + k / hz) nearest to ``due``."""
-        return self._anchor + round((due - self._anchor) * hz) / hz
+    def _grid_point(self, due: float, hz: float, soonest: float) -> float:
+        """The point of the loop's grid at ``hz`` (first tick + k / hz) nearest to ``due``.
+
+        Or, if that one is before ``soonest``, the first one at or after it.
+        """
+        k = max(
+            round((due - self._anchor) * hz),
+            math.ceil((soonest - self._anchor) * hz - _EPSILON_FRAMES),
+        )
+        return self._anchor + k / hz
 
     def reset(self) -> None:
         """Start the schedule again at the next ``sleep()``."""
