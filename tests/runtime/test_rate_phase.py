@@ -215,7 +215,7 @@ def test_a_loop_probed_up_in_small_steps_keeps_its_pace(phase_s: float) -> None:
     clock = ManualClock(phase_s)
 
     def hz_at(t_s: float) -> float:
-        steps = max(0, int((t_s - phase_s - 3.0) / 0.2) + 1) if t_s >= phase_s + 3.0 else 0
+        steps = int((t_s - phase_s - 3.0) / 0.2) + 1 if t_s >= phase_s + 3.0 else 0
         return 2.8 * 1.015 ** min(steps, 20)
 
     rate = Rate(lambda: hz_at(clock()), clock=clock, sleep=clock.advance, keep_phase=True)

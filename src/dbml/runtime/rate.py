@@ -42,9 +42,7 @@ def same_rate(a_hz: float, b_hz: float) -> bool:
 
 def _realigns(tick_hz: float, hz: float) -> bool:
     """Whether a loop that ticked at ``tick_hz`` moves to its grid at ``hz``."""
-    if tick_hz <= 0:
-        return not same_rate(hz, tick_hz)
-    return max(hz / tick_hz, tick_hz / hz) >= REALIGN_RATIO
+    return tick_hz <= 0 or max(hz / tick_hz, tick_hz / hz) >= REALIGN_RATIO
 
 
 class _Credit:
