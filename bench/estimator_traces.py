@@ -114,11 +114,9 @@ class _Recorder:
         self.snapshot = snapshot
 
 
-def run_case(
-    case: Case, design: Design, *, trace: Path | None = None
-) -> tuple[TestbedResult, Snapshot | None]:
-    """One testbed run of ``case`` with ``design``; its result and the operator's records."""
-    options = TestbedOptions.from_flags(
+def case_options(case: Case, design: Design = DEFAULT_DESIGN) -> TestbedOptions:
+    """The testbed's options for ``case`` with ``design``."""
+    return TestbedOptions.from_flags(
         policy="dbml",
         estimate=True,
         estimator_design=design.value,
@@ -127,6 +125,13 @@ def run_case(
         link_trace=None if case.path is None else str(case.path),
         step_seconds=case.trace.duration_s / 10,
     )
+
+
+def run_case(
+    case: Case, design: Design, *, trace: Path | None = None
+) -> tuple[TestbedResult, Snapshot | None]:
+    """One testbed run of ``case`` with ``design``; its result and the operator's records."""
+    options = case_options(case, design)
     recorder = _Recorder()
     result = run_teleop_testbed(options, observe=recorder)
     if trace is not None and recorder.snapshot is not None:
@@ -370,6 +375,8 @@ def main(argv: list[str] | None = None) -> int:
             "capacity_mean_mbit": case.trace.megabits(0, case.trace.duration_s)
             / case.trace.duration_s,
             "clamped": case.trace.clamped,
+            # a recorded radio's queue keeps its bytes through a fade; None: the shaper's 200 ms
+            "link_queue_bytes": case_options(case).link_queue_bytes,
             "oracle": reference,
             "designs": {},
         }

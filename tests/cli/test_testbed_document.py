@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import pytest
 
 from dbml.cli import documents
@@ -49,3 +52,18 @@ def test_a_traced_run_says_how_its_link_changes_went() -> None:
         "late_ms_max": pytest.approx(2.0),
     }
     assert document["link_trace"] is None
+
+
+def test_a_traced_run_records_its_links_queue(tmp_path: Path) -> None:
+    pattern = [{"capacity": 8_000, "duration": 1_000}, {"capacity": 10, "duration": 200}]
+    trace = tmp_path / "radio.json"
+    trace.write_text(json.dumps({"uplink": {"trace_pattern": pattern}}))
+    options = TestbedOptions.from_flags(link_trace=str(trace))
+    document = documents.testbed_document(TestbedResult(options, "run"))
+    # 200 ms of its usual 8 Mbit/s and tbf's 4,000-byte burst
+    assert document["link_trace"] == {
+        "name": "radio",
+        "duration_s": pytest.approx(1.2),
+        "clamped": 0,
+        "queue_bytes": 204_000,
+    }

@@ -55,6 +55,25 @@ def test_a_gym_trace_is_kbit_per_s_for_ms_one_after_another() -> None:
     assert not trace.impaired
 
 
+def test_the_usual_rate_is_the_median_over_the_time_the_link_is_up() -> None:
+    # 0.2 s down, 0.2 s at 9 (a burst), 0.3 s at 0.01 (a fade), then 2.5: half the up time is
+    # reached within the 2.5-Mbit/s stretch.
+    trace = parse_plain_trace("0:0, 0.2:9, 0.4:0.01, 0.7:2.5, 1.6:2.5", name="radio")
+    assert trace.median_up_mbit == 2.5
+    # A long fade is the usual rate when it is most of the up time.
+    faded = parse_gym_trace(
+        gym(
+            {"capacity": 9000, "duration": 100},
+            {"capacity": 10, "duration": 4900},
+            {"capacity": 9000, "duration": 100},
+        ),
+        name="faded",
+    )
+    assert faded.median_up_mbit == 0.01  # by count of entries it would be 9
+    never = parse_gym_trace(gym({"capacity": 0, "duration": 200}), name="down")
+    assert never.median_up_mbit is None
+
+
 def test_an_outlier_is_clamped_and_counted() -> None:
     trace = parse_gym_trace(
         gym({"capacity": 2760, "duration": 200}, {"capacity": 8039999, "duration": 200}),

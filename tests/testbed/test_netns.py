@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import re
 import subprocess
@@ -256,6 +257,59 @@ def test_an_expedited_link_forwards_marked_packets_first(
     assert unmarked_p50 > 2 * marked_p95
 
 
+# A burst of UDP datagrams sent at once: what a fade finds in flight.
+BURST = r"""
+import socket, sys
+addr, port, count = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
+with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+    for _ in range(count):
+        sock.sendto(b"b" * 1000, (addr, port))
+"""
+
+
+def shared_link_qdiscs(network: Network) -> dict[str, dict[str, Any]]:
+    """The shared link's qdiscs at the router, by kind, with their statistics (``tc -s -j``)."""
+    out = subprocess.run(
+        ["tc", "-n", f"dbml-{network.run_id}-rt", "-s", "-j", "qdisc", "show"],
+        check=True,
+        capture_output=True,
+        text=True,
+        timeout=10,
+    ).stdout
+    link = f"r{network.run_id}op"
+    return {q["kind"]: q for q in json.loads(out) if q["dev"] == link}
+
+
+@pytest.mark.parametrize("expedited", [False, True])
+def test_a_fixed_queue_holds_what_a_fade_finds_in_flight(
+    make_network: Callable[..., Network], expedited: bool
+) -> None:
+    """At 50 kbit/s tbf's own bound is 5,250 bytes; a radio's queue keeps its bytes."""
+    tos = 0xB8 if expedited else None
+    drops = {}
+    for queue_bytes in (None, 120_000):
+        network = make_network(link_mbit=8, queue_bytes=queue_bytes, expedited_tos=tos)
+        network.set_link_rate(0.05)  # a fade
+        assert network.queue_bytes == queue_bytes
+        sender = [sys.executable, "-c", BURST, network.hosts["op"].address, str(PORT), "50"]
+        done = subprocess.run(
+            network.exec_argv("r1", sender), check=False, capture_output=True, timeout=10
+        )
+        assert done.returncode == 0, done.stderr
+        qdiscs = shared_link_qdiscs(network)
+        queue = qdiscs["bfifo" if expedited else "tbf"]
+        drops[queue_bytes] = queue["drops"]
+        held = queue["backlog"]
+        if queue_bytes is not None:
+            # 50 datagrams of 1,028 bytes on the wire: none dropped, all but the one
+            # on the wire still queued at 6,250 bytes/s.
+            assert drops[queue_bytes] == 0, qdiscs
+            assert held > 40 * 1_000, qdiscs
+        if expedited:
+            assert qdiscs["bfifo"]["options"]["limit"] == (queue_bytes or 5_250)
+    assert drops[None] >= 40  # the shaper's queue holds 5 of them
+
+
 def test_close_removes_everything_and_twice_is_fine() -> None:
     network = Network(link_mbit=8).build()
     try:
@@ -348,6 +402,10 @@ def test_two_networks_at_once_are_independent(make_network: Callable[..., Networ
         ({"expedited_tos": 0xB9}, "expedited_tos=185"),
         ({"expedited_tos": 0}, "expedited_tos=0"),
         ({"expedited_tos": True}, "expedited_tos=True"),
+        ({"queue_bytes": 1_000}, "queue_bytes=1000 must be an integer in 1514.."),
+        ({"queue_bytes": 2**27}, "queue_bytes=134217728"),
+        ({"queue_bytes": 150_000.0}, "queue_bytes=150000.0"),
+        ({"queue_bytes": True}, "queue_bytes=True"),
     ],
 )
 def test_bad_values_are_refused_before_anything_exists(

@@ -19,7 +19,7 @@ from dbml.testbed import TestbedError
 from dbml.testbed.netns import OPERATOR
 from dbml.testbed.options import TestbedOptions
 from dbml.testbed.result import LinkTiming
-from dbml.testbed.runner import _built_mbit, _change_link
+from dbml.testbed.runner import _built_mbit, _change_link, _network
 
 
 @pytest.fixture
@@ -44,6 +44,19 @@ def test_a_trace_becomes_the_links_schedule_and_may_start_down(tmp_path: Path) -
     # Built at its first capacity above 0: the roles meet before the trace starts.
     assert _built_mbit(options) == 2.5
     assert options.estimator_design is DEFAULT_DESIGN
+
+
+def test_a_traced_link_keeps_its_usual_rates_queue_through_a_fade(tmp_path: Path) -> None:
+    # 0.8 s at 10 Mbit/s, a 0.2-s fade, 0.4 s at 2: the usual rate is 10.
+    trace = _gym(tmp_path / "5g.json", (10_000, 800), (10, 200), (2_000, 400))
+    options = TestbedOptions.from_flags(link_trace=str(trace), estimate=True)
+    # tbf's own bound at 10 Mbit/s: 200 ms of it (250,000 bytes) and its 4,000-byte burst.
+    assert options.link_queue_bytes == 254_000
+    assert _network(options).queue_bytes == 254_000
+    # A schedule's link is re-shaped at each rate: the shaper's own queue.
+    scheduled = TestbedOptions.from_flags(link_schedule="0:10,1:0.01,2:2")
+    assert scheduled.link_queue_bytes is None
+    assert _network(scheduled).queue_bytes is None
 
 
 def test_trace_flags_are_checked(tmp_path: Path) -> None:

@@ -238,7 +238,12 @@ def testbed_document(result: TestbedResult) -> dict[str, Any]:
         "link_schedule": [list(entry) for entry in options.link_schedule],
         "link_trace": None
         if trace is None
-        else {"name": trace.name, "duration_s": trace.duration_s, "clamped": trace.clamped},
+        else {
+            "name": trace.name,
+            "duration_s": trace.duration_s,
+            "clamped": trace.clamped,
+            "queue_bytes": options.link_queue_bytes,
+        },
         "uplinks_mbit": dict(options.uplinks_mbit),
         "uplink_schedules": {
             robot: [list(entry) for entry in schedule]

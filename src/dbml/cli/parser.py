@@ -282,7 +282,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="FILE",
         help="the link follows a recorded trace: OpenNetLab gym's JSON "
         '({"uplink": {"trace_pattern": [{"capacity": kbps, "duration": ms}, ...]}}) or '
-        "SECONDS:MBIT lines",
+        "SECONDS:MBIT lines; its queue keeps the bytes its median rate fills in 200 ms",
     )
     testbed_cmd.add_argument(
         "--estimate", action="store_true", help="estimate the bandwidth instead of assuming it"

@@ -109,6 +109,26 @@ class LinkTrace:
         """The first capacity above 0 (what the link is built at); None if it is never up."""
         return next((e.mbit for e in self.entries if e.mbit > 0), None)
 
+    @property
+    def median_up_mbit(self) -> float | None:
+        """The capacity the link has half its up time or more (None if it is never up).
+
+        A radio's usual rate: what its buffer is sized for, and what a frame's transmission
+        takes on it, where the trace's slowest steps are fades.
+        """
+        ends = [e.at_s for e in self.entries[1:]] + [max(self.duration_s, self.entries[-1].at_s)]
+        up = sorted(
+            (entry.mbit, until - entry.at_s)
+            for entry, until in zip(self.entries, ends, strict=True)
+            if entry.mbit > 0 and until > entry.at_s
+        )
+        half, total = sum(d for _, d in up) / 2, 0.0
+        for mbit, seconds in up:
+            total += seconds
+            if total >= half:
+                return mbit
+        return None
+
     def mbit_at(self, t_s: float) -> float:
         """The capacity in force ``t_s`` seconds after the start (the last one past the end)."""
         index = bisect.bisect_right(self._times, t_s) - 1

@@ -31,6 +31,8 @@ from types import TracebackType
 from dbml.core.errors import DbmlError
 
 __all__ = [
+    "MAX_QUEUE_BYTES",
+    "MIN_QUEUE_BYTES",
     "NETNS_DIR",
     "OPERATOR",
     "Host",
@@ -38,6 +40,7 @@ __all__ = [
     "TestbedError",
     "leftover_namespaces",
     "privilege_problem",
+    "shaper_queue_bytes",
 ]
 
 _PREFIX = "dbml-"
@@ -54,6 +57,10 @@ _BURST = f"{_BURST_BYTES * 8 // 1_000}kbit"
 _LATENCY_S = 0.2
 """The longest a packet waits in a shaped link's queue; tbf drops what would wait longer."""
 _LATENCY = f"{round(_LATENCY_S * 1_000)}ms"
+MIN_QUEUE_BYTES = 1_514
+"""The smallest queue a link may be given: one full Ethernet frame (a smaller one carries none)."""
+MAX_QUEUE_BYTES = 64 * 1024 * 1024
+"""The largest: seconds of any rate the testbed's software links reach."""
 _TBF_HANDLE = "1:"
 _CLASSES_HANDLE = "10:"
 _EXPEDITED_CLASS = "10:1"
@@ -132,6 +139,11 @@ class Network:
     expedited_tos: int | None
     """The shared link forwards packets with this TOS byte's DSCP first (strict priority, as a
     Wi-Fi access point's WMM or a DSCP-aware router does); None: one FIFO, the paper's link."""
+    queue_bytes: int | None
+    """The shared link's queue, in bytes, whatever its rate: a radio's buffer, which a fade
+    does not shrink (OpenNetLab's gym sizes its drop-tail queue once, as bytes, and its traces
+    change only the rate). None: what ``_LATENCY_S`` holds at the link's current rate, a
+    shaper's (``shaper_queue_bytes``)."""
 
     def __init__(
         self,
@@ -140,9 +152,20 @@ class Network:
         link_mbit: float,
         uplinks_mbit: Mapping[str, float] | None = None,
         expedited_tos: int | None = None,
+        queue_bytes: int | None = None,
         run_id: str | None = None,
     ) -> None:
         self.robots = _check_robots(robots)
+        if queue_bytes is not None and (
+            isinstance(queue_bytes, bool)
+            or not isinstance(queue_bytes, int)
+            or not MIN_QUEUE_BYTES <= queue_bytes <= MAX_QUEUE_BYTES
+        ):
+            raise TestbedError(
+                f"queue_bytes={queue_bytes!r} must be an integer in "
+                f"{MIN_QUEUE_BYTES}..{MAX_QUEUE_BYTES}"
+            )
+        self.queue_bytes = queue_bytes
         if expedited_tos is not None and (
             isinstance(expedited_tos, bool)
             or not isinstance(expedited_tos, int)
@@ -223,10 +246,10 @@ class Network:
         self._check_built()
         if host == OPERATOR:
             router = self._netns(_ROUTER)
-            tbf = self._tbf(self._router_if(OPERATOR), rate)
+            tbf = self._tbf(self._router_if(OPERATOR), rate, self.queue_bytes)
             _run(["tc", "-n", router, "qdisc", "change", *tbf])
-            if self.expedited_tos is not None:  # the bulk queue keeps its time bound
-                bulk = self._bulk_fifo(self._router_if(OPERATOR), rate)
+            if self.expedited_tos is not None:  # the bulk queue keeps its bound
+                bulk = self._bulk_fifo(self._router_if(OPERATOR), rate, self.queue_bytes)
                 _run(["tc", "-n", router, "qdisc", "change", *bulk])
             self.link_mbit = rate
         else:
@@ -327,7 +350,7 @@ class Network:
         for index, role in enumerate([*self.robots, OPERATOR]):
             subnet = _OPERATOR_SUBNET if role == OPERATOR else index + 1
             self._link(role, subnet)
-        self._shape(router, self._router_if(OPERATOR), self.link_mbit)
+        self._shape(router, self._router_if(OPERATOR), self.link_mbit, self.queue_bytes)
         if self.expedited_tos is not None:
             self._expedite(router, self._router_if(OPERATOR), self.expedited_tos)
         for robot, mbit in self.uplinks_mbit.items():
@@ -345,14 +368,16 @@ class Network:
         _run(["ip", "-n", router, "link", "set", router_if, "up"])
         _run(["ip", "-n", netns, "route", "add", "default", "via", f"10.200.{subnet}.1"])
 
-    def _shape(self, netns: str, interface: str, mbit: float) -> None:
-        _run(["tc", "-n", netns, "qdisc", "add", *self._tbf(interface, mbit)])
+    def _shape(
+        self, netns: str, interface: str, mbit: float, queue_bytes: int | None = None
+    ) -> None:
+        _run(["tc", "-n", netns, "qdisc", "add", *self._tbf(interface, mbit, queue_bytes)])
 
     def _expedite(self, netns: str, interface: str, tos: int) -> None:
         """Under the link's tbf, two classes in strict priority: ``tos`` first, the rest after.
 
-        The bulk class keeps the tbf's own queue bound (``_LATENCY_S`` at the link's rate); an
-        expedited packet waits at most for the one being sent.
+        The bulk class keeps the tbf's own queue bound (``queue_bytes``, or ``_LATENCY_S`` at the
+        link's rate); an expedited packet waits at most for the one being sent.
         """
         tc, dev = ["tc", "-n", netns], ["dev", interface]
         default = ["default", _BULK_CLASS.partition(":")[2]]  # what no filter matches
@@ -362,21 +387,22 @@ class Network:
         for classid, prio in ((_EXPEDITED_CLASS, "0"), (_BULK_CLASS, "1")):
             shape = ["htb", "rate", _CLASS_RATE, "ceil", _CLASS_RATE, "prio", prio]
             _run([*tc, "class", "add", *under, "classid", classid, *shape])
-        _run([*tc, "qdisc", "add", *self._bulk_fifo(interface, self.link_mbit)])
+        _run([*tc, "qdisc", "add", *self._bulk_fifo(interface, self.link_mbit, self.queue_bytes)])
         match = ["u32", "match", "ip", "dsfield", f"{tos:#x}", f"{_DSCP_MASK:#x}"]
         rule = ["protocol", "ip", "prio", "1", *match, "flowid", _EXPEDITED_CLASS]
         _run([*tc, "filter", "add", *under, *rule])
 
     @staticmethod
-    def _bulk_fifo(interface: str, mbit: float) -> list[str]:
-        limit = round(mbit * 1e6 / 8 * _LATENCY_S) + _BURST_BYTES  # as tbf sizes its own queue
+    def _bulk_fifo(interface: str, mbit: float, queue_bytes: int | None) -> list[str]:
+        limit = shaper_queue_bytes(mbit) if queue_bytes is None else queue_bytes
         where = ["dev", interface, "parent", _BULK_CLASS, "handle", _BULK_HANDLE]
         return [*where, "bfifo", "limit", str(limit)]
 
     @staticmethod
-    def _tbf(interface: str, mbit: float) -> list[str]:
+    def _tbf(interface: str, mbit: float, queue_bytes: int | None = None) -> list[str]:
         rate = f"{round(mbit * 1000)}kbit"  # kbit keeps fractional Mbit exact to 1 kbit/s
-        shape = ["rate", rate, "burst", _BURST, "latency", _LATENCY]
+        bound = ["latency", _LATENCY] if queue_bytes is None else ["limit", str(queue_bytes)]
+        shape = ["rate", rate, "burst", _BURST, *bound]
         return ["dev", interface, "root", "handle", _TBF_HANDLE, "tbf", *shape]
 
     def _delete_namespaces(self) -> list[str]:
@@ -423,6 +449,15 @@ def _check_robots(robots: Sequence[str]) -> tuple[str, ...]:
             raise TestbedError(f"robot name {name!r} appears twice in robots")
         seen.add(name)
     return names
+
+
+def shaper_queue_bytes(mbit: float) -> int:
+    """The bytes a link shaped at ``mbit`` queues: ``_LATENCY_S`` of its rate and its burst.
+
+    What tbf computes from its ``latency``; a ``Network(queue_bytes=...)`` of this at a
+    radio's usual rate keeps that queue through the radio's fades.
+    """
+    return round(_check_mbit("mbit", mbit) * 1e6 / 8 * _LATENCY_S) + _BURST_BYTES
 
 
 def _check_mbit(field: str, mbit: float) -> float:

@@ -20,7 +20,7 @@ from dbml.experiment.spec import Frames
 from dbml.scenarios.fleet import MAX_ROBOTS, MIN_ROBOTS, fleet_cameras
 from dbml.scenarios.teleop import ROBOTS
 from dbml.scenarios.traces import LinkTrace, load_trace
-from dbml.testbed.netns import TestbedError
+from dbml.testbed.netns import TestbedError, shaper_queue_bytes
 from dbml.transports.registry import TRANSPORTS as REGISTRY
 from dbml.transports.registry import Discovery, TransportEntry
 from dbml.view.target import ViewTarget
@@ -374,6 +374,18 @@ class TestbedOptions:
         return not self.robot_schedules and all(
             mbit == self.link_mbit for _, mbit in self.link_schedule
         )
+
+    @property
+    def link_queue_bytes(self) -> int | None:
+        """The shared link's queue in bytes through a recorded trace; None: the shaper's own.
+
+        A radio's buffer does not shrink in a fade: a trace's link keeps the queue its usual
+        (median) rate fills in the shaper's 200 ms, as OpenNetLab's gym, where its traces come
+        from, keeps one drop-tail queue of fixed bytes. A schedule's link is re-shaped at each
+        rate (``Network(queue_bytes=None)``).
+        """
+        usual = None if self.link_trace is None else self.link_trace.median_up_mbit
+        return None if usual is None else shaper_queue_bytes(usual)
 
     @property
     def fleet(self) -> bool:

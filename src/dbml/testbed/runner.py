@@ -123,8 +123,7 @@ def _bridges(
     """What each bridge said of its publishes on ``[topic]/optimized`` (none: not known)."""
     first = _built_mbit(options)
     if options.link_trace is not None:  # its slowest 200 ms are a fade: its median instead
-        up = sorted(mbit for _, mbit in options.link_schedule if mbit > 0)
-        slowest = up[len(up) // 2] if up else first
+        slowest = options.link_trace.median_up_mbit or first
     else:
         slowest = min([first, *(mbit for _, mbit in options.link_schedule if mbit > 0)])
     cameras = fleet_cameras(options.robots)
@@ -174,6 +173,7 @@ def _network(options: TestbedOptions) -> Network:
         },
         # The urgent stream's run: its own link is marked EF, and the shared link honours it.
         expedited_tos=EXPEDITED_TOS if options.urgent_stream else None,
+        queue_bytes=options.link_queue_bytes,
     )
 
 
