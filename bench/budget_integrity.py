@@ -300,6 +300,11 @@ class Ros2Sniffer(SequenceCount):
     gap in a writer's DDS publication sequence numbers. Each arrival keeps its writer's GID; the
     graph, read every 0.25 s, names the writer's node, so a foreign node's bytes are kept apart
     (a writer never named is counted as dbml's: against the budget, and said).
+
+    An arrival is stamped when DDS received it (``received_timestamp``), not when the executor
+    called back: on a loaded host the callback comes up to 0.1 s later, and frames a late
+    executor bunches would fill a window they did not arrive in. The callback's stamp is kept
+    beside it (``arrivals(at_callback=True)``), and how late it came.
     """
 
     def __init__(self, domain_id: int, topics: list[str]) -> None:
@@ -311,7 +316,8 @@ class Ros2Sniffer(SequenceCount):
 
         super().__init__()
         self._host_of_node = host_of_node
-        self._arrivals: list[tuple[float, int, bytes]] = []
+        self._arrivals: list[tuple[float, int, bytes, float]] = []
+        """(received s, bytes, writer, called back s), on this process's monotonic clock."""
         self._owners: dict[bytes, str] = {}
         self._topics = [f"{topic}/optimized" for topic in topics]
         self._ros = PrivateRos(domain_id=domain_id, name="sniffer")
@@ -334,12 +340,16 @@ class Ros2Sniffer(SequenceCount):
 
     def _receiver(self, key: str) -> Callable[[Any, MessageInfo], None]:
         def on_message(data: Any, info: MessageInfo) -> None:
-            now = time.monotonic()
+            now, wall_ns = time.monotonic(), time.time_ns()
+            received_ns = info.get("received_timestamp")
+            received = now
+            if isinstance(received_ns, int) and 0 < received_ns <= wall_ns:
+                received = now - (wall_ns - received_ns) / 1e9
             sender = info.get("publisher_gid") or {}
             gid = bytes(sender.get("data", b""))[:16]
             seq = info.get("publication_sequence_number")
             with self._lock:
-                self._arrivals.append((now, len(data), gid))
+                self._arrivals.append((received, len(data), gid, now))
                 self._count_locked(key, gid, seq if isinstance(seq, int) else None)
 
         return on_message
@@ -356,17 +366,42 @@ class Ros2Sniffer(SequenceCount):
         owner = self._owners.get(gid)
         return owner is not None and self._host_of_node(owner) is None
 
-    def arrivals(self, *, since_s: float = -math.inf) -> list[tuple[float, int]]:
-        """Dbml's arrivals ``(t_s, bytes)`` at or after ``since_s``."""
+    def arrivals(
+        self, *, since_s: float = -math.inf, at_callback: bool = False
+    ) -> list[tuple[float, int]]:
+        """Dbml's arrivals ``(t_s, bytes)`` at or after ``since_s``, in time order.
+
+        ``t_s``: when DDS received the message, or ``at_callback`` when this node was called.
+        """
         with self._lock:
-            return [
-                (t, n) for t, n, gid in self._arrivals if t >= since_s and not self._foreign(gid)
-            ]
+            return sorted(
+                (called if at_callback else t, n)
+                for t, n, gid, called in self._arrivals
+                if t >= since_s and not self._foreign(gid)
+            )
+
+    def callback_lag_ms(self, start_s: float, end_s: float) -> dict[str, float | None]:
+        """How long after DDS received a message this node was called: p50, p99 and max."""
+        with self._lock:
+            lags = sorted(
+                (called - t) * 1e3
+                for t, _n, _gid, called in self._arrivals
+                if start_s <= t <= end_s
+            )
+        if not lags:
+            return dict.fromkeys(
+                ("callback_lag_p50_ms", "callback_lag_p99_ms", "callback_lag_max_ms")
+            )
+        return {
+            "callback_lag_p50_ms": round(lags[len(lags) // 2], 1),
+            "callback_lag_p99_ms": round(lags[int(0.99 * (len(lags) - 1))], 1),
+            "callback_lag_max_ms": round(lags[-1], 1),
+        }
 
     def foreign(self, start_s: float, end_s: float) -> dict[str, int]:
         """Bytes and messages of foreign writers, and of writers never named, in the span."""
         with self._lock:
-            inside = [(n, gid) for t, n, gid in self._arrivals if start_s <= t <= end_s]
+            inside = [(n, gid) for t, n, gid, _ in self._arrivals if start_s <= t <= end_s]
             return {
                 "foreign_bytes": sum(n for n, gid in inside if self._foreign(gid)),
                 "foreign_messages": sum(1 for _n, gid in inside if self._foreign(gid)),
@@ -759,6 +794,15 @@ def wire_stats(
         "over_1_05_share": round(stats.over_share, 4),
         "mean_ratio": round(mean, 4),
     }
+    if rig.ros2_sniffer is not None:
+        # The same windows by when the sniffer's executor called back, and how late it was.
+        called = rig.ros2_sniffer.arrivals(since_s=start_s, at_callback=True)
+        late = window_stats(
+            charged([a for a in called if a[0] <= end_s], budget, reference),
+            limit_bytes=OVER_RATIO * reference,
+        )
+        document["worst_ratio_at_callback"] = round(late.worst_bytes / reference, 4)
+        document.update(rig.ros2_sniffer.callback_lag_ms(start_s, end_s))
     if phases:
         bounds = sorted(phases.items(), key=lambda item: item[1])
         by_phase = {}
@@ -1035,7 +1079,22 @@ def measure_run(
         "allocated_worst_at_s": churn["allocated_worst_at_s"],
         "largest_message_bytes": largest,
         "target_ratio": round((reference + largest) / reference, 4),
+        **{
+            k: churn[k]
+            for k in (
+                "worst_ratio_at_callback",
+                "callback_lag_p50_ms",
+                "callback_lag_p99_ms",
+                "callback_lag_max_ms",
+            )
+            if k in churn
+        },
         "steady_worst_ratio": steady["worst_ratio"],
+        **(
+            {"steady_worst_ratio_at_callback": steady["worst_ratio_at_callback"]}
+            if "worst_ratio_at_callback" in steady
+            else {}
+        ),
         "steady_windows": steady["windows"],
         "steady_over_1_05_share": steady["over_1_05_share"],
         "steady_mean_ratio": steady["mean_ratio"],
