@@ -28,16 +28,17 @@ out of the budget, so whole frames cannot add up past B + one message in a windo
 
 ``--transport rclpy`` runs the same fleet over real ROS 2 (rclpy, Fast DDS) in a ROS 2 domain
 claimed for the run, logs in a temporary directory; this process writes the priorities and the
-budget step with ``params.set`` (a ``SetParameters`` call to the node hosting each, as ``ros2
-param set`` makes). The sniffer is then a plain rclpy node of this process with a reliable raw
-subscription of each channel's ``[topic]/optimized``; it counts the bytes of dbml's publishers
-(their nodes are dbml's), keeps a foreign node's apart, and checks each publisher's DDS sequence
-numbers. During the churn pass a hostile peer process (``--hostile-peer``, a plain rclpy node
-named ``hostile_peer``, not ``/dbm``) also runs: a foreign publisher of 84,000-B frames on
-``/robot1/camera/optimized``, out-of-range and dbml-owned values through ``SetParameters``, a
-flood of ``std_msgs/msg/Float64`` on every ``[topic]/dbm/priority`` (half of them invalid) and a
-forged ``/dbm/allocation`` giving every channel 16 Hz; ``--no-hostile`` leaves it out. What it
-sent and what was refused is in the JSON, with the zenoh-only parts named as not applicable.
+budget step with ``params.set`` (a ``SetParameters`` call to the node hosting each, as ``ros2 param
+set`` makes). The sniffer is then a plain rclpy node of this process with a reliable raw
+subscription of each channel's ``[topic]/optimized``, stamping each message when DDS received it
+(``worst_ratio_at_callback``: by when its executor called back); it counts the bytes of dbml's
+publishers (their nodes are dbml's), keeps a foreign node's apart, and checks each publisher's DDS
+sequence numbers. During the churn pass a hostile peer process (``--hostile-peer``, a plain rclpy
+node named ``hostile_peer``, not ``/dbm``) also runs: a foreign publisher of 84,000-B frames on
+``/robot1/camera/optimized``, out-of-range and dbml-owned values through ``SetParameters``, a flood
+of ``std_msgs/msg/Float64`` on every ``[topic]/dbm/priority`` (half of them invalid) and a forged
+``/dbm/allocation`` giving every channel 16 Hz; ``--no-hostile`` leaves it out. What it sent and
+what was refused is in the JSON, with the zenoh-only parts named as not applicable.
 
     python bench/budget_integrity.py [--json] [--runs 3] [--seconds 30] [--without-headroom]
         [--transport zenoh|rclpy] [--no-hostile]
