@@ -55,7 +55,8 @@ _OPERATOR_SUBNET = 100  # 10.200.100.0/24; robots use 10.200.1.0/24 .. 10.200.99
 _BURST_BYTES = 4_000
 _BURST = f"{_BURST_BYTES * 8 // 1_000}kbit"
 _LATENCY_S = 0.2
-"""The longest a packet waits in a shaped link's queue; tbf drops what would wait longer."""
+"""The longest a packet waits in a shaped link's queue at its rate; tbf drops what would wait
+longer (a ``Network(queue_bytes=...)`` link holds those bytes whatever its rate instead)."""
 _LATENCY = f"{round(_LATENCY_S * 1_000)}ms"
 MIN_QUEUE_BYTES = 1_514
 """The smallest queue a link may be given: one full Ethernet frame (a smaller one carries none)."""
