@@ -23,11 +23,12 @@ from dbml.protocol.metadata import MessageMeta
 from dbml.protocol.schema import PARAMETERS, Kind, Scope, Writer
 from dbml.runtime.priority import PRIORITY_INTERVAL_S, PriorityTopic
 from dbml.transports.base import Role, Sample, Variant
-from dbml.transports.rclpy.params import UNATTRIBUTED_S
+from dbml.transports.rclpy.params import UNATTRIBUTED_S, descriptor
 from tests.conftest import wait_for
 
 rclpy = pytest.importorskip("rclpy")  # before dbml's rclpy module: the ROS 1 environment lacks it
 
+from rclpy.parameter import Parameter as RosParameter  # noqa: E402
 from rclpy.qos import ReliabilityPolicy  # noqa: E402
 from std_msgs.msg import Float64, String  # noqa: E402
 
@@ -406,6 +407,49 @@ def test_an_operators_value_can_precede_the_robot_that_hosts_it(ros_domain: int)
 
 
 HANDOVER_S = 15.0
+
+
+@pytest.mark.integration
+def test_what_the_host_announced_while_this_process_hosted_its_node_is_read_after(
+    ros_domain: int,
+) -> None:
+    """A provisional host ignores the node's announcements (it knows its own values)...
+
+    ...and a read of the node meanwhile is answered by its own node first (both serve
+    ``get_parameters``), so when it gives the node up it reads the node from its host again.
+    The robot here is a plain node (no dbml) that hosts ``/r1/camera/dbm`` with a channel's
+    parameters, changes a value, and only then claims it (a dbml host claims at once, and the
+    graph may show the claim after the node, as in a fleet's start).
+    """
+    operator = RclpyTransport(host="ground", domain_id=ros_domain)
+    try:
+        operator.params.set("/r1/camera/dbm/priority", 0.7)
+        wait_for(lambda: _hosts(operator, "/r1/camera/dbm"), what="the provisional host")
+        with private_node("dbm", domain_id=ros_domain, namespace="/r1/camera") as robot:
+            for parameter in PARAMETERS:  # as a channel's host declares them
+                if parameter.scope is Scope.CHANNEL:
+                    robot.declare_parameter(parameter.ros2_name, None, descriptor(parameter))
+            robot.set_parameters([RosParameter("frequency.max", value=16.0)])
+            wait_for(
+                lambda: "/r1/camera/dbm" in operator._sync._live,  # the graph shows the robot's
+                timeout_s=HANDOVER_S,
+                what="the robot's node",
+            )
+            robot.set_parameters([RosParameter("frequency.max", value=12.0)])
+            claim = robot.create_publisher(String, "/r1/camera/dbm/host", ALLOCATION_QOS)
+            claim.publish(String(data="r1"))
+            wait_for(
+                lambda: not _hosts(operator, "/r1/camera/dbm"),
+                timeout_s=HANDOVER_S,
+                what="hand-over",
+            )
+            wait_for(
+                lambda: operator.params.get("/r1/camera/dbm/frequency/max") == 12.0,
+                timeout_s=HANDOVER_S,
+                what="the robot's 12.0 in the operator's view",
+            )
+    finally:
+        operator.close()
 
 
 def _claimed_by(domain_id: int, channel: str) -> str:

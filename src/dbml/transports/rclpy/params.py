@@ -722,7 +722,9 @@ class RclpyParams:
         """Another process hosts ``node`` too: push what anyone may write there, then leave it.
 
         What is pushed is what this process wrote, as its node holds it (not the view: the view
-        may have heard the new host's declaration before these values).
+        may have heard the new host's declaration before these values). The node is then read
+        from its host again: while hosted here its announcements were not heard, and a read
+        made meanwhile may have been answered by this process's own node.
         """
         writes: dict[str, ParamValue] = {}
         for parameter in PARAMETERS:
@@ -735,6 +737,9 @@ class RclpyParams:
             if held is not None:
                 writes[parameter.ros2_name] = held
         self._close_hosted(node, hosted)
+        with self._lock:
+            self._fetched.discard(node)  # the next poll reads it
+        self._fetching.pop(node, None)
         if writes:
             self._set_remote(node, writes)
         log.debug("%s is hosted elsewhere now: gave it up", node)
