@@ -375,10 +375,11 @@ class Ros2Sniffer(SequenceCount):
         ``t_s``: when DDS received the message, or ``at_callback`` when this node was called.
         """
         with self._lock:
+            stamped = [
+                (called if at_callback else t, n, gid) for t, n, gid, called in self._arrivals
+            ]
             return sorted(
-                (called if at_callback else t, n)
-                for t, n, gid, called in self._arrivals
-                if t >= since_s and not self._foreign(gid)
+                (t, n) for t, n, gid in stamped if t >= since_s and not self._foreign(gid)
             )
 
     def callback_lag_ms(self, start_s: float, end_s: float) -> dict[str, float | None]:
