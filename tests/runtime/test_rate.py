@@ -5,7 +5,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from dbml.runtime import Rate, RateLimiter
-from dbml.runtime.rate import ByteWindow
+from dbml.runtime.rate import PACER_LATE_S, ByteWindow, caught_up_periods
 from dbml.transports import ManualClock
 
 
@@ -94,6 +94,49 @@ def test_rate_sleep_does_not_burst_after_falling_behind() -> None:
     rate.sleep()
     rate.sleep()
     assert clock() - start >= 0.1 - 1e-9
+
+
+def ticks_around_a_stall(rate_hz: float, late_s: float) -> list[float]:
+    """A paced loop's ticks when its third tick comes ``late_s`` late (the process stalled)."""
+    clock = ManualClock()
+    rate = Rate(lambda: rate_hz, clock=clock, sleep=clock.advance)
+    ticks = []
+    for k in range(12):
+        if k == 3:
+            clock.advance(1 / rate_hz + late_s)  # stopped through its next tick's time
+        rate.sleep()
+        ticks.append(clock())
+    return ticks
+
+
+def test_a_stalled_tick_is_not_caught_up() -> None:
+    """The next tick after a stall is a period after it: no frame right behind the late one.
+
+    Caught up, R1's next 84,000-B frame went 42 ms after one 141 ms late, onto a 4-Mbit uplink
+    where a frame takes 176 ms: it waited 126 ms, and the backlog took 3 s to drain.
+    """
+    rate_hz = 5.48
+    period_s = 1 / rate_hz
+    ticks = ticks_around_a_stall(rate_hz, 0.141)
+    gaps = [b - a for a, b in itertools.pairwise(ticks)]
+    assert max(gaps) == pytest.approx(period_s + 0.141)  # the stall
+    assert min(gaps) == pytest.approx(period_s)
+
+
+@pytest.mark.parametrize("rate_hz", [1.0, 5.48, 16.0, 30.0])
+def test_a_tick_late_by_less_than_a_stall_is_caught_up(rate_hz: float) -> None:
+    """Late by less than ``caught_up_periods``: the loop stays on its grid (no rate lost)."""
+    late_s = 0.9 * caught_up_periods(rate_hz) / rate_hz
+    ticks = ticks_around_a_stall(rate_hz, late_s)
+    assert ticks[-1] - ticks[0] == pytest.approx((len(ticks) - 1) / rate_hz)
+
+
+@pytest.mark.parametrize("rate_hz", [5.48, 16.0])
+def test_a_stall_costs_the_time_it_took(rate_hz: float) -> None:
+    """Late by more: the tick goes at once, and the schedule goes on from it (a restart)."""
+    late_s = max(1.2 * PACER_LATE_S, 0.3 / rate_hz)
+    ticks = ticks_around_a_stall(rate_hz, late_s)
+    assert ticks[-1] - ticks[0] == pytest.approx((len(ticks) - 1) / rate_hz + late_s)
 
 
 def test_a_new_rate_applies_during_a_long_wait() -> None:

@@ -120,11 +120,12 @@ def _windows(step: StepResult) -> str:
 
 UPLINK_MBIT = 4.0
 STALL_MS = 150.0
-"""What one stall of a robot's process may add to its frames' latency on a link it nearly fills.
+"""What a stall of a robot's process may add to its frames' latency on a link it nearly fills.
 
-Measured (SIGSTOP of R1's role for 150 ms in this test's run): its tick went 141 ms late, the
-pacer's next one 42 ms after it on the grid, and that frame waited 126 ms behind the first;
-the uplink's 3.6 % of slack at R1's allocation drained the backlog in 3 s."""
+The pacer catches up a tick late by up to 50 ms (``caught_up_periods``): the next frame then
+waits up to 50 ms less the link's slack behind the late one. A stall of the operator's process
+delays the arrivals it stamps as much as it lasts. Before the pacer stopped catching up stalls,
+one of 150 ms (SIGSTOP of R1's role) put a frame 126 ms behind the one before."""
 
 
 def test_an_uplink_limit_is_kept(netns_privilege: None) -> None:

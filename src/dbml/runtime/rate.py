@@ -18,12 +18,26 @@ import math
 import time
 from collections.abc import Callable
 
-__all__ = ["REALIGN_RATIO", "SAME_RATE", "ByteWindow", "Rate", "RateLimiter", "same_rate"]
+__all__ = [
+    "PACER_LATE_S",
+    "PACER_LATE_SHARE",
+    "REALIGN_RATIO",
+    "SAME_RATE",
+    "ByteWindow",
+    "Rate",
+    "RateLimiter",
+    "caught_up_periods",
+    "same_rate",
+]
 
 _EPSILON_FRAMES = 1e-9
 """Rounding slack, so a message exactly one period later is never refused."""
 _PACER_BEHIND_FRAMES = 2.0
-"""A loop this many ticks behind (a whole period late) restarts its schedule: no burst."""
+"""The most credit a loop holds: a whole period late."""
+PACER_LATE_SHARE = 0.25
+"""A tick later than this share of a period (and ``PACER_LATE_S``) restarts the schedule."""
+PACER_LATE_S = 0.05
+"""A tick later than this (and ``PACER_LATE_SHARE`` of a period) restarts the schedule."""
 WINDOW_S = 1.0
 """The window the budget is promised over (what a passive counter of the wire measures)."""
 SAME_RATE = 1e-9
@@ -33,6 +47,14 @@ REALIGN_RATIO = 1.25
 """A pacer that keeps its phase moves to its grid when the rate changes by this factor or more."""
 MAX_WINDOW_FRAMES = 4096
 """The most frames a ``ByteWindow`` remembers (its memory bound; far above any camera's rate)."""
+
+
+def caught_up_periods(rate_hz: float) -> float:
+    """How late a tick of a loop at ``rate_hz`` may be, in periods, and still be caught up.
+
+    The later of ``PACER_LATE_SHARE`` of a period and ``PACER_LATE_S``, at most a period.
+    """
+    return min(max(PACER_LATE_SHARE, PACER_LATE_S * rate_hz), 1.0)
 
 
 def same_rate(a_hz: float, b_hz: float) -> bool:
@@ -147,7 +169,12 @@ class Rate:
     Ticks keep absolute deadlines: neither loop work nor a late wake-up (a sleep returns after
     its time, later on a busy machine) adds to the period, so the loop runs at the rate itself
     (each tick's wake-up delay lost, 1.6 ms at 16 Hz on a loaded testbed, cost 2.5 % of the
-    rate); falling behind by a whole period restarts the schedule instead of bursting.
+    rate). A tick later than ``caught_up_periods`` (a quarter of a period, and 50 ms) is a
+    stall, not a late wake-up: it restarts the schedule, and the time lost is not caught up. A
+    caught-up tick follows the late one sooner than a period, and on a link the stream nearly
+    fills it waits behind it: R1's 84,000-B frames at 5.48 Hz on a 4-Mbit uplink (176 ms to
+    cross, 3.6 % of the uplink idle), stopped 150 ms, sent a tick 141 ms late and the next 42 ms
+    after it, which waited 126 ms behind the first, and the backlog took 3 s to drain.
 
     ``keep_phase``: after the rate changes by ``REALIGN_RATIO`` or more, the first tick at the
     new rate goes at the point of the loop's own grid (``first tick + k / rate``) nearest to
@@ -204,8 +231,8 @@ class Rate:
         while True:
             now, hz = self._clock(), self._rate_hz()
             credit.look(now, hz)
-            if credit.frames >= _PACER_BEHIND_FRAMES - _EPSILON_FRAMES:
-                credit.frames = 1.0  # a period or more behind: this tick now, then on schedule
+            if credit.frames >= 1.0 + caught_up_periods(hz) - _EPSILON_FRAMES:
+                credit.frames = 1.0  # a stall, not a late wake-up: this tick now, then on schedule
             if self._keep_phase and hz > 0 and _realigns(self._tick_hz, hz):
                 # A new rate: tick at the point of the loop's own grid nearest to when the
                 # credit allows (at most half a period either side), then stay on the grid.
