@@ -28,3 +28,27 @@ def test_steps_measure_rate_latency_losses_and_goodput() -> None:
     assert first.goodput_mbit == pytest.approx((10 * 100_000 + 4 * 10_000) * 8e-6, rel=0.1)
     assert first.budget_mbit == 9.0
     assert first.link_mbit == 11.0
+
+
+def test_a_rate_is_judged_against_the_allocations_in_force_over_its_window() -> None:
+    """Moved from 10 to 16 Hz halfway through the window: 13 Hz delivered is what was allowed.
+
+    Judged against the last allocation alone, R1 would be 19 % short; R2, which stayed at 10 Hz
+    through the same change, is short of the 13 Hz it was allowed on average.
+    """
+    t0 = 1000.0
+    frames = [
+        *stream(0, hz=10, start=t0, end=t0 + 2, delay=0.01, size=1_000),
+        *stream(0, hz=16, start=t0 + 2, end=t0 + 3, delay=0.01, size=1_000),
+        *stream(1, hz=10, start=t0, end=t0 + 3, delay=0.01, size=1_000),
+    ]
+    ticks = [Tick(t0 + 0.5, (10.0, 10.0), 9.0, None), Tick(t0 + 2.0, (16.0, 16.0), 9.0, None)]
+    result = analyse(frames, ticks, robots=["R1", "R2"], t0=t0, step_s=3.0, steps=1, link_mbit=11.0)
+    (step,) = result.steps
+    moved, stayed = step.robots
+    assert moved.allocated_hz == 16.0  # the allocation at the window's end, as reported
+    assert moved.allocated_mean_hz == pytest.approx(13.0)  # the window is [t0 + 1, t0 + 3)
+    assert abs(moved.delivered_hz - 16.0) > 0.05 * 16.0
+    assert moved.within_rate()
+    assert stayed.delivered_hz == pytest.approx(10.0, rel=1e-6)
+    assert not stayed.within_rate()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import bisect
+import itertools
 from collections.abc import Sequence
 from dataclasses import replace
 
@@ -45,14 +46,27 @@ def analyse(
         value = tick.allocated_hz[stream.index] if tick is not None else None
         return stream.applied_hz(at) if value is None else value  # unmanaged: what it applied
 
+    def allocated_mean(stream: RobotFrames, start: float, end: float) -> float | None:
+        """The allocations in force over ``[start, end)``, weighted by how long each was."""
+        cuts = [start, *(t for t in tick_times if start < t < end), end]
+        total = 0.0
+        for a, b in itertools.pairwise(cuts):
+            value = allocated(stream, a)
+            if value is None:
+                return None
+            total += value * (b - a)
+        return total / (end - start)
+
     step_rows = []
     for k in range(steps):
         start, end = t0 + k * step_s, t0 + (k + 1) * step_s
         tick = seen(end)
         rows = []
         for stream in streams:
-            window = stream.window(
-                start + settle_s(step_s), end, allocated(stream, end), lost_from=start
+            measured = start + settle_s(step_s)
+            window = replace(
+                stream.window(measured, end, allocated(stream, end), lost_from=start),
+                allocated_mean_hz=allocated_mean(stream, measured, end),
             )
             variant = tick.variants[stream.index] if tick is not None and tick.variants else None
             encoding = None
