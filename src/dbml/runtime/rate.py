@@ -35,9 +35,9 @@ _EPSILON_FRAMES = 1e-9
 _PACER_BEHIND_FRAMES = 2.0
 """The most credit a loop holds: a whole period late."""
 PACER_LATE_SHARE = 0.25
-"""A tick later than this share of a period (and ``PACER_LATE_S``) restarts the schedule."""
+"""A tick later than this share of a period, and than ``PACER_LATE_S``, restarts the schedule."""
 PACER_LATE_S = 0.05
-"""A tick later than this (and ``PACER_LATE_SHARE`` of a period) restarts the schedule."""
+"""A tick later than this, and than ``PACER_LATE_SHARE`` of a period, restarts the schedule."""
 WINDOW_S = 1.0
 """The window the budget is promised over (what a passive counter of the wire measures)."""
 SAME_RATE = 1e-9
@@ -169,8 +169,8 @@ class Rate:
     Ticks keep absolute deadlines: neither loop work nor a late wake-up (a sleep returns after
     its time, later on a busy machine) adds to the period, so the loop runs at the rate itself
     (each tick's wake-up delay lost, 1.6 ms at 16 Hz on a loaded testbed, cost 2.5 % of the
-    rate). A tick later than ``caught_up_periods`` (a quarter of a period, and 50 ms) is a
-    stall, not a late wake-up: it restarts the schedule, and the time lost is not caught up. A
+    rate). A tick later than ``caught_up_periods`` (the longer of a quarter of a period and
+    50 ms) is a stall, not a late wake-up: it restarts the schedule, and its time is lost. A
     caught-up tick follows the late one sooner than a period, and on a link the stream nearly
     fills it waits behind it: R1's 84,000-B frames at 5.48 Hz on a 4-Mbit uplink (176 ms to
     cross, 3.6 % of the uplink idle), stopped 150 ms, sent a tick 141 ms late and the next 42 ms
