@@ -48,7 +48,10 @@ def analyse(
 
     def allocated_mean(stream: RobotFrames, start: float, end: float) -> float | None:
         """The allocations in force over ``[start, end)``, weighted by how long each was."""
-        cuts = [start, *(t for t in tick_times if start < t < end), end]
+        inside = tick_times[
+            bisect.bisect_right(tick_times, start) : bisect.bisect_left(tick_times, end)
+        ]
+        cuts = [start, *inside, end]
         total = 0.0
         for a, b in itertools.pairwise(cuts):
             value = allocated(stream, a)
