@@ -340,12 +340,11 @@ class Ros2Sniffer(SequenceCount):
         self._ros.start()
 
     def _receiver(self, key: str) -> Callable[[Any, MessageInfo], None]:
+        from dbml.harness.ros2node import received_monotonic
+
         def on_message(data: Any, info: MessageInfo) -> None:
             now, wall_ns = time.monotonic(), time.time_ns()
-            received_ns = info.get("received_timestamp")
-            received = now
-            if isinstance(received_ns, int) and 0 < received_ns <= wall_ns:
-                received = now - (wall_ns - received_ns) / 1e9
+            received = received_monotonic(info, now=now, wall_ns=wall_ns)
             sender = info.get("publisher_gid") or {}
             gid = bytes(sender.get("data", b""))[:16]
             seq = info.get("publication_sequence_number")

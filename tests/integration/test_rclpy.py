@@ -28,7 +28,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image
 from std_msgs.msg import Float64
 
-from dbml.harness.ros2node import private_node
+from dbml.harness.ros2node import private_node, received_monotonic
 from dbml.transports.rclpy import RclpyTransport
 from tests.rclpy_tools import param_set
 
@@ -57,9 +57,11 @@ class Viewer:
     subscription: Any = None
 
     def heard(self, data: bytes, info: Any) -> None:
+        """Stamped when DDS received it: windows by the callback's time also count its lag."""
+        received = received_monotonic(info, now=time.monotonic(), wall_ns=time.time_ns())
         gid = bytes(info["publisher_gid"]["data"])[:16] if info.get("publisher_gid") else b""
         with self.lock:
-            self.arrivals.setdefault(gid, []).append((time.monotonic(), len(data)))
+            self.arrivals.setdefault(gid, []).append((received, len(data)))
 
     def since(self, start: float) -> dict[bytes, list[tuple[float, int]]]:
         with self.lock:

@@ -35,6 +35,7 @@ __all__ = [
     "SPIN_TIMEOUT_S",
     "PrivateRos",
     "private_node",
+    "received_monotonic",
 ]
 
 log = logging.getLogger("dbml.harness.ros2node")
@@ -134,3 +135,17 @@ def private_node(name: str, *, domain_id: int | None, namespace: str = "/") -> I
         yield node
     finally:
         ros.close()
+
+
+def received_monotonic(info: Any, *, now: float, wall_ns: int) -> float:
+    """When DDS received a message, on the monotonic clock of ``now`` (the callback's time).
+
+    A loaded executor calls back up to 0.3 s late (a hostile peer's flood, measured), and
+    callbacks it bunched would fill a 1-s window the frames did not arrive in: a counter of the
+    wire stamps them when they were received. ``info`` is the callback's message info;
+    ``wall_ns``: ``time.time_ns()`` taken with ``now``. Without a plausible stamp: ``now``.
+    """
+    received_ns = info.get("received_timestamp") if hasattr(info, "get") else None
+    if isinstance(received_ns, int) and 0 < received_ns <= wall_ns:
+        return now - (wall_ns - received_ns) / 1e9
+    return now
