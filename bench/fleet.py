@@ -28,14 +28,18 @@ Per size:
 - ``reaction_p50_ms`` / ``reaction_p99_ms``: 50 priority writes by the probe to random channels,
   each drawn to change that channel's allocated rate, timed from ``params.set`` to the arrival of
   that channel's ``applied_value`` at a new value; no ack within 2 s counts as 2000 ms (a lower
-  bound). The fleet settles on the new allocation before the next change.
+  bound). The fleet settles on the new allocation before the next change. A rise paid by many
+  cuts may first go part of the way (the optimizer's ``STEP_SHARE``, at least half):
+  ``reaction_whole_...`` times the arrival at the new rate itself (2 %), ``reaction_raised_...``
+  the first response of the changes that raised their channel (``reaction_raised`` of them).
 - ``control_msgs_per_s`` / ``control_bytes_per_s``: payloads on ``dbml/**`` (parameter writes and
   batches; liveliness and queries are not puts, not counted) over the steady state
   (``--seconds``, default 5, after convergence); ``optimizer_cpu_pct``: the optimizer's utime +
   stime over it (100 = one core), and ``optimizer_cpu_ms_per_round`` (a round a second);
   ``cpu_pct_by_role``: the same for the bench's own process, the router, the optimizer, the
   operator and the robots' workers together; ``fleet_cpu_pct`` / ``host_cpu_pct``: every process
-  of the run / the whole machine (other workloads included).
+  of the run / the whole machine (other workloads included); ``host_steal_pct``: of that, what a
+  virtual machine's hypervisor took for others (the same code reads slower when it is high).
 - ``delivered_over_budget``: the worst sliding 1-s window of ``**/optimized`` payload bytes (a
   ``WireSniffer`` in the operator's session) over the budget, from convergence to the end of the
   reactions; ``..._steady`` over the steady state only; ``delivered_mean_over_budget``: its mean;
@@ -298,11 +302,14 @@ def cpu_ticks(pid: int) -> int | None:
     return int(fields[11]) + int(fields[12])  # fields 14 and 15
 
 
-def host_busy_ticks() -> tuple[int, int]:
-    """All cores' busy and total clock ticks so far (``/proc/stat``)."""
+def host_busy_ticks() -> tuple[int, int, int]:
+    """All cores' busy, total and stolen clock ticks so far (``/proc/stat``).
+
+    Stolen: what a virtual machine's hypervisor gave to others, counted busy (it was not ours).
+    """
     fields = [int(f) for f in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
     total = sum(fields[:8])  # user nice system idle iowait irq softirq steal (guest is in user)
-    return total - fields[3] - fields[4], total
+    return total - fields[3] - fields[4], total, fields[7]
 
 
 def ideal_delivered(
@@ -786,6 +793,8 @@ class Probe:
         self._awaited: str | None = None
         self._before: ParamValue = None
         self._arrived: tuple[float, ParamValue] | None = None
+        self._target = math.nan
+        self._reached: float | None = None
         self._handle = transport.params.watch(self._on_param)
 
     def _on_param(self, name: str, value: ParamValue) -> None:
@@ -794,19 +803,29 @@ class Probe:
             self._version += 1
             if name == self._awaited and self._arrived is None and value != self._before:
                 self._arrived = (now, value)
+            if name == self._awaited and self._reached is None and close_to(value, self._target):
+                self._reached = now
             self._cond.notify_all()
 
-    def arm(self, name: str) -> None:
+    def arm(self, name: str, target: float) -> None:
+        """Stamp ``name``'s next new value, and its arrival at ``target`` (2 %)."""
         before = self.params.get(name)  # outside our lock: the store may call us under its own
         with self._cond:
             self._awaited, self._before, self._arrived = name, before, None
+            self._target, self._reached = target, None
 
     def arrival(self, timeout_s: float) -> tuple[float, ParamValue] | None:
         """When the armed parameter took a new value (perf_counter) and that value."""
         with self._cond:
             self._cond.wait_for(lambda: self._arrived is not None, timeout=timeout_s)
-            self._awaited = None
             return self._arrived
+
+    def reached(self, timeout_s: float) -> float | None:
+        """When the armed parameter reached its target (perf_counter); then disarmed."""
+        with self._cond:
+            self._cond.wait_for(lambda: self._reached is not None, timeout=timeout_s)
+            self._awaited = None
+            return self._reached
 
     def wait_until(
         self, predicate: Callable[[], bool], timeout_s: float, abort: Callable[[], bool]
@@ -914,6 +933,7 @@ def empty_row(
         "sent_over_budget": None,
         "fleet_cpu_pct": None,
         "host_cpu_pct": None,
+        "host_steal_pct": None,
         "cpu_pct_by_role": None,
         "optimizer_cpu_ms_per_round": None,
         "robot_control_msgs_per_s": None,
@@ -927,6 +947,11 @@ def empty_row(
         "settled_channels": 0,
         "reaction_changes": 0,
         "reaction_misses": 0,
+        "reaction_whole_p50_ms": None,
+        "reaction_whole_p99_ms": None,
+        "reaction_raised": 0,
+        "reaction_raised_p50_ms": None,
+        "reaction_raised_p99_ms": None,
         "reaction_unsettled": 0,
         "robot_failures": 0,
         "error": None,
@@ -1100,6 +1125,8 @@ def run_size(
     if host_b[1] > host_a[1]:
         busy = (host_b[0] - host_a[0]) / (host_b[1] - host_a[1])
         row["host_cpu_pct"] = round(100 * busy * (os.cpu_count() or 1), 1)
+        stolen = (host_b[2] - host_a[2]) / (host_b[1] - host_a[1])
+        row["host_steal_pct"] = round(100 * stolen * (os.cpu_count() or 1), 1)
     arrivals = [a for a in control.arrivals(since_s=t_a) if a[0] <= t_b]
     row["control_msgs_per_s"] = round(len(arrivals) / span_s, 2)
     steady: Received | None = None
@@ -1167,6 +1194,8 @@ def react(
     rng = random.Random(SEED)
     priorities = {c.topic: 0.0 for c in channels}
     latencies_ms: list[float] = []
+    raised_ms: list[float] = []  # the changes that raised their channel: they wait for room
+    whole_ms: list[float] = []  # to the new rate itself, not a step on the way
     misses = unsettled = 0
     deadline = time.monotonic() + REACTIONS_S
     for _ in range(CHANGES):
@@ -1175,9 +1204,10 @@ def react(
         change = draw_change(rng, channels, priorities, budget_mbit, expected)
         if change is None:
             break
+        raised = change[2][change[0]] > expected[change[0]]
         topic, priority, expected = change
         priorities[topic] = priority
-        probe.arm(names.applied(topic))
+        probe.arm(names.applied(topic), expected[topic])
         start = time.perf_counter()
         probe.params.set(names.priority(topic), priority)
         arrived = probe.arrival(CHANGE_TIMEOUT_S)
@@ -1186,6 +1216,10 @@ def react(
             latencies_ms.append(CHANGE_TIMEOUT_S * 1e3)
         else:
             latencies_ms.append((arrived[0] - start) * 1e3)
+        reached = probe.reached(CHANGE_TIMEOUT_S)
+        whole_ms.append(CHANGE_TIMEOUT_S * 1e3 if reached is None else (reached - start) * 1e3)
+        if raised:
+            raised_ms.append(latencies_ms[-1])
         if not probe.wait_until(partial(probe.settled, expected), SETTLE_S, abort):
             unsettled += 1
     row["reaction_changes"] = len(latencies_ms)
@@ -1193,6 +1227,11 @@ def react(
     row["reaction_unsettled"] = unsettled
     row["reaction_p50_ms"] = percentile(latencies_ms, 50)
     row["reaction_p99_ms"] = percentile(latencies_ms, 99)
+    row["reaction_whole_p50_ms"] = percentile(whole_ms, 50)
+    row["reaction_whole_p99_ms"] = percentile(whole_ms, 99)
+    row["reaction_raised"] = len(raised_ms)
+    row["reaction_raised_p50_ms"] = percentile(raised_ms, 50)
+    row["reaction_raised_p99_ms"] = percentile(raised_ms, 99)
 
 
 def judge(row: dict[str, Any], by_size: dict[str, dict[str, Any]]) -> dict[str, bool]:

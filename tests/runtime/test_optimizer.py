@@ -306,6 +306,64 @@ def test_an_increase_waits_for_the_decrease_it_needs_and_the_heartbeat_does_not(
     assert fleet.rates() == {R1: 16.0, R2: pytest.approx(1.48, abs=0.01)}
 
 
+def six_robots_r6_rising() -> tuple[Fleet, dict[str, float]]:
+    """Six 10-kB cameras on 4 Mbit/s, and the rates before r6's priority goes 0.2 -> 1.
+
+    r6 then rises 2.11 -> 5.29 Hz, paid by r3 (8.33 -> 6.43), r4 and r5 (3.78 -> 3.14 each).
+    """
+    fleet = Fleet(settings=DbmSettings(4.0, 1.0, 1.0))
+    topics = [f"/r{k}/camera" for k in range(1, 7)]
+    for topic in topics:
+        fleet.publisher(topic, size_bytes=10_000)
+        fleet.watch(topic)
+        fleet.priority(topic, 0.5)
+    fleet.priority("/r6/camera", 0.2)
+    fleet.optimize()
+    return fleet, fleet.rates()
+
+
+def test_a_rise_paid_by_many_goes_half_way_once_most_of_its_room_is_made(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    fleet, before = six_robots_r6_rising()
+    acks = [HeldAcks(fleet, "r4"), HeldAcks(fleet, "r5")]  # r3's cut alone: over half the rise
+    writes = rate_writes(fleet)
+    fleet.priority("/r6/camera", 1.0)
+    with caplog.at_level(logging.WARNING, logger="dbml.optimizer"):
+        fleet.optimize()
+    assert "written by another node" not in caplog.text  # the step is its own write
+    rates = fleet.rates()
+    wanted = 5.29
+    assert round(rates["/r3/camera"], 2) == 6.43
+    assert before["/r6/camera"] + (wanted - before["/r6/camera"]) / 2 <= rates["/r6/camera"]
+    assert rates["/r6/camera"] < wanted - 0.5
+    # What each may send: r4 and r5 at their rates before, as they have not said otherwise.
+    committed = rates | {t: before[t] for t in ("/r4/camera", "/r5/camera")}
+    assert sum(committed.values()) * 10_000 <= 500_000 * (1 + 1e-9)
+    fleet.optimizer.admit()  # nothing new: no second step
+    for held in acks:
+        held.release()
+    with caplog.at_level(logging.WARNING, logger="dbml.optimizer"):
+        fleet.optimizer.admit()
+    assert "written by another node" not in caplog.text
+    assert round(fleet.rates()["/r6/camera"], 2) == wanted
+    assert [round(hz, 2) for t, hz in writes if t == "/r6/camera"] == [
+        round(rates["/r6/camera"], 2),
+        wanted,
+    ]
+
+
+def test_a_rise_waits_whole_while_the_room_made_is_under_half_of_it() -> None:
+    fleet, before = six_robots_r6_rising()
+    acks = HeldAcks(fleet, "r3")  # r4 and r5's cuts: 12.8 of the 31.8 kB/s it needs
+    fleet.priority("/r6/camera", 1.0)
+    fleet.optimize()
+    assert fleet.rates()["/r6/camera"] == before["/r6/camera"]
+    acks.release()
+    fleet.optimizer.admit()
+    assert round(fleet.rates()["/r6/camera"], 2) == 5.29
+
+
 def test_a_decrease_not_acknowledged_in_time_counts_as_applied(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
@@ -618,3 +676,16 @@ def test_a_forged_sent_rate_is_refused_or_only_reported_never_allocated() -> Non
     assert {c.topic: c.sent_hz for c in result.report().channels} == {R1: 0.0, R2: 1000.0}
     assert fleet.rates() == rates  # the allocation reads no sent rate
     assert result.status is before.status
+
+
+def test_a_first_rate_goes_whole_and_not_in_steps() -> None:
+    """A channel from zero waits for its whole first rate: at a fleet's start all are first."""
+    fleet, _ = six_robots_r6_rising()
+    HeldAcks(fleet, "r4")
+    HeldAcks(fleet, "r5")  # r3's cut alone would cover half of the newcomer's rate
+    writes = rate_writes(fleet)
+    fleet.publisher("/r7/camera", size_bytes=10_000)
+    fleet.watch("/r7/camera")
+    fleet.priority("/r7/camera", 1.0)
+    fleet.optimize()
+    assert [t for t, _ in writes if t == "/r7/camera"] == []

@@ -287,6 +287,24 @@ def test_a_malformed_graph_token_is_no_entry(key: str) -> None:
     assert transport.fetched == []
 
 
+def test_the_graph_read_twice_unchanged_is_one_snapshot_and_any_change_makes_a_new_one() -> None:
+    """The optimizer reads the graph every round and summarizes it only when it changed."""
+    graph = _ZenohGraph(cast(ZenohTransport, _FakeTransport()))
+    graph.on_sample(_graph_token(1))
+    first = graph.entries()
+    assert graph.entries() is first
+    graph.on_sample(_graph_token(2))
+    second = graph.entries()
+    assert second is not first
+    assert {e.topic for e in second} == {"/r1/cam1", "/r1/cam2"}
+    graph.on_sample(_graph_token(1, gone=True))
+    assert {e.topic for e in graph.entries()} == {"/r1/cam2"}
+    mine = graph.announce(Role.PUBLISHER, "/base/cam", Variant.FULL)
+    assert {e.topic for e in graph.entries()} == {"/r1/cam2", "/base/cam"}
+    mine.close()
+    assert {e.topic for e in graph.entries()} == {"/r1/cam2"}
+
+
 def test_graph_entries_from_peers_are_bounded_and_a_flood_is_logged_once(
     caplog: pytest.LogCaptureFixture,
 ) -> None:

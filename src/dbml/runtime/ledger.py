@@ -16,7 +16,10 @@ channel may still send, in bytes a second, and lets an increase go as soon as it
 - an increase counts at its new rate from the moment it is pushed;
 - an increase goes when the sum over every limit it belongs to stays within that limit
   (the budget, a link's capacity), in the order given (the most important first); one that does
-  not fit waits for the next acknowledgement, drain or timeout.
+  not fit waits for the next acknowledgement, drain or timeout, or, where the caller allows it,
+  goes part of the way once the room made reaches a floor (the caller's: half of its rise), so
+  a channel raised at the cost of many others moves when most of them have applied their cuts,
+  not when the slowest has.
 
 Pure: the clock is passed in.
 """
@@ -123,28 +126,43 @@ class RateLedger:
         increases: Mapping[str, float],
         current: Mapping[str, float],
         limits: Sequence[Limit],
-    ) -> list[str]:
-        """The increases (topic: new bytes a second, in order) that fit now, in that order.
+        *,
+        floors: Mapping[str, float] | None = None,
+    ) -> dict[str, float]:
+        """The increases (topic: new bytes a second, in order) that go now, in that order.
 
         ``current``: every channel's pushed bytes a second (a channel missing sends nothing).
-        Each admitted increase counts from then on, so a later one fits beside it or not at all.
+        An increase goes in full when it fits; else, where ``floors`` names it, as far as it
+        fits if that reaches its floor (a step on the way, so a rise need not wait for every
+        decrease it needs). Each counts from then on, so a later one fits beside it or not at
+        all. The value is the bytes a second each goes to.
         """
+        floors = {} if floors is None else floors
         load = {t: self.committed(t, b) for t, b in current.items()}
         for topic in self._pending.keys() - load.keys():
             load[topic] = self._pending[topic].before_bytes_per_s
         totals = [sum(load.get(t, 0.0) for t in limit.topics) for limit in limits]
-        admitted = []
+        admitted: dict[str, float] = {}
         for topic, wanted in increases.items():
-            extra = wanted - load.get(topic, 0.0)
+            running = load.get(topic, 0.0)
             inside = [i for i, limit in enumerate(limits) if topic in limit.topics]
-            fits = all(
-                totals[i] + extra <= limits[i].bytes_per_s * (1.0 + FIT_TOLERANCE) for i in inside
-            )
-            if extra > 0 and not fits:
+            extra = wanted - running
+            if extra <= 0:
+                admitted[topic] = wanted
                 continue
-            admitted.append(topic)
-            if extra > 0:
-                load[topic] = wanted
-                for i in inside:
-                    totals[i] += extra
+            slack = min(
+                (limits[i].bytes_per_s * (1.0 + FIT_TOLERANCE) - totals[i] for i in inside),
+                default=math.inf,
+            )
+            room = min((limits[i].bytes_per_s - totals[i] for i in inside), default=math.inf)
+            if extra <= slack:
+                goes = wanted
+            elif topic in floors and room > 0 and running + room >= floors[topic]:
+                goes = running + room
+            else:
+                continue
+            admitted[topic] = goes
+            load[topic] = goes
+            for i in inside:
+                totals[i] += goes - running
         return admitted

@@ -45,7 +45,7 @@ from dbml.protocol.keys import ROUND_TOPIC
 from dbml.protocol.ladders import Encoding, encoding_label, parse_rung_label
 from dbml.protocol.messages import MAX_REPORTED_CHANNELS, ChannelRound, RoundReport
 from dbml.protocol.schema import Parameter
-from dbml.runtime.graph import summarize
+from dbml.runtime.graph import GraphSummary, summarize
 from dbml.runtime.ledger import Limit, RateLedger
 from dbml.runtime.params import ChannelParams, DbmParams, ParamView, write_settings
 from dbml.runtime.rate import same_rate
@@ -94,6 +94,10 @@ ACK_TIMEOUT_S = 0.25
 QUEUED_FRAMES = 1.0
 """Frames a decreased publisher may have on the way when its acknowledgement arrives: the
 ledger drains them at the budget's rate before their room goes to an increase."""
+STEP_SHARE = 0.5
+"""A rise that does not fit yet goes part of the way, once, when the room made covers this share
+of it (and its minimum): a channel raised at the cost of many others then moves when most of
+their cuts are applied, not when the slowest is; the rest follows when it fits."""
 COALESCE_S = 0.002
 """Triggers within this time of the first run one round."""
 REPORT_INTERVAL_S = 0.1
@@ -245,6 +249,8 @@ class _Waiting:
     """In the order they go: the most important first."""
     channels: tuple[ChannelState, ...]
     limits: tuple[Limit, ...]
+    stepped: frozenset[str] = frozenset()
+    """Those already pushed part of the way: the rest goes only in full."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -328,6 +334,8 @@ class OptimizerNode:
         pushed again."""
         self._owned: dict[str, ParamValue] = {}
         """What this node last wrote of the values it owns (rates, managed flags, status)."""
+        self._summary: tuple[frozenset[GraphEntry], GraphSummary] | None = None
+        """The graph's entries as last summarized, and their summary."""
         self._rounds = 0
         self._incomplete_since: dict[str, float] = {}
         self._asked: dict[str, float] = {}
@@ -502,7 +510,12 @@ class OptimizerNode:
         At most ``MAX_CHANNELS``: the ones tracked already, then new ones by topic.
         """
         entries = self._transport.graph.entries()
-        graph = summarize(entries)  # one pass, not one per channel
+        last = self._summary
+        if last is not None and last[0] is entries:  # a graph unchanged is not read again
+            graph = last[1]
+        else:
+            graph = summarize(entries)  # one pass, not one per channel
+            self._summary = (entries, graph)  # one reference: any thread may read channels()
         tracked = self._view.channels(self._track(graph.publishers))  # one read for the round
         states = []
         incomplete: set[str] = set()
@@ -756,27 +769,31 @@ class OptimizerNode:
                 self._pushed[topic] = (w, publishers.get(topic, frozenset()))
             decreases = {}
         order = sorted(increases, key=lambda t: (-(states[t].priority or 0.0), t))
-        admitted = set(self._fitting({t: increases[t] for t in order}, channels, limits))
+        going = self._fitting({t: increases[t] for t in order}, channels, limits, frozenset())
         self._rounds += 1
-        pushed = decreases | {t: w for t, w in increases.items() if t in admitted}
+        pushed = decreases | going
         writes: _Writes = {t: _writes(t, w) for t, w in pushed.items()}
         for key, values in updates.items():
             writes[key] = writes.get(key, {}) | values
         writes[None] = writes.get(None, {}) | {names.ROUND: self._rounds}
+        self._own(going)
         self._send(writes, channels)
         self._pushed_at.update(dict.fromkeys(pushed, now))
-        held = {t: increases[t] for t in order if t not in admitted}
+        held = {t: increases[t] for t in order if going.get(t) != increases[t]}
         kept = {t: p for t in held if (p := self._pushed.get(t)) is not None}
         self._pushed = {t: (w, publishers.get(t, frozenset())) for t, w in wanted.items()}
         self._pushed.update(kept)  # still what it runs: pushed again once it fits
         for topic in held.keys() - kept.keys():
             del self._pushed[topic]
+        stepped = frozenset(held.keys() & going.keys())
+        for topic in stepped:  # what it runs now: part of the way
+            self._pushed[topic] = (going[topic], publishers.get(topic, frozenset()))
         for topic in set(self._pushed_at) - set(rates):
             del self._pushed_at[topic]
         for topic in set(self._acked_s) - set(rates):
             del self._acked_s[topic]
         self._ledger.forget(rates)
-        self._waiting = _Waiting(held, channels, limits) if held else None
+        self._waiting = _Waiting(held, channels, limits, stepped) if held else None
         if held:
             log.debug("round %d: %d increases wait for room: %s", self._rounds, len(held), held)
 
@@ -785,8 +802,14 @@ class OptimizerNode:
         increases: Mapping[str, _Wanted],
         channels: tuple[ChannelState, ...],
         limits: tuple[Limit, ...],
-    ) -> list[str]:
-        """The ``increases`` that fit now (``RateLedger.admit``), the acknowledgements in first."""
+        stepped: frozenset[str],
+    ) -> dict[str, _Wanted]:
+        """What of ``increases`` goes now (``RateLedger.admit``), the acknowledgements in first.
+
+        Each goes in full, or part of the way (``STEP_SHARE``) if it runs already, has not
+        stepped yet and keeps its rung: a partial rise at another rung could lower the rate on
+        its way up.
+        """
         now = self._transport.now()
         states = {c.topic: c.params for c in channels}
         for topic in self._ledger.pending:
@@ -802,25 +825,54 @@ class OptimizerNode:
             running = self._running(topic) if pushed is None else pushed[0]
             current[topic] = _bytes_per_s(channel, running)
         wanted = {t: _bytes_per_s(states[t], w) for t, w in increases.items()}
-        return self._ledger.admit(wanted, current, limits)
+        floors = {}
+        for topic, (rate, label) in increases.items():
+            channel = states[topic]
+            pushed = self._pushed.get(topic)
+            if topic in stepped or rate is None or channel.min_rate_hz is None:
+                continue
+            if current[topic] <= 0:  # a first rate goes whole: at a fleet's start all are first
+                continue
+            if label is not None and (pushed is None or pushed[0][1] != label):
+                continue
+            lowest = channel.min_rate_hz * _frame_bytes(channel, label)
+            way = current[topic] + STEP_SHARE * (wanted[topic] - current[topic])
+            floors[topic] = max(lowest, way)
+        going = self._ledger.admit(wanted, current, limits, floors=floors)
+        result: dict[str, _Wanted] = {}
+        for topic, goes in going.items():
+            rate, label = increases[topic]
+            frame = _frame_bytes(states[topic], label)
+            if goes >= wanted[topic] or rate is None or frame <= 0:
+                result[topic] = increases[topic]
+            else:
+                result[topic] = (min(rate, goes / frame), label)
+        return result
+
+    def _own(self, going: Mapping[str, _Wanted]) -> None:
+        """The rates about to be pushed are ours, a step on the way included."""
+        self._owned = self._owned | {names.current_value(t): w[0] for t, w in going.items()}
 
     def admit(self) -> None:
         """Push the last round's waiting increases that fit now (on an acknowledgement)."""
         waiting = self._waiting
         if waiting is None:
             return
-        admitted = self._fitting(waiting.increases, waiting.channels, waiting.limits)
-        if admitted:
+        going = self._fitting(waiting.increases, waiting.channels, waiting.limits, waiting.stepped)
+        if going:
             now = self._transport.now()
             publishers = {c.topic: c.publishers for c in waiting.channels}
-            pushed = {t: waiting.increases[t] for t in admitted}
-            self._send({t: _writes(t, w) for t, w in pushed.items()}, waiting.channels)
-            self._pushed_at.update(dict.fromkeys(pushed, now))
-            for topic, w in pushed.items():
+            self._own(going)
+            self._send({t: _writes(t, w) for t, w in going.items()}, waiting.channels)
+            self._pushed_at.update(dict.fromkeys(going, now))
+            for topic, w in going.items():
                 self._pushed[topic] = (w, publishers.get(topic, frozenset()))
-            log.debug("admitted once room was made: %s", pushed)
-        held = {t: w for t, w in waiting.increases.items() if t not in admitted}
-        self._waiting = replace(waiting, increases=held) if held else None
+            log.debug("admitted once room was made: %s", going)
+        held = {t: w for t, w in waiting.increases.items() if going.get(t) != w}
+        stepped = waiting.stepped | (held.keys() & going.keys())
+        self._waiting = (
+            replace(waiting, increases=held, stepped=frozenset(stepped)) if held else None
+        )
 
     def _send(self, writes: _Writes, channels: tuple[ChannelState, ...]) -> None:
         """Write in batches: a channel's values to each host that publishes it, the rest to all.

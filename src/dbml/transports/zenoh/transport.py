@@ -418,11 +418,15 @@ class _ZenohGraph:
         """Watchers of one topic each (this process's own, so bounded by what it declares)."""
         self._by_topic: dict[str, dict[str, GraphEntry]] = {}
         """``_entries`` by topic: a topic's read costs its entries, not the fleet's."""
+        self._snapshot: frozenset[GraphEntry] | None = None
+        """``_entries`` as ``entries()`` last returned them, until they change: a fleet's graph
+        is read every round and changes far less often."""
         self._count = 0
         self._published: Counter[str] = Counter()
         """Publisher entries per topic: the channels live now."""
 
     def _add_locked(self, key: str, entry: GraphEntry) -> None:
+        self._snapshot = None
         self._entries[key] = entry
         self._by_topic.setdefault(entry.topic, {})[key] = entry
         if entry.role is Role.PUBLISHER:
@@ -432,6 +436,7 @@ class _ZenohGraph:
         entry = self._entries.pop(key, None)
         if entry is None:
             return None
+        self._snapshot = None
         of_topic = self._by_topic[entry.topic]
         del of_topic[key]
         if not of_topic:
@@ -505,7 +510,9 @@ class _ZenohGraph:
             self.follow(topic)
         with self._lock:
             if topic is None:
-                return frozenset(self._entries.values())
+                if self._snapshot is None:
+                    self._snapshot = frozenset(self._entries.values())
+                return self._snapshot
             return frozenset(self._by_topic.get(topic, {}).values())
 
     def watch(self, callback: Callable[[], None], *, topic: str | None = None) -> Handle:
