@@ -17,7 +17,7 @@ from typing import Any
 
 import pytest
 
-from dbml.experiment.analysis import StepResult
+from dbml.experiment.analysis import RECOVERED_P95_MS, StepResult
 from dbml.harness.supervisor import ProcessChild, Supervisor
 from dbml.scenarios.teleop import ROBOTS
 from dbml.testbed import leftover_namespaces
@@ -96,8 +96,9 @@ def test_a_rate_drop_with_and_without_estimation(netns_privilege: None) -> None:
     constant = _run(policy="dbml", link_schedule=schedule)
     (drop,) = estimating.changes
     assert drop.to_mbit == 5.0
-    assert drop.recovery_s is not None
-    assert drop.recovery_s <= 3.0, drop  # p95 under 250 ms and no loss from then on
+    # p95 under 250 ms and no loss from then on
+    assert drop.recovery_s is not None, _after(estimating, drop.t_s)
+    assert drop.recovery_s <= 3.0, (drop, _after(estimating, drop.t_s))
     budget = estimating.steps[-1].budget_mbit
     assert budget is not None
     assert budget < 5.0  # the estimate followed the link down
@@ -107,6 +108,30 @@ def test_a_rate_drop_with_and_without_estimation(netns_privilege: None) -> None:
     assert unestimated.max_latency_p95_ms is not None
     assert drop.max_latency_p95_ms is not None
     assert unestimated.max_latency_p95_ms > 2 * drop.max_latency_p95_ms
+
+
+MAX_LATE_LINES = 40
+"""Enough of a failed run's late windows to read its cause, few enough to read."""
+
+
+def _after(result: TestbedResult, t_s: float) -> list[str]:
+    """The windows from ``t_s`` on that were late or lost frames, with the budget and why.
+
+    The drop test failed a run in four on a slower machine (p95 1.0-1.4 s after the drop, nothing
+    lost) and never on a faster one: when it fails, this says whether the budget stood above the
+    link, and what the estimator read.
+    """
+    late = [
+        f"{point.t_s:.2f} s: budget {point.budget_mbit} ({point.estimator}); "
+        + ", ".join(
+            f"{w.robot} {w.allocated_hz} Hz p95 {w.latency_p95_ms} lost {w.lost}"
+            for w in point.robots
+        )
+        for point in result.series
+        if point.t_s >= t_s
+        and any((w.latency_p95_ms or 0.0) >= RECOVERED_P95_MS or w.lost for w in point.robots)
+    ]
+    return late[:MAX_LATE_LINES]
 
 
 def _windows(step: StepResult) -> str:

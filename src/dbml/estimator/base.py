@@ -234,7 +234,20 @@ PATH_S = 0.05
 below this."""
 
 
-def behind(previous: Sample, frame: Sample, queued_s: float, fastest_mbit: float | None) -> bool:
+BURST_FACTOR = 4.0
+"""Frames that arrive this many times faster than the link could be came out together after a
+stall (a link faster than the configured budget is not one: a fade's backlog on a 14-Mbit/s
+radio under a 10-Mbit/s budget crosses at the radio's rate, and reads it)."""
+
+
+def behind(
+    previous: Sample,
+    frame: Sample,
+    queued_s: float,
+    fastest_mbit: float | None,
+    *,
+    together: bool = False,
+) -> bool:
     """Whether ``frame`` crossed right behind ``previous``: it queued, and the link did not idle.
 
     ``fastest_mbit`` (the fastest the link could be): the link idled before ``frame`` if it
@@ -242,11 +255,12 @@ def behind(previous: Sample, frame: Sample, queued_s: float, fastest_mbit: float
     own transmission at that rate plus ``PATH_S``: it was sent after ``previous`` arrived, and
     its delay is a fade's or its own transmission on a link slower than its stream's fastest (a
     radio's rate moves), not a wait for ``previous``. None: every frame that queued counts.
+    ``together``: one that arrived at the same instant counts too (a burst, read with its stall).
     """
     (t_prev, _, _), (t, queue, size) = previous, frame
     return (
         queue > queued_s
-        and t > t_prev
+        and (t >= t_prev if together else t > t_prev)
         and (fastest_mbit is None or t - t_prev <= queue + size * 8e-6 / fastest_mbit + PATH_S)
     )
 
@@ -263,13 +277,32 @@ def busy_rate_mbit(
     A frame that waited in the queue (:func:`behind` the one before it) arrived as soon as that
     one had, so its size over that gap is the link's rate (packet pairs). The median pair: one
     that spans a fade (its gap the fade's length) says nothing of the rate after it. A frame
-    sent after the link went idle measures what was offered, not the link.
+    sent after the link went idle measures what was offered, not the link. Given
+    ``fastest_mbit``, frames that arrive ``BURST_FACTOR`` times faster than it are one reading
+    with the pair before them.
     """
-    rates = sorted(
-        frame[2] / (frame[0] - previous[0])
-        for previous, frame in itertools.pairwise(ordered)
-        if behind(previous, frame, queued_s, fastest_mbit)
-    )
+    readings: list[list[float]] = []  # [bytes, seconds]: a pair, or a stall and its burst
+    last: Sample | None = None  # the frame the last reading ends with
+    burst = False  # the last reading ends with a burst
+    for previous, frame in itertools.pairwise(ordered):
+        if not behind(previous, frame, queued_s, fastest_mbit, together=fastest_mbit is not None):
+            continue
+        size, gap_s = frame[2], frame[0] - previous[0]
+        together = fastest_mbit is not None and size * 8e-6 > BURST_FACTOR * fastest_mbit * gap_s
+        if (together or burst) and last is previous:
+            # Far faster than the link could be: the frames came out together after a stall (TCP
+            # holding them behind a retransmission, or the receiver's process) and crossed
+            # during the gap before them, as did part of the frame after them. One reading.
+            readings[-1][0] += size
+            readings[-1][1] += gap_s
+            burst, last = together, frame
+            continue
+        burst = False
+        if together:
+            continue  # a burst with no gap before it here: nothing to read it with
+        readings.append([size, gap_s])
+        last = frame
+    rates = sorted(size / gap_s for size, gap_s in readings)
     return bytes_per_s_to_mbit(rates[len(rates) // 2]) if rates and len(rates) >= least else None
 
 

@@ -333,8 +333,9 @@ class QueueDetector:
         if before is None:
             return None
         # The link's rate from the frames that arrived since the cut (the ones before it may
-        # have crossed before a fall).
-        since = [p for p in pairs if p[0] >= self._provisional_s]
+        # have crossed before a fall), and the one before them: frames a stall held back come
+        # out together, and their pairs read with the gap that ends where they start.
+        since = _since(pairs, self._provisional_s)
         fastest = _PLAUSIBLE * view.max_mbit
         measured = busy_rate_mbit(
             since, self.settings.overuse_delay_s / 2, least=_SETTLE_PAIRS, fastest_mbit=fastest
