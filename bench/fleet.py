@@ -40,6 +40,10 @@ Per size:
   operator and the robots' workers together; ``fleet_cpu_pct`` / ``host_cpu_pct``: every process
   of the run / the whole machine (other workloads included); ``host_steal_pct``: of that, what a
   virtual machine's hypervisor took for others (the same code reads slower when it is high).
+- ``join_cpu_s_by_role``: CPU-seconds each role spent from the word that starts every robot to
+  convergence (or its timeout); ``join_cpu_ms_per_robot``: every process's, per robot (flat if
+  a robot's join costs the same whatever the fleet); ``join_host_cpu_pct``: the machine's busy
+  share meanwhile (200 on two cores: the join went as fast as the machine allows).
 - ``delivered_over_budget``: the worst sliding 1-s window of ``**/optimized`` payload bytes (a
   ``WireSniffer`` in the operator's session) over the budget, from convergence to the end of the
   reactions; ``..._steady`` over the steady state only; ``delivered_mean_over_budget``: its mean;
@@ -925,6 +929,9 @@ def empty_row(
         "control_msgs_per_s": None,
         "control_bytes_per_s": None,
         "delivered_over_budget": None,
+        "join_cpu_s_by_role": None,
+        "join_cpu_ms_per_robot": None,
+        "join_host_cpu_pct": None,
         "optimizer_cpu_pct": None,
         "failsafe_events": None,
         "delivered_over_budget_steady": None,
@@ -1082,6 +1089,9 @@ def run_size(
     if not fleet.wait_loaded(workers, READY_S):
         row["error"] = f"robots' workers not loaded within {READY_S:g} s (ended: {fleet.dead()})"
         return
+    join_roles = fleet.pids_by_role()
+    join_a = {role: [cpu_ticks(p) for p in pids] for role, pids in join_roles.items()}
+    join_host_a = host_busy_ticks()
     for worker in workers:
         fleet.children.send("start", to=worker)
     t0 = time.monotonic()
@@ -1100,6 +1110,7 @@ def run_size(
         )
         status = probe.params.get(names.STATUS)
         note(f"{row['error']}; status {status!r}; " + "; ".join(probe.unsettled(expected)))
+    _join_cpu(row, join_roles, join_a, join_host_a, robots=len(hosts))
     row["settled_channels"] = probe.settled_count(expected)
     row["robot_failures"] = fleet.robot_failures(workers, len(hosts))
 
@@ -1175,6 +1186,32 @@ def run_size(
         row["sent_over_budget"] = round(stats["worst_sent_bytes"] / budget_bps, 4)
     if fleet.dead() and row["error"] is None:
         row["error"] = f"ended before the teardown: {fleet.dead()}"
+
+
+def _join_cpu(
+    row: dict[str, Any],
+    roles: dict[str, list[int]],
+    before: dict[str, list[int | None]],
+    host_before: tuple[int, int, int],
+    *,
+    robots: int,
+) -> None:
+    """What the join cost, from the word that starts every robot to convergence (or its timeout).
+
+    Per role in CPU-seconds, per robot in CPU-ms (every process of the run), and the host's
+    busy share meanwhile: a join that keeps both cores busy is as fast as this machine allows.
+    """
+    hz = os.sysconf("SC_CLK_TCK")
+    spent = {
+        role: _spent(before[role], [cpu_ticks(p) for p in pids]) / hz
+        for role, pids in roles.items()
+    }
+    row["join_cpu_s_by_role"] = {role: round(s, 2) for role, s in spent.items()}
+    row["join_cpu_ms_per_robot"] = round(1e3 * sum(spent.values()) / robots, 1)
+    host_after = host_busy_ticks()
+    if host_after[1] > host_before[1]:
+        busy = (host_after[0] - host_before[0]) / (host_after[1] - host_before[1])
+        row["join_host_cpu_pct"] = round(100 * busy * (os.cpu_count() or 1), 1)
 
 
 def _spent(before: list[int | None], after: list[int | None]) -> int:
@@ -1314,6 +1351,8 @@ def render(document: dict[str, Any]) -> None:
         "opt CPU %": "optimizer_cpu_pct",
         "robots CPU %": None,
         "host CPU %": "host_cpu_pct",
+        "join CPU ms/robot": "join_cpu_ms_per_robot",
+        "join host CPU %": "join_host_cpu_pct",
         "targets": None,
     }
     for name in columns:
