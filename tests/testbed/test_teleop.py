@@ -117,9 +117,8 @@ MAX_LATE_LINES = 40
 def _after(result: TestbedResult, t_s: float) -> list[str]:
     """The windows from ``t_s`` on that were late or lost frames, with the budget and why.
 
-    The drop test failed a run in four on a slower machine (p95 1.0-1.4 s after the drop, nothing
-    lost) and never on a faster one: when it fails, this says whether the budget stood above the
-    link, and what the estimator read.
+    A failed drop test then says whether the budget stood above the link and what the estimator
+    read, which a run on another machine may not reproduce.
     """
     late = [
         f"{point.t_s:.2f} s: budget {point.budget_mbit} ({point.estimator}); "
