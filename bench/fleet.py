@@ -1090,8 +1090,7 @@ def run_size(
         row["error"] = f"robots' workers not loaded within {READY_S:g} s (ended: {fleet.dead()})"
         return
     join_roles = fleet.pids_by_role()
-    join_a = {role: [cpu_ticks(p) for p in pids] for role, pids in join_roles.items()}
-    join_host_a = host_busy_ticks()
+    join_start = CpuReading.now(join_roles)
     for worker in workers:
         fleet.children.send("start", to=worker)
     t0 = time.monotonic()
@@ -1110,34 +1109,29 @@ def run_size(
         )
         status = probe.params.get(names.STATUS)
         note(f"{row['error']}; status {status!r}; " + "; ".join(probe.unsettled(expected)))
-    _join_cpu(row, join_roles, join_a, join_host_a, robots=len(hosts))
+    _join_cpu(row, CpuReading.now(join_roles).since(join_start), robots=len(hosts))
     row["settled_channels"] = probe.settled_count(expected)
     row["robot_failures"] = fleet.robot_failures(workers, len(hosts))
 
     # Steady state: control traffic and what each role spent.
     roles = fleet.pids_by_role()
     received_a = fleet.control_received(workers)
-    host_a, t_a = host_busy_ticks(), time.monotonic()
-    own_a = {role: [cpu_ticks(p) for p in pids] for role, pids in roles.items()}
+    t_a, cpu_a = time.monotonic(), CpuReading.now(roles)
     fleet.watch_window(run.steady_s)
-    host_b, t_b = host_busy_ticks(), time.monotonic()
-    own_b = {role: [cpu_ticks(p) for p in pids] for role, pids in roles.items()}
+    t_b, cpu_b = time.monotonic(), CpuReading.now(roles)
     received_b = fleet.control_received(workers)
     span_s = t_b - t_a
-    hz = os.sysconf("SC_CLK_TCK")
-    by_role = {
-        role: round(100 * _spent(own_a[role], own_b[role]) / hz / span_s, 1) for role in roles
-    }
+    spent = cpu_b.since(cpu_a)
+    by_role = {role: round(100 * s / span_s, 1) for role, s in spent.cpu_s_by_role.items()}
     row["cpu_pct_by_role"] = by_role
     row["fleet_cpu_pct"] = round(sum(by_role.values()), 1)
     row["optimizer_cpu_pct"] = by_role.get("optimizer")
     if row["optimizer_cpu_pct"] is not None:  # one round a second (the config's period)
         row["optimizer_cpu_ms_per_round"] = round(10 * row["optimizer_cpu_pct"] * PERIOD_S, 1)
-    if host_b[1] > host_a[1]:
-        busy = (host_b[0] - host_a[0]) / (host_b[1] - host_a[1])
-        row["host_cpu_pct"] = round(100 * busy * (os.cpu_count() or 1), 1)
-        stolen = (host_b[2] - host_a[2]) / (host_b[1] - host_a[1])
-        row["host_steal_pct"] = round(100 * stolen * (os.cpu_count() or 1), 1)
+    if spent.host_busy_pct is not None:
+        row["host_cpu_pct"] = round(spent.host_busy_pct, 1)
+    if spent.host_steal_pct is not None:
+        row["host_steal_pct"] = round(spent.host_steal_pct, 1)
     arrivals = [a for a in control.arrivals(since_s=t_a) if a[0] <= t_b]
     row["control_msgs_per_s"] = round(len(arrivals) / span_s, 2)
     steady: Received | None = None
@@ -1188,30 +1182,50 @@ def run_size(
         row["error"] = f"ended before the teardown: {fleet.dead()}"
 
 
-def _join_cpu(
-    row: dict[str, Any],
-    roles: dict[str, list[int]],
-    before: dict[str, list[int | None]],
-    host_before: tuple[int, int, int],
-    *,
-    robots: int,
-) -> None:
+class CpuSpent(NamedTuple):
+    """What the run's processes and the host spent between two ``CpuReading``s."""
+
+    cpu_s_by_role: dict[str, float]
+    host_busy_pct: float | None
+    """Of one core (200 on two cores busy); None when no tick passed."""
+    host_steal_pct: float | None
+    """Of that, what a virtual machine's hypervisor took for others."""
+
+
+class CpuReading(NamedTuple):
+    """Every role's processes' CPU clock ticks (None: one gone) and the host's, at one moment."""
+
+    roles: dict[str, list[int | None]]
+    host: tuple[int, int, int]
+
+    @classmethod
+    def now(cls, roles: dict[str, list[int]]) -> CpuReading:
+        ticks = {role: [cpu_ticks(p) for p in pids] for role, pids in roles.items()}
+        return cls(ticks, host_busy_ticks())
+
+    def since(self, before: CpuReading) -> CpuSpent:
+        hz = os.sysconf("SC_CLK_TCK")
+        by_role = {
+            role: _spent(before.roles[role], ticks) / hz for role, ticks in self.roles.items()
+        }
+        total = self.host[1] - before.host[1]
+        if total <= 0:
+            return CpuSpent(by_role, None, None)
+        cores = 100 * (os.cpu_count() or 1)
+        busy = cores * (self.host[0] - before.host[0]) / total
+        return CpuSpent(by_role, busy, cores * (self.host[2] - before.host[2]) / total)
+
+
+def _join_cpu(row: dict[str, Any], spent: CpuSpent, *, robots: int) -> None:
     """What the join cost, from the word that starts every robot to convergence (or its timeout).
 
     Per role in CPU-seconds, per robot in CPU-ms (every process of the run), and the host's
     busy share meanwhile: a join that keeps both cores busy is as fast as this machine allows.
     """
-    hz = os.sysconf("SC_CLK_TCK")
-    spent = {
-        role: _spent(before[role], [cpu_ticks(p) for p in pids]) / hz
-        for role, pids in roles.items()
-    }
-    row["join_cpu_s_by_role"] = {role: round(s, 2) for role, s in spent.items()}
-    row["join_cpu_ms_per_robot"] = round(1e3 * sum(spent.values()) / robots, 1)
-    host_after = host_busy_ticks()
-    if host_after[1] > host_before[1]:
-        busy = (host_after[0] - host_before[0]) / (host_after[1] - host_before[1])
-        row["join_host_cpu_pct"] = round(100 * busy * (os.cpu_count() or 1), 1)
+    row["join_cpu_s_by_role"] = {role: round(s, 2) for role, s in spent.cpu_s_by_role.items()}
+    row["join_cpu_ms_per_robot"] = round(1e3 * sum(spent.cpu_s_by_role.values()) / robots, 1)
+    if spent.host_busy_pct is not None:
+        row["join_host_cpu_pct"] = round(spent.host_busy_pct, 1)
 
 
 def _spent(before: list[int | None], after: list[int | None]) -> int:

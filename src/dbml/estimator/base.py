@@ -246,7 +246,7 @@ def behind(
     queued_s: float,
     fastest_mbit: float | None,
     *,
-    together: bool = False,
+    same_instant: bool = False,
 ) -> bool:
     """Whether ``frame`` crossed right behind ``previous``: it queued, and the link did not idle.
 
@@ -255,12 +255,12 @@ def behind(
     own transmission at that rate plus ``PATH_S``: it was sent after ``previous`` arrived, and
     its delay is a fade's or its own transmission on a link slower than its stream's fastest (a
     radio's rate moves), not a wait for ``previous``. None: every frame that queued counts.
-    ``together``: one that arrived at the same instant counts too (a burst, read with its stall).
+    ``same_instant``: one that arrived with ``previous`` counts too (a burst, read with its stall).
     """
     (t_prev, _, _), (t, queue, size) = previous, frame
     return (
         queue > queued_s
-        and (t >= t_prev if together else t > t_prev)
+        and (t >= t_prev if same_instant else t > t_prev)
         and (fastest_mbit is None or t - t_prev <= queue + size * 8e-6 / fastest_mbit + PATH_S)
     )
 
@@ -284,21 +284,22 @@ def busy_rate_mbit(
     readings: list[list[float]] = []  # [bytes, seconds]: a pair, or a stall and its burst
     last: Sample | None = None  # the frame the last reading ends with
     burst = False  # the last reading ends with a burst
+    burst_mbit = None if fastest_mbit is None else BURST_FACTOR * fastest_mbit
     for previous, frame in itertools.pairwise(ordered):
-        if not behind(previous, frame, queued_s, fastest_mbit, together=fastest_mbit is not None):
+        if not behind(previous, frame, queued_s, fastest_mbit, same_instant=burst_mbit is not None):
             continue
         size, gap_s = frame[2], frame[0] - previous[0]
-        together = fastest_mbit is not None and size * 8e-6 > BURST_FACTOR * fastest_mbit * gap_s
-        if (together or burst) and last is previous:
+        bunched = burst_mbit is not None and size * 8e-6 > burst_mbit * gap_s
+        if (bunched or burst) and last is previous:
             # Far faster than the link could be: the frames came out together after a stall (TCP
             # holding them behind a retransmission, or the receiver's process) and crossed
             # during the gap before them, as did part of the frame after them. One reading.
             readings[-1][0] += size
             readings[-1][1] += gap_s
-            burst, last = together, frame
+            burst, last = bunched, frame
             continue
         burst = False
-        if together:
+        if bunched:
             continue  # a burst with no gap before it here: nothing to read it with
         readings.append([size, gap_s])
         last = frame
