@@ -69,3 +69,9 @@ def test_a_link_faster_than_the_budget_is_read_as_it_is() -> None:
     """A radio at 14 Mbit/s under a 10-Mbit/s budget: its pairs are no burst."""
     frames = _back_to_back(14.0, 6)
     assert busy_rate_mbit(frames, QUEUED_S, fastest_mbit=12.5) == pytest.approx(14.0)
+
+
+def test_empty_frames_arriving_together_read_nothing() -> None:
+    """A report's sizes may be 0 (any peer sends them): such a burst is no reading, no error."""
+    frames = [(1.0, 0.5, 0), (1.0, 0.5, 0), (1.0, 0.5, 0)]
+    assert busy_rate_mbit(frames, QUEUED_S, fastest_mbit=12.5) is None

@@ -299,8 +299,8 @@ def busy_rate_mbit(
             burst, last = bunched, frame
             continue
         burst = False
-        if bunched:
-            continue  # a burst with no gap before it here: nothing to read it with
+        if bunched or gap_s <= 0:
+            continue  # a burst with no gap before it here (or empty frames): nothing to read
         readings.append([size, gap_s])
         last = frame
     rates = sorted(size / gap_s for size, gap_s in readings)
