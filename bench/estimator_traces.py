@@ -11,7 +11,9 @@ the paper's two cameras over a link that follows:
 - ``rfc8867-5.1``: RFC 8867's test case 5.1 (1 -> 2.5 -> 0.6 -> 1 Mbit/s at 0/40/60/80 s),
   its 2.5-Mbit/s peak as 11 Mbit/s: 4.4 -> 11 -> 2.64 -> 4.4 for 100 s;
 - with ``--gym DIR`` (a checkout of OpenNetLab/gym: ``alphartc_gym/tests/data``, no licence,
-  so not in this repository), its recorded 4G and 5G uplinks as they are (200-ms steps).
+  so not in this repository), its recorded 4G and 5G uplinks as they are (200-ms steps), or any
+  ``NAME.txt`` there as a ``SECONDS:MBIT`` trace (``--gym bench/traces --cases lte_a lte_b``:
+  two cellular-like schedules of 1-s steps written for this bench, not recordings).
 
 Per design and case, from what the operator received: utilisation (payload delivered / what the
 link could carry as payload, ``WIRE_EFFICIENCY`` of its capacity, from 2 s on), the same as a
@@ -342,6 +344,8 @@ def cases(names: Sequence[str], gym: Path | None) -> list[Case]:
             print(f"skipped {name}: no --gym", file=sys.stderr)
             continue
         path = gym / f"{name}.json"
+        if not path.exists():
+            path = gym / f"{name}.txt"  # a plain SECONDS:MBIT trace (bench/traces/lte_a.txt)
         trace = load_trace(path)
         found.append(Case(name, trace, None, path))
     return found

@@ -23,6 +23,7 @@ from dbml.estimator import (
     QueueSettings,
 )
 from dbml.estimator.base import Estimate, Judged, Sample, View, busy_rate_mbit
+from dbml.estimator.queue import _risen_mbit
 from dbml.estimator.simulation import (
     CAP_MBIT,
     WIRE_EFFICIENCY,
@@ -82,6 +83,117 @@ def test_rise_leaves_the_slow_band_at_once() -> None:
     """Frames crossing faster than any in the seconds before: the rise is taken at full pace."""
     trace = simulate(BandwidthEstimator(max_mbit=CAP_MBIT), drop_and_rise, duration_s=46)
     assert trace.estimate_at(45) >= 0.9 * CAP_MBIT
+
+
+def test_a_rise_goes_at_once_to_the_rate_its_frames_show() -> None:
+    """Frames crossing faster say by how much: the estimate goes there, not up at 25 %/s."""
+    trace = simulate(BandwidthEstimator(max_mbit=CAP_MBIT), drop_and_rise, duration_s=42)
+    assert trace.estimate_at(39.9) < 6.0
+    assert trace.estimate_at(41.0) >= 0.8 * CAP_MBIT
+
+
+def test_frames_as_fast_as_before_the_fall_mean_the_link_rose() -> None:
+    """Back to 11 Mbit/s 3.5 s after a fall to 5: frames as fast as before the fall.
+
+    The frames before the fall are still in the seconds a rise is read against.
+    """
+    schedule = ((0.0, 11.0), (20.0, 5.0), (23.5, 11.0))
+    link = dict(schedule)
+    trace = simulate(
+        BandwidthEstimator(max_mbit=CAP_MBIT),
+        lambda t: link[max(at for at in link if at <= t)],
+        duration_s=26,
+    )
+    assert trace.estimate_at(23.4) < 6.0
+    assert trace.estimate_at(24.5) >= 0.8 * CAP_MBIT
+
+
+@pytest.mark.parametrize(
+    ("before_mbit", "shorter_s", "expected_mbit"),
+    [
+        # 84 KB (0.672 Mbit) take 134.4 ms at 5 Mbit/s; 70 ms less is 64.4 ms: 10.43 Mbit/s
+        (5.0, 0.070, 0.672 / 0.0644),
+        # 40 ms less at 4.35 Mbit/s (154.5 ms): 114.5 ms, 5.87 Mbit/s
+        (4.35, 0.040, 0.672 / (0.672 / 4.35 - 0.040)),
+        # 130 ms less at 5 Mbit/s would be 4.4 ms, 153 Mbit/s: the frames compared had queued
+        (5.0, 0.130, None),
+    ],
+)
+def test_a_rise_reads_the_rate_from_the_shorter_transmission(
+    before_mbit: float, shorter_s: float, expected_mbit: float | None
+) -> None:
+    risen = _risen_mbit(before_mbit, shorter_s, 84_000, fastest_mbit=12.65)
+    if expected_mbit is None:
+        assert risen is None
+    else:
+        assert risen == pytest.approx(expected_mbit)
+
+
+FALL = (
+    ("r1", 221, 17.9624, 18.0238, 84000),
+    ("r2", 199, 18.0007, 18.0403, 21000),
+    ("r1", 222, 18.0300, 18.1044, 84000),
+    ("r1", 223, 18.0975, 18.1684, 84000),
+    ("r1", 224, 18.1650, 18.2325, 84000),
+    ("r1", 225, 18.2325, 18.2964, 84000),
+    ("r1", 226, 18.3000, 18.3615, 84000),
+    ("r1", 227, 18.3676, 18.4291, 84000),
+    ("r1", 228, 18.4351, 18.4965, 84000),
+    ("r1", 229, 18.5026, 18.5641, 84000),
+    ("r1", 230, 18.5701, 18.6315, 84000),
+    ("r1", 231, 18.6376, 18.6991, 84000),
+    ("r1", 232, 18.7051, 18.7666, 84000),
+    ("r1", 233, 18.7727, 18.8341, 84000),
+    ("r1", 234, 18.8402, 18.9017, 84000),
+    ("r1", 235, 18.9077, 18.9692, 84000),
+    ("r1", 236, 18.9752, 19.0367, 84000),
+    ("r2", 200, 19.0007, 19.0528, 21000),
+    ("r1", 237, 19.0428, 19.1169, 84000),
+    ("r1", 238, 19.1103, 19.1809, 84000),
+    ("r1", 239, 19.1778, 19.2450, 84000),
+    ("r1", 240, 19.2453, 19.3090, 84000),
+    ("r1", 241, 19.3128, 19.3742, 84000),
+    ("r1", 242, 19.3804, 19.4417, 84000),
+    ("r1", 243, 19.4479, 19.5095, 84000),
+    ("r1", 244, 19.5155, 19.5770, 84000),
+    ("r1", 245, 19.5830, 19.6445, 84000),
+    ("r1", 246, 19.6505, 19.7121, 84000),
+    ("r1", 247, 19.7180, 19.7797, 84000),
+    ("r1", 248, 19.7855, 19.8470, 84000),
+    ("r1", 249, 19.8531, 19.9146, 84000),
+    ("r1", 250, 19.9206, 19.9820, 84000),
+    ("r1", 251, 19.9881, 20.0996, 84000),
+    ("r2", 201, 20.0010, 20.1350, 21000),
+    ("r1", 252, 20.0556, 20.4390, 84000),
+    ("r1", 253, 20.1231, 20.4391, 84000),
+    ("r1", 254, 20.1966, 20.5619, 84000),
+)
+"""Frames recorded on the testbed as its link fell from 11 to 5 Mbit/s at 20.0 s: R1's 251 was
+sent just after 250 arrived and crossed partly before the fall; 252 then waited for a
+retransmission, and 253 came out of TCP with it. (stream, seq, sent, arrival, size)."""
+
+
+def test_a_pair_that_straddles_the_fall_does_not_measure_the_link() -> None:
+    """250 -> 251 reads 5.71 Mbit/s, half of it at the rate before: the cut measures after it.
+
+    The estimator hears each frame as it arrives and judges 75 ms in the past, as a node does.
+    """
+    estimator = BandwidthEstimator(max_mbit=CAP_MBIT)
+    frames = iter(FALL)
+    pending: tuple[str, int, float, float, int] | None = next(frames)
+    cuts = []
+    for tick in range(1, 53):
+        now_s = 18.0 + 0.05 * tick
+        while pending is not None and pending[3] <= now_s:
+            estimator.observe(Arrival(*pending))
+            pending = next(frames, None)
+        decision = estimator.update(now_s - 0.075)
+        if decision.phase is Phase.DECREASE:
+            cuts.append(decision)
+    assert "provisional" in cuts[0].reason
+    measured = next(c for c in cuts if "provisional" not in c.reason)
+    link_mbit = float(measured.reason.split("link ")[1].split(" Mbit/s")[0])
+    assert link_mbit <= 5.0 * WIRE_EFFICIENCY  # the link carried 4.79 Mbit/s of payload
 
 
 FADES = tuple(

@@ -21,6 +21,7 @@ from dbml.core.errors import SpecError
 from dbml.core.spec import bytes_per_s_to_mbit
 
 __all__ = [
+    "BURST_FACTOR",
     "PATH_S",
     "RATE_FRAMES",
     "Arrival",

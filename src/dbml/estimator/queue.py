@@ -9,9 +9,10 @@ queue within ``drain_s``; before enough frames have queued to measure that rate 
 provisional, undone if the frames behind it cross at the rate offered before (a fade), kept if
 slower (a fall). Once drained the estimate goes back to ``backoff`` of the rate measured and stays
 there until that rate is ``memory_s`` old, then probes up slowly near it and fast away from it;
-frames of the largest stream crossing faster than in the seconds before (the link rose) end the
-stay and the slow band. After a fall, a frame's own longer transmission at the rate measured is
-not read as queue.
+frames of the largest stream crossing faster than in the seconds before, or as fast as before
+the last fall (the link rose), end the stay and the slow band, and the estimate goes at once to
+the rate their shorter transmission implies (``rise_step`` times itself at most). After a fall,
+a frame's own longer transmission at the rate measured is not read as queue.
 
 It reads, per stream that speaks for the link, its newest and least queueing and their slope and
 its frames' one-way delays; the packet pairs of the last ``window_s``; the frames lost. A pair,
@@ -32,6 +33,7 @@ from dataclasses import dataclass
 
 from dbml.core.errors import SpecError
 from dbml.estimator.base import (
+    BURST_FACTOR,
     PATH_S,
     RATE_FRAMES,
     Arrival,
@@ -83,7 +85,11 @@ class QueueSettings:
     rise_delay_s: float = 0.02
     rise_window_s: float = 5.0
     """A stream's frames crossing ``rise_delay_s`` faster than any in the ``rise_window_s``
-    before: the link rose (its frames' own transmission is shorter), the slow band is left."""
+    before, or as fast as before the last fall (within ``rise_delay_s``): the link rose (its
+    frames' own transmission is shorter), the slow band is left."""
+    rise_step: float = 2.0
+    """On a rise, the estimate goes at once to the link's rate the shorter transmission implies,
+    at most this many times what it was."""
     link_window_s: float = 3.0
     """The link's median rate over this long says whether a queue drains by itself."""
     memory_s: float = 8.0
@@ -106,6 +112,7 @@ class QueueSettings:
                 "memory_s",
                 "rise_delay_s",
                 "rise_window_s",
+                "rise_step",
                 "headroom",
                 "slow_increase_per_s",
                 "fast_increase_per_s",
@@ -148,6 +155,11 @@ class QueueDetector:
         """(when, Mbit/s): the link's rate at each update that measured it, ``link_window_s``."""
         self._rose = False
         """The link was seen to rise since the last cut."""
+        self._paced_s = math.inf
+        """When the last cut's queue had drained (the estimate back at the rate it measured):
+        frames since then cross at the pace of the link after it."""
+        self._risen_mbit: float | None = None
+        """The link's rate a rise implies: the increases go there (``rise_step`` at a time)."""
         self._fall: tuple[float, float, float] | None = None
         """(when, Mbit/s before, Mbit/s after) of the last fall a cut measured, until it rises."""
         self._why_cut = ""
@@ -182,19 +194,31 @@ class QueueDetector:
             return Decision(Phase.HOLD, max(estimate, before), "outage: provisional cut undone")
         if view.settling:
             return Decision(Phase.HOLD, estimate, "outage's backlog drains")
-        if (self._capacity_mbit is not None or self._aged_mbit is not None) and _faster(
-            judged,
-            since_s=view.now_s - s.rise_window_s,
-            recent_s=view.now_s - shared.window_s,
-            by_s=s.rise_delay_s,
-        ):
-            # Frames cross in less time than any in the seconds before: the link rose, what
-            # the last cut measured no longer holds the increase back.
-            self._capacity_mbit = self._aged_mbit = None
-            self._rose = True
-            self._fall = None
-        pairs = view.pairs(shared.window_s)
         fastest = _PLAUSIBLE * view.max_mbit
+        before_mbit = self._capacity_mbit if self._capacity_mbit is not None else self._aged_mbit
+        recent_s = view.now_s - shared.window_s
+        rise = (
+            None
+            if before_mbit is None
+            else _faster(
+                judged, since_s=view.now_s - s.rise_window_s, recent_s=recent_s, by_s=s.rise_delay_s
+            )
+        )
+        if before_mbit is not None and rise is not None:
+            # Frames cross in less time than any in the seconds before: the link rose, what
+            # the last cut measured no longer holds the increase back, and how much sooner
+            # they arrive says by how much.
+            shorter_s, size_bytes = rise
+            self._risen_mbit = _risen_mbit(before_mbit, shorter_s, size_bytes, fastest)
+            self._rose_back()
+        elif self._fall is not None and _as_fast_as_before(
+            judged, self._fall[0], self._paced_s, recent_s=recent_s, by_s=s.rise_delay_s
+        ):
+            # Frames cross as fast as they did before the fall (once its queue drained, they
+            # crossed slower): the link carries again what it carried then.
+            self._risen_mbit = self._fall[1]
+            self._rose_back()
+        pairs = view.pairs(shared.window_s)
         measured = busy_rate_mbit(
             pairs, s.overuse_delay_s / 2, least=s.least_pairs, fastest_mbit=fastest
         )
@@ -284,6 +308,7 @@ class QueueDetector:
             # Drained: cruise at the link's rate the cut measured, not below it.
             # Never above the estimate the cut was made from: it overused the link.
             cruise = min(s.backoff * self._capacity_mbit, self._cut_from_mbit)
+            self._paced_s = min(self._paced_s, view.now_s)
             if self._restore and estimate < cruise:
                 self._restore = False
                 self._cruise_until = view.now_s + s.plateau_s
@@ -324,7 +349,17 @@ class QueueDetector:
             near_band=s.near_band,
         )
         if self._rose and decision.phase is Phase.INCREASE:
-            return Decision(decision.phase, decision.estimate_mbit, "the link rose")
+            risen = self._risen_mbit
+            if risen is None:
+                return Decision(decision.phase, decision.estimate_mbit, "the link rose")
+            step = min(s.backoff * risen, s.rise_step * estimate)
+            if step <= decision.estimate_mbit:
+                self._risen_mbit = None  # there: on at the usual pace
+            return Decision(
+                decision.phase,
+                max(decision.estimate_mbit, step),
+                f"the link rose to {risen:.2f} Mbit/s",
+            )
         return decision
 
     def _settle_provisional(self, view: View, pairs: list[Sample]) -> Decision | None:
@@ -333,10 +368,15 @@ class QueueDetector:
         if before is None:
             return None
         # The link's rate from the frames that arrived since the cut (the ones before it may
-        # have crossed before a fall), and the one before them: frames a stall held back come
-        # out together, and their pairs read with the gap that ends where they start.
-        since = _since(pairs, self._provisional_s)
+        # have crossed before a fall), and the one before them if a stall held those back:
+        # they come out together, and read with the gap that ends where they start. Otherwise
+        # that frame's pair straddles the fall, part of it crossed at the rate before.
         fastest = _PLAUSIBLE * view.max_mbit
+        since = _since(pairs, self._provisional_s)
+        if len(since) > _FIRST_AFTER + 1 and not _bunched(
+            since[_FIRST_AFTER], since[_FIRST_AFTER + 1], fastest
+        ):
+            since = since[1:]
         measured = busy_rate_mbit(
             since, self.settings.overuse_delay_s / 2, least=_SETTLE_PAIRS, fastest_mbit=fastest
         )
@@ -395,10 +435,18 @@ class QueueDetector:
         # sent after it has had time to arrive.
         self._frozen_until = view.now_s + backlog + self._shared.response_s
         self._rose = False
+        self._risen_mbit = None
+        self._paced_s = math.inf
         if capacity < estimate:
             self._fall = (view.now_s, estimate, capacity)
         self._why_cut = f"{why}; link {capacity:.2f} Mbit/s, backlog {backlog * 1e3:.0f} ms"
         return Decision(Phase.DECREASE, min(estimate, target), self._why_cut)
+
+    def _rose_back(self) -> None:
+        """The link rose: no cut's measure holds the increase back."""
+        self._capacity_mbit = self._aged_mbit = None
+        self._rose = True
+        self._fall = None
 
     def _slower_s(self, judged: Judged) -> float:
         """How much slower ``judged``'s largest frame crosses than when its least delay was met.
@@ -450,6 +498,15 @@ _SINCE_CUT = 5
 _SETTLE_PAIRS = 2
 """Two pairs since a provisional cut settle it: one that spans a fade is slow, the median (the
 faster of two) is the link's."""
+
+
+_FIRST_AFTER = 1
+"""In ``_since``'s frames, the first that arrived after its start."""
+
+
+def _bunched(first: Sample, second: Sample, fastest_mbit: float) -> bool:
+    """Whether ``second`` arrived after ``first`` far faster than the link could carry it."""
+    return second[2] * 8e-6 > BURST_FACTOR * fastest_mbit * (second[0] - first[0])
 
 
 def _since(recent: list[Sample], start_s: float) -> list[Sample]:
@@ -529,21 +586,66 @@ def _other_frame_s(judged: Judged, sizes: list[int], pace_s: float) -> float:
     return other * pace_s
 
 
-def _faster(judged: list[Judged], *, since_s: float, recent_s: float, by_s: float) -> bool:
-    """Whether the stream of the largest frames crossed faster lately than in the seconds before.
+def _faster(
+    judged: list[Judged], *, since_s: float, recent_s: float, by_s: float
+) -> tuple[float, int] | None:
+    """How much faster the stream of the largest frames crossed lately than in the seconds before.
 
     Its least one-way delay since ``recent_s`` is ``by_s`` below its least between ``since_s``
-    and then (a clock offset cancels: both are the same stream's). The largest frames, because
-    their own transmission is most of their delay: a small frame's varies with what it waited
-    behind.
+    and then (a clock offset cancels: both are the same stream's): (that many seconds shorter,
+    its largest frame's size), else None. The largest frames, because their own transmission is
+    most of their delay: a small frame's varies with what it waited behind.
+    """
+    sized = [j for j in judged if j.samples]
+    if not sized:
+        return None
+    largest = max(sized, key=lambda j: max(size for *_, size in j.samples))
+    before = [d for t, d, _ in largest.samples if since_s <= t < recent_s]
+    now = [d for t, d, _ in largest.samples if t >= recent_s]
+    if len(before) < RATE_FRAMES or not now or min(now) >= min(before) - by_s:
+        return None
+    return min(before) - min(now), max(size for *_, size in largest.samples)
+
+
+def _as_fast_as_before(
+    judged: list[Judged], fall_s: float, paced_s: float, *, recent_s: float, by_s: float
+) -> bool:
+    """Whether the stream of the largest frames crosses as fast as before ``fall_s`` again.
+
+    Its least one-way delay was met before the fall; every frame of it since ``paced_s`` (the
+    fall's queue drained) crossed more than twice ``by_s`` slower: its own transmission is
+    longer on the link after the fall (an overload's queue drained to the least is no fall);
+    and one since ``recent_s`` within ``by_s`` of that least.
     """
     sized = [j for j in judged if j.samples]
     if not sized:
         return False
     largest = max(sized, key=lambda j: max(size for *_, size in j.samples))
-    before = [d for t, d, _ in largest.samples if since_s <= t < recent_s]
+    least_t, least_s, _ = min(largest.samples, key=lambda sample: sample[1])
+    since = [d for t, d, _ in largest.samples if paced_s <= t < recent_s]
     now = [d for t, d, _ in largest.samples if t >= recent_s]
-    return len(before) >= RATE_FRAMES and bool(now) and min(now) < min(before) - by_s
+    return (
+        least_t < fall_s
+        and bool(since)
+        and bool(now)
+        and min(since) > least_s + 2 * by_s
+        and min(now) <= least_s + by_s
+    )
+
+
+def _risen_mbit(
+    before_mbit: float, shorter_s: float, size_bytes: int, fastest_mbit: float
+) -> float | None:
+    """The link's rate once a frame crosses ``shorter_s`` sooner than at ``before_mbit``.
+
+    Its own transmission (``size_bytes``) is that much shorter. None if that is faster than
+    ``fastest_mbit``: the frames it was compared with had queued, and it says nothing of the link.
+    """
+    megabits = size_bytes * 8e-6
+    takes_s = megabits / before_mbit - shorter_s
+    if takes_s <= megabits / fastest_mbit:
+        return None
+    return megabits / takes_s
 
 
 def _backlog_s(judged: list[Judged], response_s: float, *, max_slope: float, low_s: float) -> float:
