@@ -376,7 +376,7 @@ class QueueDetector:
         if len(since) > _FIRST_AFTER + 1 and not _bunched(
             since[_FIRST_AFTER], since[_FIRST_AFTER + 1], fastest
         ):
-            since = since[1:]
+            since = since[_FIRST_AFTER:]
         measured = busy_rate_mbit(
             since, self.settings.overuse_delay_s / 2, least=_SETTLE_PAIRS, fastest_mbit=fastest
         )
@@ -586,6 +586,12 @@ def _other_frame_s(judged: Judged, sizes: list[int], pace_s: float) -> float:
     return other * pace_s
 
 
+def _largest(judged: list[Judged]) -> Judged | None:
+    """The stream of the largest frames: their own transmission is most of their delay."""
+    sized = [j for j in judged if j.samples]
+    return max(sized, key=lambda j: max(size for *_, size in j.samples)) if sized else None
+
+
 def _faster(
     judged: list[Judged], *, since_s: float, recent_s: float, by_s: float
 ) -> tuple[float, int] | None:
@@ -596,10 +602,9 @@ def _faster(
     its largest frame's size), else None. The largest frames, because their own transmission is
     most of their delay: a small frame's varies with what it waited behind.
     """
-    sized = [j for j in judged if j.samples]
-    if not sized:
+    largest = _largest(judged)
+    if largest is None:
         return None
-    largest = max(sized, key=lambda j: max(size for *_, size in j.samples))
     before = [d for t, d, _ in largest.samples if since_s <= t < recent_s]
     now = [d for t, d, _ in largest.samples if t >= recent_s]
     if len(before) < RATE_FRAMES or not now or min(now) >= min(before) - by_s:
@@ -617,10 +622,9 @@ def _as_fast_as_before(
     longer on the link after the fall (an overload's queue drained to the least is no fall);
     and one since ``recent_s`` within ``by_s`` of that least.
     """
-    sized = [j for j in judged if j.samples]
-    if not sized:
+    largest = _largest(judged)
+    if largest is None:
         return False
-    largest = max(sized, key=lambda j: max(size for *_, size in j.samples))
     least_t, least_s, _ = min(largest.samples, key=lambda sample: sample[1])
     since = [d for t, d, _ in largest.samples if paced_s <= t < recent_s]
     now = [d for t, d, _ in largest.samples if t >= recent_s]
