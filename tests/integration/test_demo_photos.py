@@ -84,12 +84,13 @@ def test_the_ladder_keeps_every_camera_at_10_hz_within_the_budget_on_real_frames
 
 
 def _steps(run: dict[str, Any]) -> str:
-    """Each step's robots as a line: priority, allocated and delivered Hz, rung, SSIM."""
+    """Each step's robots as a line: priority, allocated (last, mean), delivered Hz, rung, SSIM."""
     return "\n".join(
         f"step {step['step']}: "
         + "; ".join(
-            f"{r['robot']} p={r['priority']:.2f} {r['allocated_hz']:.2f}/"
-            f"{r['delivered_fps']:.2f} Hz {r['encoding']} ssim={r['ssim']}"
+            f"{r['robot']} p={r['priority']:.2f} {r['allocated_hz']:.2f}"
+            f" (mean {r['allocated_mean_hz']})/{r['delivered_fps']:.2f} Hz"
+            f"{'' if r['at_10_hz'] else ' NOT at 10 Hz'} {r['encoding']} ssim={r['ssim']}"
             for r in step["robots"]
         )
         for step in run["steps"]
