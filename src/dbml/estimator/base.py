@@ -35,6 +35,7 @@ __all__ = [
     "SharedSettings",
     "View",
     "behind",
+    "bunched",
     "busy_rate_mbit",
     "check_positive",
     "check_shares",
@@ -266,6 +267,14 @@ def behind(
     )
 
 
+def bunched(previous: Sample, frame: Sample, fastest_mbit: float) -> bool:
+    """Whether ``frame`` came out with ``previous`` after a stall.
+
+    It arrived ``BURST_FACTOR`` times faster than ``fastest_mbit`` could carry it.
+    """
+    return frame[2] * 8e-6 > BURST_FACTOR * fastest_mbit * (frame[0] - previous[0])
+
+
 def busy_rate_mbit(
     ordered: list[Sample],
     queued_s: float,
@@ -285,22 +294,23 @@ def busy_rate_mbit(
     readings: list[list[float]] = []  # [bytes, seconds]: a pair, or a stall and its burst
     last: Sample | None = None  # the frame the last reading ends with
     burst = False  # the last reading ends with a burst
-    burst_mbit = None if fastest_mbit is None else BURST_FACTOR * fastest_mbit
     for previous, frame in itertools.pairwise(ordered):
-        if not behind(previous, frame, queued_s, fastest_mbit, same_instant=burst_mbit is not None):
+        if not behind(
+            previous, frame, queued_s, fastest_mbit, same_instant=fastest_mbit is not None
+        ):
             continue
         size, gap_s = frame[2], frame[0] - previous[0]
-        bunched = burst_mbit is not None and size * 8e-6 > burst_mbit * gap_s
-        if (bunched or burst) and last is previous:
+        together = fastest_mbit is not None and bunched(previous, frame, fastest_mbit)
+        if (together or burst) and last is previous:
             # Far faster than the link could be: the frames came out together after a stall (TCP
             # holding them behind a retransmission, or the receiver's process) and crossed
             # during the gap before them, as did part of the frame after them. One reading.
             readings[-1][0] += size
             readings[-1][1] += gap_s
-            burst, last = bunched, frame
+            burst, last = together, frame
             continue
         burst = False
-        if bunched or gap_s <= 0:
+        if together or gap_s <= 0:
             continue  # a burst with no gap before it here (or empty frames): nothing to read
         readings.append([size, gap_s])
         last = frame

@@ -33,7 +33,6 @@ from dataclasses import dataclass
 
 from dbml.core.errors import SpecError
 from dbml.estimator.base import (
-    BURST_FACTOR,
     PATH_S,
     RATE_FRAMES,
     Arrival,
@@ -44,6 +43,7 @@ from dbml.estimator.base import (
     SharedSettings,
     View,
     behind,
+    bunched,
     busy_rate_mbit,
     check_positive,
     check_shares,
@@ -373,7 +373,7 @@ class QueueDetector:
         # that frame's pair straddles the fall, part of it crossed at the rate before.
         fastest = _PLAUSIBLE * view.max_mbit
         since = _since(pairs, self._provisional_s)
-        if len(since) > _FIRST_AFTER + 1 and not _bunched(
+        if len(since) > _FIRST_AFTER + 1 and not bunched(
             since[_FIRST_AFTER], since[_FIRST_AFTER + 1], fastest
         ):
             since = since[_FIRST_AFTER:]
@@ -502,11 +502,6 @@ faster of two) is the link's."""
 
 _FIRST_AFTER = 1
 """In ``_since``'s frames, the first that arrived after its start."""
-
-
-def _bunched(first: Sample, second: Sample, fastest_mbit: float) -> bool:
-    """Whether ``second`` arrived after ``first`` far faster than the link could carry it."""
-    return second[2] * 8e-6 > BURST_FACTOR * fastest_mbit * (second[0] - first[0])
 
 
 def _since(recent: list[Sample], start_s: float) -> list[Sample]:
