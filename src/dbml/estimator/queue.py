@@ -43,7 +43,6 @@ from dbml.estimator.base import (
     SharedSettings,
     View,
     behind,
-    bunched,
     busy_rate_mbit,
     check_positive,
     check_shares,
@@ -368,15 +367,10 @@ class QueueDetector:
         if before is None:
             return None
         # The link's rate from the frames that arrived since the cut (the ones before it may
-        # have crossed before a fall), and the one before them if a stall held those back:
-        # they come out together, and read with the gap that ends where they start. Otherwise
-        # that frame's pair straddles the fall, part of it crossed at the rate before.
-        fastest = _PLAUSIBLE * view.max_mbit
+        # have crossed before a fall), and the one before them: frames a stall held back come
+        # out together, and their pairs read with the gap that ends where they start.
         since = _since(pairs, self._provisional_s)
-        if len(since) > _FIRST_AFTER + 1 and not bunched(
-            since[_FIRST_AFTER], since[_FIRST_AFTER + 1], fastest
-        ):
-            since = since[_FIRST_AFTER:]
+        fastest = _PLAUSIBLE * view.max_mbit
         measured = busy_rate_mbit(
             since, self.settings.overuse_delay_s / 2, least=_SETTLE_PAIRS, fastest_mbit=fastest
         )
@@ -498,10 +492,6 @@ _SINCE_CUT = 5
 _SETTLE_PAIRS = 2
 """Two pairs since a provisional cut settle it: one that spans a fade is slow, the median (the
 faster of two) is the link's."""
-
-
-_FIRST_AFTER = 1
-"""In ``_since``'s frames, the first that arrived after its start."""
 
 
 def _since(recent: list[Sample], start_s: float) -> list[Sample]:
