@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 import statistics
 from collections import deque
+from dataclasses import replace
 from typing import Any
 
 import pytest
@@ -129,6 +130,174 @@ def test_a_rise_reads_the_rate_from_the_shorter_transmission(
         assert risen == pytest.approx(expected_mbit)
 
 
+FALL = (
+    ("r1", 221, 17.9624, 18.0238, 84000),
+    ("r2", 199, 18.0007, 18.0403, 21000),
+    ("r1", 222, 18.0300, 18.1044, 84000),
+    ("r1", 223, 18.0975, 18.1684, 84000),
+    ("r1", 224, 18.1650, 18.2325, 84000),
+    ("r1", 225, 18.2325, 18.2964, 84000),
+    ("r1", 226, 18.3000, 18.3615, 84000),
+    ("r1", 227, 18.3676, 18.4291, 84000),
+    ("r1", 228, 18.4351, 18.4965, 84000),
+    ("r1", 229, 18.5026, 18.5641, 84000),
+    ("r1", 230, 18.5701, 18.6315, 84000),
+    ("r1", 231, 18.6376, 18.6991, 84000),
+    ("r1", 232, 18.7051, 18.7666, 84000),
+    ("r1", 233, 18.7727, 18.8341, 84000),
+    ("r1", 234, 18.8402, 18.9017, 84000),
+    ("r1", 235, 18.9077, 18.9692, 84000),
+    ("r1", 236, 18.9752, 19.0367, 84000),
+    ("r2", 200, 19.0007, 19.0528, 21000),
+    ("r1", 237, 19.0428, 19.1169, 84000),
+    ("r1", 238, 19.1103, 19.1809, 84000),
+    ("r1", 239, 19.1778, 19.2450, 84000),
+    ("r1", 240, 19.2453, 19.3090, 84000),
+    ("r1", 241, 19.3128, 19.3742, 84000),
+    ("r1", 242, 19.3804, 19.4417, 84000),
+    ("r1", 243, 19.4479, 19.5095, 84000),
+    ("r1", 244, 19.5155, 19.5770, 84000),
+    ("r1", 245, 19.5830, 19.6445, 84000),
+    ("r1", 246, 19.6505, 19.7121, 84000),
+    ("r1", 247, 19.7180, 19.7797, 84000),
+    ("r1", 248, 19.7855, 19.8470, 84000),
+    ("r1", 249, 19.8531, 19.9146, 84000),
+    ("r1", 250, 19.9206, 19.9820, 84000),
+    ("r1", 251, 19.9881, 20.0996, 84000),
+    ("r2", 201, 20.0010, 20.1350, 21000),
+    ("r1", 252, 20.0556, 20.4390, 84000),
+    ("r1", 253, 20.1231, 20.4391, 84000),
+    ("r1", 254, 20.1966, 20.5619, 84000),
+)
+"""Frames recorded on the testbed as its link fell from 11 to 5 Mbit/s at 20.0 s: R1's 251 was
+sent just after 250 arrived and crossed partly before the fall; 252 then waited for a
+retransmission, and 253 came out of TCP with it. (stream, seq, sent, arrival, size)."""
+_PAYLOAD_AFTER_MBIT = 5.0 * WIRE_EFFICIENCY
+"""What the link carried of payload after the fall: 4.79 Mbit/s."""
+
+
+def _replay(frames: list[tuple[str, int, float, float, int]], end_s: float) -> list[Estimate]:
+    """Each frame heard as it arrives, judged 75 ms in the past every 50 ms, as a node does."""
+    estimator = BandwidthEstimator(max_mbit=CAP_MBIT)
+    ordered = iter(sorted(frames, key=lambda frame: frame[3]))
+    pending = next(ordered, None)
+    decisions = []
+    now_s = frames[0][3]
+    while now_s < end_s:
+        now_s += 0.05
+        while pending is not None and pending[3] <= now_s:
+            estimator.observe(Arrival(*pending))
+            pending = next(ordered, None)
+        decisions.append(estimator.update(now_s - 0.075))
+    return decisions
+
+
+def _link_read(decision: Estimate) -> float:
+    return float(decision.reason.split("link ")[1].split(" Mbit/s")[0])
+
+
+def test_a_cut_read_across_the_fall_is_measured_again_after_it() -> None:
+    """A cut read across the fall comes at once, and the frames after take it to their rate.
+
+    250 -> 251 reads 5.71 Mbit/s, part of it at the rate before; the frames after read 4.75.
+    """
+    decisions = _replay(list(FALL), end_s=20.6)
+    cuts = [d for d in decisions if d.phase is Phase.DECREASE]
+    assert "provisional" in cuts[0].reason
+    measured = cuts[1]
+    assert measured.t_s < 20.1  # before the retransmission's stall: no outage can undo it
+    assert _link_read(cuts[-1]) <= _PAYLOAD_AFTER_MBIT
+    assert max(d.estimate_mbit for d in decisions if d.t_s > cuts[-1].t_s) < _PAYLOAD_AFTER_MBIT
+
+
+def test_an_outage_inside_the_falls_stall_keeps_the_cut() -> None:
+    """An outage declared inside a fall's stall leaves the cut made before it.
+
+    The retransmission holds R1's frames after 251 for 0.6 s more than recorded.
+    """
+    late = [
+        (stream, seq, sent + 0.6, arrival + 0.6, size)
+        if arrival > 20.3
+        else (stream, seq, sent, arrival, size)
+        for stream, seq, sent, arrival, size in FALL
+    ]
+    decisions = _replay(late, end_s=21.5)
+    assert any(d.phase is Phase.OUTAGE for d in decisions)
+    after = [d for d in decisions if d.t_s > 20.2]
+    assert max(d.estimate_mbit for d in after) <= 0.95 * 5.71 + 1e-6
+
+
+def _after_outage(now_s: float, estimate: float, *, mbit: float) -> View:
+    """The second after an outage: 84-KB frames back to back at ``mbit``, each queued 50 ms."""
+    gap_s = 84_000 * 8e-6 / mbit
+    frames = [(now_s - 1.0 + i * gap_s, 0.05, 84_000) for i in range(int(1.0 / gap_s))]
+    judged = Judged(0.05, 0.05, 0.0, deque(frames), frames)
+    return _steady_view(now_s, estimate, frames, [judged])
+
+
+@pytest.mark.parametrize(("mbit", "rose"), [(6.5, False), (10.0, True)])
+def test_a_link_back_from_an_outage_is_read_as_faster_only_far_above_its_last_rate(
+    mbit: float, rose: bool
+) -> None:
+    """A cut measured 5 Mbit/s; after an outage the frames read ``mbit``.
+
+    Frames TCP held read up to 1.4 times the link (recorded): 6.5 is no rise, 10 is.
+    """
+    detector = QueueSettings().detector(EstimatorSettings())
+    cut = detector.decide(_fall(ramp_s=0.04))
+    assert "link 5.0" in cut.reason
+    detector.forget(None)
+    settling = replace(_after_outage(12.0, cut.estimate_mbit, mbit=mbit), settling=True)
+    assert detector.decide(settling).phase is Phase.HOLD
+    back = detector.decide(_after_outage(14.0, cut.estimate_mbit, mbit=mbit))
+    on = detector.decide(_after_outage(14.1, back.estimate_mbit, mbit=mbit))
+    assert ("the link rose" in on.reason) is rose
+    assert (on.estimate_mbit > 0.95 * 5.0 * 1.1) is rose
+
+
+def test_empty_frames_after_a_fall_read_no_link() -> None:
+    """A peer's reports of empty frames after the fall: no reading of 0 Mbit/s, no error."""
+    empty = [
+        (stream, seq, sent, arrival, 0 if arrival > 20.3 else size)
+        for stream, seq, sent, arrival, size in FALL
+    ]
+    empty += [("r1", 255 + k, 20.2 + 0.07 * k, 20.6 + 0.001 * k, 0) for k in range(20)]
+    decisions = _replay(empty, end_s=22.0)
+    cut = next(d for d in decisions if "link" in d.reason)
+    assert min(d.estimate_mbit for d in decisions if d.t_s >= cut.t_s) == cut.estimate_mbit
+
+
+def _fall_outage_back(low_mbit: float, *, outage_s: float, back_mbit: float) -> Any:
+    """11 Mbit/s, ``low_mbit`` from 10 s, down from 20 s for ``outage_s``, then ``back_mbit``."""
+    schedule = ((0.0, 11.0), (10.0, low_mbit), (20.0, 0.01), (20.0 + outage_s, back_mbit))
+    link = dict(schedule)
+    return simulate(
+        BandwidthEstimator(max_mbit=CAP_MBIT),
+        lambda t: link[max(at for at in link if at <= t)],
+        duration_s=30,
+        transmit_until=transmission_over(schedule),
+    )
+
+
+def test_after_a_fall_to_a_slow_link_the_budget_returns_to_its_rate() -> None:
+    """A fall from 11 to 3 Mbit/s: once the cut's queue drained, back at the link's rate.
+
+    Within 6 s of the fall: an 84-KB frame's own 163-ms longer transmission is no queue to wait
+    out for the 15 s of its stream's base.
+    """
+    trace = _fall_outage_back(3.0, outage_s=1.0, back_mbit=3.0)
+    link_payload = 3.0 * WIRE_EFFICIENCY
+    assert trace.estimate_at(12.0) < 0.6 * link_payload  # the cut drains the fall's queue
+    assert trace.estimate_at(16.0) >= 0.9 * 0.95 * link_payload
+
+
+def test_a_link_back_faster_after_an_outage_is_read_from_its_backlog() -> None:
+    """What queued during the outage crosses behind itself at the link's rate: 11 Mbit/s."""
+    trace = _fall_outage_back(3.0, outage_s=1.0, back_mbit=11.0)
+    assert trace.estimate_at(19.0) < 3.0  # the slow link before the outage
+    assert trace.estimate_at(24.0) >= 0.9 * CAP_MBIT  # the settle's 2 s after it, and one more
+
+
 FADES = tuple(
     step for start in range(5, 60, 3) for step in ((float(start), 0.01), (start + 0.3, 14.0))
 )
@@ -221,14 +390,15 @@ def test_frames_sent_into_an_idle_link_are_not_packet_pairs() -> None:
     assert busy_rate_mbit(frames, 0.02, fastest_mbit=12.5) is None
 
 
-def _fall(*, ramp_s: float) -> View:
+def _fall(*, ramp_s: float, mbit: float = 5.0, ramp_frames: int = 4, own_s: float = 0.0) -> View:
     """A stream that crossed unqueued for a second, then queued more with every frame.
 
-    Its frames then arrive back to back at 5 Mbit/s, each ``ramp_s`` later than the one before.
+    Its ``ramp_frames`` then arrive back to back at ``mbit``, each ``ramp_s`` later than the one
+    before, and each ``own_s`` later for its own longer transmission.
     """
     flat = [(9.0 + i * 0.1, 0.0, 84_000) for i in range(10)]
-    gap_s = 84_000 * 8e-6 / 5.0
-    ramp = [(9.9 + i * gap_s, i * ramp_s, 84_000) for i in range(1, 5)]
+    gap_s = 84_000 * 8e-6 / mbit
+    ramp = [(9.9 + i * gap_s, own_s + i * ramp_s, 84_000) for i in range(1, ramp_frames + 1)]
     frames = flat + ramp
     trend = statistics.linear_regression([t for t, *_ in frames], [q for _, q, _ in frames])
     judged = Judged(ramp[-1][1], 0.0, trend.slope, deque(frames), frames)
@@ -239,8 +409,8 @@ def _fall(*, ramp_s: float) -> View:
         lost=0,
         recent=frames,
         judged=[judged],
-        received=5.0,
-        cut_rate=5.0,
+        received=mbit,
+        cut_rate=mbit,
         estimate_mbit=10.0,
         max_mbit=10.0,
         speaks=lambda _: True,
@@ -263,6 +433,39 @@ def test_a_cut_drains_the_queue_a_fall_builds_until_it_acts() -> None:
     assert "link" in cut.reason  # the rate measured from the pairs, not a provisional cut
     drain_mbit = queued_s * 5.0 / QueueSettings().drain_s
     assert cut.estimate_mbit <= max(5.0 - drain_mbit, 0.5 * 5.0)
+
+
+def _restoring(now_s: float, estimate: float, *, newest_s: float, mbit: float) -> View:
+    """After the cut: 84-KB frames back to back at ``mbit``, queued 100 ms, the newest ``newest_s``.
+
+    The stream's least delay was met before the fall, at 9 s.
+    """
+    gap_s = 84_000 * 8e-6 / mbit
+    window = [(now_s - 1.0 + i * gap_s, 0.1, 84_000) for i in range(int(1.0 / gap_s))]
+    window[-1] = (window[-1][0], newest_s, 84_000)
+    judged = Judged(newest_s, 0.1, 0.0, deque([(9.0, 0.0, 84_000), *window]), window)
+    return _steady_view(now_s, estimate, window, [judged])
+
+
+@pytest.mark.parametrize(
+    ("newest_s", "phase"),
+    [(0.19, Phase.INCREASE), (0.3, Phase.HOLD)],
+)
+def test_below_the_link_rate_the_budget_holds_while_the_newest_frame_waits(
+    newest_s: float, phase: Phase
+) -> None:
+    """On 2.5 Mbit/s an 84-KB frame takes 202 ms longer than on 10: no queue, its own pace.
+
+    A newest frame 190 ms over its least has drained (back to the link's rate); 300 ms has not.
+    """
+    detector = QueueSettings().detector(EstimatorSettings())
+    own_s = 84_000 * 8e-6 * (1 / 2.5 - 1 / 10.0)
+    cut = detector.decide(_fall(ramp_s=0.04, mbit=2.5, ramp_frames=6, own_s=own_s))
+    assert cut.phase is Phase.DECREASE
+    assert "link 2.5" in cut.reason
+    after = detector.decide(_restoring(14.0, cut.estimate_mbit, newest_s=newest_s, mbit=2.5))
+    assert after.phase is phase
+    assert (after.estimate_mbit > cut.estimate_mbit) is (phase is Phase.INCREASE)
 
 
 def test_one_reading_of_frames_a_stall_bunched_does_not_leave_the_slow_band() -> None:

@@ -7,12 +7,16 @@ last seconds (packet pairs) is ``headroom`` above the estimate drains by itself 
 backlog, a burst): no cut. Otherwise a cut to ``backoff`` of the link's rate less what drains the
 queue within ``drain_s``; before enough frames have queued to measure that rate the cut is
 provisional, undone if the frames behind it cross at the rate offered before (a fade), kept if
-slower (a fall). Once drained the estimate goes back to ``backoff`` of the rate measured and stays
-there until that rate is ``memory_s`` old, then probes up slowly near it and fast away from it;
+slower (a fall); read with the frame before it, whose pair may straddle the fall, the cut is
+measured again by the frames after. Once drained (no stream's newest frame waiting longer than
+its own slower transmission and one frame of another stream), the estimate goes back to
+``backoff`` of the rate measured and stays there until that rate is ``memory_s`` old, then
+probes up slowly near it and fast away from it;
 frames of the largest stream crossing faster than in the seconds before, or as fast as before
 the last fall (the link rose), end the stay and the slow band, and the estimate goes at once to
-the rate their shorter transmission implies (``rise_step`` times itself at most). After a fall,
-a frame's own longer transmission at the rate measured is not read as queue.
+the rate their shorter transmission implies (``rise_step`` times itself at most); so it does,
+after an outage, to the rate of the frames since if that is far above it. After a fall, a
+frame's own longer transmission at the rate measured is not read as queue.
 
 It reads, per stream that speaks for the link, its newest and least queueing and their slope and
 its frames' one-way delays; the packet pairs of the last ``window_s``; the frames lost. A pair,
@@ -43,6 +47,7 @@ from dbml.estimator.base import (
     SharedSettings,
     View,
     behind,
+    bunched,
     busy_rate_mbit,
     check_positive,
     check_shares,
@@ -165,6 +170,11 @@ class QueueDetector:
         """The last cut's reason, repeated in the holds that follow it."""
         self._why_provisional = ""
         """What the provisional cut read, for the cut that a fall measured makes of it."""
+        self._back_from_outage = False
+        """The link was down: once its backlog drained, the link it came back at is read once."""
+        self._straddle: tuple[float, float] | None = None
+        """(start, until) after a cut measured with the frame before the provisional cut: that
+        frame's pair may straddle the fall, so the frames after it measure the link again."""
         self._queued_provisional = True
         """It read a queue (not frames lost): frames that then cross unqueued undo it."""
         self._restore = False
@@ -177,8 +187,11 @@ class QueueDetector:
 
     def forget(self, stream: str | None) -> None:
         """The link went down (``None``): a provisional cut read the start of the outage."""
-        if stream is None and self._provisional_mbit is not None:
-            self._provisional_until = math.inf
+        if stream is None:
+            self._back_from_outage = True
+            self._straddle = None  # what arrives after an outage did not cross the fall
+            if self._provisional_mbit is not None:
+                self._provisional_until = math.inf
 
     def decide(self, view: View) -> Decision:
         """Cut on overuse once a cut could have acted; hold while it drains; increase."""
@@ -217,6 +230,17 @@ class QueueDetector:
             # crossed slower): the link carries again what it carried then.
             self._risen_mbit = self._fall[1]
             self._rose_back()
+        if self._back_from_outage:
+            # Back from an outage (its settle over): the frames since crossed behind one another
+            # at the rate the link came back at. A radio may come back far faster than it went:
+            # the estimate goes there at once, not at the pace of a probe from a rate the link
+            # no longer has. Far faster only: the pairs of frames TCP held read above the link.
+            self._back_from_outage = False
+            after = _returned_mbit(view, s.overuse_delay_s / 2, fastest, shared.window_s)
+            last = max(estimate, before_mbit or 0.0)
+            if after is not None and after >= _BACK_FASTER * last:
+                self._risen_mbit = after
+                self._rose_back()
         pairs = view.pairs(shared.window_s)
         measured = busy_rate_mbit(
             pairs, s.overuse_delay_s / 2, least=s.least_pairs, fastest_mbit=fastest
@@ -238,6 +262,9 @@ class QueueDetector:
         undone = self._settle_provisional(view, pairs)
         if undone is not None:
             return undone
+        remeasured = self._remeasure(view, pairs)
+        if remeasured is not None:
+            return remeasured
         # Near a rate the link was measured at (or rising to one), a frame may wait for one
         # frame of another stream to cross: that wait is the link's own pace, not a queue that
         # grows.
@@ -258,16 +285,10 @@ class QueueDetector:
         edge = near if near is not None else self._aged_mbit
         probing = edge is not None and estimate > edge
         trend = s.overuse_trend * (_PROBING_TREND if probing else 1.0)
-        overuse, standing = _overuse(
-            view,
-            s,
-            [size for *_, size in pairs],
-            pace_s,
-            waited,
-            trend=trend,
-            # probing, a frame crossing more slowly is taken for the queue it may be
-            slower=_none if probing else self._slower_s,
-        )
+        # probing, a frame crossing more slowly is taken for the queue it may be
+        slower = _none if probing else self._slower_s
+        sizes = [size for *_, size in pairs]
+        overuse, standing = _overuse(view, s, sizes, pace_s, waited, trend=trend, slower=slower)
         draining = bool(judged) and all(j.slope < -s.overuse_trend for j in judged)
         if overuse and view.now_s >= self._frozen_until:
             if not standing and link_mbit is not None and link_mbit >= s.headroom * estimate:
@@ -285,6 +306,7 @@ class QueueDetector:
                 # The cut is shallow: the same signal (a frame that waited) comes from a link at
                 # its own pace.
                 self._provisional_mbit = estimate
+                self._straddle = None
                 self._provisional_s = view.now_s
                 self._provisional_until = view.now_s + s.undo_s
                 self._frozen_until = view.now_s + shared.response_s
@@ -299,9 +321,18 @@ class QueueDetector:
             # Still draining, or the cut not yet seen.
             return Decision(Phase.HOLD, estimate, self._why_cut if self._why_cut else overuse)
         if self._restore and any(
-            j.latest_s > s.max_queue_delay_s and j.window[-1] in waited for j in judged
+            j.latest_s
+            > max(
+                s.max_queue_delay_s,
+                _other_frame_s(j, sizes, pace_s)
+                + (0.0 if probing else self._slower_s(j, newest=True)),
+            )
+            and j.window[-1] in waited
+            for j in judged
         ):
-            # Below the link's rate to drain a queue: a stream's newest frame still waited.
+            # Below the link's rate to drain a queue: a stream's newest frame still waited (more
+            # than a standing queue's, or than its own longer transmission on a slower link and
+            # one frame of another stream: 84 KB take 168 ms more at 2.87 Mbit/s than at 10.1).
             return Decision(Phase.HOLD, estimate, self._why_cut)
         if self._capacity_mbit is not None:
             # Drained: cruise at the link's rate the cut measured, not below it.
@@ -394,18 +425,56 @@ class QueueDetector:
                 Phase.INCREASE, max(view.estimate_mbit, before), f"provisional cut undone: {why}"
             )
         if measured is not None:
-            # A fall: the cut to the link's rate, now measured, at once.
+            # A fall: the cut to the link's rate, now measured, at once. Read with the frame
+            # before the cut, whose pair may straddle the fall: unless the first two frames after
+            # it came out together (a stall's gap, which starts at that frame), the frames after
+            # it measure the link again (``_remeasure``).
             self._provisional_mbit = None
-            return self._cut(view, measured, why=self._why_provisional)
+            cut = self._cut(view, measured, why=self._why_provisional)
+            if measured > 0 and _straddles(since, self._provisional_s, self.settings, fastest):
+                self._straddle = (self._provisional_s, view.now_s + self.settings.undo_s)
+            return cut
         if view.now_s >= self._provisional_until:
             # Nothing measured to undo it: it stands, and a queue may cut again.
             self._provisional_mbit = None
             self._frozen_until = min(self._frozen_until, view.now_s)
         return None
 
+    def _remeasure(self, view: View, pairs: list[Sample]) -> Decision | None:
+        """A cut measured from a pair that may straddle the fall, measured without it.
+
+        The frame that arrived before the provisional cut may have been sent just after the one
+        ahead of it arrived and crossed partly at the rate before the fall: the pair reads
+        faster than the link (5.71 Mbit/s on a 5-Mbit/s link's 4.79 of payload, recorded). The
+        cut does not wait for the frames after it (a retransmission's stall may hold them past
+        an outage's silence); once they measure a slower link, it goes down to theirs.
+        """
+        if self._straddle is None or self._provisional_mbit is not None:
+            return None
+        start_s, until_s = self._straddle
+        if view.now_s > until_s or self._capacity_mbit is None:
+            self._straddle = None
+            return None
+        fastest = _PLAUSIBLE * view.max_mbit
+        after = _after(pairs, start_s)
+        measured = busy_rate_mbit(
+            after, self.settings.overuse_delay_s / 2, least=_SETTLE_PAIRS, fastest_mbit=fastest
+        )
+        if measured is None:
+            return None
+        self._straddle = None
+        if not 0 < measured < _REMEASURED_SHARE * self._capacity_mbit:
+            return None
+        fall = self._fall
+        cut = self._cut(view, measured, why=f"{self._why_provisional}; measured after the fall")
+        if fall is not None:
+            self._fall = (fall[0], fall[1], measured)  # the same fall, now measured
+        return cut
+
     def _cut(self, view: View, capacity: float, *, why: str) -> Decision:
         """A cut to ``backoff`` of ``capacity`` less what drains the queue; then a freeze."""
         s, estimate = self.settings, view.estimate_mbit
+        self._straddle = None
         if capacity <= 0:
             return Decision(Phase.DECREASE, estimate, f"{why}; nothing received")
         # The queue grows no faster than what is offered (the estimate at most) exceeds what
@@ -442,8 +511,8 @@ class QueueDetector:
         self._rose = True
         self._fall = None
 
-    def _slower_s(self, judged: Judged) -> float:
-        """How much slower ``judged``'s largest frame crosses than when its least delay was met.
+    def _slower_s(self, judged: Judged, *, newest: bool = False) -> float:
+        """How much slower ``judged``'s largest (or ``newest``) frame crosses than at its least.
 
         A least delay met before the last fall was met on a link that carried at least the
         estimate then: since, the frame's own transmission takes longer at the rate measured,
@@ -453,9 +522,9 @@ class QueueDetector:
             return 0.0
         fall_s, before_mbit, after_mbit = self._fall
         least_t, _, _ = min(judged.samples, key=lambda sample: sample[1])
-        if least_t >= fall_s:
+        if least_t >= fall_s or after_mbit <= 0:
             return 0.0
-        own = max(size for *_, size in judged.samples)
+        own = judged.window[-1][2] if newest else max(size for *_, size in judged.samples)
         return own * 8e-6 * (1.0 / after_mbit - 1.0 / before_mbit)
 
 
@@ -489,15 +558,54 @@ _PROBING_TREND = 0.5
 """Above the rate a cut measured, a rising queue is read at this share of ``overuse_trend``."""
 _SINCE_CUT = 5
 """Packet pairs since a cut that may say the link rose (their median)."""
+_BACK_FASTER = 1.5
+"""After an outage, a link read this many times the estimate (and the rate last measured) came
+back faster. Frames TCP held read faster than the link: 6.75 Mbit/s on one that carried 4.79
+(recorded on the testbed's drop, an outage declared inside the fall's stall)."""
 _SETTLE_PAIRS = 2
 """Two pairs since a provisional cut settle it: one that spans a fade is slow, the median (the
 faster of two) is the link's."""
+_STRADDLE_FRAMES = 3
+"""The frame before the cut, the first after it and the next: a pair, and whether a stall's."""
+_REMEASURED_SHARE = 0.95
+"""Frames after a fall that read the link below this share of what its cut read cut again."""
 
 
 def _since(recent: list[Sample], start_s: float) -> list[Sample]:
     """The frames (in arrival order) that arrived after ``start_s``, and the one before them."""
     first = bisect.bisect_right(recent, (start_s, math.inf, 0))
     return recent[max(0, first - 1) :]
+
+
+def _after(recent: list[Sample], start_s: float) -> list[Sample]:
+    """The frames (in arrival order) that arrived after ``start_s``."""
+    return recent[bisect.bisect_right(recent, (start_s, math.inf, 0)) :]
+
+
+def _straddles(since: list[Sample], start_s: float, s: QueueSettings, fastest_mbit: float) -> bool:
+    """Whether ``since``'s first frame, before ``start_s``, read a pair with the next one.
+
+    Such a pair may straddle a fall. Not if the frames after it came out together: then it
+    starts the stall's reading, whose gap is the stall's own.
+    """
+    if len(since) < _STRADDLE_FRAMES:
+        return False
+    return (
+        since[0][0] <= start_s
+        and behind(since[0], since[1], s.overuse_delay_s / 2, fastest_mbit, same_instant=True)
+        and not bunched(since[1], since[2], fastest_mbit)
+    )
+
+
+def _returned_mbit(
+    view: View, queued_s: float, fastest_mbit: float, window_s: float
+) -> float | None:
+    """The link's rate since an outage: the median of its pairs, over a window at least."""
+    recent = view.recent
+    if not recent or recent[-1][0] - recent[0][0] < window_s:
+        return None
+    after = busy_rate_mbit(recent, queued_s, least=_SINCE_CUT, fastest_mbit=fastest_mbit)
+    return None if after is None else min(after, fastest_mbit)
 
 
 def _unqueued_since(view: View, start_s: float, queued_s: float, fastest_mbit: float) -> bool:
