@@ -95,7 +95,7 @@ class PhotoRobot:
     def at_least_min_fps(self) -> bool:
         """Allocated 10 Hz or more and delivered it (within the demo's tolerance)."""
         allocated = self.measured.allocated_hz or 0.0
-        return allocated >= MIN_FPS and self.measured.within_rate(floor_hz=RATE_TOLERANCE_HZ)
+        return allocated >= MIN_FPS and self.measured.followed_rate(floor_hz=RATE_TOLERANCE_HZ)
 
     @property
     def at_max_if_prioritised(self) -> bool:
@@ -103,7 +103,7 @@ class PhotoRobot:
         if self.priority <= 0:
             return True
         allocated = self.measured.allocated_hz or 0.0
-        return allocated >= MAX_RATE_HZ * (1 - 1e-6) and self.measured.within_rate(
+        return allocated >= MAX_RATE_HZ * (1 - 1e-6) and self.measured.followed_rate(
             floor_hz=RATE_TOLERANCE_HZ
         )
 

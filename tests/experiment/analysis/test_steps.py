@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from dbml.experiment.analysis import Tick, analyse
+from dbml.experiment.analysis import Tick, Window, analyse
 from tests.experiment.analysis.frames import stream
 
 
@@ -52,3 +52,29 @@ def test_a_rate_is_judged_against_the_allocations_in_force_over_its_window() -> 
     assert moved.within_rate()
     assert stayed.delivered_hz == pytest.approx(10.0, rel=1e-6)
     assert not stayed.within_rate()
+
+
+@pytest.mark.parametrize(
+    ("delivered_hz", "followed"),
+    [(15.51, True), (14.0, True), (16.5, True), (13.3, False), (17.2, False)],
+)
+def test_a_rate_that_moved_and_came_back_is_followed_between_its_mean_and_last(
+    delivered_hz: float, followed: bool
+) -> None:
+    """The photo demo's R2 in a CI run: last 16 Hz, 14.36 Hz on the ticks' mean, 15.51 delivered.
+
+    The ticks sample the allocation every 0.2 s and the publisher follows a reaction later, so
+    anything between the two is followed; 5 % beyond either is not.
+    """
+    window = Window(
+        "R2",
+        allocated_hz=16.0,
+        delivered_hz=delivered_hz,
+        latency_p50_ms=None,
+        latency_p95_ms=None,
+        lost=0,
+        goodput_mbit=0.0,
+        allocated_mean_hz=14.357,
+    )
+    assert window.followed_rate() is followed
+    assert not Window("R2", 16.0, 15.51, None, None, 0, 0.0, allocated_mean_hz=14.357).within_rate()

@@ -87,6 +87,22 @@ class Window:
         tolerance = max(RATE_TOLERANCE * allocated, floor_hz)
         return abs(self.delivered_hz - allocated) <= tolerance
 
+    def followed_rate(self, *, floor_hz: float = 0.0) -> bool:
+        """Delivered between the window's mean allocation and its last, within tolerance.
+
+        A rate that moved and came back within the window reached the publisher a reaction
+        after the operator's ticks (every ``TICK_S``) saw it, which sample it: a camera moved
+        from 16 Hz and back delivered 15.51 Hz where the ticks' mean was 14.36 (the photo demo,
+        a fresh-clone CI run). Looser than :meth:`within_rate`: a publisher that did not follow
+        a move that lasted (still at the rate before it, beyond both) fails.
+        """
+        last, mean = self.allocated_hz, self.allocated_mean_hz
+        if mean is None or not last:
+            return self.within_rate(floor_hz=floor_hz)
+        low, high = min(mean, last), max(mean, last)
+        tolerance = max(RATE_TOLERANCE * low, floor_hz)
+        return low - tolerance <= self.delivered_hz <= high + tolerance
+
 
 @dataclass(frozen=True, slots=True)
 class StepResult:
