@@ -236,7 +236,7 @@ class QueueDetector:
             # the estimate goes there at once, not at the pace of a probe from a rate the link
             # no longer has. Far faster only: the pairs of frames TCP held read above the link.
             self._back_from_outage = False
-            after = _returned_mbit(view, s.overuse_delay_s / 2, fastest, shared.window_s)
+            after = _median_pair_mbit(view.recent, s.overuse_delay_s / 2, fastest, shared.window_s)
             last = max(estimate, before_mbit or 0.0)
             if after is not None and after >= _BACK_FASTER * last:
                 self._risen_mbit = after
@@ -350,11 +350,7 @@ class QueueDetector:
             # a stall bunched arrive within milliseconds, often as the queue drains, and the
             # updates' readings repeat them while they are in the window.
             since_cut = _since(view.recent, max(self._capacity_s, self._drained_s))
-            faster = None
-            if since_cut and since_cut[-1][0] - since_cut[0][0] >= shared.window_s:
-                faster = busy_rate_mbit(since_cut, queued, least=_SINCE_CUT, fastest_mbit=fastest)
-            if faster is not None:
-                faster = min(faster, fastest)
+            faster = _median_pair_mbit(since_cut, queued, fastest, shared.window_s)
             if faster is not None and faster > s.near_band[1] * self._capacity_mbit:
                 self._capacity_mbit = faster
             elif view.now_s < self._cruise_until or estimate >= cruise:
@@ -597,15 +593,18 @@ def _straddles(since: list[Sample], start_s: float, s: QueueSettings, fastest_mb
     )
 
 
-def _returned_mbit(
-    view: View, queued_s: float, fastest_mbit: float, window_s: float
+def _median_pair_mbit(
+    frames: list[Sample], queued_s: float, fastest_mbit: float, window_s: float
 ) -> float | None:
-    """The link's rate since an outage: the median of its pairs, over a window at least."""
-    recent = view.recent
-    if not recent or recent[-1][0] - recent[0][0] < window_s:
+    """The median of ``_SINCE_CUT`` pairs or more among ``frames`` spanning ``window_s``.
+
+    Frames a stall bunched arrive within milliseconds and often all at once: a reading says
+    how fast the link is only over a window, each pair once (since a cut, or an outage).
+    """
+    if not frames or frames[-1][0] - frames[0][0] < window_s:
         return None
-    after = busy_rate_mbit(recent, queued_s, least=_SINCE_CUT, fastest_mbit=fastest_mbit)
-    return None if after is None else min(after, fastest_mbit)
+    rate = busy_rate_mbit(frames, queued_s, least=_SINCE_CUT, fastest_mbit=fastest_mbit)
+    return None if rate is None else min(rate, fastest_mbit)
 
 
 def _unqueued_since(view: View, start_s: float, queued_s: float, fastest_mbit: float) -> bool:
