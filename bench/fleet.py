@@ -146,9 +146,9 @@ DRAWS = 1000
 """Bound on the random draws looking for a priority change that changes the allocation."""
 SEED = 1
 PERIOD_S = 1.0
+"""The optimizer's period in the runs' config (``optimization_rate_in_seconds``)."""
 HEARTBEATS_KEPT = 10_000
 """Each robot keeps the delays of at most this many heartbeats (a run hears a few hundred)."""
-"""The optimizer's period in the runs' config (``optimization_rate_in_seconds``)."""
 
 RATE_TOL = 0.02
 CONVERGE_S = 60.0

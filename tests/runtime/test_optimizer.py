@@ -505,6 +505,41 @@ def test_a_forged_publisher_on_the_operators_host_changes_nothing() -> None:
     assert fleet.rates() == allocated
 
 
+def test_a_burst_of_triggered_rounds_writes_the_heartbeat_once_a_half_period() -> None:
+    """The heartbeat wakes every robot: the rounds a burst of changes brings do not all carry it.
+
+    A periodic round always does; the publishers' fail-safe waits three periods.
+    """
+    fleet = two_robots()
+    fleet.watch(R1)
+    fleet.watch(R2)
+    beats: list[ParamValue] = []
+    fleet.host("r1").params.watch(lambda n, v: beats.append(v) if n == names.ROUND else None)
+    fleet.priority(R1, 1.0)
+    optimizer = fleet.optimizer
+    optimizer._round()  # the first is periodic
+    assert len(beats) == 1
+    writes = rate_writes(fleet)
+    for step in range(4):  # a change every 0.1 s: a round each, 0.1-0.4 s after the heartbeat
+        fleet.advance(0.1)
+        fleet.priority(R2, 0.2 * (step + 1))
+        optimizer._round()
+    assert len(writes) == 8  # each change was pushed at once, both robots' rates
+    assert len(beats) == 1
+    fleet.advance(0.15)  # past half a period since the heartbeat
+    fleet.priority(R2, 1.0)
+    optimizer._round()
+    assert len(beats) == 2
+    fleet.advance(0.3)  # 0.3 s since it
+    fleet.priority(R2, 0.1)
+    optimizer._round()
+    assert len(beats) == 2
+    fleet.advance(1.0)  # a period since the last round: due, whatever the last heartbeat
+    optimizer._round()
+    assert len(beats) == 3
+    fleet.close()
+
+
 def test_a_publisher_seen_without_its_parameters_is_asked_again_once_a_period() -> None:
     """Its bounds' writes went out before a route to the optimizer existed: ask its process."""
     network = MemoryNetwork()

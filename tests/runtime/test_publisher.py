@@ -289,6 +289,36 @@ def test_a_slow_rate_between_two_frames_is_not_said_as_a_stop(
     assert written[-1] == pytest.approx(0.6, abs=0.2)
 
 
+def test_a_steady_rate_is_not_said_again_wherever_the_heartbeat_falls_between_frames(
+    network: MemoryNetwork, clock: ManualClock
+) -> None:
+    """4 Hz with heartbeats a second apart, each just after or just before a frame.
+
+    A span then holds 3 to 5 frames by phase alone; a fleet would rewrite every rate each period.
+    """
+    publisher, optimizer, _written = sent_rates(network, clock)
+    optimizer.set(names.current_value("/r1/camera"), 4.0)
+    written: list[float] = []
+    optimizer.watch(
+        lambda name, value: (
+            written.append(value)  # type: ignore[arg-type]
+            if name == names.sent("/r1/camera")
+            else None
+        )
+    )
+    start = clock()
+    beats = [1.001, 1.999, 3.001, 3.999, 5.001, 5.999, 7.001]  # after, before, after, ...
+    frame = 0
+    for k, beat in enumerate(beats):
+        while start + 0.25 * (frame + 1) <= start + beat:
+            frame += 1
+            clock.advance(start + 0.25 * frame - clock())
+            assert publisher.publish(b"x")
+        clock.advance(start + beat - clock())
+        optimizer.set(names.ROUND, float(k))
+    assert written == [pytest.approx(4.0)]  # said once, at the second heartbeat
+
+
 def test_says_the_rate_it_sent_when_it_moves_or_stops(
     network: MemoryNetwork, clock: ManualClock
 ) -> None:

@@ -98,6 +98,13 @@ STEP_SHARE = 0.5
 """A rise that does not fit yet goes part of the way, once, when the room made covers this share
 of it (and its minimum): a channel raised at the cost of many others then moves when most of
 their cuts are applied, not when the slowest is; the rest follows when it fits."""
+BEAT_SPACING = 0.5
+"""A triggered round writes the heartbeat only once this share of a period has passed since the
+last one; a periodic round always does. The heartbeat goes to every robot, and each robot's
+publishers wake for it: a burst of changes (a fleet joining, priorities moving) would otherwise
+wake the whole fleet on every round it brings, a cost per change that grows with the fleet. The
+publishers' fail-safe waits ``FAILSAFE_PERIODS`` (3) periods; the heartbeats stay at most 1.5
+apart."""
 COALESCE_S = 0.002
 """Triggers within this time of the first run one round."""
 REPORT_INTERVAL_S = 0.1
@@ -337,6 +344,10 @@ class OptimizerNode:
         self._summary: tuple[frozenset[GraphEntry], GraphSummary] | None = None
         """The graph's entries as last summarized, and their summary."""
         self._rounds = 0
+        self._beat = True
+        """Whether the next round writes the heartbeat (``_round`` decides; a direct call does)."""
+        self._beat_s = -math.inf
+        """When the heartbeat was last written."""
         self._incomplete_since: dict[str, float] = {}
         self._asked: dict[str, float] = {}
         """Publishers seen without parameters: since when, and when they were last asked.
@@ -407,6 +418,7 @@ class OptimizerNode:
             self.admit()
             return
         self._poked.clear()
+        self._beat = now >= self._due_s or now - self._beat_s >= BEAT_SPACING * period_s
         self._due_s = now + period_s  # a round that raises is retried a period later
         if self._resumed.is_set():
             self._resumed.clear()
@@ -414,7 +426,10 @@ class OptimizerNode:
             self._pushed_at = {}
             self._ledger.clear()
             self._waiting = None
-        self.optimize()  # looked up per round, so a wrapped ``optimize`` is the one that runs
+        try:
+            self.optimize()  # looked up per round, so a wrapped ``optimize`` is the one that runs
+        finally:
+            self._beat = True
         self._due_s = self._transport.now() + period_s
 
     # -- pausing (a lifecycle's inactive state) -----------------------------------------------
@@ -775,7 +790,9 @@ class OptimizerNode:
         writes: _Writes = {t: _writes(t, w) for t, w in pushed.items()}
         for key, values in updates.items():
             writes[key] = writes.get(key, {}) | values
-        writes[None] = writes.get(None, {}) | {names.ROUND: self._rounds}
+        if self._beat:
+            writes[None] = writes.get(None, {}) | {names.ROUND: self._rounds}
+            self._beat_s = now
         self._own(going)
         self._send(writes, channels)
         self._pushed_at.update(dict.fromkeys(pushed, now))

@@ -28,6 +28,7 @@ import logging
 import math
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 
 from dbml.core.errors import TransportError
@@ -72,10 +73,10 @@ __all__ = [
     "LINK_SILENCE_S",
     "OWED_WINDOW_S",
     "PROBE_INTERVAL_S",
-    "SENT_ALIVE_FRAMES",
     "SENT_CHANGE",
     "SENT_SPAN_PERIODS",
     "SENT_STALL_INTERVALS",
+    "SENT_TIMES_KEPT",
     "SIZE_CHANGE",
     "ManagedPublisher",
     "silent_too_long",
@@ -91,8 +92,9 @@ SENT_CHANGE = 0.1
 writes nothing, a driver that stops is said at the next heartbeat."""
 SENT_STALL_INTERVALS = 2.0
 """A source silent this many of its mean intervals at a heartbeat is said to send nothing."""
-SENT_ALIVE_FRAMES = 3
-"""From this many frames in a span, the rate while the source ran is timed to its last one."""
+SENT_TIMES_KEPT = 64
+"""The sent rate is timed over at most this many of the latest messages (a 1-s span at 64 Hz):
+a rate over whole intervals between messages needs their times, not only their count."""
 SENT_SPAN_PERIODS = 0.9
 """The sent rate is measured over at least this much of the optimizer's period."""
 
@@ -201,6 +203,8 @@ class ManagedPublisher:
         self._beacon_warned = False
         self._sent_mark: tuple[float, int] | None = None
         """(time, messages sent) at the last heartbeat: the sent rate is measured between two."""
+        self._sent_times: deque[float] = deque(maxlen=SENT_TIMES_KEPT)
+        """When the latest messages went on ``[topic]/optimized``."""
         self._sent_said: float | None = None
         self._sent_s = -math.inf
         """When the last message went on ``[topic]/optimized``."""
@@ -324,6 +328,7 @@ class ManagedPublisher:
         """
         with self._lock:
             sent, last_s = self._optimized_seq, self._sent_s
+            times = tuple(self._sent_times)
             period_s = self._allocation.period_s
             limit_hz = self._limiter.rate_hz
 
@@ -344,11 +349,16 @@ class ManagedPublisher:
                 # Silent, but not too long for the rate it said (above): a slow rate between two
                 # frames (a cut to 0.6 Hz leaves 1-s spans empty), not a stop. The span goes on.
                 return
-            rate = min(frames / (now - mark[0]), MAX_RATE_HZ)
-            # Judged at the rate it ran while it ran: a driver that died early in the span
-            # sent a few frames at its own rate, not a few over the whole span.
-            trusted = frames >= SENT_ALIVE_FRAMES and last_s > mark[0]
-            alive_hz = frames / (last_s - mark[0]) if trusted else rate
+            within = [t for t in times if t > mark[0]]
+            if len(within) > 1 and within[-1] > within[0]:
+                # Timed from its first frame in the span to its last, whole intervals only:
+                # where the heartbeat falls between two frames does not count (4 Hz over a 1-s
+                # span is 3, 4 or 5 frames by phase alone, and a steady fleet would rewrite its
+                # rates every period). It is the rate while it ran.
+                rate = alive_hz = (len(within) - 1) / (within[-1] - within[0])
+            else:
+                rate = alive_hz = frames / (now - mark[0])
+            rate = min(rate, MAX_RATE_HZ)
             if rate > 0 and stalled(alive_hz):
                 rate = 0.0
         self._sent_mark = (now, sent)
@@ -536,6 +546,7 @@ class ManagedPublisher:
         """The sequence number of a message on ``[topic]/optimized`` that goes at ``now``."""
         self._optimized_seq += 1
         self._sent_s = now
+        self._sent_times.append(now)
         return self._optimized_seq
 
     # -- transport class ----------------------------------------------------------------------
